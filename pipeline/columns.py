@@ -1,0 +1,15 @@
+"""Column names: the one source for every table the stages pass along (DATA_FORMAT.md)."""
+
+JOINTS_DEG = [f"j{i}_deg" for i in range(1, 7)]          # recorded joint angles, degrees
+MEAS = ["meas_x", "meas_y", "meas_z"]                     # measured marker position, mm
+THEORY = ["theory_x", "theory_y", "theory_z"]             # nominal DH + tool, base frame, mm
+ERR = ["err_x", "err_y", "err_z"]                         # meas - theory, base frame, mm
+PRED = ["pred_x", "pred_y", "pred_z"]                     # model prediction, base frame, mm
+AXES = ["x", "y", "z"]
+
+# reports/compensation.csv (DATA_FORMAT.md: names are a contract)
+DJ_DEG = [f"dj{i}_deg" for i in range(1, 7)]
+JCOMP_DEG = [f"j{i}_comp_deg" for i in range(1, 7)]
+TARGET = ["target_x", "target_y", "target_z"]
+COMPENSATION = (["point_id"] + JOINTS_DEG + DJ_DEG + JCOMP_DEG + TARGET + PRED
+                + ["residual_mm", "iterations", "converged"])

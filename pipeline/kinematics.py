@@ -1,0 +1,115 @@
+"""Forward kinematics as differentiable torch code (the physics branch, eq. 1).
+
+One pure function, `fk`, takes joint angles and a geometry (a dict of tensors)
+and returns flange/marker positions. `DHChain` wraps a geometry as an
+nn.Module so BoTER can carry it; calibration differentiates `fk` with respect
+to the geometry, compensation with respect to the joint angles.
+
+Geometry keys (all float64 tensors):
+    d, a, alpha, offset   (6,)  standard DH, mm / rad
+    beta                  (6,)  extra Ry(beta) after joint i's DH transform: the
+                                parallel-axis tilt (Hayati) standard DH cannot express
+    tool                  (3,)  marker offset in the flange frame, mm
+    base                  (6,)  small base-frame correction [rx, ry, rz (rad), tx, ty, tz (mm)]
+"""
+import numpy as np
+import torch
+from torch import nn
+
+from .robots import Robot
+
+DTYPE = torch.float64
+GEOMETRY_KEYS = ("d", "a", "alpha", "offset", "beta", "tool", "base")
+
+
+def nominal_geometry(robot: Robot) -> dict:
+    """Geometry dict (float64 tensors) of the robot's nominal table and tool."""
+    t = lambda v: torch.as_tensor(np.asarray(v, dtype=float), dtype=DTYPE)
+    return {"d": t(robot.d), "a": t(robot.a), "alpha": t(robot.alpha),
+            "offset": t(robot.offset), "beta": torch.zeros(6, dtype=DTYPE),
+            "tool": t(robot.tool), "base": torch.zeros(6, dtype=DTYPE)}
+
+
+def rotation_xyz(r: torch.Tensor) -> torch.Tensor:
+    """Rotation matrix Rz(rz) Ry(ry) Rx(rx) from r = (..., 3) [rx, ry, rz] (rad) -> (..., 3, 3)."""
+    cx, cy, cz = torch.cos(r).unbind(-1)
+    sx, sy, sz = torch.sin(r).unbind(-1)
+    return torch.stack([
+        torch.stack([cz * cy, cz * sy * sx - sz * cx, cz * sy * cx + sz * sx], -1),
+        torch.stack([sz * cy, sz * sy * sx + cz * cx, sz * sy * cx - cz * sx], -1),
+        torch.stack([-sy, cy * sx, cy * cx], -1),
+    ], -2)
+
+
+def dh_matrices(q: torch.Tensor, g: dict) -> torch.Tensor:
+    """Per-joint transforms T_i = Rz(q+offset) Tz(d) Tx(a) Rx(alpha) Ry(beta).
+
+    q: (B, 6) rad -> (B, 6, 4, 4)
+    """
+    th = q + g["offset"]                                  # (B, 6)
+    ct, st = torch.cos(th), torch.sin(th)
+    ca, sa = torch.cos(g["alpha"]), torch.sin(g["alpha"])  # (6,)
+    cb, sb = torch.cos(g["beta"]), torch.sin(g["beta"])
+    d, a = g["d"].expand_as(th), g["a"]
+    zero, one = torch.zeros_like(th), torch.ones_like(th)
+    # Rz Tz Tx Rx (closed form), then times Ry(beta): columns x, y, z of the rotation
+    r00, r01, r02 = ct, -st * ca, st * sa
+    r10, r11, r12 = st, ct * ca, -ct * sa
+    r20, r21, r22 = zero, sa.expand_as(th), ca.expand_as(th)
+    # R @ Ry(beta): new x = cb*x - sb*z, new z = sb*x + cb*z
+    x0, x1, x2 = cb * r00 - sb * r02, cb * r10 - sb * r12, cb * r20 - sb * r22
+    z0, z1, z2 = sb * r00 + cb * r02, sb * r10 + cb * r12, sb * r20 + cb * r22
+    rows = [
+        torch.stack([x0, r01, z0, a * ct], -1),
+        torch.stack([x1, r11, z1, a * st], -1),
+        torch.stack([x2, r21, z2, d], -1),
+        torch.stack([zero, zero, zero, one], -1),
+    ]
+    return torch.stack(rows, -2)                           # (B, 6, 4, 4)
+
+
+def fk_poses(q: torch.Tensor, g: dict) -> torch.Tensor:
+    """Flange poses in the base frame, (B, 6) rad -> (B, 4, 4) (no tool, no base correction)."""
+    T = dh_matrices(q, g)
+    out = T[:, 0]
+    for i in range(1, 6):
+        out = out @ T[:, i]
+    return out
+
+
+def fk(q: torch.Tensor, g: dict) -> torch.Tensor:
+    """Marker position in the base frame (mm): (B, 6) rad -> (B, 3).
+
+    p = R_base (R_flange tool + t_flange) + t_base
+    """
+    T = fk_poses(q, g)
+    p = T[:, :3, :3] @ g["tool"] + T[:, :3, 3]             # (B, 3)
+    Rb = rotation_xyz(g["base"][:3])
+    return p @ Rb.T + g["base"][3:]
+
+
+def fk_numpy(q_deg: np.ndarray, robot: Robot, geometry: dict | None = None) -> np.ndarray:
+    """Convenience: joint angles in degrees (n, 6) -> positions (n, 3) mm, numpy in and out."""
+    g = geometry if geometry is not None else nominal_geometry(robot)
+    q = torch.as_tensor(np.radians(np.asarray(q_deg, dtype=float)), dtype=DTYPE)
+    with torch.no_grad():
+        return fk(q, g).numpy()
+
+
+class DHChain(nn.Module):
+    """The physics branch: a geometry held as buffers (frozen) or parameters (trainable)."""
+
+    def __init__(self, geometry: dict, trainable: bool = False):
+        super().__init__()
+        for k in GEOMETRY_KEYS:
+            v = torch.as_tensor(geometry[k], dtype=DTYPE).clone()
+            if trainable:
+                self.register_parameter(k, nn.Parameter(v))
+            else:
+                self.register_buffer(k, v)
+
+    def geometry(self) -> dict:
+        return {k: getattr(self, k) for k in GEOMETRY_KEYS}
+
+    def forward(self, q: torch.Tensor) -> torch.Tensor:   # (B, 6) rad -> (B, 3) mm
+        return fk(q, self.geometry())

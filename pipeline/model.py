@@ -1,0 +1,151 @@
+"""BoTER (sec. 2.1): physics branch + joint-token Transformer, fused as p = p_theory + α·Δp.
+
+    q (B, 6) rad ──► DHChain ───────────────────────────────► p_theory (B, 3)
+          └────► JointEmbedding (B, 6, d) ► Encoder(mask) ► Head ► Δp (B, 3)
+    p_pred = p_theory + α·Δp                                      (eq. 9)
+
+The physics branch runs in float64 (positions ~1 m, wanted to 1e-3 mm); the
+network in float32 (it only learns the ~1 mm error, and float32 trains 1.6x
+faster on CPU); the fusion is float64.
+
+Also the paper's DNN baseline (an MLP from joint angles to the position error).
+"""
+import torch
+from torch import nn
+
+from .kinematics import DTYPE, DHChain
+
+# eq. 4, row i = query joint i, True = may not attend (SPEC.md)
+SPI_MASK = [[0, 0, 0, 0, 0, 0],
+            [0, 0, 0, 0, 0, 0],
+            [0, 0, 0, 0, 0, 0],
+            [1, 1, 0, 0, 0, 0],
+            [1, 1, 1, 0, 0, 0],
+            [1, 1, 1, 0, 0, 0]]
+# eq. 43 as printed, the Body-Transformer mask: each joint sees itself and its
+# chain neighbours (SPEC.md words it "within 2 hops"; the printed matrix stands)
+BODY_MASK = [[0, 0, 1, 1, 1, 1],
+             [0, 0, 0, 1, 1, 1],
+             [1, 0, 0, 0, 1, 1],
+             [1, 1, 0, 0, 0, 1],
+             [1, 1, 1, 0, 0, 0],
+             [1, 1, 1, 1, 0, 0]]
+MASKS = {"spi": SPI_MASK, "body": BODY_MASK, "none": None}
+HEADS = ("resnet", "linear")
+
+
+def attention_mask(kind: str) -> torch.Tensor | None:
+    """The 6x6 bool attention mask (True = masked) of `model.mask`, or None."""
+    if kind not in MASKS:
+        raise ValueError(f"params.yaml model.mask: unknown mask {kind!r}; use one of {sorted(MASKS)}")
+    m = MASKS[kind]
+    return None if m is None else torch.tensor(m, dtype=torch.bool)
+
+
+def check_config(cfg: dict) -> None:
+    """Stop before training on a combination that cannot work, with a clear message."""
+    attention_mask(cfg["mask"])
+    if cfg["head"] not in HEADS:
+        raise ValueError(f"params.yaml model.head: unknown head {cfg['head']!r}; use one of {HEADS}")
+    for k in ("d_model", "n_layer", "n_head", "d_hidden"):
+        if not isinstance(cfg[k], int) or cfg[k] < 1:
+            raise ValueError(f"params.yaml model.{k} must be a positive integer, got {cfg[k]!r}")
+    if cfg["d_model"] % cfg["n_head"]:
+        raise ValueError(f"params.yaml model: n_head={cfg['n_head']} does not divide "
+                         f"d_model={cfg['d_model']} (multi-head attention splits d_model "
+                         f"into n_head equal parts); e.g. d_model=126 with n_head 2, 3, 6, 7, 9, 14")
+    if cfg.get("physics", "nominal") not in ("nominal", "calibrated"):
+        raise ValueError(f"params.yaml model.physics: {cfg['physics']!r}; use nominal or calibrated")
+
+
+class JointEmbedding(nn.Module):
+    """Eq. 2: an independent Linear(1, d_model) + ReLU per joint, all six applied at once."""
+
+    def __init__(self, d_model: int):
+        super().__init__()
+        # six Linear(1, d) layers stored side by side: weight[i] is joint i's layer
+        self.weight = nn.Parameter(torch.empty(6, d_model))
+        self.bias = nn.Parameter(torch.empty(6, d_model))
+        bound = 1.0  # nn.Linear's default init for fan_in = 1: U(-1/sqrt(1), 1/sqrt(1))
+        nn.init.uniform_(self.weight, -bound, bound)
+        nn.init.uniform_(self.bias, -bound, bound)
+
+    def forward(self, q):                                  # (B, 6) -> (B, 6, d)
+        return torch.relu(q.unsqueeze(-1) * self.weight + self.bias)
+
+
+class ResidualHead(nn.Module):
+    """Eqs. 7-8: a = ReLU(L1 x); b = L2 a; r = Ls x; z = ReLU(b + r); Δp = Lo z.
+
+    With shortcut=False (the "No ResNet" ablation) the same layers without Ls:
+    z = ReLU(L2 a).
+    """
+
+    def __init__(self, d_in: int, d_hidden: int, shortcut: bool = True):
+        super().__init__()
+        self.l1, self.l2 = nn.Linear(d_in, d_hidden), nn.Linear(d_hidden, d_hidden)
+        self.ls = nn.Linear(d_in, d_hidden) if shortcut else None
+        self.out = nn.Linear(d_hidden, 3)
+
+    def forward(self, x):                                  # (B, d_in) -> (B, 3)
+        b = self.l2(torch.relu(self.l1(x)))
+        z = torch.relu(b + self.ls(x)) if self.ls is not None else torch.relu(b)
+        return self.out(z)
+
+
+class BoTER(nn.Module):
+    def __init__(self, geometry: dict, d_model=126, n_layer=4, n_head=9, d_hidden=512,
+                 mask="spi", head="resnet", encoder=True, alpha0=0.1, dropout=0.1, **_):
+        super().__init__()
+        self.physics = DHChain(geometry)
+        self.embed = JointEmbedding(d_model)
+        self.register_buffer("mask", attention_mask(mask), persistent=False)
+        self.encoder = nn.TransformerEncoder(
+            nn.TransformerEncoderLayer(d_model, n_head, 4 * d_model, dropout, batch_first=True),
+            n_layer, enable_nested_tensor=False) if encoder else None
+        self.head = ResidualHead(6 * d_model, d_hidden, shortcut=(head == "resnet"))
+        self.alpha = nn.Parameter(torch.tensor(float(alpha0)))   # eq. 9, trainable
+
+    def delta(self, q):                                    # (B, 6) rad -> α·Δp (B, 3), float64
+        x = self.embed(q.float())                          # (B, 6, d)
+        if self.encoder is not None:
+            x = self.encoder(x, mask=self.mask)            # (B, 6, d)
+        return (self.alpha * self.head(x.flatten(1))).to(DTYPE)   # (B, 6d) -> (B, 3)
+
+    def forward(self, q):
+        """q (B, 6) rad -> (p_pred, p_theory), both (B, 3) mm in the base frame."""
+        p_theory = self.physics(q)
+        return p_theory + self.delta(q), p_theory
+
+    @torch.no_grad()
+    def attention_maps(self, q) -> torch.Tensor:
+        """Attention weights per layer and head: (n_layer, B, n_head, 6, 6)."""
+        x, maps = self.embed(q.float()), []
+        for layer in self.encoder.layers:
+            _, w = layer.self_attn(x, x, x, attn_mask=self.mask, need_weights=True,
+                                   average_attn_weights=False)
+            maps.append(w)
+            x = layer(x, src_mask=self.mask)
+        return torch.stack(maps)
+
+
+class DNN(nn.Module):
+    """The paper's DNN baseline: an MLP from joint angles (rad) to the position error."""
+
+    def __init__(self, geometry: dict, widths=(128, 128, 128)):
+        super().__init__()
+        self.physics = DHChain(geometry)
+        layers, d = [], 6
+        for w in widths:
+            layers += [nn.Linear(d, w), nn.ReLU()]
+            d = w
+        self.mlp = nn.Sequential(*layers, nn.Linear(d, 3))
+
+    def forward(self, q):
+        p_theory = self.physics(q)
+        return p_theory + self.mlp(q.float()).to(DTYPE), p_theory
+
+
+def n_params(model: nn.Module) -> int:
+    return sum(p.numel() for p in model.parameters() if p.requires_grad)
+

@@ -1,0 +1,87 @@
+"""Robot models as data: the one source of every DH table and joint limit.
+
+Standard DH (paper eq. 1, SPEC.md stage 3), per joint i:
+    T_i = Rz(theta_i + offset_i) Tz(d_i) Tx(a_i) Rx(alpha_i)
+Lengths in mm, angles in rad. The physics branch, the twin, calibration and
+compensation all build their chains from `load_robot(params["robot"])`.
+"""
+from dataclasses import dataclass, field
+
+import numpy as np
+
+PI2 = np.pi / 2
+
+# CB3 nominal tables (SPEC.md). Joint limits are the controller's software
+# limits (±360° on every UR joint).
+TABLES = {
+    "ur5": dict(
+        d=[89.159, 0.0, 0.0, 109.15, 94.65, 82.3],
+        a=[0.0, -425.0, -392.25, 0.0, 0.0, 0.0],
+        alpha=[PI2, 0.0, 0.0, PI2, -PI2, 0.0],
+        limits_deg=[[-360.0, 360.0]] * 6,
+    ),
+    "ur10": dict(
+        d=[127.3, 0.0, 0.0, 163.941, 115.7, 92.2],
+        a=[0.0, -612.0, -572.3, 0.0, 0.0, 0.0],
+        alpha=[PI2, 0.0, 0.0, PI2, -PI2, 0.0],
+        limits_deg=[[-360.0, 360.0]] * 6,
+    ),
+}
+
+
+@dataclass
+class Robot:
+    """A six-joint arm: nominal standard-DH table, joint limits, tool (marker) offset."""
+    name: str
+    d: np.ndarray                 # (6,) mm
+    a: np.ndarray                 # (6,) mm
+    alpha: np.ndarray             # (6,) rad
+    offset: np.ndarray            # (6,) rad, joint zero offsets
+    limits_deg: np.ndarray        # (6, 2) min, max
+    tool: np.ndarray = field(default_factory=lambda: np.zeros(3))  # (3,) mm, in the flange frame
+
+    @property
+    def reach(self) -> float:
+        """Rough reach (mm): sum of link lengths, for sanity checks on scale."""
+        return float(np.abs(self.a).sum() + np.abs(self.d).sum())
+
+    def check_joints(self, q_deg: np.ndarray) -> np.ndarray:
+        """Bool mask (n, 6): True where a joint angle lies outside its limits."""
+        lo, hi = self.limits_deg[:, 0], self.limits_deg[:, 1]
+        return (q_deg < lo) | (q_deg > hi)
+
+
+def load_robot(cfg: dict) -> Robot:
+    """Build a Robot from the `robot:` section of params.yaml.
+
+    cfg = {"model": "ur5" | "ur10" | "custom",
+           "dh": {"d": [...], "a": [...], "alpha_deg": [...], "offset_deg": [...]}  (custom only),
+           "joint_limits_deg": [[lo, hi]] * 6 or null,
+           "tool_mm": [x, y, z]}
+    """
+    name = cfg.get("model", "ur5")
+    if name == "custom":
+        dh = cfg.get("dh") or {}
+        missing = [k for k in ("d", "a", "alpha_deg") if k not in dh]
+        if missing:
+            raise ValueError(f"params.yaml robot.dh: custom robot needs {missing}")
+        table = dict(d=dh["d"], a=dh["a"], alpha=np.radians(dh["alpha_deg"]),
+                     offset=np.radians(dh.get("offset_deg", [0.0] * 6)),
+                     limits_deg=[[-360.0, 360.0]] * 6)
+    elif name in TABLES:
+        table = dict(TABLES[name], offset=[0.0] * 6)
+    else:
+        raise ValueError(f"params.yaml robot.model: unknown robot {name!r}; "
+                         f"use one of {sorted(TABLES)} or 'custom'")
+    if cfg.get("joint_limits_deg") is not None:
+        table["limits_deg"] = cfg["joint_limits_deg"]
+    arr = {k: np.asarray(v, dtype=float) for k, v in table.items()}
+    for k in ("d", "a", "alpha", "offset"):
+        if arr[k].shape != (6,):
+            raise ValueError(f"params.yaml robot: {k} must have 6 entries, got {arr[k].shape}")
+    if arr["limits_deg"].shape != (6, 2):
+        raise ValueError("params.yaml robot.joint_limits_deg must be 6 pairs [min, max]")
+    tool = np.asarray(cfg.get("tool_mm", [0.0, 0.0, 0.0]), dtype=float)
+    if tool.shape != (3,):
+        raise ValueError("params.yaml robot.tool_mm must be [x, y, z] in mm")
+    return Robot(name=name, tool=tool, **arr)

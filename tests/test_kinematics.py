@@ -1,0 +1,66 @@
+"""Forward kinematics of the nominal UR5/UR10 at poses checked by hand."""
+import numpy as np
+import pytest
+import torch
+
+from pipeline.kinematics import DHChain, fk, fk_numpy, nominal_geometry
+from pipeline.robots import load_robot
+
+UR5 = load_robot({"model": "ur5"})
+
+# Worked by hand from the table d = 89.159, 0, 0, 109.15, 94.65, 82.3; a = 0, -425, -392.25, 0, 0, 0:
+#  zero pose: x = a2 + a3, y = -(d4 + d6), z = d1 - d5
+#  q2 = -90°: joints 2-4 rotate +90° about base y: a2 + a3 point up, d5 points along -x
+#  q2 = q4 = -90°: arm straight up, d5 along +z
+#  q1 = 90°: the zero pose turned 90° about z: (x, y) -> (-y, x)
+HAND_CHECKED = [
+    ([0, 0, 0, 0, 0, 0], [-817.25, -191.45, 89.159 - 94.65]),
+    ([0, -90, 0, 0, 0, 0], [-94.65, -191.45, 89.159 + 817.25]),
+    ([0, -90, 0, -90, 0, 0], [0.0, -191.45, 89.159 + 817.25 + 94.65]),
+    ([90, 0, 0, 0, 0, 0], [191.45, -817.25, 89.159 - 94.65]),
+]
+
+
+@pytest.mark.parametrize("q_deg, expected", HAND_CHECKED)
+def test_ur5_fk_hand_checked(q_deg, expected):
+    np.testing.assert_allclose(fk_numpy(np.array([q_deg]), UR5)[0], expected, atol=1e-9)
+
+
+def test_ur10_zero_pose():
+    ur10 = load_robot({"model": "ur10"})
+    np.testing.assert_allclose(fk_numpy(np.zeros((1, 6)), ur10)[0],
+                               [-612 - 572.3, -(163.941 + 92.2), 127.3 - 115.7], atol=1e-9)
+
+
+def test_tool_offset_follows_the_flange():
+    # zero pose: flange z axis is base -y, flange x is base -x (checked by hand: R = Rx(π/2)·Rx(π/2)·Rx(-π/2))
+    tool = load_robot({"model": "ur5", "tool_mm": [0, 0, 100]})
+    p0, p1 = fk_numpy(np.zeros((1, 6)), UR5)[0], fk_numpy(np.zeros((1, 6)), tool)[0]
+    np.testing.assert_allclose(p1 - p0, [0, -100, 0], atol=1e-9)
+
+
+def test_joint_six_does_not_move_the_flange_centre():
+    q = np.array([[10, -60, 40, -80, 30, 0], [10, -60, 40, -80, 30, 123]], float)
+    p = fk_numpy(q, UR5)
+    np.testing.assert_allclose(p[0], p[1], atol=1e-9)
+
+
+def test_chain_is_differentiable_in_joints_and_geometry():
+    g = {k: v.clone().requires_grad_(True) for k, v in nominal_geometry(UR5).items()}
+    q = torch.zeros(1, 6, dtype=torch.float64, requires_grad=True)
+    fk(q, g)[0, 2].backward()
+    # dz/dd1 = 1 exactly; z at zero pose does not depend on joint 1's angle
+    assert g["d"].grad[0].item() == pytest.approx(1.0)
+    assert q.grad[0, 0].item() == pytest.approx(0.0, abs=1e-12)
+    chain = DHChain(nominal_geometry(UR5))
+    assert not any(p.requires_grad for p in chain.parameters())
+
+
+def test_custom_robot_and_bad_tables():
+    custom = load_robot({"model": "custom", "dh": {"d": list(UR5.d), "a": list(UR5.a),
+                                                    "alpha_deg": [90, 0, 0, 90, -90, 0]}})
+    np.testing.assert_allclose(fk_numpy(np.zeros((1, 6)), custom), fk_numpy(np.zeros((1, 6)), UR5))
+    with pytest.raises(ValueError, match="unknown robot 'ur3'"):
+        load_robot({"model": "ur3"})
+    with pytest.raises(ValueError, match=r"custom robot needs \['alpha_deg'\]"):
+        load_robot({"model": "custom", "dh": {"d": [0] * 6, "a": [0] * 6}})

@@ -1,0 +1,40 @@
+"""Metrics against a hand computation (eqs. 27-42)."""
+import math
+
+import numpy as np
+import pytest
+
+from pipeline.metrics import drive_table, regression_metrics
+
+
+def test_metrics_hand_computed():
+    theory = np.zeros((2, 3))
+    real = np.array([[1.0, 2.0, 1.0], [3.0, 0.0, 0.0]])
+    pred = np.array([[1.0, 1.0, 0.0], [2.0, 0.0, 2.0]])
+    # e = pred - real = [[0,-1,-1], [-1,0,2]]
+    m = regression_metrics(pred, real, theory)
+    assert m["x"] == pytest.approx({"mae": 0.5, "mse": 0.5, "rmse": math.sqrt(0.5), "r2": 0.5})
+    assert m["y"] == pytest.approx({"mae": 0.5, "mse": 0.5, "rmse": math.sqrt(0.5), "r2": 0.5})
+    # z: real Δ = (1, 0), mean 0.5, SS_tot 0.5, SS_res 1 + 4 = 5
+    assert m["z"] == pytest.approx({"mae": 1.5, "mse": 2.5, "rmse": math.sqrt(2.5), "r2": -9.0})
+    # 3D: |e| = √2, √5; MSE (2 + 5)/2; R² = 1 - 7 / (2 + 2 + 0.5)
+    assert m["3d"] == pytest.approx({"mae": (math.sqrt(2) + math.sqrt(5)) / 2, "mse": 3.5,
+                                     "rmse": math.sqrt(3.5), "r2": 1 - 7 / 4.5})
+
+
+def test_r2_is_on_error_vectors_not_coordinates():
+    rng = np.random.default_rng(0)
+    theory = rng.uniform(-800, 800, (50, 3))
+    real = theory + rng.normal(0, 1, (50, 3))
+    assert regression_metrics(theory, real, theory)["3d"]["r2"] < 0.05   # nominal explains nothing
+    assert regression_metrics(real, real, theory)["3d"]["r2"] == 1.0
+
+
+def test_drive_table():
+    target = np.zeros((4, 3))
+    achieved = np.array([[0.1, 0, 0], [0, -0.6, 0], [0, 0, 0.2], [0.3, 0.4, 0]])
+    t = drive_table(achieved, target)
+    assert t["x"]["max"] == pytest.approx(0.3) and t["y"]["max"] == pytest.approx(0.6)
+    assert t["x"]["min"] == 0.0
+    assert t["3d"]["max"] == pytest.approx(0.6) and t["3d"]["mean"] == pytest.approx(1.4 / 4)
+    assert t["within_tol_share"] == 0.75

@@ -1,0 +1,66 @@
+"""BoTER: the eq. 4 mask exactly, the mask really blocking attention, shapes, config checks."""
+import pytest
+import torch
+
+from pipeline.kinematics import nominal_geometry
+from pipeline.model import BODY_MASK, BoTER, attention_mask, check_config
+from pipeline.robots import load_robot
+
+G = nominal_geometry(load_robot({"model": "ur5"}))
+SMALL = dict(d_model=12, n_layer=1, n_head=2, d_hidden=16, dropout=0.0)
+CFG = {"d_model": 126, "n_layer": 4, "n_head": 9, "d_hidden": 512, "mask": "spi",
+       "head": "resnet", "physics": "nominal"}
+
+
+def test_spi_mask_is_eq4():
+    expected = torch.tensor([[0, 0, 0, 0, 0, 0],
+                             [0, 0, 0, 0, 0, 0],
+                             [0, 0, 0, 0, 0, 0],
+                             [1, 1, 0, 0, 0, 0],
+                             [1, 1, 1, 0, 0, 0],
+                             [1, 1, 1, 0, 0, 0]], dtype=torch.bool)
+    assert torch.equal(attention_mask("spi"), expected)
+    assert attention_mask("none") is None
+    body = attention_mask("body")
+    assert body.tolist() == [[bool(v) for v in r] for r in BODY_MASK]
+    assert body.sum().item() == 20 and torch.equal(body, body.T)   # eq. 43: symmetric band
+
+
+def test_mask_blocks_attention_from_joint_4_to_joints_1_2():
+    torch.manual_seed(0)
+    m = BoTER(G, mask="spi", **SMALL).eval()
+    q = torch.randn(4, 6, dtype=torch.float64, requires_grad=True)
+    x = m.encoder(m.embed(q.float()), mask=m.mask)         # (4, 6, d), one layer
+    (x[:, 3] * torch.randn(12)).sum().backward()           # token of joint 4 (LayerNorm'd: project)
+    assert q.grad[:, :2].abs().max().item() == 0.0         # masked: joints 1, 2 unseen
+    assert q.grad[:, 2:].abs().min().item() > 0.0
+    maps = m.attention_maps(q.detach())                    # (layers, B, heads, 6, 6)
+    assert maps.shape == (1, 4, 2, 6, 6)
+    assert maps[0, :, :, 3, :2].abs().max().item() == 0.0
+    torch.testing.assert_close(maps.sum(-1), torch.ones_like(maps.sum(-1)))
+
+
+def test_forward_fuses_physics_and_alpha_delta():
+    torch.manual_seed(0)
+    for kw in ({}, {"encoder": False}, {"head": "linear"}, {"mask": "body"}, {"mask": "none"}):
+        m = BoTER(G, **{**SMALL, **kw}).eval()
+        q = torch.randn(5, 6, dtype=torch.float64)
+        p, p_th = m(q)
+        assert p.shape == (5, 3) and p.dtype == torch.float64
+        torch.testing.assert_close(p - p_th, m.delta(q))
+    with torch.no_grad():
+        m.alpha.zero_()
+    torch.testing.assert_close(m(q)[0], m(q)[1])           # α = 0: pure physics
+
+
+@pytest.mark.parametrize("change, message", [
+    ({"n_head": 8}, "n_head=8 does not divide d_model=126"),
+    ({"mask": "causal"}, "unknown mask 'causal'"),
+    ({"head": "mlp"}, "unknown head 'mlp'"),
+    ({"d_model": 0}, "model.d_model must be a positive integer"),
+    ({"physics": "learned"}, "model.physics: 'learned'"),
+])
+def test_invalid_configs_stop_with_a_clear_message(change, message):
+    with pytest.raises(ValueError, match=message):
+        check_config({**CFG, **change})
+    check_config(CFG)
