@@ -1,6 +1,7 @@
 """Shared plumbing: params.yaml, artifact paths, JSON writing, logging."""
 import json
 import logging
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -15,6 +16,7 @@ INGEST_TABLE = INTERIM / "ingest.parquet"
 POINTS_TABLE = INTERIM / "points.parquet"
 SPLIT_TABLE = INTERIM / "split.parquet"
 PREDICTIONS_TABLE = INTERIM / "predictions.parquet"
+BASELINES_TABLE = INTERIM / "baselines.parquet"
 MODEL_WEIGHTS = MODELS / "boter.pt"
 FRAME_JSON = REPORTS / "frame.json"
 
@@ -45,6 +47,10 @@ def read_json(path: Path | str):
 
 
 def logger(name: str) -> logging.Logger:
+    """A stage's logger, named after its module even when run as `python -m pipeline.<stage>`."""
+    if name == "__main__":
+        spec = getattr(sys.modules["__main__"], "__spec__", None)
+        name = spec.name if spec else name
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s",
                         datefmt="%H:%M:%S")
     return logging.getLogger(name.removeprefix("pipeline."))

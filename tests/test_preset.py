@@ -1,0 +1,68 @@
+"""Presets: deep merge, in-process use, and rewriting params.yaml with its comments."""
+from pathlib import Path
+
+import pytest
+import yaml
+
+from pipeline.preset import PRESETS, apply_preset, changes, deep_merge, main, merged_params
+
+ROOT = Path(__file__).resolve().parents[1]
+BASE = yaml.safe_load((ROOT / "params.yaml").read_text())
+
+
+def leaves(d, prefix=""):
+    for k, v in d.items():
+        if isinstance(v, dict) and v:
+            yield from leaves(v, f"{prefix}{k}.")
+        else:
+            yield f"{prefix}{k}"
+
+
+def test_deep_merge_merges_mappings_and_replaces_the_rest():
+    base = {"a": {"b": 1, "c": [1, 2]}, "d": 3}
+    out = deep_merge(base, {"a": {"c": [9]}, "e": {"f": None}})
+    assert out == {"a": {"b": 1, "c": [9]}, "d": 3, "e": {"f": None}}
+    assert base == {"a": {"b": 1, "c": [1, 2]}, "d": 3}           # untouched
+    assert changes(base, out) == [("a.c", [1, 2], [9]), ("e", None, {"f": None})]
+
+
+@pytest.mark.parametrize("name", ["gtpn-ur5", "ipa-ur10"])
+def test_presets_only_set_known_keys(name):
+    preset = yaml.safe_load((PRESETS / f"{name}.yaml").read_text())
+    known = set(leaves(BASE))
+    assert set(leaves(preset)) <= known, set(leaves(preset)) - known
+    merged = merged_params(name, BASE)
+    assert merged["split"] == BASE["split"]                       # the rest kept
+    assert merged["ingest"]["table"].startswith("../shared/datasets/")
+    assert merged["ingest"]["joints"] == BASE["ingest"]["joints"]
+
+
+def test_ipa_preset_settings():
+    p = merged_params("ipa-ur10", BASE)
+    assert p["robot"]["model"] == "ur10" and p["robot"]["tool_mm"] == [0.0, 0.0, 109.0]
+    assert p["frame"]["estimate_tool"] is True
+    assert (p["ingest"]["sep"], p["ingest"]["decimal"], p["ingest"]["angle_unit"]) == (";", ",", "rad")
+
+
+def test_apply_rewrites_params_keeping_comments(tmp_path, capsys):
+    path = tmp_path / "params.yaml"
+    text = (ROOT / "params.yaml").read_text()
+    path.write_text(text)
+    main(["gtpn-ur5", "--params", str(path)])
+    out = capsys.readouterr().out
+    assert "ingest.table: None -> '../shared/datasets/gtpn-ur5/merge2copy.csv'" in out
+    assert "ingest.columns.joints: None -> ['1', '2', '3', '4', '5', '6']" in out
+    new = path.read_text()
+    assert yaml.safe_load(new) == merged_params("gtpn-ur5", yaml.safe_load(text))
+    for line in text.splitlines():                                # comments survive
+        if line.lstrip().startswith("#"):
+            assert line in new
+    assert "# ur5 | ur10 | custom" in new and "dh: null" in new
+    assert apply_preset("gtpn-ur5", path) == []                   # idempotent
+    assert apply_preset("ipa-ur10", path) != []
+    assert yaml.safe_load(path.read_text())["robot"]["model"] == "ur10"
+
+
+def test_unknown_preset():
+    with pytest.raises(ValueError, match="unknown preset 'nope'; known: gtpn-ur5, ipa-ur10"):
+        merged_params("nope", BASE)
