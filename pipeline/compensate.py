@@ -154,8 +154,10 @@ def drive_check(params: dict, q_before: np.ndarray, q_after: np.ndarray, target:
     rng = np.random.default_rng(params["compensate"]["drive_seed"])
     before = to_base(twin.drive(q_before, rng), frame)
     after = to_base(twin.drive(q_after, rng), frame)
+    errors = np.hstack([before - target, after - target])  # (n, 6) achieved - target, mm
+    cols = [f"{w}_{a}" for w in ("before", "after") for a in "xyz"]
     return {"before": drive_table(before, target), "after": drive_table(after, target),
-            "noise_floor_mm": twin.noise_floor_mm}
+            "noise_floor_mm": twin.noise_floor_mm}, pd.DataFrame(errors, columns=cols)
 
 
 def run(params: dict) -> dict:
@@ -186,13 +188,16 @@ def run(params: dict) -> dict:
     table.to_csv(REPORTS / "compensation.csv", index=False, float_format="%.6f")
     table.to_parquet(REPORTS / "compensation.parquet", index=False)
     save_convergence(histories)
+    errors = pd.DataFrame(columns=["point_id"] + [f"{w}_{a}" for w in ("before", "after") for a in "xyz"])
     if cfg.get("twin") and Path(cfg["twin"]).exists() and not cfg.get("targets"):
-        summary["drive_check"] = drive_check(params, q0, table[JCOMP_DEG].to_numpy(), target)
+        summary["drive_check"], errors = drive_check(params, q0, table[JCOMP_DEG].to_numpy(), target)
+        errors.insert(0, "point_id", table["point_id"])
         b, a = summary["drive_check"]["before"], summary["drive_check"]["after"]
         log.info("twin drive check on %d points: 3D error mean %.4f -> %.4f mm, max %.4f -> %.4f mm, "
                  "within ±%.1f mm %.0f%% -> %.0f%%", a["n"], b["3d"]["mean"], a["3d"]["mean"],
                  b["3d"]["max"], a["3d"]["max"], a["tol_mm"], 100 * b["within_tol_share"],
                  100 * a["within_tol_share"])
+    errors.to_csv(REPORTS / "drive_check.csv", index=False, float_format="%.6f")   # empty: no twin
     write_json(REPORTS / "compensation.json", summary)
     return summary
 

@@ -13,13 +13,12 @@ import pandas as pd
 import torch
 
 from .columns import JOINTS_DEG, MEAS, PRED, THEORY
-from .config import INTERIM, PREDICTIONS_TABLE, REPORTS, load_params, logger, write_json
+from .config import BASELINES_TABLE, PREDICTIONS_TABLE, REPORTS, load_params, logger, write_json
 from .metrics import regression_metrics
 from .split import SPLITS
 from .train import load_model, load_points, tensors
 
 log = logger(__name__)
-BASELINES_TABLE = INTERIM / "baselines.parquet"
 
 
 @torch.no_grad()

@@ -83,19 +83,20 @@ def fit(model, loss_fn, train, val, cfg: dict, live=None, desc="train", progress
             loss.backward()
             torch.nn.utils.clip_grad_norm_(model.parameters(), cfg["grad_clip"])
             opt.step()
-            losses.append((loss.item(), parts))
-        val_mae, train_mae = mae_3d(model, *val), mae_3d(model, q, p)
+            losses.append((loss.item(), parts, (p_pred - p[idx]).detach().norm(dim=1).sum().item()))
+        val_mae = mae_3d(model, *val)
+        train_mae = sum(l[2] for l in losses) / len(q)       # over the epoch's batches, train mode
         if val_mae < best:
             best, best_epoch, best_state = val_mae, epoch, copy.deepcopy(model.state_dict())
         bar.set_postfix(val_mae=f"{val_mae:.4f}", best=f"{best:.4f}@{best_epoch}")
         if live is not None:
-            live.log_metric("loss", float(np.mean([l for l, _ in losses])))
-            live.log_metric("data_loss", float(np.mean([d["data"] for _, d in losses])))
-            live.log_metric("physics_loss", float(np.mean([d["physics"] for _, d in losses])))
+            live.log_metric("loss", float(np.mean([l[0] for l in losses])))
+            live.log_metric("data_loss", float(np.mean([l[1]["data"] for l in losses])))
+            live.log_metric("physics_loss", float(np.mean([l[1]["physics"] for l in losses])))
             live.log_metric("train_mae_3d_mm", train_mae)
             live.log_metric("val_mae_3d_mm", val_mae)
             if hasattr(model, "alpha"):
-                live.log_metric("alpha", float(model.alpha))
+                live.log_metric("alpha", model.alpha.item())
             live.next_step()
         if epoch - best_epoch >= cfg["patience"]:
             break
@@ -111,7 +112,7 @@ def train_boter(params: dict, df: pd.DataFrame, live=None, progress=True):
     loss_fn = SPILoss(**params["loss"])
     train, val = tensors(df[df.split == "train"]), tensors(df[df.split == "val"])
     hist = fit(model, loss_fn, train, val, params["train"], live, "SPI-BoTER", progress)
-    hist.update(n_params=n_params(model), alpha=float(model.alpha),
+    hist.update(n_params=n_params(model), alpha=model.alpha.item(),
                 loss_weights=loss_fn.weights().tolist(), n_train=len(train[0]), n_val=len(val[0]))
     return model, hist
 

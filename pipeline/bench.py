@@ -1,0 +1,195 @@
+"""Benchmarks, written as JSON under reports/bench/.
+
+    python -m pipeline.bench real  [--seeds 139 140 ...]   the real sets in ../shared/datasets
+    python -m pipeline.bench speed                          training, prediction, compensation timings
+
+`real` runs the whole pipeline in-process in a scratch directory per set
+(preset merged over params.yaml, split seed 7) and reports test 3D MAE for
+nominal DH (no frame fit; only where the data are in the base frame), nominal
+after the frame fit, classical calibration, the DNN baseline and SPI-BoTER
+(on nominal and on calibrated physics), mean ± std over the training seeds.
+"""
+import argparse
+import copy
+import os
+import platform
+import resource
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import torch
+import yaml
+
+from .config import load_params, logger, read_json, write_json
+
+log = logger(__name__)
+ROOT = Path(__file__).resolve().parents[1]
+DATASETS = ROOT.parent / "shared" / "datasets"
+BENCH = ROOT / "reports" / "bench"
+REAL_SETS = {"gtpn-ur5": {"base_frame": True}, "ipa-ur10": {"base_frame": False}}
+
+
+def absolute_paths(params: dict) -> dict:
+    """Input paths of the ingest section made absolute (from the project root)."""
+    p = copy.deepcopy(params)
+    for k in ("joints", "tracker", "table"):
+        if p["ingest"].get(k):
+            p["ingest"][k] = str((ROOT / p["ingest"][k]).resolve())
+    p["compensate"]["twin"] = None
+    return p
+
+
+def run_set(name: str, seeds: list[int], epochs: int | None) -> dict:
+    """The full pipeline on one real set, once per training seed."""
+    from . import baselines, calibrate, evaluate, frame, ingest, split, theory, train
+    from .columns import JOINTS_DEG, MEAS
+    from .kinematics import fk_numpy
+    from .preset import merged_params
+    from .robots import load_robot
+
+    params = absolute_paths(merged_params(name, load_params(ROOT / "params.yaml")))
+    if epochs:
+        params["train"]["max_epochs"] = epochs
+    t0, cwd = time.perf_counter(), os.getcwd()
+    with tempfile.TemporaryDirectory() as tmp:
+        os.chdir(tmp)
+        try:
+            (Path(tmp) / "params.yaml").write_text(yaml.safe_dump(params))
+            summary = {"ingest": ingest.run(params)["n_kept"]}
+            for stage in (frame, theory, split, calibrate):
+                stage.run(params)
+            df = train.load_points()
+            test = df[df.split == "test"]
+            raw = pd.read_parquet("data/interim/ingest.parquet").set_index("point_id").loc[test.point_id]
+            nominal = None
+            if REAL_SETS[name]["base_frame"]:             # no frame fit: measured as recorded
+                robot = load_robot(params["robot"])
+                e = fk_numpy(raw[JOINTS_DEG].to_numpy(), robot) - raw[MEAS].to_numpy()
+                nominal = float(np.linalg.norm(e, axis=1).mean())
+            runs = []
+            for seed in seeds:
+                p = copy.deepcopy(params)
+                p["model"]["init_seed"], p["train"]["seed"] = seed, seed
+                train.run(p)
+                baselines.run(p)
+                m = evaluate.run(p)["baselines"]
+                runs.append({k: v["test"]["3d"]["mae"] for k, v in m.items()})
+        finally:
+            os.chdir(cwd)
+    per = {k: [r[k] for r in runs] for k in runs[0]}
+    stat = lambda v: {"mean": float(np.mean(v)), "std": float(np.std(v)), "runs": v}
+    return {"n": summary["ingest"], "seeds": seeds,
+            "test_3d_mae": {"nominal": nominal, "frame": per["nominal_dh"][0],
+                            "calibrated": per["calibrated_dh"][0],
+                            "dnn": stat(per["dnn"]),
+                            "spi_boter": stat(per[f"spi_boter_{params['model']['physics']}"]),
+                            "spi_boter_nominal": stat(per["spi_boter_nominal"]),
+                            "spi_boter_calibrated": stat(per["spi_boter_calibrated"])},
+            "physics": params["model"]["physics"],
+            "seconds": time.perf_counter() - t0}
+
+
+def bench_real(seeds: list[int], epochs: int | None, only: list[str] | None) -> dict:
+    out_path = BENCH / "real_data.json"
+    out = read_json(out_path) if out_path.exists() else {}
+    for name in only or REAL_SETS:
+        if not (DATASETS / name).is_dir():
+            log.info("skipping %s: %s not found", name, DATASETS / name)
+            out[name] = {"skipped": f"{DATASETS / name} not found"}
+            continue
+        log.info("running the pipeline on %s with seeds %s", name, seeds)
+        out[name] = run_set(name, seeds, epochs)
+        log.info("%s: %s", name, out[name]["test_3d_mae"])
+        write_json(out_path, out)
+    write_json(out_path, out)
+    return out
+
+
+def machine() -> dict:
+    cpu = next((l.split(":", 1)[1].strip() for l in Path("/proc/cpuinfo").read_text().splitlines()
+                if l.startswith("model name")), platform.processor()) if Path("/proc/cpuinfo").exists() else ""
+    return {"cpu": cpu, "cores": os.cpu_count(), "torch_threads": torch.get_num_threads(),
+            "torch": torch.__version__, "python": platform.python_version(), "platform": platform.platform()}
+
+
+def timed(fn, repeats: int) -> float:
+    """Median wall time (s) of fn() over repeats, after one warm-up call."""
+    fn()
+    ts = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        fn()
+        ts.append(time.perf_counter() - t)
+    return float(np.median(ts))
+
+
+def bench_speed() -> dict:
+    """Needs a finished `dvc repro` in the project (model, points, split)."""
+    from .compensate import compensate, load_targets
+    from .columns import JOINTS_DEG, TARGET
+    from .loss import SPILoss
+    from .robots import load_robot
+    from .train import fit, load_model, load_points, make_model, tensors
+
+    params = load_params()
+    df = load_points()
+    train_t, val_t = tensors(df[df.split == "train"]), tensors(df[df.split == "val"])
+    model = make_model(params)
+    cfg = {**params["train"], "max_epochs": 10, "patience": 10}
+    hist = fit(model, SPILoss(**params["loss"]), train_t, val_t, cfg, progress=False)
+
+    model = load_model(params)
+    q = torch.as_tensor(np.radians(np.random.default_rng(0).uniform(-3, 3, (4096, 6))), dtype=torch.float64)
+    with torch.no_grad():
+        batch_s = timed(lambda: model(q), 10)
+        single_s = timed(lambda: model(q[:1]), 200)
+
+    targets = load_targets(params)
+    q0, tgt = targets[JOINTS_DEG].to_numpy(), targets[TARGET].to_numpy()
+    robot = load_robot(params["robot"])
+    comp = {}
+    for solver in ("adam", "lm"):
+        _, pred, iters, ok, _, sec = compensate(model, q0, tgt, params["compensate"], robot, solver)
+        comp[solver] = {"n_points": len(q0), "seconds_all": sec, "ms_per_point_batched": 1000 * sec / len(q0),
+                        "iterations_mean": float(iters.mean()), "iterations_max": int(iters.max()),
+                        "converged_share": float(ok.mean()),
+                        "residual_mm_max": float(np.linalg.norm(pred - tgt, axis=1).max())}
+    single = [timed(lambda i=i: compensate(model, q0[i:i + 1], tgt[i:i + 1], params["compensate"], robot, "lm"), 5)
+              for i in range(min(20, len(q0)))]
+    comp["lm"]["single_pose_ms_median"] = 1000 * float(np.median(single))
+    comp["lm"]["single_pose_ms_max"] = 1000 * float(np.max(single))
+    comp["iteration_ratio_adam_over_lm"] = comp["adam"]["iterations_mean"] / comp["lm"]["iterations_mean"]
+    out = {"machine": machine(),
+           "train": {"n_train": len(train_t[0]), "seconds_per_epoch": hist["seconds_per_epoch"],
+                     "epochs_timed": hist["epochs_run"], "model": params["model"]},
+           "predict": {"batch": 4096, "poses_per_s": 4096 / batch_s, "single_pose_ms": 1000 * single_s},
+           "compensate": comp,
+           "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
+    write_json(BENCH / "speed.json", out)
+    log.info("speed: %.3f s/epoch, %.0f poses/s (batch 4096), %.2f ms single pose; lm %.1f it vs adam %.1f it "
+             "(%.0fx), lm single pose %.2f ms; peak RSS %.0f MB", hist["seconds_per_epoch"],
+             out["predict"]["poses_per_s"], out["predict"]["single_pose_ms"], comp["lm"]["iterations_mean"],
+             comp["adam"]["iterations_mean"], comp["iteration_ratio_adam_over_lm"],
+             comp["lm"]["single_pose_ms_median"], out["peak_rss_mb"])
+    return out
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(prog="python -m pipeline.bench", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("what", choices=["real", "speed"])
+    ap.add_argument("--seeds", type=int, nargs="+", default=[139], help="training seeds (real)")
+    ap.add_argument("--epochs", type=int, default=None, help="override train.max_epochs (real)")
+    ap.add_argument("--sets", nargs="+", choices=list(REAL_SETS), default=None, help="real sets to run")
+    a = ap.parse_args(argv)
+    if a.what == "real":
+        bench_real(a.seeds, a.epochs, a.sets)
+    else:
+        bench_speed()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,125 @@
+"""Classical kinematic calibration: recovery, identifiability, robustness, the stage."""
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+
+from pipeline import calibrate as C
+from pipeline import twin as T
+from pipeline.columns import ERR, JOINTS_DEG, MEAS, THEORY
+from pipeline.config import load_params, read_json
+from pipeline.kinematics import DTYPE, fk, fk_numpy, nominal_geometry
+
+ROOT = Path(__file__).resolve().parents[1]
+CFG = load_params(ROOT / "params.yaml")["calibrate"]
+
+
+@pytest.fixture(scope="module")
+def poses():
+    q = T.sample_poses(200, np.random.default_rng(3))
+    return torch.as_tensor(np.radians(q), dtype=DTYPE)
+
+
+@pytest.fixture(scope="module")
+def g0():
+    return nominal_geometry(T.ur5())
+
+
+def positions(q, g):
+    with torch.no_grad():
+        return fk(q, g).numpy()
+
+
+@pytest.fixture(scope="module")
+def truth(poses, g0):
+    """A geometry with known errors on exactly the parameters the data can identify."""
+    spec = C.parameter_spec(CFG)
+    S = C.selectors(spec)
+    J = C.jacobian(poses, torch.zeros(len(spec), dtype=DTYPE), g0, S).numpy()
+    keep = C.identifiability(J, [s[0] for s in spec], CFG["rank_tol"])["keep"]
+    rng = np.random.default_rng(11)
+    x = np.array([np.radians(rng.uniform(-0.1, 0.1)) if C.is_angular(k, i) else rng.uniform(-0.5, 0.5)
+                  for _, k, i in spec]) * keep
+    g = {k: v.detach() for k, v in C.apply_deltas(torch.as_tensor(x), g0, S).items()}
+    return g, dict(zip([s[0] for s in spec], x))
+
+
+def test_recovers_positions_and_parameters_from_noiseless_data(poses, g0, truth):
+    g_true, x_true = truth
+    p = positions(poses, g_true)
+    g, rep = C.identify(poses, p, g0, CFG)
+    assert rep["before"]["mean_mm"] > 0.5
+    assert np.abs(positions(poses, g) - p).max() < 1e-6            # mm
+    for name in rep["identified"]:
+        est = rep["estimates"][name]
+        true = x_true[name] * (np.degrees(1.0) if est["unit"] == "deg" else 1.0)
+        assert est["delta"] == pytest.approx(true, abs=1e-8), name
+    for k in g:                                                     # geometry itself, too
+        np.testing.assert_allclose(g[k].numpy(), g_true[k].numpy(), atol=1e-8)
+
+
+def test_flags_redundant_parameters(poses, g0):
+    p = positions(poses, g0)
+    _, rep = C.identify(poses, p, g0, {**CFG, "params": ["d", "offset", "base"]})
+    assert "d1" in rep["identified"] and "offset1" in rep["identified"]
+    assert "base_tz" in rep["fixed"] and "d1" in rep["fixed"]["base_tz"]     # Tz(d1) == base tz
+    assert "base_rz" in rep["fixed"] and "offset1" in rep["fixed"]["base_rz"]  # Rz(q1 + offset1)
+    assert {"d3", "d4"} <= set(rep["fixed"])                        # parallel axes 2-3-4
+    assert "offset6" in rep["fixed"]                                # tool 0: no effect at all
+    assert rep["condition_number"] < 1e3 and rep["rank"] == len(rep["identified"])
+
+
+def test_identified_set_on_the_full_model(poses, g0):
+    _, rep = C.identify(poses, positions(poses, g0), g0, CFG)
+    fixed = set(rep["fixed"])
+    assert {"base_tz", "base_rz", "d3", "d4", "offset6", "alpha6"} <= fixed
+    assert {"a2", "a3", "offset2", "offset3", "beta2", "beta3", "base_rx", "base_tx"} <= set(rep["identified"])
+    assert len(rep["identified"]) + len(fixed) == rep["n_candidates"] == 35
+
+
+def test_robust_loss_ignores_gross_outliers(poses, g0, truth):
+    g_true, _ = truth
+    p = positions(poses, g_true)
+    rng = np.random.default_rng(5)
+    bad = rng.choice(len(p), 5, replace=False)
+    p_bad = p.copy()
+    p_bad[bad] += rng.normal(0.0, 15.0, (5, 3))
+    good = np.setdiff1d(np.arange(len(p)), bad)
+    err = {}
+    for loss in ("soft_l1", "linear"):
+        g, _ = C.identify(poses, p_bad, g0, {**CFG, "loss": loss})
+        err[loss] = np.linalg.norm(positions(poses, g) - p, axis=1)[good].mean()
+    assert err["soft_l1"] < 0.05 and err["soft_l1"] < 0.1 * err["linear"]
+
+
+def test_stage_writes_model_and_report(tmp_path, monkeypatch):
+    """run() on interim tables made from the twin (base frame via a Kabsch fit)."""
+    from pipeline.frame import kabsch
+    twin = T.Twin()
+    q = twin.poses(150)
+    theory = fk_numpy(q, T.ur5())
+    P = twin.drive(q, np.random.default_rng(0))
+    R, t = kabsch(theory, P)
+    meas = (P - t) @ R
+    pts = pd.DataFrame({"point_id": [f"P{i:04d}" for i in range(len(q))]})
+    pts[JOINTS_DEG], pts[THEORY], pts[MEAS], pts[ERR] = q, theory, meas, meas - theory
+    split = pd.DataFrame({"point_id": pts["point_id"],
+                          "split": np.where(np.arange(len(q)) < 120, "train",
+                                            np.where(np.arange(len(q)) < 135, "val", "test"))})
+    monkeypatch.chdir(tmp_path)
+    Path("data/interim").mkdir(parents=True)
+    pts.to_parquet("data/interim/points.parquet")
+    split.to_parquet("data/interim/split.parquet")
+    params = load_params(ROOT / "params.yaml")
+    rep = C.run(params)
+    saved = read_json("reports/calibration.json")
+    assert saved["identified"] == rep["identified"] and saved["splits"]["train"]["n"] == 120
+    g = C.load_geometry("models/calibration.json")
+    assert set(g) == {"d", "a", "alpha", "offset", "beta", "tool", "base"}
+    assert all(v.dtype == DTYPE for v in g.values())
+    e = np.linalg.norm(positions(torch.as_tensor(np.radians(q), dtype=DTYPE), g) - meas, axis=1)
+    assert e[:120].mean() == pytest.approx(saved["splits"]["train"]["calibrated"]["mean_mm"])
+    for s in ("train", "val", "test"):
+        assert saved["splits"][s]["calibrated"]["mean_mm"] < 0.5 * saved["splits"][s]["nominal"]["mean_mm"]

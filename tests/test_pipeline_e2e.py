@@ -1,0 +1,94 @@
+"""End to end: `dvc repro` on the bundled twin campaign in a fresh git repo, with a small model.
+
+Checks every contract output, that a second repro does nothing, that
+`dvc exp run -S` works and that an invalid combination stops before training.
+"""
+import json
+import os
+import shutil
+import subprocess
+from pathlib import Path
+
+import pandas as pd
+import pytest
+import yaml
+
+from pipeline.columns import COMPENSATION
+
+ROOT = Path(__file__).resolve().parents[1]
+SMALL = {"model": {"d_model": 12, "n_head": 2, "n_layer": 1, "d_hidden": 32},
+         "train": {"max_epochs": 12, "patience": 12}}
+ENV = {**os.environ, "DVC_NO_ANALYTICS": "1", "GIT_AUTHOR_NAME": "ci", "GIT_AUTHOR_EMAIL": "ci@example.com",
+       "GIT_COMMITTER_NAME": "ci", "GIT_COMMITTER_EMAIL": "ci@example.com"}
+
+
+def sh(cmd, cwd, check=True):
+    r = subprocess.run(cmd, cwd=cwd, env=ENV, shell=True, capture_output=True, text=True)
+    if check and r.returncode:
+        raise AssertionError(f"{cmd} failed ({r.returncode}):\n{r.stdout[-3000:]}\n{r.stderr[-3000:]}")
+    return r
+
+
+def deep_update(d, u):
+    for k, v in u.items():
+        d[k] = deep_update(d.get(k, {}), v) if isinstance(v, dict) else v
+    return d
+
+
+@pytest.fixture(scope="module")
+def repo(tmp_path_factory):
+    """A fresh git+DVC repo holding the committed project files and a small-model params.yaml."""
+    dst = tmp_path_factory.mktemp("repo")
+    files = sh("git ls-files --cached --others --exclude-standard", ROOT).stdout.split()
+    for f in files:
+        if (ROOT / f).is_file() and not f.startswith("tests/"):
+            (dst / f).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(ROOT / f, dst / f)
+    params = yaml.safe_load((dst / "params.yaml").read_text())
+    (dst / "params.yaml").write_text(yaml.safe_dump(deep_update(params, SMALL), sort_keys=False))
+    sh("git init -q && git add -A && git commit -qm init", dst)
+    return dst
+
+
+@pytest.mark.slow
+def test_repro_produces_contract_outputs_and_is_idempotent(repo):
+    sh("dvc repro", repo)
+    metrics = json.loads((repo / "reports/metrics.json").read_text())
+    for split in ("train", "val", "test"):
+        for axis in ("x", "y", "z", "3d"):
+            assert set(metrics[split][axis]) == {"mae", "mse", "rmse", "r2"}
+    assert metrics["baselines"]["nominal_dh"]["test"]["3d"]["mae"] > 0.5      # the twin is off ~1 mm
+
+    frame = json.loads((repo / "reports/frame.json").read_text())
+    assert {"R", "t", "rms_mm", "n_used", "outliers"} <= set(frame)
+    twin = json.loads((repo / "data/raw/twin.json").read_text())
+    assert sorted(frame["outliers"]) == sorted(twin["misread_ids"])           # misreads found, no more
+
+    comp = pd.read_csv(repo / "reports/compensation.csv")
+    assert list(comp.columns) == COMPENSATION
+    assert len(comp) == json.loads((repo / "reports/split.json").read_text())["counts"]["test"]
+    assert comp.converged.all() and comp.residual_mm.max() < 1e-3               # lm to 0.001 mm
+    pd.testing.assert_frame_equal(pd.read_parquet(repo / "reports/compensation.parquet"), comp,
+                                  check_dtype=False, atol=1e-6)
+    summary = json.loads((repo / "reports/compensation.json").read_text())
+    assert summary["drive_check"]["after"]["n"] == len(comp)
+
+    again = sh("dvc repro", repo).stdout
+    assert "up to date" in again and "Running stage" not in again
+    shown = sh("dvc metrics show --json", repo).stdout
+    assert "reports/metrics.json" in shown
+
+
+@pytest.mark.slow
+def test_exp_run_set_param_and_invalid_combination(repo):
+    sh("dvc repro", repo)
+    sh("git add -A && git commit -qm baseline", repo)
+    r = sh("dvc exp run -S model.d_model=14", repo)
+    assert "Running stage 'train'" in r.stdout and "Running stage 'split'" not in r.stdout
+    bad = sh("dvc exp run -S model.n_head=5", repo, check=False)
+    assert bad.returncode != 0
+    out = bad.stdout + bad.stderr
+    assert "n_head=5 does not divide d_model=12" in out
+    assert "SPI-BoTER:" not in out                                            # stopped before training
+    shown = sh("dvc exp show --json", repo).stdout
+    assert "d_model" in shown

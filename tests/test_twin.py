@@ -1,0 +1,126 @@
+"""The digital twin: reproducible data, physics sanity, noise floor, difficulty."""
+import json
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+
+from pipeline import twin as T
+from pipeline.config import load_params
+from pipeline.kinematics import DTYPE, fk, fk_numpy
+
+ROOT = Path(__file__).resolve().parents[1]
+RAW = ROOT / "data" / "raw"
+
+
+@pytest.fixture(scope="module")
+def twin():
+    return T.Twin(T.SEED)
+
+
+@pytest.fixture(scope="module")
+def recorded():
+    return json.loads((RAW / "twin.json").read_text())
+
+
+def test_committed_files_are_what_the_generator_makes(tmp_path, recorded):
+    rec = T.generate(tmp_path, T.SEED, params=None)         # no difficulty: fast
+    for name in ("joints.csv", "tracker.csv"):
+        assert (tmp_path / name).read_bytes() == (RAW / name).read_bytes(), name
+    fresh = json.loads((tmp_path / "twin.json").read_text())
+    assert {k: v for k, v in recorded.items() if k != "difficulty"} == fresh
+    assert rec["seed"] == recorded["seed"] == T.SEED
+
+
+def test_twin_from_json_is_the_generator_twin(twin):
+    again = T.Twin.from_json(RAW / "twin.json")
+    q = twin.poses(50)
+    np.testing.assert_allclose(again.expected_position(q), twin.expected_position(q), atol=1e-8)
+    np.testing.assert_allclose(again.to_tracker(q[:, :3]), twin.to_tracker(q[:, :3]), atol=1e-8)
+    assert again.noise_floor_mm == pytest.approx(twin.noise_floor_mm, abs=1e-6)
+
+
+def test_files_follow_the_data_contract():
+    j, t = pd.read_csv(RAW / "joints.csv"), pd.read_csv(RAW / "tracker.csv")
+    assert list(j.columns) == ["point_id"] + [f"j{i}_deg" for i in range(1, 7)]
+    assert list(t.columns) == ["Name", "X", "Y", "Z"]
+    assert len(j) == len(t) == 724 and (j["point_id"] == t["Name"]).all()
+    assert j["point_id"].iloc[0] == "P0001" and j["point_id"].is_unique
+    line = (RAW / "joints.csv").read_text().splitlines()[1]
+    assert all(len(v.split(".")[1]) == 6 for v in line.split(",")[1:])
+    line = (RAW / "tracker.csv").read_text().splitlines()[1]
+    assert all(len(v.split(".")[1]) == 4 for v in line.split(",")[1:])
+    # frontal workspace: flange in front of the robot, above the table; robot ≈3 m from the tracker
+    p = fk_numpy(j.iloc[:, 1:].to_numpy(), T.ur5())
+    assert (p[:, 0] < 0).all() and (p[:, 2] > 0).all()
+    assert 2500 < np.linalg.norm(t[["X", "Y", "Z"]].to_numpy().mean(0)) < 3500
+
+
+def test_perfect_twin_is_nominal_fk(twin):
+    perfect = T.Twin(errors=T.zero_errors())
+    q = twin.poses(50)
+    np.testing.assert_allclose(perfect.expected_position(q), fk_numpy(q, T.ur5()), atol=1e-9)
+    np.testing.assert_allclose(perfect.actual_joints(q), q, atol=1e-12)
+
+
+def test_errors_have_the_stated_size(twin):
+    e = twin.errors
+    assert 0.07 <= np.abs(e["d_mm"]).min() and np.abs(e["a_mm"]).max() <= 0.35
+    assert np.abs(e["beta_deg"][[1, 2]]).min() > 0 and not e["beta_deg"][[0, 3, 4, 5]].any()
+    q = twin.poses()
+    dq = twin.actual_joints(q) - q                              # compliance + gear error
+    assert 0.02 < np.abs(dq[:, 1]).max() < 0.5                  # shoulder sags by a tenth of a degree
+    # gravity torques from the true chain: shoulder carries the whole arm (tens of N·m)
+    tau = T.gravity_torques(torch.as_tensor(np.radians(q), dtype=DTYPE), twin.geometry)
+    assert 20 < tau[:, 1].abs().max() < 80 and tau[:, 0].abs().max() < 1e-9
+
+
+def test_gravity_torque_of_a_stretched_arm():
+    """Arm stretched horizontally (q2 = 0): shoulder torque = sum m_k g (lever arm)."""
+    g = T.true_geometry(T.zero_errors())
+    q = torch.zeros(1, 6, dtype=DTYPE)
+    tau = T.gravity_torques(q, g)[0].numpy()
+    F = T.link_frames(q, g)[0].numpy()
+    com = np.einsum("kij,kj->ki", F[1:, :3, :3], T.LINK_COM) + F[1:, :3, 3]
+    lever = com[1:, 0] - F[1, 0, 3]                             # x offsets from the shoulder
+    expected = (T.LINK_MASS[1:] * 9.80665 * lever).sum() / 1000.0
+    assert abs(abs(tau[1]) - abs(expected)) < 1e-9 and abs(tau[1]) > 30
+
+
+def test_drive_averages_to_the_expected_position(twin):
+    q = np.repeat(twin.poses(4), 4000, axis=0)
+    meas = twin.drive(q, np.random.default_rng(0)).reshape(4, 4000, 3).mean(1)
+    target = twin.to_tracker(twin.expected_position(q[::4000]))
+    assert np.abs(meas - target).max() < 0.004                  # 5 sigma of the mean
+
+
+def test_noise_floor(twin, recorded):
+    assert recorded["noise_floor_mm"] == pytest.approx(twin.noise_floor_mm, abs=1e-6)
+    q = twin.poses(300)
+    # tracker noise alone: analytic E|N(0, s^2 I3)| = 1.5958 s
+    quiet = T.Twin(errors={**twin.errors, "joint_sigma_deg": 0.0})
+    assert quiet.noise_floor(q) == pytest.approx(1.5958 * T.TRACKER_SIGMA_MM, rel=0.01)
+    # with repeatability: between sqrt(2/pi) and 1 times sqrt(trace of the covariance)
+    qt = torch.as_tensor(np.radians(twin.actual_joints(q)), dtype=DTYPE)
+    J = torch.func.vmap(torch.func.jacrev(lambda x: fk(x[None], twin.geometry)[0]))(qt)
+    s_j = np.radians(T.JOINT_SIGMA_DEG)
+    rms = np.sqrt(3 * T.TRACKER_SIGMA_MM ** 2 + s_j ** 2 * (J ** 2).sum((1, 2)).numpy())
+    floor = twin.noise_floor(q)
+    assert np.sqrt(2 / np.pi) * rms.mean() < floor < rms.mean()
+    assert 0.04 < floor < 0.08
+
+
+def test_difficulty_is_that_of_a_real_ur5(twin, recorded):
+    params = load_params(ROOT / "params.yaml")
+    j, t = pd.read_csv(RAW / "joints.csv"), pd.read_csv(RAW / "tracker.csv")
+    d = T.difficulty(j, t, params, twin)
+    rec = recorded["difficulty"]
+    assert d["frame_outliers"] == sorted(recorded["misreads"]) == rec["frame_outliers"]
+    assert d["nominal_after_frame_mean_mm"] == pytest.approx(rec["nominal_after_frame_mean_mm"], abs=1e-6)
+    for s in ("train", "val", "test"):
+        assert d["classical_fit_mean_mm"][s] == pytest.approx(rec["classical_fit_mean_mm"][s], abs=1e-4)
+    assert 0.9 < d["nominal_after_frame_mean_mm"] < 1.3           # real UR5: ≈1 mm
+    assert 0.15 < d["classical_fit_mean_mm"]["test"] < 0.35       # non-geometric error remains
+    assert d["classical_fit_mean_mm"]["test"] > 3 * recorded["noise_floor_mm"]
