@@ -12,10 +12,10 @@ import copy
 import pandas as pd
 
 from .columns import JOINTS_DEG
-from .config import BASELINES_TABLE, REPORTS, load_params, logger, write_json
+from .config import BASELINES_TABLE, CALIBRATED_GEOMETRY, REPORTS, load_params, logger, write_json
 from .evaluate import predict
 from .kinematics import fk_numpy
-from .train import CALIBRATION, load_points, train_boter, train_dnn
+from .train import load_points, train_boter, train_dnn
 
 log = logger(__name__)
 
@@ -28,7 +28,7 @@ def run(params: dict) -> dict:
     def add(name, pred):
         out[[f"{name}_{a}" for a in "xyz"]] = pred
 
-    add("calibrated_dh", fk_numpy(df[JOINTS_DEG].to_numpy(), None, load_geometry(CALIBRATION)))
+    add("calibrated_dh", fk_numpy(df[JOINTS_DEG].to_numpy(), None, load_geometry(CALIBRATED_GEOMETRY)))
     dnn, summary["dnn"] = train_dnn(params, df)
     add("dnn", predict(dnn.eval(), df))
     other = "calibrated" if params["model"].get("physics", "nominal") == "nominal" else "nominal"

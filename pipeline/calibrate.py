@@ -25,14 +25,13 @@ import torch
 from scipy.optimize import least_squares
 
 from .columns import JOINTS_DEG, MEAS
-from .config import (FRAME_JSON, MODELS, POINTS_TABLE, REPORTS, SPLIT_TABLE, load_params,
+from .config import (CALIBRATED_GEOMETRY, FRAME_JSON, POINTS_TABLE, REPORTS, SPLIT_TABLE, load_params,
                      logger, read_json, write_json)
 from .kinematics import DTYPE, GEOMETRY_KEYS, fk, nominal_geometry
 from .robots import load_robot
 
 log = logger(__name__)
 
-CALIBRATION_MODEL = MODELS / "calibration.json"
 CALIBRATION_REPORT = REPORTS / "calibration.json"
 GROUPS = ("d", "a", "alpha", "offset", "beta", "tool", "base")
 BASE_NAMES = ["rx", "ry", "rz", "tx", "ty", "tz"]
@@ -243,7 +242,7 @@ def run(params: dict) -> dict:
         s: {"n": int(m.sum()), "calibrated": errors_3d(p_cal[m], p[m]),
             "nominal": errors_3d(p_nom[m], p[m])}
         for s in ("train", "val", "test") if (m := (pts["split"] == s).to_numpy()).any()}
-    save_geometry(CALIBRATION_MODEL, geometry, {"robot": params["robot"].get("model"),
+    save_geometry(CALIBRATED_GEOMETRY, geometry, {"robot": params["robot"].get("model"),
                                                 "identified": report["identified"]})
     write_json(CALIBRATION_REPORT, report)
     sp = report["splits"]

@@ -18,6 +18,7 @@ SPLIT_TABLE = INTERIM / "split.parquet"
 PREDICTIONS_TABLE = INTERIM / "predictions.parquet"
 BASELINES_TABLE = INTERIM / "baselines.parquet"
 MODEL_WEIGHTS = MODELS / "boter.pt"
+CALIBRATED_GEOMETRY = MODELS / "calibration.json"
 FRAME_JSON = REPORTS / "frame.json"
 
 

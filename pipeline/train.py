@@ -14,7 +14,7 @@ import torch
 from tqdm import tqdm
 
 from .columns import JOINTS_DEG, MEAS
-from .config import (FRAME_JSON, MODEL_WEIGHTS, MODELS, POINTS_TABLE, REPORTS, SPLIT_TABLE,
+from .config import (CALIBRATED_GEOMETRY, FRAME_JSON, MODEL_WEIGHTS, POINTS_TABLE, REPORTS, SPLIT_TABLE,
                      load_params, logger, read_json, write_json)
 from .kinematics import DTYPE, nominal_geometry
 from .loss import SPILoss, data_loss
@@ -22,7 +22,6 @@ from .model import DNN, BoTER, check_config, n_params
 from .robots import load_robot
 
 log = logger(__name__)
-CALIBRATION = MODELS / "calibration.json"
 
 
 def load_points() -> pd.DataFrame:
@@ -32,8 +31,8 @@ def load_points() -> pd.DataFrame:
 
 def tensors(df: pd.DataFrame) -> tuple[torch.Tensor, torch.Tensor]:
     """Joint angles (n, 6) rad and measured positions (n, 3) mm as float64 tensors."""
-    q = torch.as_tensor(np.radians(df[JOINTS_DEG].to_numpy()), dtype=DTYPE)
-    return q, torch.as_tensor(df[MEAS].to_numpy(), dtype=DTYPE)
+    q = torch.tensor(np.radians(df[JOINTS_DEG].to_numpy()), dtype=DTYPE)
+    return q, torch.tensor(df[MEAS].to_numpy(), dtype=DTYPE)
 
 
 def physics_geometry(params: dict, physics: str | None = None) -> dict:
@@ -41,7 +40,7 @@ def physics_geometry(params: dict, physics: str | None = None) -> dict:
     physics = physics or params["model"].get("physics", "nominal")
     if physics == "calibrated":
         from .calibrate import load_geometry
-        return load_geometry(CALIBRATION)
+        return load_geometry(CALIBRATED_GEOMETRY)
     robot = load_robot(params["robot"])
     robot.tool = np.asarray(read_json(FRAME_JSON)["tool_mm"], float)
     return nominal_geometry(robot)
@@ -130,7 +129,7 @@ def run(params: dict) -> dict:
     from dvclive import Live
     df = load_points()
     with Live(dir=str(REPORTS / "live"), save_dvc_exp=False, dvcyaml=False) as live:
-        model, summary = train_boter(params, df, live)
+        model, summary = train_boter(params, df, live)   # dvclive needs a git repo with a commit
     MODEL_WEIGHTS.parent.mkdir(parents=True, exist_ok=True)
     torch.save(model.state_dict(), MODEL_WEIGHTS)
     write_json(REPORTS / "train.json", summary)

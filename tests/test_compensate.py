@@ -1,0 +1,80 @@
+"""Inverse compensation (sec. 2.3): both solvers land on their targets through a frozen model."""
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+
+from pipeline.compensate import compensate, jacobian, load_targets
+from pipeline.kinematics import nominal_geometry
+from pipeline.model import BoTER
+from pipeline.robots import load_robot
+
+ROBOT = load_robot({"model": "ur5"})
+CFG = {"lr": 1e-4, "max_iter": 500, "tol_mse": 1e-4, "tol_mm": 1e-3}
+
+
+@pytest.fixture(scope="module")
+def model():
+    """A small BoTER whose network term is large (α = 1): a strongly non-nominal forward model."""
+    torch.manual_seed(0)
+    m = BoTER(nominal_geometry(ROBOT), d_model=12, n_layer=1, n_head=2, d_hidden=32, dropout=0.0)
+    with torch.no_grad():
+        m.alpha.fill_(1.0)
+    return m.eval()
+
+
+def targets(model, n=40, seed=0):
+    """Targets the model reaches at known angles; the solvers start 0.05-0.1° away."""
+    rng = np.random.default_rng(seed)
+    q_true = rng.uniform([-60, -120, 30, -150, 40, -90], [60, -40, 120, -30, 140, 90], (n, 6))
+    with torch.no_grad():
+        tgt = model(torch.as_tensor(np.radians(q_true)))[0].numpy()
+    return q_true + rng.uniform(-0.1, 0.1, (n, 6)), tgt
+
+
+def test_jacobian_matches_finite_differences(model):
+    q = torch.as_tensor(np.radians([[10.0, -70, 80, -90, 60, 5]]))
+    _, J = jacobian(model, q)
+    h = 1e-3                                               # float32 network: not too small
+    for k in range(6):
+        dq = torch.zeros(1, 6, dtype=torch.float64)
+        dq[0, k] = h
+        with torch.no_grad():
+            fd = (model(q + dq)[0] - model(q - dq)[0]) / (2 * h)
+        torch.testing.assert_close(J[0, :, k], fd[0], rtol=1e-3, atol=0.05)   # J ~ 1e2-1e3 mm/rad
+
+
+def test_lm_lands_every_point_within_0_001_mm(model):
+    q0, tgt = targets(model)
+    q, pred, iters, ok, hist, _ = compensate(model, q0, tgt, CFG, ROBOT, "lm")
+    res = np.linalg.norm(pred - tgt, axis=1)
+    assert ok.all() and res.max() < 1e-3
+    assert iters.max() <= 10
+    assert hist[0].max() > 0.5 and hist[-1].max() < 1e-3        # it had real work to do
+    assert not any(p.requires_grad for p in model.parameters())   # frozen
+
+
+def test_adam_reaches_the_papers_stop_criterion(model):
+    q0, tgt = targets(model)
+    q, pred, iters, ok, _, _ = compensate(model, q0, tgt, CFG, ROBOT, "adam")
+    mse = ((pred - tgt) ** 2).mean(1)
+    assert ok.all() and mse.max() < 1e-4
+    _, _, lm_iters, _, _, _ = compensate(model, q0, tgt, CFG, ROBOT, "lm")
+    assert iters.mean() >= 20 * lm_iters.mean()
+
+
+def test_lm_respects_joint_limits(model):
+    q0, tgt = targets(model, n=5)
+    tight = load_robot({"model": "ur5", "joint_limits_deg": [[lo - 0.01, lo + 0.01] for lo in q0[0]]})
+    q, *_ = compensate(model, q0[:1], tgt[:1], CFG, tight, "lm")
+    assert (np.abs(q[0] - q0[0]) <= 0.01 + 1e-9).all()
+
+
+def test_unknown_solver_and_bad_target_file(model, tmp_path):
+    q0, tgt = targets(model, n=2)
+    with pytest.raises(ValueError, match="unknown 'newton'"):
+        compensate(model, q0, tgt, CFG, ROBOT, "newton")
+    path = tmp_path / "targets.csv"
+    pd.DataFrame({"point_id": ["A"], "j1_deg": [0.0]}).to_csv(path, index=False)
+    with pytest.raises(ValueError, match=r"targets.csv: missing column\(s\) \['j2_deg'"):
+        load_targets({"compensate": {"targets": str(path)}})
