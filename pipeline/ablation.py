@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from .config import REPORTS, load_params, logger, read_json, write_json
+from .report import PAPER_ABLATION
 
 log = logger(__name__)
 OUT = REPORTS / "ablation"
@@ -33,8 +34,6 @@ GROUPS = {                                   # name -> params changes (one sourc
     "no_resnet": {"model": {"head": "linear"}},
     "no_transformer": {"model": {"encoder": False}},
 }
-PAPER = {"baseline": 0.2515, "data_only": 0.2880, "no_mask": 0.2756, "body_mask": 0.2911,
-         "no_resnet": 0.3128, "no_transformer": 0.3072}   # test 3D MAE, mm (tables 6, 8)
 
 
 def group_params(params: dict, group: str, seed: int) -> dict:
@@ -42,6 +41,7 @@ def group_params(params: dict, group: str, seed: int) -> dict:
     for section, changes in GROUPS[group].items():
         p[section].update(changes)
     p["model"]["init_seed"], p["train"]["seed"] = seed, seed
+    p["train"]["max_epochs"] = params["ablation"].get("max_epochs") or p["train"]["max_epochs"]
     return p
 
 
@@ -94,7 +94,7 @@ def summarise() -> dict:
                      "test_3d_r2_mean": float(np.mean([run["test"]["3d"]["r2"] for run in r["runs"]])),
                      "epochs_to_best": [run["epochs_to_best"] for run in r["runs"]],
                      "params": r["runs"][0]["n_params"], "changes": r["changes"],
-                     "seconds": r["seconds"], "paper_test_3d_mae": PAPER[g]}
+                     "seconds": r["seconds"], "paper_test_3d_mae": PAPER_ABLATION[g]}
     summary = {"groups": groups}
     write_json(REPORTS / "ablation.json", summary)
     rows = ["| group | changes | test 3D MAE mm (mean ± std) | paper | epochs to best | parameters |",

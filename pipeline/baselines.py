@@ -31,11 +31,12 @@ def run(params: dict) -> dict:
     add("calibrated_dh", fk_numpy(df[JOINTS_DEG].to_numpy(), None, load_geometry(CALIBRATED_GEOMETRY)))
     dnn, summary["dnn"] = train_dnn(params, df)
     add("dnn", predict(dnn.eval(), df))
-    other = "calibrated" if params["model"].get("physics", "nominal") == "nominal" else "nominal"
-    alt = copy.deepcopy(params)
-    alt["model"]["physics"] = other
-    model, summary[f"spi_boter_{other}"] = train_boter(alt, df)
-    add(f"spi_boter_{other}", predict(model.eval(), df))
+    if params.get("baselines", {}).get("other_physics", True):
+        other = "calibrated" if params["model"].get("physics", "nominal") == "nominal" else "nominal"
+        alt = copy.deepcopy(params)
+        alt["model"]["physics"] = other
+        model, summary[f"spi_boter_{other}"] = train_boter(alt, df)
+        add(f"spi_boter_{other}", predict(model.eval(), df))
     out.to_parquet(BASELINES_TABLE, index=False)
     write_json(REPORTS / "baselines_train.json", summary)
     log.info("baselines on %d points: %s", len(df),

@@ -87,7 +87,7 @@ def fit(model, loss_fn, train, val, cfg: dict, live=None, desc="train", progress
         train_mae = sum(l[2] for l in losses) / len(q)       # over the epoch's batches, train mode
         if val_mae < best:
             best, best_epoch, best_state = val_mae, epoch, copy.deepcopy(model.state_dict())
-        bar.set_postfix(val_mae=f"{val_mae:.4f}", best=f"{best:.4f}@{best_epoch}")
+        bar.set_postfix(val_mae=f"{val_mae:.4f}", best=f"{best:.4f}@{best_epoch}", refresh=False)
         if live is not None:
             live.log_metric("loss", float(np.mean([l[0] for l in losses])))
             live.log_metric("data_loss", float(np.mean([l[1]["data"] for l in losses])))
