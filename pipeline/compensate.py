@@ -35,20 +35,20 @@ def predict(model, q):                                     # (B, 6) -> (B, 3)
     return model(q)[0]
 
 
-def jacobian(model, q):
-    """Residual-free batched Jacobian: returns p (B, 3) and J (B, 3, 6) = dp/dq.
+def jacobian(f, q):
+    """Batched Jacobian J (B, 3, 6) = df/dq of a function f: (B, 6) -> (B, 3).
 
     Each output row depends only on its own input row (eval mode), so the
     gradient of the batch sum of output k gives every point's row k at once.
     """
     q = q.detach().requires_grad_(True)
-    p = predict(model, q)
+    p = f(q)
     rows = [torch.autograd.grad(p[:, k].sum(), q, retain_graph=k < 2)[0] for k in range(3)]
-    return p.detach(), torch.stack(rows, 1)
+    return torch.stack(rows, 1)
 
 
 def solve_adam(model, q0, target, lr=1e-4, max_iter=500, tol_mse=1e-4, **_):
-    """The paper's procedure (sec. 2.3). Returns q, iterations, converged, history."""
+    """The paper's procedure (sec. 2.3). Returns q, prediction, iterations, converged, history."""
     q = q0.clone().requires_grad_(True)
     opt = torch.optim.Adam([q], lr=lr)
     q_final, iters = q0.clone(), torch.full((len(q0),), max_iter)
@@ -67,18 +67,28 @@ def solve_adam(model, q0, target, lr=1e-4, max_iter=500, tol_mse=1e-4, **_):
         mse.sum().backward()
         opt.step()
     q_final[~done] = q.detach()[~done]
-    return q_final, iters, done, torch.stack(history)
+    with torch.no_grad():
+        pred = predict(model, q_final)
+    return q_final, pred, iters, done, torch.stack(history)
 
 
-def solve_lm(model, q0, target, max_iter=500, tol_mm=1e-3, limits=None, lam0=1e-3, **_):
-    """Batched Levenberg-Marquardt on the frozen model. Returns q, iterations, converged, history."""
+def solve_lm(model, q0, target, max_iter=500, tol_mm=1e-3, limits=None, lam0=1e-3,
+             jacobian_of="model", **_):
+    """Batched Levenberg-Marquardt on the frozen model. Returns q, prediction, iterations, converged, history.
+
+    jacobian_of: "model" differentiates the whole model; "physics" only its DH
+    branch (float64, cheap), leaving out the network's small slope: each step
+    is then a chord step, the residual always from the whole model.
+    """
+    jac_f = model.physics if jacobian_of == "physics" else (lambda q: predict(model, q))
     q = q0.clone()
     lam = torch.full((len(q0),), lam0, dtype=DTYPE)
     iters = torch.full((len(q0),), max_iter)
     done = torch.zeros(len(q0), dtype=torch.bool)
     eye = torch.eye(3, dtype=DTYPE)
     with torch.no_grad():
-        err = (predict(model, q) - target).norm(dim=1)
+        r = predict(model, q) - target                      # (B, 3) residual, mm
+    err = r.norm(dim=1)
     history = [err.clone()]
     for it in range(max_iter):
         new = (err < tol_mm) & ~done
@@ -87,25 +97,25 @@ def solve_lm(model, q0, target, max_iter=500, tol_mm=1e-3, limits=None, lam0=1e-
         if done.all():
             break
         a = (~done).nonzero().squeeze(1)                    # active points
-        p, J = jacobian(model, q[a])                        # (A, 3), (A, 3, 6)
-        r = (p - target[a]).unsqueeze(-1)                   # (A, 3, 1)
-        JJt = J @ J.transpose(1, 2)                          # (A, 3, 3)
+        J = jacobian(jac_f, q[a])                           # (A, 3, 6)
+        JJt = J @ J.transpose(1, 2)                         # (A, 3, 3)
         damp = lam[a, None, None] * JJt.diagonal(dim1=1, dim2=2).mean(1)[:, None, None] * eye
-        step = -(J.transpose(1, 2) @ torch.linalg.solve(JJt + damp, r)).squeeze(-1)   # (A, 6)
-        q_try = q[a] + step
+        step = -(J.transpose(1, 2) @ torch.linalg.solve(JJt + damp, r[a].unsqueeze(-1))).squeeze(-1)
+        q_try = q[a] + step                                 # (A, 6), minimum-norm correction
         if limits is not None:
             q_try = q_try.clamp(limits[:, 0], limits[:, 1])
         with torch.no_grad():
-            err_try = (predict(model, q_try) - target[a]).norm(dim=1)
-        ok = err_try < err[a]
-        q[a[ok]], err[a[ok]] = q_try[ok], err_try[ok]
+            r_try = predict(model, q_try) - target[a]
+        ok = r_try.norm(dim=1) < err[a]
+        q[a[ok]], r[a[ok]] = q_try[ok], r_try[ok]
+        err[a[ok]] = r_try[ok].norm(dim=1)
         lam[a] = torch.where(ok, lam[a] / 3, lam[a] * 10)
         history.append(err.clone())
     else:
         new = (err < tol_mm) & ~done
         iters[new] = max_iter
         done |= new
-    return q, iters, done, torch.stack(history)
+    return q, r + target, iters, done, torch.stack(history)
 
 
 SOLVERS = {"adam": solve_adam, "lm": solve_lm}
@@ -123,11 +133,9 @@ def compensate(model, q0_deg: np.ndarray, target: np.ndarray, cfg: dict, robot=N
     q0 = torch.as_tensor(np.radians(q0_deg), dtype=DTYPE)
     tgt = torch.as_tensor(target, dtype=DTYPE)
     t0 = time.perf_counter()
-    q, iters, ok, hist = SOLVERS[solver](model, q0, tgt, limits=limits, **cfg)
+    q, pred, iters, ok, hist = SOLVERS[solver](model, q0, tgt, limits=limits, **cfg)
     seconds = time.perf_counter() - t0
-    with torch.no_grad():
-        pred = predict(model, q).numpy()
-    return np.degrees(q.numpy()), pred, iters.numpy(), ok.numpy(), hist.numpy(), seconds
+    return np.degrees(q.numpy()), pred.numpy(), iters.numpy(), ok.numpy(), hist.numpy(), seconds
 
 
 def load_targets(params: dict) -> pd.DataFrame:

@@ -109,7 +109,7 @@ class BoTER(nn.Module):
     def delta(self, q):                                    # (B, 6) rad -> α·Δp (B, 3), float64
         x = self.embed(q.float())                          # (B, 6, d)
         if self.encoder is not None:
-            x = self.encoder(x, mask=self.mask)            # (B, 6, d)
+            x = self.encoder(x, mask=self.mask, is_causal=False)   # (B, 6, d); skips a causal-mask probe
         return (self.alpha * self.head(x.flatten(1))).to(DTYPE)   # (B, 6d) -> (B, 3)
 
     def forward(self, q):
