@@ -51,9 +51,10 @@ def check_config(cfg: dict) -> None:
         if not isinstance(cfg[k], int) or cfg[k] < 1:
             raise ValueError(f"params.yaml model.{k} must be a positive integer, got {cfg[k]!r}")
     if cfg["d_model"] % cfg["n_head"]:
-        raise ValueError(f"params.yaml model: n_head={cfg['n_head']} does not divide "
-                         f"d_model={cfg['d_model']} (multi-head attention splits d_model "
-                         f"into n_head equal parts); e.g. d_model=126 with n_head 2, 3, 6, 7, 9, 14")
+        d = cfg["d_model"]
+        raise ValueError(f"params.yaml model: n_head={cfg['n_head']} does not divide d_model={d} "
+                         f"(multi-head attention splits d_model into n_head equal parts); "
+                         f"n_head could be {[h for h in range(1, d + 1) if d % h == 0][:12]}")
     if cfg.get("physics", "nominal") not in ("nominal", "calibrated"):
         raise ValueError(f"params.yaml model.physics: {cfg['physics']!r}; use nominal or calibrated")
 

@@ -85,10 +85,10 @@ def test_exp_run_set_param_and_invalid_combination(repo):
     sh("git add -A && git commit -qm baseline", repo)
     r = sh("dvc exp run -S model.d_model=14", repo)
     assert "Running stage 'train'" in r.stdout and "Running stage 'split'" not in r.stdout
-    bad = sh("dvc exp run -S model.n_head=5", repo, check=False)
+    bad = sh("dvc exp run -S model.n_head=5 -S model.d_model=12", repo, check=False)
     assert bad.returncode != 0
     out = bad.stdout + bad.stderr
-    assert "n_head=5 does not divide d_model=12" in out
+    assert "n_head=5 does not divide d_model=12" in out and "n_head could be [1, 2, 3, 4, 6, 12]" in out
     assert "SPI-BoTER:" not in out                                            # stopped before training
     shown = sh("dvc exp show --json", repo).stdout
     assert "d_model" in shown
