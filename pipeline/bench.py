@@ -159,16 +159,20 @@ def bench_speed() -> dict:
     q0, tgt = targets[JOINTS_DEG].to_numpy(), targets[TARGET].to_numpy()
     robot = load_robot(params["robot"])
     comp = {}
-    for solver in ("adam", "lm"):
-        _, pred, iters, ok, _, sec = compensate(model, q0, tgt, params["compensate"], robot, solver)
-        comp[solver] = {"n_points": len(q0), "seconds_all": sec, "ms_per_point_batched": 1000 * sec / len(q0),
+    for name, solver, jac in (("adam", "adam", None), ("lm", "lm", "physics"), ("lm_model_jacobian", "lm", "model")):
+        cfg_c = {**params["compensate"], "jacobian_of": jac}
+        _, pred, iters, ok, _, sec = compensate(model, q0, tgt, cfg_c, robot, solver)
+        comp[name] = {"jacobian_of": jac, "n_points": len(q0), "seconds_all": sec,
+                      "ms_per_point_batched": 1000 * sec / len(q0),
                         "iterations_mean": float(iters.mean()), "iterations_max": int(iters.max()),
                         "converged_share": float(ok.mean()),
                         "residual_mm_max": float(np.linalg.norm(pred - tgt, axis=1).max())}
-    single = [timed(lambda i=i: compensate(model, q0[i:i + 1], tgt[i:i + 1], params["compensate"], robot, "lm"), 5)
-              for i in range(min(20, len(q0)))]
-    comp["lm"]["single_pose_ms_median"] = 1000 * float(np.median(single))
-    comp["lm"]["single_pose_ms_max"] = 1000 * float(np.max(single))
+    for name, jac in (("lm", "physics"), ("lm_model_jacobian", "model")):
+        cfg_c = {**params["compensate"], "jacobian_of": jac}
+        single = [timed(lambda i=i: compensate(model, q0[i:i + 1], tgt[i:i + 1], cfg_c, robot, "lm"), 5)
+                  for i in range(min(20, len(q0)))]
+        comp[name]["single_pose_ms_median"] = 1000 * float(np.median(single))
+        comp[name]["single_pose_ms_max"] = 1000 * float(np.max(single))
     comp["iteration_ratio_adam_over_lm"] = comp["adam"]["iterations_mean"] / comp["lm"]["iterations_mean"]
     out = {"machine": machine(),
            "train": {"n_train": len(train_t[0]), "seconds_per_epoch": hist["seconds_per_epoch"],
