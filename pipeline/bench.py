@@ -164,9 +164,9 @@ def bench_speed() -> dict:
         _, pred, iters, ok, _, sec = compensate(model, q0, tgt, cfg_c, robot, solver)
         comp[name] = {"jacobian_of": jac, "n_points": len(q0), "seconds_all": sec,
                       "ms_per_point_batched": 1000 * sec / len(q0),
-                        "iterations_mean": float(iters.mean()), "iterations_max": int(iters.max()),
-                        "converged_share": float(ok.mean()),
-                        "residual_mm_max": float(np.linalg.norm(pred - tgt, axis=1).max())}
+                      "iterations_mean": float(iters.mean()), "iterations_max": int(iters.max()),
+                      "converged_share": float(ok.mean()),
+                      "residual_mm_max": float(np.linalg.norm(pred - tgt, axis=1).max())}
     for name, jac in (("lm", "physics"), ("lm_model_jacobian", "model")):
         cfg_c = {**params["compensate"], "jacobian_of": jac}
         single = [timed(lambda i=i: compensate(model, q0[i:i + 1], tgt[i:i + 1], cfg_c, robot, "lm"), 5)
