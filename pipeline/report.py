@@ -477,7 +477,7 @@ def fig_ablation(ctx: Context):
         ax.plot(x, paper, "D", color="tab:red", ms=8, label="paper (UR5, one run)")
     ax.set_xticks(x, names, rotation=15)
     ax.set(ylabel="test 3D MAE (mm)", title="Ablation: test 3D MAE per variant (mm)")
-    top = np.nanmax(np.r_[mean + std, paper, *[groups[n].get("runs") or [] for n in names]])
+    top = np.nanmax(np.concatenate([mean + std, paper, *[groups[n].get("runs") or [] for n in names]]))
     ax.set_ylim(0, 1.3 * top)
     ax.grid(alpha=0.3, axis="y")
     ax.legend(fontsize=8, loc="upper left", ncol=3)
@@ -732,7 +732,7 @@ def section_data(ctx: Context) -> str:
         out += ["_reports/theory.json not found._", ""]
     sp = optional_json(REPORTS / "split.json")
     counts = sp.get("counts") if sp else ctx.pred.split.value_counts().to_dict()
-    out += [f"**Split**: " + ", ".join(f"{k} {v}" for k, v in counts.items())
+    out += ["**Split**: " + ", ".join(f"{k} {v}" for k, v in counts.items())
             + (f" (seed {sp.get('seed')}, fractions {fmt(sp.get('fractions'), 2)})" if sp else "")
             + ".", ""]
     return "\n".join(out)
