@@ -29,6 +29,7 @@ from .config import (CALIBRATED_GEOMETRY, FRAME_JSON, POINTS_TABLE, REPORTS, SPL
                      logger, read_json, write_json)
 from .kinematics import DTYPE, GEOMETRY_KEYS, fk, nominal_geometry
 from .robots import load_robot
+from .theory import theory_geometry
 
 log = logger(__name__)
 
@@ -220,11 +221,12 @@ def load_geometry(path) -> dict:
 
 
 def start_geometry(params: dict) -> dict:
-    """Nominal DH with the tool the frame stage settled on (as the theory stage uses)."""
-    robot = load_robot(params["robot"])
-    if FRAME_JSON.exists() and "tool_mm" in read_json(FRAME_JSON):
-        robot.tool = np.asarray(read_json(FRAME_JSON)["tool_mm"], float)
-    return nominal_geometry(robot)
+    """Nominal DH with the tool the frame stage settled on (as the theory stage uses);
+    the params' tool when no frame has been fitted."""
+    frame = read_json(FRAME_JSON) if FRAME_JSON.exists() else {}
+    if "tool_mm" in frame:
+        return theory_geometry(params, frame)[1]
+    return nominal_geometry(load_robot(params["robot"]))
 
 
 def run(params: dict) -> dict:

@@ -23,8 +23,8 @@ def to_base(P_world: np.ndarray, frame: dict) -> np.ndarray:
     return (P_world - t) @ R
 
 
-def theory_geometry(params: dict, frame: dict) -> dict:
-    """Nominal DH geometry with the tool offset the frame stage settled on."""
+def theory_geometry(params: dict, frame: dict) -> tuple:
+    """(robot, nominal DH geometry) with the tool offset the frame stage settled on."""
     robot = load_robot(params["robot"])
     robot.tool = np.asarray(frame["tool_mm"], float)
     return robot, nominal_geometry(robot)

@@ -16,10 +16,10 @@ from tqdm import tqdm
 from .columns import JOINTS_DEG, MEAS
 from .config import (CALIBRATED_GEOMETRY, FRAME_JSON, MODEL_WEIGHTS, POINTS_TABLE, REPORTS, SPLIT_TABLE,
                      load_params, logger, read_json, write_json)
-from .kinematics import DTYPE, nominal_geometry
+from .kinematics import DTYPE
 from .loss import SPILoss, data_loss
 from .model import DNN, BoTER, check_config, n_params
-from .robots import load_robot
+from .theory import theory_geometry
 
 log = logger(__name__)
 
@@ -41,9 +41,7 @@ def physics_geometry(params: dict, physics: str | None = None) -> dict:
     if physics == "calibrated":
         from .calibrate import load_geometry
         return load_geometry(CALIBRATED_GEOMETRY)
-    robot = load_robot(params["robot"])
-    robot.tool = np.asarray(read_json(FRAME_JSON)["tool_mm"], float)
-    return nominal_geometry(robot)
+    return theory_geometry(params, read_json(FRAME_JSON))[1]
 
 
 def make_model(params: dict, kind: str = "boter", physics: str | None = None):
