@@ -42,8 +42,13 @@ def absolute_paths(params: dict) -> dict:
     return p
 
 
-def run_set(name: str, seeds: list[int], epochs: int | None, other_physics: bool = True) -> dict:
-    """The full pipeline on one real set, once per training seed."""
+def run_set(name: str, seeds: list[int], epochs: int | None, other_physics: bool = True,
+            on_seed=None) -> dict:
+    """The full pipeline on one real set, once per training seed.
+
+    on_seed(partial summary) is called after every seed, so a long run that is
+    stopped keeps the seeds it finished.
+    """
     from . import baselines, calibrate, evaluate, frame, ingest, split, theory, train
     from .columns import JOINTS_DEG, MEAS
     from .kinematics import fk_numpy
@@ -78,11 +83,17 @@ def run_set(name: str, seeds: list[int], epochs: int | None, other_physics: bool
                 baselines.run(p)
                 m = evaluate.run(p)["baselines"]
                 runs.append({k: v["test"]["3d"]["mae"] for k, v in m.items()})
+                if on_seed:
+                    on_seed(set_summary(runs, seeds[:i + 1], summary["ingest"], nominal, params, t0))
         finally:
             os.chdir(cwd)
+    return set_summary(runs, seeds, summary["ingest"], nominal, params, t0)
+
+
+def set_summary(runs: list[dict], seeds: list[int], n: int, nominal, params: dict, t0: float) -> dict:
     per = {k: [r[k] for r in runs if k in r] for k in runs[0]}
-    out = {"n": summary["ingest"], "seeds": seeds, "physics": params["model"]["physics"],
-           "seconds": time.perf_counter() - t0}
+    out = {"n": n, "seeds": seeds, "physics": params["model"]["physics"], "seconds": time.perf_counter() - t0,
+           "max_epochs": params["train"]["max_epochs"]}
     return {**out, **seed_summary(per, nominal, params["model"]["physics"])}
 
 
@@ -109,8 +120,10 @@ def bench_real(seeds: list[int], epochs: int | None, only: list[str] | None, oth
             out[name] = {"skipped": f"{DATASETS / name} not found"}
             continue
         log.info("running the pipeline on %s with seeds %s", name, seeds)
-        out[name] = run_set(name, seeds, epochs, other_physics)
-        out[name]["max_epochs"] = epochs
+        def save(partial, name=name):
+            out[name] = partial
+            write_json(out_path, out)
+        out[name] = run_set(name, seeds, epochs, other_physics, on_seed=save)
         log.info("%s: %s", name, out[name]["test_3d_mae"])
         write_json(out_path, out)
     write_json(out_path, out)
