@@ -148,6 +148,25 @@ def timed(fn, repeats: int) -> float:
     return float(np.median(ts))
 
 
+def bench_realtime(model, q0: np.ndarray, tgt: np.ndarray, limits: np.ndarray, tol_mm: float,
+                   compiled: bool, repeats: int = 5) -> dict:
+    """The controller path (realtime.py), one pose per call: latency over every target, repeats times."""
+    from .realtime import Realtime, check
+
+    t = time.perf_counter()
+    rt = Realtime(model, limits, tol_mm, compile=compiled)
+    setup = time.perf_counter() - t
+    ms = []
+    for _ in range(repeats):
+        for a, b in zip(q0, tgt):
+            t = time.perf_counter()
+            rt(a, b)
+            ms.append(1000 * (time.perf_counter() - t))
+    return {"compiled": compiled, "setup_s": setup, "calls_timed": len(ms), "ms_median": float(np.median(ms)),
+            "ms_p90": float(np.percentile(ms, 90)), "ms_p99": float(np.percentile(ms, 99)),
+            "ms_max": float(np.max(ms)), **check(rt, q0, tgt)}
+
+
 def bench_speed() -> dict:
     """Needs a finished `dvc repro` in the project (model, points, split)."""
     from .compensate import compensate, load_targets
@@ -188,6 +207,9 @@ def bench_speed() -> dict:
         comp[name]["single_pose_ms_median"] = 1000 * float(np.median(single))
         comp[name]["single_pose_ms_max"] = 1000 * float(np.max(single))
     comp["iteration_ratio_adam_over_lm"] = comp["adam"]["iterations_mean"] / comp["lm"]["iterations_mean"]
+    for name, compiled in (("realtime_eager", False), ("realtime", True)):
+        comp[name] = bench_realtime(model, np.radians(q0), tgt, np.radians(robot.limits_deg),
+                                    params["compensate"]["tol_mm"], compiled)
     out = {"machine": machine(),
            "train": {"n_train": len(train_t[0]), "seconds_per_epoch": hist["seconds_per_epoch"],
                      "epochs_timed": hist["epochs_run"], "model": params["model"]},
@@ -196,10 +218,12 @@ def bench_speed() -> dict:
            "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
     write_json(BENCH / "speed.json", out)
     log.info("speed: %.3f s/epoch, %.0f poses/s (batch 4096), %.2f ms single pose; lm %.1f it vs adam %.1f it "
-             "(%.0fx), lm single pose %.2f ms; peak RSS %.0f MB", hist["seconds_per_epoch"],
+             "(%.0fx), lm single pose %.2f ms; realtime single pose %.2f ms median, %.2f ms p99 "
+             "(eager %.2f ms), true residual max %.1e mm; peak RSS %.0f MB", hist["seconds_per_epoch"],
              out["predict"]["poses_per_s"], out["predict"]["single_pose_ms"], comp["lm"]["iterations_mean"],
              comp["adam"]["iterations_mean"], comp["iteration_ratio_adam_over_lm"],
-             comp["lm"]["single_pose_ms_median"], out["peak_rss_mb"])
+             comp["lm"]["single_pose_ms_median"], comp["realtime"]["ms_median"], comp["realtime"]["ms_p99"],
+             comp["realtime_eager"]["ms_median"], comp["realtime"]["true_residual_mm_max"], out["peak_rss_mb"])
     return out
 
 

@@ -11,7 +11,8 @@ points:
         6 unknowns), λ adapted per point, joint limits respected, stop at
         |r| < tol_mm.
 The Δθ table (DATA_FORMAT.md) comes from `compensate.solver`; both solvers
-are run and their convergence recorded. On twin data the twin is driven to
+are run and their convergence recorded, and so is the controller path
+(realtime.py: one pose per call, two model evaluations) on the same targets. On twin data the twin is driven to
 the recorded and to the compensated angles and measured (the paper's Table 9).
 """
 import time
@@ -25,6 +26,7 @@ from .columns import COMPENSATION, DJ_DEG, JCOMP_DEG, JOINTS_DEG, PRED, TARGET, 
 from .config import FRAME_JSON, REPORTS, load_params, logger, read_json, write_json
 from .kinematics import DTYPE
 from .metrics import drive_table
+from .realtime import Realtime, check
 from .robots import load_robot
 from .train import load_model, load_points
 
@@ -192,6 +194,11 @@ def run(params: dict) -> dict:
             table[JCOMP_DEG] = q
             table[TARGET], table[PRED] = target, pred
             table["residual_mm"], table["iterations"], table["converged"] = res, iters, ok
+    rt = Realtime(model, np.radians(robot.limits_deg), cfg["tol_mm"])   # the controller path, same targets
+    summary["realtime"] = check(rt, np.radians(q0), target)
+    log.info("realtime (one pose per call, 2 model evaluations): %.0f%% verified, %.0f%% converged, "
+             "residual max %.2e mm", 100 * summary["realtime"]["verified_share"],
+             100 * summary["realtime"]["converged_share"], summary["realtime"]["true_residual_mm_max"])
     table = table[COMPENSATION]
     table.to_csv(REPORTS / "compensation.csv", index=False, float_format="%.6f")
     table.to_parquet(REPORTS / "compensation.parquet", index=False)

@@ -68,13 +68,18 @@ def dh_matrices(q: torch.Tensor, g: dict) -> torch.Tensor:
     return torch.stack(rows, -2)                           # (B, 6, 4, 4)
 
 
+def fk_frames(q: torch.Tensor, g: dict) -> list[torch.Tensor]:
+    """Cumulative frames T_1, T_1 T_2, ..., T_1..T_6: six (B, 4, 4) poses in the base frame."""
+    T = dh_matrices(q, g)
+    frames = [T[:, 0]]
+    for i in range(1, 6):
+        frames.append(frames[-1] @ T[:, i])
+    return frames
+
+
 def fk_poses(q: torch.Tensor, g: dict) -> torch.Tensor:
     """Flange poses in the base frame, (B, 6) rad -> (B, 4, 4) (no tool, no base correction)."""
-    T = dh_matrices(q, g)
-    out = T[:, 0]
-    for i in range(1, 6):
-        out = out @ T[:, i]
-    return out
+    return fk_frames(q, g)[-1]
 
 
 def fk(q: torch.Tensor, g: dict) -> torch.Tensor:
@@ -86,6 +91,24 @@ def fk(q: torch.Tensor, g: dict) -> torch.Tensor:
     p = T[:, :3, :3] @ g["tool"] + T[:, :3, 3]             # (B, 3)
     Rb = rotation_xyz(g["base"][:3])
     return p @ Rb.T + g["base"][3:]
+
+
+def fk_jacobian(q: torch.Tensor, g: dict) -> tuple[torch.Tensor, torch.Tensor]:
+    """Marker position and its geometric Jacobian: (B, 6) rad -> p (B, 3) mm, J = dp/dq (B, 3, 6) mm/rad.
+
+    Joint i turns about the z axis of the frame before it (T_i starts with Rz),
+    so column i is z_{i-1} x (p - o_{i-1}), with frame 0 the base; the base
+    correction then rotates every column. One FK pass, no autograd: the
+    controller path (realtime.py) needs it in a few tens of microseconds.
+    """
+    frames = fk_frames(q, g)
+    p = frames[-1][:, :3, :3] @ g["tool"] + frames[-1][:, :3, 3]           # (B, 3), before the base correction
+    z = torch.stack([p.new_tensor([0.0, 0.0, 1.0]).expand_as(p)]
+                    + [F[:, :3, 2] for F in frames[:-1]], 1)               # (B, 6, 3) joint axes
+    o = torch.stack([torch.zeros_like(p)] + [F[:, :3, 3] for F in frames[:-1]], 1)   # (B, 6, 3) a point on each
+    J = torch.linalg.cross(z, p[:, None] - o, dim=-1).transpose(1, 2)      # (B, 3, 6)
+    Rb = rotation_xyz(g["base"][:3])
+    return p @ Rb.T + g["base"][3:], Rb @ J
 
 
 def fk_numpy(q_deg: np.ndarray, robot: Robot, geometry: dict | None = None) -> np.ndarray:

@@ -7,6 +7,7 @@ import torch
 from pipeline.compensate import compensate, jacobian, load_targets
 from pipeline.kinematics import nominal_geometry
 from pipeline.model import BoTER
+from pipeline.realtime import Realtime
 from pipeline.robots import load_robot
 
 ROBOT = load_robot({"model": "ur5"})
@@ -80,3 +81,43 @@ def test_unknown_solver_and_bad_target_file(model, tmp_path):
     pd.DataFrame({"point_id": ["A"], "j1_deg": [0.0]}).to_csv(path, index=False)
     with pytest.raises(ValueError, match=r"targets.csv: missing column\(s\) \['j2_deg'"):
         load_targets({"compensate": {"targets": str(path)}})
+
+
+def true_residual(model, q_rad, tgt):
+    with torch.no_grad():
+        return np.linalg.norm(model(torch.as_tensor(np.atleast_2d(q_rad)))[0].numpy() - tgt, axis=1)
+
+
+def test_realtime_lands_every_pose_within_0_001_mm_in_two_evaluations(model):
+    q0, tgt = targets(model)
+    rt = Realtime(model, np.radians(ROBOT.limits_deg))
+    start = true_residual(model, np.radians(q0), tgt)
+    results = [rt(np.radians(a), b) for a, b in zip(q0, tgt)]
+    got = np.array([true_residual(model, r.q, t)[0] for r, t in zip(results, tgt)])
+    assert start.min() > 0.2 and start.mean() > 0.5        # real work: 0.05-0.1° from the answer
+    assert all(r.converged for r in results) and got.max() < 1e-3
+    for r, g in zip(results, got):                          # a verified residual is the model's own
+        if r.verified:
+            assert r.residual_mm == pytest.approx(g, rel=1e-6, abs=1e-9)
+    # the batched lm's Δθ to 0.001°: both take minimum-norm steps from the same start (the
+    # solutions form a 3-D family, so differently damped paths may end a little apart)
+    q_lm, *_ = compensate(model, q0, tgt, CFG, ROBOT, "lm")
+    assert np.abs(np.degrees([r.q for r in results]) - q_lm).max() < 1e-3
+
+
+def test_realtime_respects_joint_limits_and_says_when_it_failed(model):
+    q0, tgt = targets(model, n=1)
+    lim = np.radians([[a - 0.01, a + 0.01] for a in q0[0]])   # ±0.01°: the target is out of reach
+    r = Realtime(model, lim)(np.radians(q0[0]), tgt[0])
+    assert (np.abs(np.degrees(r.q) - q0[0]) <= 0.01 + 1e-9).all()
+    assert not r.converged and r.residual_mm > 1e-3
+
+
+@pytest.mark.slow
+def test_realtime_compiled_matches_eager(model):
+    q0, tgt = targets(model, n=5)
+    eager, compiled = Realtime(model), Realtime(model, compile=True)
+    for a, b in zip(np.radians(q0), tgt):
+        e, c = eager(a, b), compiled(a, b)
+        np.testing.assert_allclose(c.q, e.q, atol=1e-9)
+        assert c.verified == e.verified and c.converged

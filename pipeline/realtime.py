@@ -1,0 +1,90 @@
+"""The controller path: compensate one pose inside a 500 Hz cycle (2 ms).
+
+The compensate stage's batched `lm` iterates until every point is verified
+within tol_mm; alone, one pose costs it about three model evaluations plus
+autograd (8 ms here). A controller needs a fixed budget instead, so a call
+here costs exactly two evaluations of the frozen model:
+
+    r0 = p(q0) - target,  J0 = ∂p_theory/∂q (q0)     evaluation 1
+    q1 = q0 - J0ᵀ (J0 J0ᵀ + μI)⁻¹ r0                 chord step: minimum-norm Δθ,
+                                                     the network's small slope left out
+    r1 = p(q1) - target,  J1 = ∂p_theory/∂q (q1)     evaluation 2
+    |r1| < tol: return q1                            verified
+    else:       return q2 = q1 - J1ᵀ (J1 J1ᵀ + μI)⁻¹ r1
+                with the predicted residual |r1|²/|r0| (the chord step's contraction)
+
+p is the whole model (DH branch + network, eq. 9); J is the DH branch's
+geometric Jacobian (kinematics.fk_jacobian), one FK pass. Joint limits clamp
+every step. `compile=True` runs each step as one torch.compile graph: about
+20 s once, in the constructor, then a call costs about half of eager
+PyTorch's (the network's forward at batch 1 is mostly Python overhead). `python -m pipeline.bench speed` times it;
+tests/test_realtime.py checks every answer against the model.
+"""
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from .kinematics import DTYPE, fk_jacobian
+
+
+@dataclass
+class Result:
+    q: np.ndarray          # (6,) rad, the compensated joint angles
+    residual_mm: float     # |p(q) - target|: measured when verified, else predicted
+    verified: bool         # residual_mm was measured by the second evaluation
+    converged: bool        # residual_mm < tol_mm
+
+
+class Realtime:
+    """Compensate single poses with a frozen BoTER: `Realtime(model)(q0_rad, target_mm) -> Result`."""
+
+    def __init__(self, model, limits_rad: np.ndarray | None = None, tol_mm: float = 1e-3,
+                 damping: float = 1e-9, compile: bool = False):
+        model.eval()
+        for p in model.parameters():
+            p.requires_grad_(False)
+        self.model, self.tol = model, tol_mm
+        self.geometry = {k: v.clone() for k, v in model.physics.geometry().items()}
+        lim = np.array([[-np.inf, np.inf]] * 6) if limits_rad is None else np.asarray(limits_rad, float)
+        self.lo, self.hi = (torch.as_tensor(lim[:, i], dtype=DTYPE) for i in (0, 1))
+        self.damping = damping
+        self.step = self._step
+        if compile:                                         # compile now, not in the first cycle
+            self.step = torch.compile(self._step)
+            self(np.zeros(6), np.zeros(3))
+
+    def _step(self, q, target):
+        """One chord step from q (1, 6): returns (the next q (1, 6), |residual at q| (1,) mm)."""
+        p, J = fk_jacobian(q, self.geometry)                # (1, 3), (1, 3, 6)
+        r = p + self.model.delta(q) - target                # (1, 3), eq. 9
+        JJt = J @ J.transpose(1, 2)                         # (1, 3, 3)
+        mu = self.damping * JJt.diagonal(dim1=1, dim2=2).mean(1)[:, None, None] * torch.eye(3, dtype=DTYPE)
+        dq = J.transpose(1, 2) @ torch.linalg.solve(JJt + mu, r.unsqueeze(-1))   # (1, 6, 1)
+        return torch.clamp(q - dq.squeeze(-1), self.lo, self.hi), r.norm(dim=1)
+
+    @torch.inference_mode()
+    def __call__(self, q0_rad, target_mm) -> Result:
+        q0 = torch.as_tensor(np.asarray(q0_rad, float).reshape(1, 6), dtype=DTYPE)
+        target = torch.as_tensor(np.asarray(target_mm, float).reshape(1, 3), dtype=DTYPE)
+        q1, r0 = self.step(q0, target)
+        q2, r1 = self.step(q1, target)
+        r0, r1 = float(r0), float(r1)
+        if r1 < self.tol:
+            return Result(q1[0].numpy(), r1, True, True)
+        predicted = r1 * r1 / r0 if r1 < r0 else float("inf")
+        return Result(q2[0].numpy(), predicted, False, predicted < self.tol)
+
+
+def check(rt: Realtime, q0_rad: np.ndarray, targets: np.ndarray) -> dict:
+    """Compensate every (q0, target) pair (n, 6), (n, 3) one call at a time; how the answers did,
+    their residuals measured by an independent batched evaluation of the model."""
+    results = [rt(a, b) for a, b in zip(q0_rad, targets)]
+    with torch.no_grad():
+        pred = rt.model(torch.as_tensor(np.array([r.q for r in results]), dtype=DTYPE))[0].numpy()
+    true = np.linalg.norm(pred - targets, axis=1)
+    return {"n_points": len(results), "evaluations_per_call": 2,
+            "verified_share": float(np.mean([r.verified for r in results])),
+            "converged_share": float(np.mean([r.converged for r in results])),
+            "true_residual_mm_max": float(true.max()),
+            "predicted_residual_mm_max": max([r.residual_mm for r in results if not r.verified], default=0.0)}
