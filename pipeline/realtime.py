@@ -87,4 +87,7 @@ def check(rt: Realtime, q0_rad: np.ndarray, targets: np.ndarray) -> dict:
             "verified_share": float(np.mean([r.verified for r in results])),
             "converged_share": float(np.mean([r.converged for r in results])),
             "true_residual_mm_max": float(true.max()),
-            "predicted_residual_mm_max": max([r.residual_mm for r in results if not r.verified], default=0.0)}
+            # the answers returned on a prediction: what was predicted, what they measure
+            "predicted_residual_mm_max": max([r.residual_mm for r in results if not r.verified], default=0.0),
+            "unverified_true_residual_mm_max": float(max([t for r, t in zip(results, true) if not r.verified],
+                                                         default=0.0))}

@@ -96,9 +96,12 @@ def test_realtime_lands_every_pose_within_0_001_mm_in_two_evaluations(model):
     got = np.array([true_residual(model, r.q, t)[0] for r, t in zip(results, tgt)])
     assert start.min() > 0.2 and start.mean() > 0.5        # real work: 0.05-0.1° from the answer
     assert all(r.converged for r in results) and got.max() < 1e-3
-    for r, g in zip(results, got):                          # a verified residual is the model's own
-        if r.verified:
+    for r, g in zip(results, got):
+        if r.verified:                                      # a verified residual is the model's own
             assert r.residual_mm == pytest.approx(g, rel=1e-6, abs=1e-9)
+        else:                                               # a predicted one is not optimistic
+            assert g <= 2 * r.residual_mm + 1e-7           # (+ float32 network noise)
+    assert 0 < sum(r.verified for r in results) < len(results)   # both kinds occur here
     # the batched lm's Δθ to 0.001°: both take minimum-norm steps from the same start (the
     # solutions form a 3-D family, so differently damped paths may end a little apart)
     q_lm, *_ = compensate(model, q0, tgt, CFG, ROBOT, "lm")
