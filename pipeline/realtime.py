@@ -15,10 +15,11 @@ here costs exactly two evaluations of the frozen model:
 
 p is the whole model (DH branch + network, eq. 9); J is the DH branch's
 geometric Jacobian (kinematics.fk_jacobian), one FK pass. Joint limits clamp
-every step. `compile=True` runs each step as one torch.compile graph: about
-20 s once, in the constructor, then a call costs about half of eager
-PyTorch's (the network's forward at batch 1 is mostly Python overhead). `python -m pipeline.bench speed` times it;
-tests/test_realtime.py checks every answer against the model.
+every step. `compile=True` runs both steps as one torch.compile graph: 10-20
+s once, in the constructor, then a call costs about half of eager
+PyTorch's (at batch 1, eager time goes as much to per-operator overhead as
+to the matrix products). `python -m pipeline.bench speed` times it;
+tests/test_compensate.py checks every answer against the model.
 """
 from dataclasses import dataclass
 
@@ -49,9 +50,9 @@ class Realtime:
         lim = np.array([[-np.inf, np.inf]] * 6) if limits_rad is None else np.asarray(limits_rad, float)
         self.lo, self.hi = (torch.as_tensor(lim[:, i], dtype=DTYPE) for i in (0, 1))
         self.damping = damping
-        self.step = self._step
+        self.solve = self._solve
         if compile:                                         # compile now, not in the first cycle
-            self.step = torch.compile(self._step)
+            self.solve = torch.compile(self._solve, dynamic=False)
             self(np.zeros(6), np.zeros(3))
 
     def _step(self, q, target):
@@ -63,12 +64,18 @@ class Realtime:
         dq = J.transpose(1, 2) @ torch.linalg.solve(JJt + mu, r.unsqueeze(-1))   # (1, 6, 1)
         return torch.clamp(q - dq.squeeze(-1), self.lo, self.hi), r.norm(dim=1)
 
+    def _solve(self, q0, target):
+        """Both steps (one graph when compiled): q1, q2 (1, 6) and |r0|, |r1| (1,)."""
+        q1, r0 = self._step(q0, target)
+        q2, r1 = self._step(q1, target)
+        return q1, q2, r0, r1
+
     @torch.inference_mode()
     def __call__(self, q0_rad, target_mm) -> Result:
-        q0 = torch.as_tensor(np.asarray(q0_rad, float).reshape(1, 6), dtype=DTYPE)
-        target = torch.as_tensor(np.asarray(target_mm, float).reshape(1, 3), dtype=DTYPE)
-        q1, r0 = self.step(q0, target)
-        q2, r1 = self.step(q1, target)
+        # fresh contiguous copies: the compiled graph is specialised to one layout (no recompiles)
+        q0 = torch.tensor(np.asarray(q0_rad, float).reshape(1, 6), dtype=DTYPE)
+        target = torch.tensor(np.asarray(target_mm, float).reshape(1, 3), dtype=DTYPE)
+        q1, q2, r0, r1 = self.solve(q0, target)
         r0, r1 = float(r0), float(r1)
         if r1 < self.tol:
             return Result(q1[0].numpy(), r1, True, True)
