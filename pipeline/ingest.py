@@ -28,7 +28,8 @@ geometry, gross_outlier. `row` is the 1-based line number in the file, header
 included (for a point cloud: the 1-based point index).
 
 A per-row problem drops the row and lists it; `reason` is one of
-    field_count      more or fewer cells than the header (a stray separator?)
+    field_count      more or fewer cells than the header (a stray separator?); empty cells
+                     after the last column pass when most rows have them (trailing separator)
     missing_id       the id cell is empty
     duplicate        id already used by an earlier row of the same file (the first row
                      keeps the id, even if that row is itself dropped for another reason)
@@ -269,10 +270,14 @@ def read_rows(path: str, role: str, cfg: dict, id_setting, groups: list) -> Rows
     ids = row_ids(n) if id_col is None else [""] * n
     values = np.full((n, len(cols)), np.nan)
     problem = [None] * n
+    # empty cells after the last column are a trailing separator when most rows have them (an
+    # export's style); on a few rows they mean a cell split in two by a stray separator
+    padded = [len(row) > width and not any(c.strip() for c in row[width:]) for row in cells]
+    trailing_ok = 2 * sum(padded) > n
     for r, row in enumerate(cells):
         if id_col is not None:
             ids[r] = row[id_col].strip() if id_col < len(row) else ""
-        if len(row) < width or any(c.strip() for c in row[width:]):
+        if len(row) < width or (len(row) > width and not (trailing_ok and padded[r])):
             problem[r] = ("field_count", f"{len(row)} cells but the header has {width} "
                           "(a separator or decimal comma inside a cell?)", None)
             continue

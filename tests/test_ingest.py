@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
-from hypothesis import HealthCheck, event, given, settings
+from hypothesis import HealthCheck, event, example, given, settings
 from hypothesis import strategies as st
 
 from pipeline.columns import JOINTS_DEG, MEAS
@@ -383,12 +383,18 @@ def build(spec, d):
             elif r == role or spec["table"]:
                 rows[k][col] = BAD[kind]
                 bad[role].add(k)
-        if not spec["table"]:
-            for r, k in spec["dups"]:                     # a later row reusing an id, other values
-                if r == role:
-                    rows.append([f" {ids[k]}"] + [num(v + 1.0, dec) for v in vals[k]])
         hdr = [h.upper() if spec["upper"] else h for h in header]
         order = list(rng.permutation(len(hdr)))           # shuffled column order
+        # A stray separator written before the id cell shifts it: which id that row had is
+        # unknowable, so a later row reusing its id stands alone and ingest keeps it. The
+        # property leaves that combination out (test_shifted_row_cannot_claim_its_id covers it).
+        before_id = order[:order.index(0)]
+        shifted = {k for k in bad[role] if any(sep in rows[k][c] and not rows[k][c].startswith('"')
+                                               for c in before_id)}
+        if not spec["table"]:
+            for r, k in spec["dups"]:                     # a later row reusing an id, other values
+                if r == role and k not in shifted:
+                    rows.append([f" {ids[k]}"] + [num(v + 1.0, dec) for v in vals[k]])
         if spec["missing"] and (spec["missing"][0] == role or spec["table"]):
             order.remove(order[spec["missing"][1] % len(order)])
             missing = True
@@ -410,6 +416,12 @@ def build(spec, d):
 
 @settings(max_examples=50, deadline=None, database=None, suppress_health_check=[HealthCheck.too_slow])
 @given(malformed())
+@example({"n": 11, "seed": 0, "sep": ",", "table": False, "corrupt": [("joints", 2, 0, "comma")],  # found once
+          "dups": [("joints", 2)], "missing": None, "seed_order": 3, "upper": False,
+          "wrong_decimal": False, "decimal": "."})
+@example({"n": 11, "seed": 0, "sep": ",", "table": False, "dups": [], "missing": None,  # found once
+          "corrupt": [("joints", 0, 0, "empty"), ("joints", 0, 1, "comma")], "seed_order": 899,
+          "upper": False, "wrong_decimal": False, "decimal": "."})
 def test_malformed_csv_is_read_right_or_refused(spec):
     with tempfile.TemporaryDirectory() as d:
         p, ids, q, m, good, paths, n_rows, bad, expect_error = build(spec, d)
@@ -433,6 +445,40 @@ def test_malformed_csv_is_read_right_or_refused(spec):
             rows = {dd["row"]: dd for dd in listed}
             for k in bad[role]:                           # each corrupted row listed, column named
                 assert rows[k + 2]["reason"] == "field_count" or "column '" in rows[k + 2]["detail"]
+
+
+def test_trailing_separator_on_every_row_passes_on_one_row_is_a_split_cell(tmp_path):
+    ids, q, m = campaign(12)
+    joints, tracker = write_pair(tmp_path, ids, q, m, sep=";")
+    lines = Path(joints).read_text().splitlines()
+    Path(joints).write_text("\n".join(lines[:1] + [ln + ";" for ln in lines[1:]]) + "\n")
+    df, s = ingest(params(joints=joints, tracker=tracker))
+    assert list(df.point_id) == ids and not s["dropped"]
+    # one row: "1;2.3" splits a cell in two, and its empty last cell hides the extra one
+    cells = lines[4].split(";")
+    cells[1], cells[-1] = "1;2.3", ""
+    lines[4] = ";".join(cells)
+    Path(joints).write_text("\n".join(lines) + "\n")
+    df, s = ingest(params(joints=joints, tracker=tracker))
+    assert "P0004" not in set(df.point_id)
+    (dropped, partner) = s["dropped"]
+    assert (dropped["reason"], dropped["row"], partner["reason"]) == ("field_count", 5, "partner_dropped")
+
+
+def test_shifted_row_cannot_claim_its_id(tmp_path):
+    """A stray separator before the id cell: the row is dropped (field_count, listed) and a later
+    row with the id it had is the only readable one, so it is kept."""
+    ids, q, m = campaign(12)
+    _, tracker = write_pair(tmp_path, ids, q, m)
+    rows = [[num(v) for v in q[k]] + [ids[k]] for k in range(12)]        # id column last
+    rows[2][0] = "1,2.3"                                                  # P0003: a stray separator
+    rows.append([num(v + 1.0) for v in q[2]] + ["P0003"])                 # a later row, same id
+    joints = write(tmp_path / "j.csv", JOINTS_DEG + ["point_id"], rows)
+    df, s = ingest(params(joints=joints, tracker=tracker))
+    assert list(df.point_id) == ids[:2] + ids[3:] + ["P0003"]
+    np.testing.assert_allclose(df[JOINTS_DEG].to_numpy()[-1], q[2] + 1.0, atol=1e-9)
+    (dropped,) = s["dropped"]
+    assert dropped["reason"] == "field_count" and dropped["row"] == 4
 
 
 # ---------------------------------------------------------------- real datasets
