@@ -26,7 +26,7 @@ from .columns import COMPENSATION, DJ_DEG, JCOMP_DEG, JOINTS_DEG, PRED, TARGET, 
 from .config import FRAME_JSON, REPORTS, load_params, logger, read_json, write_json
 from .kinematics import DTYPE
 from .metrics import drive_table
-from .realtime import Realtime, check
+from .realtime import Realtime, check, min_norm_step
 from .robots import load_robot
 from .train import load_model, load_points
 
@@ -87,7 +87,6 @@ def solve_lm(model, q0, target, max_iter=500, tol_mm=1e-3, limits=None, lam0=1e-
     lam = torch.full((len(q0),), lam0, dtype=DTYPE)
     iters = torch.full((len(q0),), max_iter)
     done = torch.zeros(len(q0), dtype=torch.bool)
-    eye = torch.eye(3, dtype=DTYPE)
     with torch.no_grad():
         r = predict(model, q) - target                      # (B, 3) residual, mm
     err = r.norm(dim=1)
@@ -100,10 +99,7 @@ def solve_lm(model, q0, target, max_iter=500, tol_mm=1e-3, limits=None, lam0=1e-
             break
         a = (~done).nonzero().squeeze(1)                    # active points
         J = jacobian(jac_f, q[a])                           # (A, 3, 6)
-        JJt = J @ J.transpose(1, 2)                         # (A, 3, 3)
-        damp = lam[a, None, None] * JJt.diagonal(dim1=1, dim2=2).mean(1)[:, None, None] * eye
-        step = -(J.transpose(1, 2) @ torch.linalg.solve(JJt + damp, r[a].unsqueeze(-1))).squeeze(-1)
-        q_try = q[a] + step                                 # (A, 6), minimum-norm correction
+        q_try = q[a] + min_norm_step(J, r[a], lam[a])       # (A, 6)
         if limits is not None:
             q_try = q_try.clamp(limits[:, 0], limits[:, 1])
         with torch.no_grad():

@@ -37,6 +37,18 @@ class Result:
     converged: bool        # residual_mm < tol_mm
 
 
+def min_norm_step(J, r, lam):
+    """Damped minimum-norm joint correction Δθ = -Jᵀ (J Jᵀ + λ·mean(diag J Jᵀ)·I)⁻¹ r.
+
+    J (B, 3, 6) mm/rad, r (B, 3) mm, lam (B,) or a float -> Δθ (B, 6) rad. Shared by the
+    batched lm (compensate.py, λ adapted per point) and the controller path (λ tiny, fixed).
+    """
+    JJt = J @ J.transpose(1, 2)                             # (B, 3, 3)
+    scale = torch.as_tensor(lam, dtype=DTYPE) * JJt.diagonal(dim1=1, dim2=2).mean(1)   # (B,)
+    damped = JJt + scale[:, None, None] * torch.eye(3, dtype=DTYPE)
+    return -(J.transpose(1, 2) @ torch.linalg.solve(damped, r.unsqueeze(-1))).squeeze(-1)
+
+
 class Realtime:
     """Compensate single poses with a frozen BoTER: `Realtime(model)(q0_rad, target_mm) -> Result`."""
 
@@ -46,7 +58,6 @@ class Realtime:
         for p in model.parameters():
             p.requires_grad_(False)
         self.model, self.tol = model, tol_mm
-        self.geometry = {k: v.clone() for k, v in model.physics.geometry().items()}
         lim = np.array([[-np.inf, np.inf]] * 6) if limits_rad is None else np.asarray(limits_rad, float)
         self.lo, self.hi = (torch.as_tensor(lim[:, i], dtype=DTYPE) for i in (0, 1))
         self.damping = damping
@@ -57,12 +68,10 @@ class Realtime:
 
     def _step(self, q, target):
         """One chord step from q (1, 6): returns (the next q (1, 6), |residual at q| (1,) mm)."""
-        p, J = fk_jacobian(q, self.geometry)                # (1, 3), (1, 3, 6)
+        p, J = fk_jacobian(q, self.model.physics.geometry())   # (1, 3), (1, 3, 6)
         r = p + self.model.delta(q) - target                # (1, 3), eq. 9
-        JJt = J @ J.transpose(1, 2)                         # (1, 3, 3)
-        mu = self.damping * JJt.diagonal(dim1=1, dim2=2).mean(1)[:, None, None] * torch.eye(3, dtype=DTYPE)
-        dq = J.transpose(1, 2) @ torch.linalg.solve(JJt + mu, r.unsqueeze(-1))   # (1, 6, 1)
-        return torch.clamp(q - dq.squeeze(-1), self.lo, self.hi), r.norm(dim=1)
+        q_next = q + min_norm_step(J, r, self.damping)
+        return torch.clamp(q_next, self.lo, self.hi), r.norm(dim=1)
 
     def _solve(self, q0, target):
         """Both steps (one graph when compiled): q1, q2 (1, 6) and |r0|, |r1| (1,)."""
