@@ -24,7 +24,7 @@ import torch
 
 from .columns import COMPENSATION, DJ_DEG, JCOMP_DEG, JOINTS_DEG, PRED, TARGET, THEORY
 from .config import FRAME_JSON, REPORTS, load_params, logger, read_json, write_json
-from .kinematics import DTYPE
+from .kinematics import DTYPE, fk_jacobian
 from .metrics import drive_table
 from .realtime import Realtime, check, min_norm_step
 from .robots import load_robot
@@ -78,11 +78,15 @@ def solve_lm(model, q0, target, max_iter=500, tol_mm=1e-3, limits=None, lam0=1e-
              jacobian_of="model", **_):
     """Batched Levenberg-Marquardt on the frozen model. Returns q, prediction, iterations, converged, history.
 
-    jacobian_of: "model" differentiates the whole model; "physics" only its DH
-    branch (float64, cheap), leaving out the network's small slope: each step
-    is then a chord step, the residual always from the whole model.
+    jacobian_of: "model" differentiates the whole model by autograd; "physics"
+    takes its DH branch's geometric Jacobian (kinematics.fk_jacobian: exact,
+    float64, one FK pass), leaving out the network's small slope: each step is
+    then a chord step, the residual always from the whole model.
     """
-    jac_f = model.physics if jacobian_of == "physics" else (lambda q: predict(model, q))
+    if jacobian_of == "physics":
+        jac = lambda q: fk_jacobian(q, model.physics.geometry())[1]
+    else:
+        jac = lambda q: jacobian(lambda x: predict(model, x), q)
     q = q0.clone()
     lam = torch.full((len(q0),), lam0, dtype=DTYPE)
     iters = torch.full((len(q0),), max_iter)
@@ -98,7 +102,7 @@ def solve_lm(model, q0, target, max_iter=500, tol_mm=1e-3, limits=None, lam0=1e-
         if done.all():
             break
         a = (~done).nonzero().squeeze(1)                    # active points
-        J = jacobian(jac_f, q[a])                           # (A, 3, 6)
+        J = jac(q[a])                                       # (A, 3, 6)
         q_try = q[a] + min_norm_step(J, r[a], lam[a])       # (A, 6)
         if limits is not None:
             q_try = q_try.clamp(limits[:, 0], limits[:, 1])
