@@ -21,8 +21,13 @@ from pathlib import Path
 
 import numpy as np
 
-from .config import REPORTS, load_params, logger, read_json, write_json
-from .report import PAPER_ABLATION
+from .lib.artifacts import REPORTS, load_points
+from .lib.config import load_params, logger, read_json, section, write_json
+from .lib.figures import fig_ablation, save
+from .lib.geometry import physics_geometry
+from .lib.metrics import split_metrics
+from .lib.paper import PAPER_ABLATION, PAPER_ABLATION_EPOCHS
+from .lib.training import predict, train_boter
 
 log = logger(__name__)
 OUT = REPORTS / "ablation"
@@ -41,10 +46,10 @@ GROUPS = {                                   # name -> params changes (one sourc
 
 def group_params(params: dict, group: str, seed: int) -> dict:
     p = copy.deepcopy(params)
-    for section, changes in GROUPS[group].items():
-        p[section].update(changes)
+    for name, changes in GROUPS[group].items():
+        p[name].update(changes)
     p["model"]["init_seed"], p["train"]["seed"] = seed, seed
-    p["train"]["max_epochs"] = params["ablation"].get("max_epochs") or p["train"]["max_epochs"]
+    p["train"]["max_epochs"] = params["ablation"]["max_epochs"] or p["train"]["max_epochs"]
     return p
 
 
@@ -53,10 +58,9 @@ def train_one(args) -> dict:
     params, group, seed, threads = args
     import torch
     torch.set_num_threads(threads)
-    from .evaluate import predict, split_metrics
-    from .train import load_points, train_boter
     df = load_points()
-    model, hist = train_boter(group_params(params, group, seed), df, progress=False)
+    p = group_params(params, group, seed)
+    model, hist = train_boter(p, df, physics_geometry(p, p["model"]["physics"]), progress=False)
     test = split_metrics(df, predict(model.eval(), df))["test"]
     log.info("%s seed %d: test 3D MAE %.4f mm, best epoch %d", group, seed, test["3d"]["mae"],
              hist["best_epoch"])
@@ -67,7 +71,7 @@ def train_one(args) -> dict:
 def run_group(params: dict, group: str, jobs: int) -> dict:
     if group not in GROUPS:
         raise ValueError(f"unknown ablation group {group!r}; use one of {list(GROUPS)}")
-    seeds = params["ablation"]["seeds"]
+    seeds = section(params, "ablation")["seeds"]
     threads = max(1, (os.cpu_count() or 1) // jobs)
     t0 = time.perf_counter()
     tasks = [(params, group, s, threads) for s in seeds]
@@ -83,7 +87,8 @@ def run_group(params: dict, group: str, jobs: int) -> dict:
 
 
 def summarise() -> dict:
-    """reports/ablation.json (the issue's layout) and a markdown table beside the paper's numbers."""
+    """reports/ablation.json (the issue's layout), a markdown table beside the paper's numbers
+    (reports/ablation.md) and its figure (reports/ablation.png)."""
     groups = {}
     for g in GROUPS:
         path = OUT / f"{g}.json"
@@ -100,14 +105,17 @@ def summarise() -> dict:
                      "seconds": r["seconds"], "paper_test_3d_mae": PAPER_ABLATION.get(g)}
     summary = {"groups": groups}
     write_json(REPORTS / "ablation.json", summary)
-    rows = ["| group | changes | test 3D MAE mm (mean ± std) | paper | epochs to best | parameters |",
-            "|---|---|---|---|---|---|"]
+    rows = ["| group | changes | test 3D MAE mm (mean ± std) | paper | epochs to best | paper epochs "
+            "| parameters |", "|---|---|---|---|---|---|---|"]
     for g, s in groups.items():
         paper = "–" if s["paper_test_3d_mae"] is None else f"{s['paper_test_3d_mae']:.4f}"
         rows.append(f"| {g} | `{json.dumps(s['changes'])}` | {s['test_3d_mae_mean']:.4f} ± "
                     f"{s['test_3d_mae_std']:.4f} | {paper} | "
-                    f"{int(np.mean(s['epochs_to_best']))} | {s['params']:,} |")
+                    f"{int(np.mean(s['epochs_to_best']))} | {PAPER_ABLATION_EPOCHS.get(g, '–')} | "
+                    f"{s['params']:,} |")
     (REPORTS / "ablation.md").write_text("\n".join(rows) + "\n")
+    if groups:
+        save(fig_ablation(summary), REPORTS / "ablation.png")
     log.info("ablation summary over %d groups\n%s", len(groups), "\n".join(rows))
     return summary
 

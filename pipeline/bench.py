@@ -3,8 +3,9 @@
     python -m pipeline.bench real  [--seeds 139 140 ...]   the real sets in ../shared/datasets
     python -m pipeline.bench speed                          training, prediction, compensation timings
 
-`real` runs the whole pipeline in-process in a scratch directory per set
-(preset merged over params.yaml, split seed 7) and reports test 3D MAE for
+`real` runs the pipeline's stages (`python -m pipeline.<stage>`, as dvc repro
+would) in a scratch directory per set (preset merged over params.yaml, split
+seed 7) and reports test 3D MAE for
 nominal DH (no frame fit; only where the data are in the base frame), nominal
 after the frame fit, classical calibration, the DNN baseline and SPI-BoTER
 (on nominal and on calibrated physics), mean ± std over the training seeds,
@@ -15,6 +16,8 @@ import copy
 import os
 import platform
 import resource
+import subprocess
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -24,7 +27,17 @@ import pandas as pd
 import torch
 import yaml
 
-from .config import load_params, logger, read_json, write_json
+from .lib.artifacts import INGEST_JSON, INGEST_TABLE, METRICS_JSON, PREDICTIONS_TABLE, load_points
+from .lib.columns import JOINTS_DEG, MEAS, PRED, TARGET
+from .lib.config import load_params, logger, read_json, write_json
+from .lib.geometry import physics_geometry
+from .lib.kinematics import fk_numpy
+from .lib.loss import SPILoss
+from .lib.presets import merged_params
+from .lib.realtime import Realtime, check
+from .lib.robots import load_robot
+from .lib.solvers import compensate
+from .lib.training import fit, load_model, make_model, tensors
 
 log = logger(__name__)
 ROOT = Path(__file__).resolve().parents[1]
@@ -36,11 +49,16 @@ REAL_SETS = {"gtpn-ur5": {"base_frame": True}, "ipa-ur10": {"base_frame": False}
 def absolute_paths(params: dict) -> dict:
     """Input paths of the ingest section made absolute (from the project root)."""
     p = copy.deepcopy(params)
-    for k in ("joints", "tracker", "table"):
-        if p["ingest"].get(k):
-            p["ingest"][k] = str((ROOT / p["ingest"][k]).resolve())
-    p["compensate"]["twin"] = None
+    for k in ("joints", "tracker"):
+        p["ingest"][k] = str((ROOT / p["ingest"][k]).resolve())
+    p["compensate"]["drive_check"] = False
     return p
+
+
+def stage(name: str, params: dict) -> None:
+    """Run one stage as dvc repro would, on params written to ./params.yaml."""
+    Path("params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+    subprocess.run([sys.executable, "-m", f"pipeline.{name}"], check=True)
 
 
 def run_set(name: str, seeds: list[int], epochs: int | None, other_physics: bool = True,
@@ -50,13 +68,6 @@ def run_set(name: str, seeds: list[int], epochs: int | None, other_physics: bool
     on_seed(partial summary) is called after every seed, so a long run that is
     stopped keeps the seeds it finished.
     """
-    from . import baselines, calibrate, evaluate, frame, ingest, split, theory, train
-    from .columns import JOINTS_DEG, MEAS, PRED
-    from .config import PREDICTIONS_TABLE
-    from .kinematics import fk_numpy
-    from .preset import merged_params
-    from .robots import load_robot
-
     params = absolute_paths(merged_params(name, load_params(ROOT / "params.yaml")))
     if epochs:
         params["train"]["max_epochs"] = epochs
@@ -64,13 +75,12 @@ def run_set(name: str, seeds: list[int], epochs: int | None, other_physics: bool
     with tempfile.TemporaryDirectory() as tmp:
         os.chdir(tmp)
         try:
-            (Path(tmp) / "params.yaml").write_text(yaml.safe_dump(params))
-            summary = {"ingest": ingest.run(params)["n_kept"]}
-            for stage in (frame, theory, split, calibrate):
-                stage.run(params)
-            df = train.load_points()
+            for name_ in ("ingest", "frame", "theory", "split", "calibrate"):
+                stage(name_, params)
+            summary = {"ingest": read_json(INGEST_JSON)["n_kept"]}
+            df = load_points()
             test = df[df.split == "test"]
-            raw = pd.read_parquet("data/interim/ingest.parquet").set_index("point_id").loc[test.point_id]
+            raw = pd.read_parquet(INGEST_TABLE).set_index("point_id").loc[test.point_id]
             nominal = None
             if REAL_SETS[name]["base_frame"]:             # no frame fit: measured as recorded
                 robot = load_robot(params["robot"])
@@ -80,10 +90,10 @@ def run_set(name: str, seeds: list[int], epochs: int | None, other_physics: bool
             for i, seed in enumerate(seeds):
                 p = copy.deepcopy(params)
                 p["model"]["init_seed"], p["train"]["seed"] = seed, seed
-                p.setdefault("baselines", {})["other_physics"] = other_physics and i == 0   # first seed only
-                train.run(p)
-                baselines.run(p)
-                m = evaluate.run(p)["baselines"]
+                p["baselines"]["other_physics"] = other_physics and i == 0   # first seed only
+                for name_ in ("train", "baselines", "evaluate"):
+                    stage(name_, p)
+                m = read_json(METRICS_JSON)["baselines"]
                 runs.append({k: v["test"]["3d"]["mae"] for k, v in m.items()})
                 pred = pd.read_parquet(PREDICTIONS_TABLE).set_index("point_id").loc[test.point_id]
                 preds.append(pred[PRED].to_numpy())
@@ -159,8 +169,6 @@ def timed(fn, repeats: int) -> float:
 def bench_realtime(model, q0: np.ndarray, tgt: np.ndarray, limits: np.ndarray, tol_mm: float,
                    compiled: bool, repeats: int = 5) -> dict:
     """The controller path (realtime.py), one pose per call: latency over every target, repeats times."""
-    from .realtime import Realtime, check
-
     t = time.perf_counter()
     rt = Realtime(model, limits, tol_mm, compile=compiled)
     setup = time.perf_counter() - t
@@ -177,16 +185,10 @@ def bench_realtime(model, q0: np.ndarray, tgt: np.ndarray, limits: np.ndarray, t
 
 def bench_speed() -> dict:
     """Needs a finished `dvc repro` in the project (model, points, split)."""
-    from .compensate import compensate, load_targets
-    from .columns import JOINTS_DEG, TARGET
-    from .loss import SPILoss
-    from .robots import load_robot
-    from .train import fit, load_model, load_points, make_model, tensors
-
     params = load_params()
     df = load_points()
     train_t, val_t = tensors(df[df.split == "train"]), tensors(df[df.split == "val"])
-    model = make_model(params)
+    model = make_model(params["model"], physics_geometry(params, params["model"]["physics"]))
     cfg = {**params["train"], "max_epochs": 10, "patience": 10}
     hist = fit(model, SPILoss(**params["loss"]), train_t, val_t, cfg, progress=False)
 
@@ -196,7 +198,7 @@ def bench_speed() -> dict:
         batch_s = timed(lambda: model(q), 10)
         single_s = timed(lambda: model(q[:1]), 200)
 
-    targets = load_targets(params)
+    targets = pd.read_csv("reports/compensation.csv")                 # the compensate stage's targets
     q0, tgt = targets[JOINTS_DEG].to_numpy(), targets[TARGET].to_numpy()
     robot = load_robot(params["robot"])
     comp = {}

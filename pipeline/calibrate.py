@@ -1,266 +1,52 @@
-"""Stage calibrate: classical kinematic calibration (the baseline the network must beat).
+"""Stage calibrate: classical kinematic calibration on the train split (lib/identify.py).
 
-Identifies small corrections to the geometry (pipeline.kinematics) from
-measured positions in the base frame:
-    d, a, alpha, offset   per joint (standard DH, eq. 1)
-    beta                  Ry tilt of the parallel axes (`tilt_joints`)
-    tool                  marker offset in the flange frame
-    base                  base-frame correction [rx, ry, rz, tx, ty, tz]
-by robust trust-region least squares (scipy `least_squares`, Jacobian from
-torch autograd of `fk`). Before solving, parameters the data cannot tell
-apart are found by column-pivoted QR of the column-scaled Jacobian and kept
-at nominal (delta 0): e.g. d1 vs base tz, offset1 vs base rz, d2/d3/d4 on
-the parallel axes.
-
-Reads data/interim/points.parquet + split.parquet, fits on the train split,
-writes models/calibration.json (the geometry; `load_geometry` reads it back)
-and reports/calibration.json (identification report + per-split errors).
+Starts from nominal DH with the frame stage's tool, identifies the groups in
+`calibrate.params` (DH errors, parallel-axis tilts, tool, base correction)
+by robust least squares, fixing what the data cannot tell apart. Writes
+models/calibration.json (the geometry) and reports/calibration.json (the
+identification report and the error per split, nominal vs calibrated).
 """
-import time
-
 import numpy as np
-import pandas as pd
-import scipy.linalg
 import torch
-from scipy.optimize import least_squares
 
-from .columns import JOINTS_DEG, MEAS
-from .config import (CALIBRATED_GEOMETRY, FRAME_JSON, POINTS_TABLE, REPORTS, SPLIT_TABLE, load_params,
-                     logger, read_json, write_json)
-from .kinematics import DTYPE, GEOMETRY_KEYS, fk, nominal_geometry
-from .robots import load_robot
-from .theory import theory_geometry
+from .lib.artifacts import CALIBRATED_GEOMETRY, CALIBRATION_JSON, load_points
+from .lib.columns import JOINTS_DEG, MEAS, SPLITS
+from .lib.config import load_params, logger, section, write_json
+from .lib.geometry import theory_geometry
+from .lib.identify import errors_3d, identify
+from .lib.kinematics import DTYPE, fk, save_geometry
 
 log = logger(__name__)
 
-CALIBRATION_REPORT = REPORTS / "calibration.json"
-GROUPS = ("d", "a", "alpha", "offset", "beta", "tool", "base")
-BASE_NAMES = ["rx", "ry", "rz", "tx", "ty", "tz"]
-TOOL_NAMES = ["x", "y", "z"]
-
-
-# ----------------------------------------------------------------------------- parameters
-
-def parameter_spec(cfg: dict) -> list[tuple[str, str, int]]:
-    """(name, geometry key, index) of every candidate parameter, in cfg["params"] order."""
-    spec = []
-    for grp in cfg["params"]:
-        if grp not in GROUPS:
-            raise ValueError(f"params.yaml calibrate.params: unknown group {grp!r}; use {GROUPS}")
-        if grp in ("d", "a", "alpha", "offset"):
-            spec += [(f"{grp}{j + 1}", grp, j) for j in range(6)]
-        elif grp == "beta":
-            tilt = cfg.get("tilt_joints", [2, 3])
-            if not set(tilt) <= set(range(1, 7)):
-                raise ValueError(f"params.yaml calibrate.tilt_joints: joints are 1..6, got {tilt}")
-            spec += [(f"beta{j}", "beta", j - 1) for j in tilt]
-        elif grp == "tool":
-            spec += [(f"tool_{c}", "tool", i) for i, c in enumerate(TOOL_NAMES)]
-        else:
-            spec += [(f"base_{c}", "base", i) for i, c in enumerate(BASE_NAMES)]
-    return spec
-
-
-def is_angular(key: str, index: int) -> bool:
-    """Angles are rad internally and reported in degrees; lengths in mm."""
-    return key in ("alpha", "offset", "beta") or (key == "base" and index < 3)
-
-
-def selectors(spec) -> dict:
-    """Per geometry key, a (size, P) 0/1 matrix placing the parameter vector's deltas."""
-    sizes = {"d": 6, "a": 6, "alpha": 6, "offset": 6, "beta": 6, "tool": 3, "base": 6}
-    S = {k: torch.zeros(n, len(spec), dtype=DTYPE) for k, n in sizes.items()}
-    for p, (_, key, i) in enumerate(spec):
-        S[key][i, p] = 1.0
-    return S
-
-
-def apply_deltas(x: torch.Tensor, g0: dict, S: dict) -> dict:
-    """Geometry g0 + deltas x (mm / rad), differentiable in x."""
-    return {k: g0[k] + S[k] @ x for k in GEOMETRY_KEYS}
-
-
-def jacobian(q: torch.Tensor, x: torch.Tensor, g0: dict, S: dict) -> torch.Tensor:
-    """d fk / d x, flattened: (3n, P), by forward-mode autograd (P << 3n)."""
-    f = lambda v: fk(q, apply_deltas(v, g0, S)).reshape(-1)
-    return torch.func.jacfwd(f)(x)
-
-
-# ----------------------------------------------------------------------------- identifiability
-
-def identifiability(J: np.ndarray, names: list[str], rank_tol: float) -> dict:
-    """Which parameters the data can identify (column-pivoted QR of the scaled Jacobian).
-
-    Columns are scaled to unit norm (mm and rad become comparable); a parameter
-    whose pivot |R_kk| falls below rank_tol * |R_00| is fixed at nominal. Exact
-    ties (truly redundant pairs) go to the earlier group of cfg["params"]
-    (a 1e-7 relative bias). The reason names the kept parameters that absorb it.
-    """
-    norms = np.linalg.norm(J, axis=0)
-    P = len(names)
-    dead = norms <= 1e-12 * max(norms.max(), 1e-300)
-    Js = J / np.where(dead, 1.0, norms)
-    Js *= 1.0 + 1e-7 * (P - np.arange(P)) / P                     # tie-break by priority
-    Js[:, dead] = 0.0
-    _, Rq, piv = scipy.linalg.qr(Js, mode="economic", pivoting=True)
-    diag = np.abs(np.diag(Rq))
-    rank = int((diag > rank_tol * diag[0]).sum())
-    keep = np.zeros(P, bool)
-    keep[piv[:rank]] = True
-    fixed = {}
-    Jk = Js[:, keep]
-    kept_names = [n for n, k in zip(names, keep) if k]
-    for j in np.flatnonzero(~keep):
-        if dead[j]:
-            fixed[names[j]] = "no effect on the measured positions (zero Jacobian column)"
-            continue
-        coef, *_ = np.linalg.lstsq(Jk, Js[:, j], rcond=None)
-        rel = np.linalg.norm(Jk @ coef - Js[:, j])
-        big = np.argsort(-np.abs(coef))[:3]
-        partners = [f"{coef[b]:+.3g}·{kept_names[b]}" for b in big if abs(coef[b]) > 1e-3]
-        fixed[names[j]] = (f"redundant: its scaled Jacobian column = {' '.join(partners)} "
-                           f"(relative residual {rel:.1e}, pivot below rank_tol {rank_tol:g})")
-    s = np.linalg.svd(Js[:, keep] / np.linalg.norm(Js[:, keep], axis=0), compute_uv=False)
-    return {"keep": keep, "fixed": fixed, "rank": rank,
-            "condition": float(s[0] / s[-1]), "pivots": diag.tolist()}
-
-
-# ----------------------------------------------------------------------------- identification
-
-def errors_3d(p: np.ndarray, p_meas: np.ndarray) -> dict:
-    e = np.linalg.norm(p - p_meas, axis=1)
-    return {"mean_mm": float(e.mean()), "rms_mm": float(np.sqrt((e ** 2).mean())),
-            "max_mm": float(e.max())}
-
-
-def identify(q: torch.Tensor | np.ndarray, p_meas: np.ndarray, geometry0: dict, cfg: dict):
-    """Identify geometry corrections from joint angles q (n, 6) rad and positions p_meas (n, 3) mm.
-
-    Returns (geometry dict of tensors, report dict). cfg: the `calibrate:` section
-    (params, tilt_joints, loss, loss_scale_mm, rank_tol; optional max_nfev, tol).
-    """
-    t0 = time.perf_counter()
-    q = torch.as_tensor(np.asarray(q, float), dtype=DTYPE)
-    p_meas = np.asarray(p_meas, float)
-    g0 = {k: torch.as_tensor(geometry0[k], dtype=DTYPE) for k in GEOMETRY_KEYS}
-    spec = parameter_spec(cfg)
-    names = [s[0] for s in spec]
-    S = selectors(spec)
-    P = len(spec)
-    x0 = torch.zeros(P, dtype=DTYPE)
-
-    J0 = jacobian(q, x0, g0, S).numpy()
-    ident = identifiability(J0, names, cfg.get("rank_tol", 1e-6))
-    keep = ident["keep"]
-    scale = 1.0 / np.linalg.norm(J0[:, keep], axis=0)        # x_scale: unit-norm columns
-
-    def full(xk):
-        x = np.zeros(P)
-        x[keep] = xk
-        return torch.as_tensor(x, dtype=DTYPE)
-
-    def residuals(xk):
-        with torch.no_grad():
-            return (fk(q, apply_deltas(full(xk), g0, S)).numpy() - p_meas).ravel()
-
-    def jac(xk):
-        return jacobian(q, full(xk), g0, S).numpy()[:, keep]
-
-    tol = cfg.get("tol", 1e-12)
-    sol = least_squares(residuals, np.zeros(keep.sum()), jac=jac, method="trf",
-                        loss=cfg.get("loss", "soft_l1"), f_scale=cfg.get("loss_scale_mm", 0.5),
-                        x_scale=scale, ftol=tol, xtol=tol, gtol=tol,
-                        max_nfev=cfg.get("max_nfev", 200))
-    x = full(sol.x)
-    geometry = {k: v.detach() for k, v in apply_deltas(x, g0, S).items()}
-
-    # standard errors: sigma^2 (J^T J)^-1 at the solution (plain least-squares residuals)
-    r = residuals(sol.x)
-    Jk = jac(sol.x)
-    dof = max(len(r) - keep.sum(), 1)
-    sigma2 = float(r @ r / dof)
-    cov = sigma2 * np.linalg.pinv(Jk.T @ Jk)
-    se = np.sqrt(np.clip(np.diag(cov), 0.0, None))
-
-    estimates = {}
-    for k, (name, key, i) in enumerate([s for s, kk in zip(spec, keep) if kk]):
-        f = np.degrees(1.0) if is_angular(key, i) else 1.0
-        estimates[name] = {"delta": float(sol.x[k] * f), "se": float(se[k] * f),
-                           "unit": "deg" if f != 1.0 else "mm"}
-    with torch.no_grad():
-        before = errors_3d(fk(q, g0).numpy(), p_meas)
-        after = errors_3d(fk(q, geometry).numpy(), p_meas)
-    report = {
-        "n_points": len(p_meas),
-        "identified": [n for n, k in zip(names, keep) if k],
-        "fixed": ident["fixed"],
-        "estimates": estimates,
-        "condition_number": ident["condition"],
-        "rank": ident["rank"], "n_candidates": P,
-        "residual_sigma_mm": float(np.sqrt(sigma2)),
-        "before": before, "after": after,
-        "loss": cfg.get("loss", "soft_l1"), "loss_scale_mm": cfg.get("loss_scale_mm", 0.5),
-        "nfev": int(sol.nfev), "njev": int(sol.njev or 0), "status": sol.message,
-        "seconds": time.perf_counter() - t0,
-    }
-    return geometry, report
-
-
-# ----------------------------------------------------------------------------- I/O
-
-def save_geometry(path, geometry: dict, meta: dict | None = None) -> None:
-    """Write a geometry dict (mm / rad) as JSON lists."""
-    write_json(path, {"geometry": {k: torch.as_tensor(geometry[k]).tolist() for k in GEOMETRY_KEYS},
-                      "units": "mm and rad; kinematics.py geometry keys", **(meta or {})})
-
-
-def load_geometry(path) -> dict:
-    """Read models/calibration.json back into a geometry of float64 tensors."""
-    g = read_json(path)["geometry"]
-    return {k: torch.tensor(g[k], dtype=DTYPE) for k in GEOMETRY_KEYS}
-
-
-def start_geometry(params: dict) -> dict:
-    """Nominal DH with the tool the frame stage settled on (as the theory stage uses);
-    the params' tool when no frame has been fitted."""
-    frame = read_json(FRAME_JSON) if FRAME_JSON.exists() else {}
-    if "tool_mm" in frame:
-        return theory_geometry(params, frame)[1]
-    return nominal_geometry(load_robot(params["robot"]))
-
 
 def run(params: dict) -> dict:
-    cfg = params["calibrate"]
-    pts = pd.read_parquet(POINTS_TABLE).merge(pd.read_parquet(SPLIT_TABLE), on="point_id")
+    section(params, "robot")
+    cfg = section(params, "calibrate")
+    pts = load_points()
     q = np.radians(pts[JOINTS_DEG].to_numpy())
     p = pts[MEAS].to_numpy()
     train = (pts["split"] == "train").to_numpy()
-    g0 = start_geometry(params)
+    g0 = theory_geometry(params)[1]
     geometry, report = identify(q[train], p[train], g0, cfg)
     qt = torch.as_tensor(q, dtype=DTYPE)
     with torch.no_grad():
         p_cal, p_nom = fk(qt, geometry).numpy(), fk(qt, g0).numpy()
     report["splits"] = {
-        s: {"n": int(m.sum()), "calibrated": errors_3d(p_cal[m], p[m]),
-            "nominal": errors_3d(p_nom[m], p[m])}
-        for s in ("train", "val", "test") if (m := (pts["split"] == s).to_numpy()).any()}
-    save_geometry(CALIBRATED_GEOMETRY, geometry, {"robot": params["robot"].get("model"),
+        s: {"n": int(m.sum()), "calibrated": errors_3d(p_cal[m], p[m]), "nominal": errors_3d(p_nom[m], p[m])}
+        for s in SPLITS if (m := (pts["split"] == s).to_numpy()).any()}
+    save_geometry(CALIBRATED_GEOMETRY, geometry, {"robot": params["robot"]["model"],
                                                 "identified": report["identified"]})
-    write_json(CALIBRATION_REPORT, report)
+    write_json(CALIBRATION_JSON, report)
     sp = report["splits"]
+    last = sp.get("test", sp["train"])
     log.info("identified %d of %d parameters (fixed %s) in %.1f s, %d evaluations; cond %.3g; "
              "mean 3D error train %.4f -> %.4f mm, test %.4f -> %.4f mm",
              len(report["identified"]), report["n_candidates"], sorted(report["fixed"]),
              report["seconds"], report["nfev"], report["condition_number"],
              sp["train"]["nominal"]["mean_mm"], sp["train"]["calibrated"]["mean_mm"],
-             sp.get("test", sp["train"])["nominal"]["mean_mm"],
-             sp.get("test", sp["train"])["calibrated"]["mean_mm"])
+             last["nominal"]["mean_mm"], last["calibrated"]["mean_mm"])
     return report
 
 
-def main():
-    run(load_params())
-
-
 if __name__ == "__main__":
-    main()
+    run(load_params())

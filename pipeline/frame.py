@@ -1,121 +1,26 @@
-"""Stage frame: the base-to-world (tracker) transform, P_world = R Q_base + t (eq. 20).
+"""Stage frame: fit the base-to-world (tracker) frame, P_world = R Q_base + t (eqs. 20-26).
 
-Kabsch/SVD (eqs. 21-26) between the nominal theory points Q and the measured
-points P, made robust by iterated rejection of gross outliers (listed, not
-hidden). With `frame.estimate_tool`, base frame and tool offset are then
-refined jointly by robust least squares on the inliers.
-
-Writes reports/frame.json (DATA_FORMAT.md): R, t, rms_mm, n_used, outliers,
-plus tool_mm (the tool offset every later stage uses) and fit diagnostics.
+Robust Kabsch on the nominal theory points (lib/frames.py), optionally with
+the tool offset (`frame.estimate_tool`). Writes reports/frame.json
+(DATA_FORMAT.md): R, t, rms_mm, n_used, outliers, plus tool_mm (the tool
+offset every later stage uses) and fit diagnostics.
 """
 import numpy as np
 import pandas as pd
-import torch
-from scipy.optimize import least_squares
-from scipy.spatial.transform import Rotation
 
-from .columns import JOINTS_DEG, MEAS
-from .config import FRAME_JSON, INGEST_TABLE, load_params, logger, write_json
-from .kinematics import DTYPE, fk_poses, nominal_geometry
-from .robots import load_robot
+from .lib.artifacts import FRAME_JSON, INGEST_TABLE
+from .lib.columns import JOINTS_DEG, MEAS
+from .lib.config import load_params, logger, section, write_json
+from .lib.frames import fit_frame
+from .lib.robots import load_robot
 
 log = logger(__name__)
 
 
-class DegenerateFit(ValueError):
-    """The points cannot fix a rigid transform (too few, or collinear)."""
-
-
-def kabsch(Q: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Rigid transform with P ≈ R Q + t (eqs. 21-26). Q, P: (n, 3) -> R (3, 3), t (3,)."""
-    Q, P = np.asarray(Q, float), np.asarray(P, float)
-    if len(Q) < 3:
-        raise DegenerateFit(f"need at least 3 points for a rigid fit, got {len(Q)}")
-    q_bar, p_bar = Q.mean(0), P.mean(0)                    # eq. 21
-    Qc, Pc = Q - q_bar, P - p_bar                          # eq. 22
-    s = np.linalg.svd(Qc, compute_uv=False)
-    if s[1] <= 1e-9 * max(s[0], 1e-12):
-        raise DegenerateFit(f"points are collinear (singular values {s[0]:.3g}, {s[1]:.3g}, "
-                            f"{s[2]:.3g}): a rotation about their line is undetermined")
-    H = Qc.T @ Pc / len(Q)                                 # eq. 23
-    U, _, Vt = np.linalg.svd(H)                            # eq. 24
-    V = Vt.T
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(V @ U.T))])
-    R = V @ D @ U.T                                        # eq. 25, det(R) = +1
-    t = p_bar - R @ q_bar                                  # eq. 26
-    return R, t
-
-
-def robust_kabsch(Q, P, k: float = 5.0, min_mm: float = 3.0, max_iter: int = 20):
-    """Kabsch with iterated outlier rejection.
-
-    A point is an outlier if its residual exceeds both median + k * 1.4826 * MAD
-    of the inliers' residuals and `min_mm`. Returns R, t, inlier mask, residuals (n,).
-    """
-    inl = np.ones(len(Q), bool)
-    for _ in range(max_iter):
-        R, t = kabsch(Q[inl], P[inl])
-        r = np.linalg.norm(Q @ R.T + t - P, axis=1)
-        med = np.median(r[inl])
-        mad = 1.4826 * np.median(np.abs(r[inl] - med))
-        new = r <= max(med + k * mad, min_mm)
-        if (new == inl).all():
-            break
-        inl = new
-    return R, t, inl, r
-
-
-def flange_poses(q_deg: np.ndarray, geometry: dict) -> tuple[np.ndarray, np.ndarray]:
-    """Flange rotations (n, 3, 3) and origins (n, 3) in the base frame."""
-    q = torch.as_tensor(np.radians(q_deg), dtype=DTYPE)
-    with torch.no_grad():
-        T = fk_poses(q, geometry).numpy()
-    return T[:, :3, :3], T[:, :3, 3]
-
-
-def refine_with_tool(Rf, pf, P, R0, t0, tool0, loss="soft_l1", f_scale=0.5):
-    """Jointly fit base frame (rotation vector, t) and tool offset by robust least squares.
-
-    Model: P_i = R (Rf_i tool + pf_i) + t. Returns R, t, tool, diagnostics.
-    """
-    def unpack(x):
-        return Rotation.from_rotvec(x[:3]).as_matrix(), x[3:6], x[6:9]
-
-    def residuals(x):
-        R, t, tool = unpack(x)
-        Q = np.einsum("nij,j->ni", Rf, tool) + pf
-        return (Q @ R.T + t - P).ravel()
-
-    x0 = np.concatenate([Rotation.from_matrix(R0).as_rotvec(), t0, tool0])
-    sol = least_squares(residuals, x0, loss=loss, f_scale=f_scale, x_scale="jac")
-    R, t, tool = unpack(sol.x)
-    s = np.linalg.svd(sol.jac, compute_uv=False)
-    return R, t, tool, {"condition": float(s[0] / s[-1]), "nfev": int(sol.nfev),
-                        "status": sol.message}
-
-
-def fit_frame(q_deg: np.ndarray, P: np.ndarray, robot, cfg: dict) -> dict:
-    """Fit the base-to-world frame (and optionally the tool) to measured points P (n, 3)."""
-    g = nominal_geometry(robot)
-    Rf, pf = flange_poses(q_deg, g)
-    tool = robot.tool.copy()
-    Q = np.einsum("nij,j->ni", Rf, tool) + pf                  # nominal theory points (n, 3)
-    R, t, inl, r = robust_kabsch(Q, P, cfg["outlier_k"], cfg["outlier_min_mm"])
-    s = np.linalg.svd(Q[inl] - Q[inl].mean(0), compute_uv=False)
-    diag = {"method": "kabsch", "condition": float(s[0] / s[-1])}
-    if cfg.get("estimate_tool"):
-        R, t, tool, diag = refine_with_tool(Rf[inl], pf[inl], P[inl], R, t, tool,
-                                            cfg["robust_loss"], cfg["robust_scale_mm"])
-        diag["method"] = "kabsch + least-squares base frame and tool"
-        Q = np.einsum("nij,j->ni", Rf, tool) + pf
-        r = np.linalg.norm(Q @ R.T + t - P, axis=1)
-    return {"R": R, "t": t, "tool_mm": tool, "inliers": inl, "residual_mm": r, **diag}
-
-
 def run(params: dict) -> dict:
-    robot = load_robot(params["robot"])
+    robot = load_robot(section(params, "robot"))
     df = pd.read_parquet(INGEST_TABLE)
-    fit = fit_frame(df[JOINTS_DEG].to_numpy(), df[MEAS].to_numpy(), robot, params["frame"])
+    fit = fit_frame(df[JOINTS_DEG].to_numpy(), df[MEAS].to_numpy(), robot, section(params, "frame"))
     inl, r = fit["inliers"], fit["residual_mm"]
     outliers = df.loc[~inl, "point_id"].tolist()
     summary = {
@@ -136,9 +41,5 @@ def run(params: dict) -> dict:
     return summary
 
 
-def main():
-    run(load_params())
-
-
 if __name__ == "__main__":
-    main()
+    run(load_params())

@@ -1,26 +1,18 @@
-"""Stage split: random 8:1:1 train/val/test split with torch's random_split semantics.
+"""Stage split: random 8:1:1 train/val/test split, seed 7, torch's random_split semantics.
 
-`random_split(range(n), [0.8, 0.1, 0.1], generator=Generator().manual_seed(7))`
-gives 580/72/72 for 724 rows, as in the paper (SPEC.md stage 4).
+Writes data/interim/split.parquet (point_id, split) and reports/split.json.
 """
 import pandas as pd
-import torch
-from torch.utils.data import random_split
 
-from .config import POINTS_TABLE, REPORTS, SPLIT_TABLE, load_params, logger, write_json
+from .lib.artifacts import POINTS_TABLE, SPLIT_JSON, SPLIT_TABLE
+from .lib.config import load_params, logger, section, write_json
+from .lib.splits import split_indices
 
 log = logger(__name__)
-SPLITS = ("train", "val", "test")
-
-
-def split_indices(n: int, fractions, seed: int) -> dict[str, list[int]]:
-    """Row indices of each split, exactly as torch.utils.data.random_split draws them."""
-    parts = random_split(range(n), list(fractions), generator=torch.Generator().manual_seed(seed))
-    return {name: list(p.indices) for name, p in zip(SPLITS, parts)}
 
 
 def run(params: dict) -> dict:
-    cfg = params["split"]
+    cfg = section(params, "split")
     ids = pd.read_parquet(POINTS_TABLE, columns=["point_id"])["point_id"]
     idx = split_indices(len(ids), cfg["fractions"], cfg["seed"])
     split = pd.Series("", index=ids.index)
@@ -30,14 +22,10 @@ def run(params: dict) -> dict:
     pd.DataFrame({"point_id": ids, "split": split}).to_parquet(SPLIT_TABLE, index=False)
     summary = {"seed": cfg["seed"], "fractions": cfg["fractions"],
                "counts": {k: len(v) for k, v in idx.items()}}
-    write_json(REPORTS / "split.json", summary)
+    write_json(SPLIT_JSON, summary)
     log.info("split %d points with seed %d: %s", len(ids), cfg["seed"], summary["counts"])
     return summary
 
 
-def main():
-    run(load_params())
-
-
 if __name__ == "__main__":
-    main()
+    run(load_params())

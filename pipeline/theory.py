@@ -9,30 +9,20 @@ in reports/theory.json with their residual.
 import numpy as np
 import pandas as pd
 
-from .columns import ERR, JOINTS_DEG, MEAS, THEORY
-from .config import FRAME_JSON, INGEST_TABLE, POINTS_TABLE, REPORTS, load_params, logger, read_json, write_json
-from .kinematics import fk_numpy, nominal_geometry
-from .robots import load_robot
+from .lib.artifacts import FRAME_JSON, INGEST_TABLE, POINTS_TABLE, THEORY_JSON
+from .lib.geometry import theory_geometry
+from .lib.columns import ERR, JOINTS_DEG, MEAS, THEORY
+from .lib.config import load_params, logger, read_json, section, write_json
+from .lib.frames import to_base
+from .lib.kinematics import fk_numpy
 
 log = logger(__name__)
 
 
-def to_base(P_world: np.ndarray, frame: dict) -> np.ndarray:
-    """Map world (tracker) points into the base frame: Q = R^T (P - t)."""
-    R, t = np.asarray(frame["R"]), np.asarray(frame["t"])
-    return (P_world - t) @ R
-
-
-def theory_geometry(params: dict, frame: dict) -> tuple:
-    """(robot, nominal DH geometry) with the tool offset the frame stage settled on."""
-    robot = load_robot(params["robot"])
-    robot.tool = np.asarray(frame["tool_mm"], float)
-    return robot, nominal_geometry(robot)
-
-
 def run(params: dict) -> dict:
+    section(params, "robot")
     frame = read_json(FRAME_JSON)
-    robot, g = theory_geometry(params, frame)
+    robot, g = theory_geometry(params)
     df = pd.read_parquet(INGEST_TABLE)
     out = pd.DataFrame({"point_id": df["point_id"]})
     out[JOINTS_DEG] = df[JOINTS_DEG]
@@ -49,15 +39,11 @@ def run(params: dict) -> dict:
     summary = {"n_points": len(out), "n_dropped": len(dropped), "dropped": dropped,
                "nominal_error_mm": {"mean": float(e.mean()), "rms": float(np.sqrt((e ** 2).mean())),
                                     "max": float(e.max())}}
-    write_json(REPORTS / "theory.json", summary)
+    write_json(THEORY_JSON, summary)
     log.info("theory points for %d poses (%d frame outliers dropped); nominal DH error after "
              "frame fit: mean %.3f mm, max %.3f mm", len(out), len(dropped), e.mean(), e.max())
     return summary
 
 
-def main():
-    run(load_params())
-
-
 if __name__ == "__main__":
-    main()
+    run(load_params())

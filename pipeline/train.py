@@ -1,136 +1,31 @@
-"""Stage train: fit BoTER with the SPI loss (sec. 3.2).
+"""Stage train: fit SPI-BoTER (sec. 3.2) on the train split, early-stopped on val.
 
-AdamW (lr 1e-4, weight decay 1e-6), batch 256, gradient clipping at 1.0, at
-most `max_epochs`, the best checkpoint by validation 3D MAE kept, early stop
-after `patience` epochs without improvement. Per-epoch curves go to dvclive
-(reports/live); weights to models/boter.pt as a state_dict.
+The physics branch is `model.physics` (calibrated: the calibrate stage's
+geometry; nominal: the paper's). Per-epoch curves go to dvclive
+(reports/live); weights to models/boter.pt as a state_dict; the summary to
+reports/train.json.
 """
-import copy
-import time
-
-import numpy as np
-import pandas as pd
 import torch
-from tqdm import tqdm
+from dvclive import Live
 
-from .columns import JOINTS_DEG, MEAS
-from .config import (CALIBRATED_GEOMETRY, FRAME_JSON, MODEL_WEIGHTS, POINTS_TABLE, REPORTS, SPLIT_TABLE,
-                     load_params, logger, read_json, write_json)
-from .kinematics import DTYPE
-from .loss import SPILoss, data_loss
-from .model import DNN, BoTER, check_config, n_params
-from .theory import theory_geometry
+from .lib.artifacts import LIVE, MODEL_WEIGHTS, TRAIN_JSON, load_points
+from .lib.config import load_params, logger, section, write_json
+from .lib.geometry import physics_geometry
+from .lib.training import train_boter
 
 log = logger(__name__)
 
 
-def load_points() -> pd.DataFrame:
-    """points.parquet joined with its split column."""
-    return pd.read_parquet(POINTS_TABLE).merge(pd.read_parquet(SPLIT_TABLE), on="point_id")
-
-
-def tensors(df: pd.DataFrame) -> tuple[torch.Tensor, torch.Tensor]:
-    """Joint angles (n, 6) rad and measured positions (n, 3) mm as float64 tensors."""
-    q = torch.tensor(np.radians(df[JOINTS_DEG].to_numpy()), dtype=DTYPE)
-    return q, torch.tensor(df[MEAS].to_numpy(), dtype=DTYPE)
-
-
-def physics_geometry(params: dict, physics: str | None = None) -> dict:
-    """The physics branch's geometry: nominal DH + the frame's tool, or the calibrate stage's."""
-    physics = physics or params["model"].get("physics", "nominal")
-    if physics == "calibrated":
-        from .calibrate import load_geometry
-        return load_geometry(CALIBRATED_GEOMETRY)
-    return theory_geometry(params, read_json(FRAME_JSON))[1]
-
-
-def make_model(params: dict, kind: str = "boter", physics: str | None = None):
-    """BoTER (or the DNN baseline) with its weights initialised from model.init_seed."""
-    cfg = params["model"]
-    check_config(cfg)
-    torch.manual_seed(cfg["init_seed"])
-    g = physics_geometry(params, physics)
-    return BoTER(g, **cfg) if kind == "boter" else DNN(g)
-
-
-@torch.no_grad()
-def mae_3d(model, q, p) -> float:
-    model.eval()
-    return float((model(q)[0] - p).norm(dim=1).mean())
-
-
-def fit(model, loss_fn, train, val, cfg: dict, live=None, desc="train", progress=True) -> dict:
-    """Train `model` on `train` = (q, p) with `loss_fn(p_pred, p_gt, p_theory) -> (loss, parts)`.
-
-    Returns the history summary; `model` is left holding its best (validation) weights.
-    """
-    q, p = train
-    gen = torch.Generator().manual_seed(cfg["seed"])
-    params = list(model.parameters()) + list(getattr(loss_fn, "parameters", lambda: [])())
-    opt = torch.optim.AdamW(params, lr=cfg["lr"], weight_decay=cfg["weight_decay"])
-    best, best_epoch, best_state, t0 = np.inf, -1, None, time.perf_counter()
-    bar = tqdm(range(cfg["max_epochs"]), desc=desc, disable=not progress, mininterval=1.0)
-    for epoch in bar:
-        model.train()
-        losses = []
-        for idx in torch.randperm(len(q), generator=gen).split(cfg["batch_size"]):
-            p_pred, p_theory = model(q[idx])
-            loss, parts = loss_fn(p_pred, p[idx], p_theory)
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            torch.nn.utils.clip_grad_norm_(model.parameters(), cfg["grad_clip"])
-            opt.step()
-            losses.append((loss.item(), parts, (p_pred - p[idx]).detach().norm(dim=1).sum().item()))
-        val_mae = mae_3d(model, *val)
-        train_mae = sum(l[2] for l in losses) / len(q)       # over the epoch's batches, train mode
-        if val_mae < best:
-            best, best_epoch, best_state = val_mae, epoch, copy.deepcopy(model.state_dict())
-        bar.set_postfix(val_mae=f"{val_mae:.4f}", best=f"{best:.4f}@{best_epoch}", refresh=False)
-        if live is not None:
-            live.log_metric("loss", float(np.mean([l[0] for l in losses])))
-            live.log_metric("data_loss", float(np.mean([l[1]["data"] for l in losses])))
-            live.log_metric("physics_loss", float(np.mean([l[1]["physics"] for l in losses])))
-            live.log_metric("train_mae_3d_mm", train_mae)
-            live.log_metric("val_mae_3d_mm", val_mae)
-            if hasattr(model, "alpha"):
-                live.log_metric("alpha", model.alpha.item())
-            live.next_step()
-        if epoch - best_epoch >= cfg["patience"]:
-            break
-    model.load_state_dict(best_state)
-    return {"epochs_run": epoch + 1, "best_epoch": best_epoch + 1, "best_val_mae_3d_mm": best,
-            "seconds": time.perf_counter() - t0,
-            "seconds_per_epoch": (time.perf_counter() - t0) / (epoch + 1)}
-
-
-def train_boter(params: dict, df: pd.DataFrame, live=None, progress=True):
-    """Build and train BoTER with the SPI loss on df's train split; returns (model, summary)."""
-    model = make_model(params)
-    loss_fn = SPILoss(**params["loss"])
-    train, val = tensors(df[df.split == "train"]), tensors(df[df.split == "val"])
-    hist = fit(model, loss_fn, train, val, params["train"], live, "SPI-BoTER", progress)
-    hist.update(n_params=n_params(model), alpha=model.alpha.item(),
-                loss_weights=loss_fn.weights().tolist(), n_train=len(train[0]), n_val=len(val[0]))
-    return model, hist
-
-
-def train_dnn(params: dict, df: pd.DataFrame, physics="nominal", progress=True):
-    """The paper's DNN baseline: same splits and optimiser, data loss only."""
-    model = make_model(params, kind="dnn", physics=physics)
-    loss_fn = lambda pp, pg, pt: (data_loss(pp, pg), {"data": 0.0, "physics": 0.0})
-    train, val = tensors(df[df.split == "train"]), tensors(df[df.split == "val"])
-    hist = fit(model, loss_fn, train, val, params["train"], None, "DNN", progress)
-    return model, hist
-
-
 def run(params: dict) -> dict:
-    from dvclive import Live
+    for name in ("robot", "model", "loss", "train"):
+        section(params, name)
     df = load_points()
-    with Live(dir=str(REPORTS / "live"), save_dvc_exp=False, dvcyaml=False) as live:
-        model, summary = train_boter(params, df, live)   # dvclive needs a git repo with a commit
+    geometry = physics_geometry(params, params["model"]["physics"])
+    with Live(dir=str(LIVE), save_dvc_exp=False, dvcyaml=False) as live:
+        model, summary = train_boter(params, df, geometry, live)   # dvclive needs a git repo with a commit
     MODEL_WEIGHTS.parent.mkdir(parents=True, exist_ok=True)
     torch.save(model.state_dict(), MODEL_WEIGHTS)
-    write_json(REPORTS / "train.json", summary)
+    write_json(TRAIN_JSON, summary)
     log.info("trained SPI-BoTER (%d parameters) on %d points: best val 3D MAE %.4f mm at epoch "
              "%d of %d, %.1f s (%.3f s/epoch); alpha %.4f", summary["n_params"], summary["n_train"],
              summary["best_val_mae_3d_mm"], summary["best_epoch"], summary["epochs_run"],
@@ -138,16 +33,5 @@ def run(params: dict) -> dict:
     return summary
 
 
-def load_model(params: dict) -> BoTER:
-    """The trained model, weights loaded with weights_only=True, in eval mode."""
-    model = make_model(params)
-    model.load_state_dict(torch.load(MODEL_WEIGHTS, weights_only=True))
-    return model.eval()
-
-
-def main():
-    run(load_params())
-
-
 if __name__ == "__main__":
-    main()
+    run(load_params())

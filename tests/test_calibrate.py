@@ -6,11 +6,13 @@ import pandas as pd
 import pytest
 import torch
 
-from pipeline import calibrate as C
-from pipeline import twin as T
-from pipeline.columns import ERR, JOINTS_DEG, MEAS, THEORY
-from pipeline.config import load_params, read_json
-from pipeline.kinematics import DTYPE, fk, fk_numpy, nominal_geometry
+from pipeline import calibrate
+from pipeline.lib import identify as C
+from pipeline.lib import twin as T
+from pipeline.lib.columns import ERR, JOINTS_DEG, MEAS, THEORY
+from pipeline.lib.config import load_params, read_json
+from pipeline.lib.config import write_json
+from pipeline.lib.kinematics import DTYPE, fk, fk_numpy, load_geometry, nominal_geometry
 
 ROOT = Path(__file__).resolve().parents[1]
 CFG = load_params(ROOT / "params.yaml")["calibrate"]
@@ -96,7 +98,7 @@ def test_robust_loss_ignores_gross_outliers(poses, g0, truth):
 
 def test_stage_writes_model_and_report(tmp_path, monkeypatch):
     """run() on interim tables made from the twin (base frame via a Kabsch fit)."""
-    from pipeline.frame import kabsch
+    from pipeline.lib.frames import kabsch
     twin = T.Twin()
     q = twin.poses(150)
     theory = fk_numpy(q, T.ur5())
@@ -112,11 +114,12 @@ def test_stage_writes_model_and_report(tmp_path, monkeypatch):
     Path("data/interim").mkdir(parents=True)
     pts.to_parquet("data/interim/points.parquet")
     split.to_parquet("data/interim/split.parquet")
+    write_json("reports/frame.json", {"tool_mm": [0.0, 0.0, 0.0]})     # the frame stage's tool
     params = load_params(ROOT / "params.yaml")
-    rep = C.run(params)
+    rep = calibrate.run(params)
     saved = read_json("reports/calibration.json")
     assert saved["identified"] == rep["identified"] and saved["splits"]["train"]["n"] == 120
-    g = C.load_geometry("models/calibration.json")
+    g = load_geometry("models/calibration.json")
     assert set(g) == {"d", "a", "alpha", "offset", "beta", "tool", "base"}
     assert all(v.dtype == DTYPE for v in g.values())
     e = np.linalg.norm(positions(torch.as_tensor(np.radians(q), dtype=DTYPE), g) - meas, axis=1)

@@ -4,21 +4,23 @@ import pandas as pd
 import pytest
 import torch
 
-from pipeline.compensate import compensate, jacobian, load_targets
-from pipeline.kinematics import nominal_geometry
-from pipeline.model import BoTER
-from pipeline.realtime import Realtime
-from pipeline.robots import load_robot
+from pipeline.compensate import read_targets
+from pipeline.lib.solvers import compensate, jacobian
+from pipeline.lib.kinematics import nominal_geometry
+from pipeline.lib.model import BoTER
+from pipeline.lib.realtime import Realtime
+from pipeline.lib.robots import load_robot, nominal_robot
 
-ROBOT = load_robot({"model": "ur5"})
-CFG = {"lr": 1e-4, "max_iter": 500, "tol_mse": 1e-4, "tol_mm": 1e-3}
+ROBOT = nominal_robot("ur5")
+CFG = {"lr": 1e-4, "max_iter": 500, "tol_mse": 1e-4, "tol_mm": 1e-3, "jacobian_of": "model"}
 
 
 @pytest.fixture(scope="module")
 def model():
     """A small BoTER whose network term is large (α = 1): a strongly non-nominal forward model."""
     torch.manual_seed(0)
-    m = BoTER(nominal_geometry(ROBOT), d_model=12, n_layer=1, n_head=2, d_hidden=32, dropout=0.0)
+    m = BoTER(nominal_geometry(ROBOT), d_model=12, n_layer=1, n_head=2, d_hidden=32, mask="spi",
+              head="resnet", encoder=True, alpha0=0.1, dropout=0.0)
     with torch.no_grad():
         m.alpha.fill_(1.0)
     return m.eval()
@@ -68,7 +70,7 @@ def test_adam_reaches_the_papers_stop_criterion(model):
 
 def test_lm_respects_joint_limits(model):
     q0, tgt = targets(model, n=5)
-    tight = load_robot({"model": "ur5", "joint_limits_deg": [[lo - 0.01, lo + 0.01] for lo in q0[0]]})
+    tight = load_robot({"model": "ur5", "joint_limits_deg": [[lo - 0.01, lo + 0.01] for lo in q0[0]], "dh": None, "tool_mm": [0.0, 0.0, 0.0]})
     q, *_ = compensate(model, q0[:1], tgt[:1], CFG, tight, "lm")
     assert (np.abs(q[0] - q0[0]) <= 0.01 + 1e-9).all()
 
@@ -80,7 +82,7 @@ def test_unknown_solver_and_bad_target_file(model, tmp_path):
     path = tmp_path / "targets.csv"
     pd.DataFrame({"point_id": ["A"], "j1_deg": [0.0]}).to_csv(path, index=False)
     with pytest.raises(ValueError, match=r"targets.csv: missing column\(s\) \['j2_deg'"):
-        load_targets({"compensate": {"targets": str(path)}})
+        read_targets(str(path))
 
 
 def true_residual(model, q_rad, tgt):

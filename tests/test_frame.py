@@ -3,9 +3,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from pipeline.frame import DegenerateFit, fit_frame, kabsch, robust_kabsch
-from pipeline.kinematics import fk_numpy
-from pipeline.robots import load_robot
+from pipeline.lib.frames import DegenerateFit, fit_frame, kabsch, robust_kabsch
+from pipeline.lib.kinematics import fk_numpy
+from pipeline.lib.robots import load_robot, nominal_robot
 
 R_TRUE = Rotation.from_euler("zyx", [123.0, -17.0, 41.0], degrees=True).as_matrix()
 T_TRUE = np.array([1200.0, -3050.0, 410.0])
@@ -56,11 +56,11 @@ def test_robust_kabsch_flags_exactly_the_misreads():
 
 
 def test_frame_with_tool_estimation_recovers_tool():
-    robot = load_robot({"model": "ur5"})
+    robot = nominal_robot("ur5")
     rng = np.random.default_rng(3)
     q = rng.uniform([-60, -120, -120, -180, 30, -180], [60, -30, 120, 0, 150, 180], (150, 6))
     tool_true = np.array([1.5, -2.0, 108.0])
-    true = load_robot({"model": "ur5", "tool_mm": tool_true})
+    true = load_robot({"model": "ur5", "tool_mm": tool_true, "dh": None, "joint_limits_deg": None})
     P = world(fk_numpy(q, true), rng, noise=0.02)
     cfg = {"outlier_k": 5.0, "outlier_min_mm": 3.0, "estimate_tool": True,
            "robust_loss": "soft_l1", "robust_scale_mm": 0.5}

@@ -10,12 +10,13 @@ import pytest
 from hypothesis import HealthCheck, event, example, given, settings
 from hypothesis import strategies as st
 
-from pipeline.columns import JOINTS_DEG, MEAS
-from pipeline.config import load_params
-from pipeline.ingest import IngestError, ingest, run
-from pipeline.kinematics import fk_numpy
-from pipeline.preset import merged_params
-from pipeline.robots import load_robot
+from pipeline.lib.columns import JOINTS_DEG, MEAS
+from pipeline.lib.config import load_params
+from pipeline.ingest import run
+from pipeline.lib.readers import IngestError, ingest
+from pipeline.lib.kinematics import fk_numpy
+from pipeline.lib.presets import merged_params
+from pipeline.lib.robots import load_robot
 
 ROOT = Path(__file__).resolve().parents[1]
 DATASETS = Path(__file__).resolve().parents[2] / "shared" / "datasets"
@@ -28,7 +29,7 @@ def campaign(n=30, seed=0):
     """ids, joint angles (deg) and marker positions in a tracker frame (mm) of a noiseless UR5."""
     rng = np.random.default_rng(seed)
     q = rng.uniform(-170.0, 170.0, (n, 6))
-    p = fk_numpy(q, load_robot({"model": "ur5", "tool_mm": TOOL}))
+    p = fk_numpy(q, load_robot({"model": "ur5", "tool_mm": TOOL, "dh": None, "joint_limits_deg": None}))
     R, _ = np.linalg.qr(rng.normal(size=(3, 3)))
     R *= np.sign(np.linalg.det(R))
     m = p @ R.T + np.array([1500.0, -300.0, 800.0])
@@ -36,11 +37,14 @@ def campaign(n=30, seed=0):
 
 
 def params(**ingest_cfg):
-    cfg = {"joints": "joints.csv", "tracker": "tracker.csv", "table": None, "sep": "auto",
+    cfg = {"joints": "joints.csv", "tracker": "tracker.csv", "sep": "auto",
            "decimal": "auto", "angle_unit": "deg", "length_unit": "mm",
            "columns": {"point_id": None, "joints": None, "position": None}, "gross_outlier_mm": 50.0}
+    if "table" in ingest_cfg:                         # one table: the same file in both
+        ingest_cfg["joints"] = ingest_cfg["tracker"] = ingest_cfg.pop("table")
     cfg.update(ingest_cfg)
-    return {"robot": {"model": "ur5", "tool_mm": TOOL}, "ingest": cfg}
+    cfg["columns"] = {"point_id": None, "joints": None, "position": None, **cfg["columns"]}
+    return {"robot": {"model": "ur5", "tool_mm": TOOL, "dh": None, "joint_limits_deg": None}, "ingest": cfg}
 
 
 def num(x, decimal="."):

@@ -3,10 +3,10 @@ import numpy as np
 import pytest
 import torch
 
-from pipeline.kinematics import DHChain, fk, fk_jacobian, fk_numpy, nominal_geometry
-from pipeline.robots import load_robot
+from pipeline.lib.kinematics import DHChain, fk, fk_jacobian, fk_numpy, nominal_geometry
+from pipeline.lib.robots import load_robot, nominal_robot
 
-UR5 = load_robot({"model": "ur5"})
+UR5 = nominal_robot("ur5")
 
 # Worked by hand from the table d = 89.159, 0, 0, 109.15, 94.65, 82.3; a = 0, -425, -392.25, 0, 0, 0:
 #  zero pose: x = a2 + a3, y = -(d4 + d6), z = d1 - d5
@@ -27,14 +27,14 @@ def test_ur5_fk_hand_checked(q_deg, expected):
 
 
 def test_ur10_zero_pose():
-    ur10 = load_robot({"model": "ur10"})
+    ur10 = nominal_robot("ur10")
     np.testing.assert_allclose(fk_numpy(np.zeros((1, 6)), ur10)[0],
                                [-612 - 572.3, -(163.941 + 92.2), 127.3 - 115.7], atol=1e-9)
 
 
 def test_tool_offset_follows_the_flange():
     # zero pose: flange z axis is base -y, flange x is base -x (checked by hand: R = Rx(π/2)·Rx(π/2)·Rx(-π/2))
-    tool = load_robot({"model": "ur5", "tool_mm": [0, 0, 100]})
+    tool = load_robot({"model": "ur5", "tool_mm": [0, 0, 100], "dh": None, "joint_limits_deg": None})
     p0, p1 = fk_numpy(np.zeros((1, 6)), UR5)[0], fk_numpy(np.zeros((1, 6)), tool)[0]
     np.testing.assert_allclose(p1 - p0, [0, -100, 0], atol=1e-9)
 
@@ -58,16 +58,20 @@ def test_chain_is_differentiable_in_joints_and_geometry():
 
 def test_custom_robot_and_bad_tables():
     custom = load_robot({"model": "custom", "dh": {"d": list(UR5.d), "a": list(UR5.a),
-                                                    "alpha_deg": [90, 0, 0, 90, -90, 0]}})
+                                                    "alpha_deg": [90, 0, 0, 90, -90, 0], "offset_deg": [0] * 6},
+                         "joint_limits_deg": None, "tool_mm": [0, 0, 0]})
     np.testing.assert_allclose(fk_numpy(np.zeros((1, 6)), custom), fk_numpy(np.zeros((1, 6)), UR5))
     with pytest.raises(ValueError, match="unknown robot 'ur3'"):
-        load_robot({"model": "ur3"})
-    with pytest.raises(ValueError, match=r"custom robot needs \['alpha_deg'\]"):
-        load_robot({"model": "custom", "dh": {"d": [0] * 6, "a": [0] * 6}})
+        nominal_robot("ur3")
+    with pytest.raises(ValueError, match=r"custom robot needs \['alpha_deg', 'offset_deg'\]"):
+        load_robot({"model": "custom", "dh": {"d": [0] * 6, "a": [0] * 6}, "joint_limits_deg": None,
+                    "tool_mm": [0, 0, 0]})
+    with pytest.raises(ValueError, match=r"robot: unknown key\(s\) \['tool'\]; missing key\(s\) \['tool_mm'\]"):
+        load_robot({"model": "ur5", "dh": None, "joint_limits_deg": None, "tool": [0, 0, 0]})
 
 
 def test_geometric_jacobian_equals_autograd_with_every_error_term():
-    g = nominal_geometry(load_robot({"model": "ur5", "tool_mm": [1.0, -2.0, 100.0]}))
+    g = nominal_geometry(load_robot({"model": "ur5", "tool_mm": [1.0, -2.0, 100.0], "dh": None, "joint_limits_deg": None}))
     gen = torch.Generator().manual_seed(3)
     g = {k: v + 1e-2 * torch.randn(v.shape, generator=gen, dtype=torch.float64) for k, v in g.items()}
     q = (torch.rand(8, 6, generator=gen, dtype=torch.float64) * 2 - 1) * 3
@@ -78,5 +82,5 @@ def test_geometric_jacobian_equals_autograd_with_every_error_term():
         (grad,) = torch.autograd.grad(fk(qk, g)[:, k].sum(), qk)
         torch.testing.assert_close(J[:, k], grad, rtol=0, atol=1e-9)        # J ~ 1e2-1e3 mm/rad
     # nominal UR5: joint 6 turns the tool (1, -2, 100) about the flange z axis, on a radius of √5 mm
-    p, J = fk_jacobian(q, nominal_geometry(load_robot({"model": "ur5", "tool_mm": [1.0, -2.0, 100.0]})))
+    p, J = fk_jacobian(q, nominal_geometry(load_robot({"model": "ur5", "tool_mm": [1.0, -2.0, 100.0], "dh": None, "joint_limits_deg": None})))
     torch.testing.assert_close(J[:, :, 5].norm(dim=1), torch.full((8,), 5 ** 0.5, dtype=torch.float64))

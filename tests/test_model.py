@@ -2,12 +2,13 @@
 import pytest
 import torch
 
-from pipeline.kinematics import nominal_geometry
-from pipeline.model import BODY_MASK, BoTER, attention_mask, check_config
-from pipeline.robots import load_robot
+from pipeline.lib.kinematics import nominal_geometry
+from pipeline.lib.model import BODY_MASK, BoTER, attention_mask, check_config
+from pipeline.lib.robots import nominal_robot
 
-G = nominal_geometry(load_robot({"model": "ur5"}))
-SMALL = dict(d_model=12, n_layer=1, n_head=2, d_hidden=16, dropout=0.0)
+G = nominal_geometry(nominal_robot("ur5"))
+SMALL = dict(d_model=12, n_layer=1, n_head=2, d_hidden=16, head="resnet", encoder=True, alpha0=0.1,
+             dropout=0.0)
 CFG = {"d_model": 126, "n_layer": 4, "n_head": 9, "d_hidden": 512, "mask": "spi",
        "head": "resnet", "physics": "nominal"}
 
@@ -43,7 +44,7 @@ def test_mask_blocks_attention_from_joint_4_to_joints_1_2():
 def test_forward_fuses_physics_and_alpha_delta():
     torch.manual_seed(0)
     for kw in ({}, {"encoder": False}, {"head": "linear"}, {"mask": "body"}, {"mask": "none"}):
-        m = BoTER(G, **{**SMALL, **kw}).eval()
+        m = BoTER(G, **{"mask": "spi", **SMALL, **kw}).eval()
         q = torch.randn(5, 6, dtype=torch.float64)
         p, p_th = m(q)
         assert p.shape == (5, 3) and p.dtype == torch.float64

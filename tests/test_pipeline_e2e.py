@@ -13,7 +13,7 @@ import pandas as pd
 import pytest
 import yaml
 
-from pipeline.columns import COMPENSATION
+from pipeline.lib.columns import COMPENSATION
 
 ROOT = Path(__file__).resolve().parents[1]
 SMALL = {"model": {"d_model": 12, "n_head": 2, "n_layer": 1, "d_hidden": 32},

@@ -4,7 +4,9 @@ from pathlib import Path
 import pytest
 import yaml
 
-from pipeline.preset import PRESETS, apply_preset, changes, deep_merge, main, merged_params
+from pipeline.lib.presets import PRESETS, apply_preset, changes, deep_merge, merged_params
+from pipeline.lib.config import section
+from pipeline.preset import main
 
 ROOT = Path(__file__).resolve().parents[1]
 BASE = yaml.safe_load((ROOT / "params.yaml").read_text())
@@ -33,8 +35,11 @@ def test_presets_only_set_known_keys(name):
     assert set(leaves(preset)) <= known, set(leaves(preset)) - known
     merged = merged_params(name, BASE)
     assert merged["split"] == BASE["split"]                       # the rest kept
-    assert merged["ingest"]["table"].startswith("../shared/datasets/")
-    assert merged["ingest"]["joints"] == BASE["ingest"]["joints"]
+    assert merged["ingest"]["joints"].startswith("../shared/datasets/")
+    assert merged["ingest"]["tracker"] == merged["ingest"]["joints"]      # one table
+    assert merged["ingest"]["gross_outlier_mm"] == BASE["ingest"]["gross_outlier_mm"]
+    for sec in merged:                                            # a valid params file
+        section(merged, sec)
 
 
 def test_ipa_preset_settings():
@@ -50,7 +55,7 @@ def test_apply_rewrites_params_keeping_comments(tmp_path, capsys):
     path.write_text(text)
     main(["gtpn-ur5", "--params", str(path)])
     out = capsys.readouterr().out
-    assert "ingest.table: None -> '../shared/datasets/gtpn-ur5/merge2copy.csv'" in out
+    assert "ingest.joints: 'data/raw/joints.csv' -> '../shared/datasets/gtpn-ur5/merge2copy.csv'" in out
     assert "ingest.columns.joints: None -> ['1', '2', '3', '4', '5', '6']" in out
     new = path.read_text()
     assert yaml.safe_load(new) == merged_params("gtpn-ur5", yaml.safe_load(text))

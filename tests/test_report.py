@@ -10,8 +10,13 @@ import torch
 import yaml
 
 from pipeline import report
-from pipeline.columns import AXES, JOINTS_DEG, MEAS, PRED, THEORY
-from pipeline.metrics import drive_table, regression_metrics
+from pipeline.lib import figures, page
+from pipeline.lib.columns import AXES, JOINTS_DEG, MEAS, PRED, THEORY
+from pipeline.lib.config import load_params, write_json
+from pipeline.lib.kinematics import nominal_geometry
+from pipeline.lib.metrics import drive_table, regression_metrics
+from pipeline.lib.robots import nominal_robot
+from pipeline.lib.training import make_model
 
 ROOT = Path(__file__).resolve().parents[1]
 SMALL_MODEL = {"d_model": 12, "n_head": 2, "n_layer": 2, "d_hidden": 16}
@@ -19,7 +24,8 @@ N = 60
 
 
 def small_params() -> dict:
-    params = yaml.safe_load((ROOT / "params.yaml").read_text())
+    """The repo's params.yaml (every key of every section) with a small nominal-physics model."""
+    params = load_params(ROOT / "params.yaml")
     params["model"].update(SMALL_MODEL, physics="nominal", encoder=True, mask="spi")
     params["compensate"].update(tol_mm=1e-3, tol_mse=1e-4)
     return params
@@ -54,9 +60,9 @@ def write_inputs(root: Path, params: dict, optional: bool = True) -> pd.DataFram
     if not optional:
         return df
 
-    from pipeline.train import make_model
-    (root / "models").mkdir()
-    torch.save(make_model(params).state_dict(), root / "models/boter.pt")
+    (root / "models").mkdir()                              # physics "nominal": geometry from frame.json's tool
+    model = make_model(params["model"], nominal_geometry(nominal_robot("ur5")))
+    torch.save(model.state_dict(), root / "models/boter.pt")
     live = root / "reports/live/plots/metrics"
     live.mkdir(parents=True)
     for name, v0 in [("train_mae_3d_mm", 1.5), ("val_mae_3d_mm", 1.6), ("loss", 2.0),
@@ -79,11 +85,6 @@ def write_inputs(root: Path, params: dict, optional: bool = True) -> pd.DataFram
             "drive_check": {"before": drive_table(before, zero), "after": drive_table(after, zero),
                             "noise_floor_mm": 0.05}}
     (root / "reports/compensation.json").write_text(json.dumps(comp))
-    groups = {g: {"seeds": [1, 2, 3], "test_3d_mae_mean": v, "test_3d_mae_std": 0.01,
-                  "runs": [v - 0.01, v, v + 0.01], "epochs_to_best": [100, 110, 120], "params": {}}
-              for g, v in report.PAPER_ABLATION.items()}
-    del groups["no_resnet"]["runs"]                         # "runs" may be absent
-    (root / "reports/ablation.json").write_text(json.dumps({"groups": groups}))
     (root / "reports/ingest.json").write_text(json.dumps(
         {"n_read": {"joints": N + 1, "tracker": N + 1}, "n_kept": N, "dropped_counts": {"duplicate": 1},
          "dropped": [{"point_id": "P0001", "file": "joints.csv", "row": 3, "reason": "duplicate",
@@ -106,24 +107,30 @@ def assert_png(path: Path):
     assert 300 <= w <= 3000 and 200 <= h <= 2500, (path, w, h)
 
 
+ABLATION_LINKS = {"ablation.md", "ablation.json", "ablation.png"}   # opt-in: linked, never read
+
+
 def test_report_writes_every_figure_index_and_ply(tmp_path, monkeypatch):
     params = small_params()
     monkeypatch.chdir(tmp_path)
     df = write_inputs(tmp_path, params)
+    (tmp_path / "reports/ablation.json").write_text("{not json")   # the report must not read it
     out = report.run(params)
 
-    assert out["figures"] == {name: "ok" for name in report.FIGURES}
-    for name in report.FIGURES:
+    assert out["figures"] == {name: "ok" for name in figures.FIGURES}
+    for name in figures.FIGURES:
         assert_png(tmp_path / "reports/plots" / f"{name}.png")
 
     index = tmp_path / "reports/index.md"
     targets = links(index)
-    for name in report.FIGURES:
+    for name in figures.FIGURES:
         assert f"plots/{name}.png" in targets
-    for t in targets:                                       # every link resolves
+    assert ABLATION_LINKS <= set(targets)
+    for t in set(targets) - ABLATION_LINKS:                 # every other link resolves
         assert (index.parent / t).exists(), t
     text = index.read_text()
     assert "0.2515" in text and "0.9479" in text           # the paper's numbers beside ours
+    assert "(paper: 0.2515 / 0.2850 / 0.9479)" in text
     assert "Skipped" not in text
     assert "within ±0.5 mm" in text                         # Table 9 layout
 
@@ -146,18 +153,53 @@ def test_missing_optional_inputs_are_skipped_with_a_note(tmp_path, monkeypatch):
     out = report.run(params)
 
     skipped = {n for n, s in out["figures"].items() if s != "ok"}
-    assert skipped == {"training_curves", "attention_maps", "compensation_convergence",
-                       "drive_check", "ablation"}
-    for name in report.FIGURES:
+    assert skipped == {"training_curves", "attention_maps", "compensation_convergence", "drive_check"}
+    for name in figures.FIGURES:
         assert (plots / f"{name}.png").exists() == (name not in skipped)
     index = tmp_path / "reports/index.md"
-    for t in links(index):
+    for t in set(links(index)) - ABLATION_LINKS:
         assert (index.parent / t).exists(), t
     text = index.read_text()
     assert text.count("_Skipped:") == len(skipped)
     assert "encoder is false" in text and "No drive check" in text
+    assert "calibration.json not found" in text and "train.json not found" in text
+    assert not (tmp_path / "reports/ablation.json").exists()   # no ablation run, yet a full page
+    assert "`python -m pipeline.ablation -j 2`" in text
     import open3d as o3d
     assert len(o3d.io.read_point_cloud(str(tmp_path / "reports/points_error.ply")).points) == len(df)
+
+
+def test_page_sections_take_the_loaded_summaries():
+    assert "not found" in page.section_calibration(None) and "not found" in page.section_training(None)
+    c = {"identified": ["d1", "a2"], "n_candidates": 40, "rank": 2, "fixed": {"d6": "unidentifiable"},
+         "condition_number": 12.5, "residual_sigma_mm": 0.05, "loss": "soft_l1", "loss_scale_mm": 0.5,
+         "nfev": 9, "estimates": {"d1": {"delta": 0.3, "se": 0.01, "unit": "mm"}}}
+    text = page.section_calibration(c)
+    assert "2 of 40 parameters identified" in text and "d6 (unidentifiable)" in text
+    tr = {"n_params": 1234, "n_train": 40, "n_val": 10, "best_val_mae_3d_mm": 0.3, "best_epoch": 7,
+          "epochs_run": 20, "seconds": 1.0, "seconds_per_epoch": 0.05, "alpha": 0.1,
+          "loss_weights": [1.0, 1.0]}
+    assert "1234 parameters" in page.section_training(tr) and "epoch 7 of 20" in page.section_training(tr)
+
+
+def test_ablation_summary_writes_table_with_paper_epochs_and_figure(tmp_path, monkeypatch):
+    from pipeline import ablation
+    monkeypatch.chdir(tmp_path)
+    for g, mae in (("baseline", 0.25), ("no_mask", 0.28), ("paper_weights", 0.26)):
+        runs = [{"seed": s, "test": {"3d": {"mae": mae + 0.01 * k, "rmse": 0.3, "r2": 0.9}},
+                 "epochs_to_best": 100 + k, "n_params": 5000} for k, s in enumerate((1, 2))]
+        write_json(tmp_path / "reports/ablation" / f"{g}.json",
+                            {"group": g, "changes": ablation.GROUPS[g], "runs": runs, "seconds": 1.0})
+    summary = ablation.summarise()
+    assert set(summary["groups"]) == {"baseline", "no_mask", "paper_weights"}
+    md = (tmp_path / "reports/ablation.md").read_text().splitlines()
+    assert "| paper epochs |" in md[0]
+    rows = {r.split("|")[1].strip(): [c.strip() for c in r.split("|")[1:-1]] for r in md[2:]}
+    col = md[0].split("|")[1:-1].index(" paper epochs ")
+    assert rows["no_mask"][col] == "402" and rows["baseline"][col] == "111"
+    assert rows["paper_weights"][col] == "–"                 # not in the paper
+    assert_png(tmp_path / "reports/ablation.png")
+    assert json.loads((tmp_path / "reports/ablation.json").read_text()) == summary
 
 
 def test_scatter_r2_is_the_metrics_r2():
@@ -167,10 +209,12 @@ def test_scatter_r2_is_the_metrics_r2():
     pred = theory + 0.7 * (real - theory) + rng.normal(0, 0.1, (50, 3))
     m = regression_metrics(pred, real, theory)
     for k, a in enumerate(AXES):
-        assert report.r2((real - theory)[:, k], (pred - theory)[:, k]) == pytest.approx(m[a]["r2"])
+        assert figures.r2((real - theory)[:, k], (pred - theory)[:, k]) == pytest.approx(m[a]["r2"])
 
 
 def test_figures_are_one_registry_with_captions():
-    for name, fn in report.FIGURES.items():
+    assert "ablation" not in figures.FIGURES                 # drawn by pipeline.ablation, not the report
+    for name, fn in figures.FIGURES.items():
         assert re.fullmatch(r"[a-z0-9_]+", name)
-        assert len(report.caption(fn)) > 20, name
+        assert len(figures.caption(fn)) > 20, name
+    assert len(figures.caption(figures.fig_ablation)) > 20

@@ -6,27 +6,26 @@ import pandas as pd
 import pytest
 import torch
 
-from pipeline.columns import ERR, JOINTS_DEG, MEAS, THEORY
-from pipeline.kinematics import fk_numpy
-from pipeline.robots import load_robot
-from pipeline.train import mae_3d, tensors, train_boter
+from pipeline.lib.columns import ERR, JOINTS_DEG, MEAS, THEORY
+from pipeline.lib.kinematics import fk_numpy, nominal_geometry
+from pipeline.lib.robots import load_robot
+from pipeline.lib.training import mae_3d, tensors, train_boter
 
 PARAMS = {
-    "robot": {"model": "ur5", "tool_mm": [0.0, 0.0, 0.0]},
+    "robot": {"model": "ur5", "tool_mm": [0.0, 0.0, 0.0], "dh": None, "joint_limits_deg": None},
     "model": {"d_model": 12, "n_layer": 1, "n_head": 2, "d_hidden": 16, "mask": "spi", "head": "resnet",
               "encoder": True, "physics": "nominal", "alpha0": 0.1, "dropout": 0.1, "init_seed": 3},
     "loss": {"weighting": "uncertainty", "physics": True, "lambda_data": 1.0, "lambda_physics": 1.0},
     "train": {"lr": 1e-3, "weight_decay": 1e-6, "batch_size": 32, "grad_clip": 1.0, "max_epochs": 15,
               "patience": 5, "seed": 3},
 }
+G = nominal_geometry(load_robot(PARAMS["robot"]))
 
 
 @pytest.fixture()
 def points(tmp_path, monkeypatch):
-    """120 poses whose measured positions carry a smooth 1 mm error; frame.json in tmp_path."""
+    """120 poses whose measured positions carry a smooth 1 mm error."""
     monkeypatch.chdir(tmp_path)
-    (tmp_path / "reports").mkdir()
-    (tmp_path / "reports" / "frame.json").write_text(json.dumps({"tool_mm": [0, 0, 0]}))
     rng = np.random.default_rng(0)
     q = rng.uniform([-60, -120, 30, -150, 40, -90], [60, -40, 120, -30, 140, 90], (120, 6))
     theory = fk_numpy(q, load_robot(PARAMS["robot"]))
@@ -38,8 +37,8 @@ def points(tmp_path, monkeypatch):
 
 
 def test_same_seed_same_model_and_best_checkpoint_kept(points):
-    m1, h1 = train_boter(PARAMS, points, progress=False)
-    m2, h2 = train_boter(PARAMS, points, progress=False)
+    m1, h1 = train_boter(PARAMS, points, G, progress=False)
+    m2, h2 = train_boter(PARAMS, points, G, progress=False)
     for (k, a), (_, b) in zip(m1.state_dict().items(), m2.state_dict().items()):
         assert torch.equal(a, b), k
     assert h1["best_val_mae_3d_mm"] == h2["best_val_mae_3d_mm"] and h1["best_epoch"] == h2["best_epoch"]
@@ -53,10 +52,10 @@ def test_same_seed_same_model_and_best_checkpoint_kept(points):
 def test_early_stopping_and_a_different_seed_differs(points):
     p = json.loads(json.dumps(PARAMS))
     p["train"].update(max_epochs=200, patience=3, lr=3e-2)        # a rate that stops improving fast
-    _, h = train_boter(p, points, progress=False)
+    _, h = train_boter(p, points, G, progress=False)
     assert h["epochs_run"] < 200 and h["epochs_run"] - h["best_epoch"] == 3
     q = json.loads(json.dumps(PARAMS))
     q["model"]["init_seed"] = 4
-    m1, _ = train_boter(PARAMS, points, progress=False)
-    m2, _ = train_boter(q, points, progress=False)
+    m1, _ = train_boter(PARAMS, points, G, progress=False)
+    m2, _ = train_boter(q, points, G, progress=False)
     assert not torch.equal(m1.head.out.weight, m2.head.out.weight)

@@ -7,9 +7,9 @@ import pandas as pd
 import pytest
 import torch
 
-from pipeline import twin as T
-from pipeline.config import load_params
-from pipeline.kinematics import DTYPE, fk, fk_numpy
+from pipeline.lib import twin as T
+from pipeline.lib.config import load_params
+from pipeline.lib.kinematics import DTYPE, fk, fk_numpy
 
 ROOT = Path(__file__).resolve().parents[1]
 RAW = ROOT / "data" / "raw"

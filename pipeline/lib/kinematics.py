@@ -16,6 +16,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from .config import read_json, write_json
 from .robots import Robot
 
 DTYPE = torch.float64
@@ -136,3 +137,15 @@ class DHChain(nn.Module):
 
     def forward(self, q: torch.Tensor) -> torch.Tensor:   # (B, 6) rad -> (B, 3) mm
         return fk(q, self.geometry())
+
+
+def save_geometry(path, geometry: dict, meta: dict | None = None) -> None:
+    """Write a geometry dict (mm / rad) as JSON lists."""
+    write_json(path, {"geometry": {k: torch.as_tensor(geometry[k]).tolist() for k in GEOMETRY_KEYS},
+                      "units": "mm and rad; pipeline.lib.kinematics geometry keys", **(meta or {})})
+
+
+def load_geometry(path) -> dict:
+    """Read a saved geometry (models/calibration.json) back into a geometry of float64 tensors."""
+    g = read_json(path)["geometry"]
+    return {k: torch.tensor(g[k], dtype=DTYPE) for k in GEOMETRY_KEYS}

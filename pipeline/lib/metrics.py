@@ -1,7 +1,8 @@
 """Error metrics of sec. 4.1: MAE/MSE/RMSE per axis and 3D (eqs. 27-38), R² on error vectors (eqs. 39-42)."""
 import numpy as np
+import pandas as pd
 
-from .columns import AXES
+from .columns import AXES, MEAS, SPLITS, THEORY
 
 
 def regression_metrics(pred: np.ndarray, real: np.ndarray, theory: np.ndarray) -> dict:
@@ -39,3 +40,9 @@ def drive_table(achieved: np.ndarray, target: np.ndarray, tol_mm: float = 0.5) -
     out["within_tol_share"] = float((np.abs(e) <= tol_mm).all(1).mean())
     out["tol_mm"] = tol_mm
     return out
+
+
+def split_metrics(df: pd.DataFrame, pred: np.ndarray) -> dict:
+    """{split: regression_metrics} of predictions `pred` (rows aligned with df: split, meas, theory)."""
+    return {s: regression_metrics(pred[m], df.loc[m, MEAS].to_numpy(), df.loc[m, THEORY].to_numpy())
+            for s in SPLITS if (m := (df.split == s).to_numpy()).any()}

@@ -55,7 +55,7 @@ def check_config(cfg: dict) -> None:
         raise ValueError(f"params.yaml model: n_head={cfg['n_head']} does not divide d_model={d} "
                          f"(multi-head attention splits d_model into n_head equal parts); "
                          f"n_head could be {[h for h in range(1, d + 1) if d % h == 0][:12]}")
-    if cfg.get("physics", "nominal") not in ("nominal", "calibrated"):
+    if cfg["physics"] not in ("nominal", "calibrated"):
         raise ValueError(f"params.yaml model.physics: {cfg['physics']!r}; use nominal or calibrated")
 
 
@@ -95,8 +95,9 @@ class ResidualHead(nn.Module):
 
 
 class BoTER(nn.Module):
-    def __init__(self, geometry: dict, d_model=126, n_layer=4, n_head=9, d_hidden=512,
-                 mask="spi", head="resnet", encoder=True, alpha0=0.1, dropout=0.1, **_):
+    def __init__(self, geometry: dict, *, d_model: int, n_layer: int, n_head: int, d_hidden: int,
+                 mask: str, head: str, encoder: bool, alpha0: float, dropout: float):
+        """The `model:` section's settings (params.yaml owns the values)."""
         super().__init__()
         self.physics = DHChain(geometry)
         self.embed = JointEmbedding(d_model)

@@ -9,6 +9,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .config import check_keys
+
 PI2 = np.pi / 2
 
 # CB3 nominal tables (SPEC.md). Joint limits are the controller's software
@@ -59,21 +61,22 @@ def load_robot(cfg: dict) -> Robot:
            "joint_limits_deg": [[lo, hi]] * 6 or null,
            "tool_mm": [x, y, z]}
     """
-    name = cfg.get("model", "ur5")
+    check_keys(cfg, "robot")
+    name = cfg["model"]
     if name == "custom":
-        dh = cfg.get("dh") or {}
-        missing = [k for k in ("d", "a", "alpha_deg") if k not in dh]
+        dh = cfg["dh"] or {}
+        missing = [k for k in ("d", "a", "alpha_deg", "offset_deg") if k not in dh]
         if missing:
-            raise ValueError(f"params.yaml robot.dh: custom robot needs {missing}")
+            raise ValueError(f"params.yaml robot.dh: custom robot needs {missing} "
+                             f"(keys d, a, alpha_deg, offset_deg)")
         table = dict(d=dh["d"], a=dh["a"], alpha=np.radians(dh["alpha_deg"]),
-                     offset=np.radians(dh.get("offset_deg", [0.0] * 6)),
-                     limits_deg=[[-360.0, 360.0]] * 6)
+                     offset=np.radians(dh["offset_deg"]), limits_deg=[[-360.0, 360.0]] * 6)
     elif name in TABLES:
         table = dict(TABLES[name], offset=[0.0] * 6)
     else:
         raise ValueError(f"params.yaml robot.model: unknown robot {name!r}; "
                          f"use one of {sorted(TABLES)} or 'custom'")
-    if cfg.get("joint_limits_deg") is not None:
+    if cfg["joint_limits_deg"] is not None:
         table["limits_deg"] = cfg["joint_limits_deg"]
     arr = {k: np.asarray(v, dtype=float) for k, v in table.items()}
     for k in ("d", "a", "alpha", "offset"):
@@ -81,7 +84,12 @@ def load_robot(cfg: dict) -> Robot:
             raise ValueError(f"params.yaml robot: {k} must have 6 entries, got {arr[k].shape}")
     if arr["limits_deg"].shape != (6, 2):
         raise ValueError("params.yaml robot.joint_limits_deg must be 6 pairs [min, max]")
-    tool = np.asarray(cfg.get("tool_mm", [0.0, 0.0, 0.0]), dtype=float)
+    tool = np.asarray(cfg["tool_mm"], dtype=float)
     if tool.shape != (3,):
         raise ValueError("params.yaml robot.tool_mm must be [x, y, z] in mm")
     return Robot(name=name, tool=tool, **arr)
+
+
+def nominal_robot(name: str) -> Robot:
+    """A catalogue robot (TABLES) with its own limits and no tool."""
+    return load_robot({"model": name, "dh": None, "joint_limits_deg": None, "tool_mm": [0.0, 0.0, 0.0]})

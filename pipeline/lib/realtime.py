@@ -1,6 +1,6 @@
 """The controller path: compensate one pose inside a 500 Hz cycle (2 ms).
 
-The compensate stage's batched `lm` iterates until every point is verified
+The batched `lm` (solvers.py) iterates until every point is verified
 within tol_mm; alone, one pose costs it about three model evaluations and
 two Jacobians (5.6 ms here). A controller needs a fixed budget instead, so a
 call here costs exactly two evaluations of the frozen model:
@@ -27,6 +27,7 @@ import numpy as np
 import torch
 
 from .kinematics import DTYPE, fk_jacobian
+from .solvers import min_norm_step
 
 
 @dataclass
@@ -35,18 +36,6 @@ class Result:
     residual_mm: float     # |p(q) - target|: measured when verified, else predicted
     verified: bool         # residual_mm was measured by the second evaluation
     converged: bool        # residual_mm < tol_mm
-
-
-def min_norm_step(J, r, lam):
-    """Damped minimum-norm joint correction Δθ = -Jᵀ (J Jᵀ + λ·mean(diag J Jᵀ)·I)⁻¹ r.
-
-    J (B, 3, 6) mm/rad, r (B, 3) mm, lam (B,) or a float -> Δθ (B, 6) rad. Shared by the
-    batched lm (compensate.py, λ adapted per point) and the controller path (λ tiny, fixed).
-    """
-    JJt = J @ J.transpose(1, 2)                             # (B, 3, 3)
-    scale = torch.as_tensor(lam, dtype=DTYPE) * JJt.diagonal(dim1=1, dim2=2).mean(1)   # (B,)
-    damped = JJt + scale[:, None, None] * torch.eye(3, dtype=DTYPE)
-    return -(J.transpose(1, 2) @ torch.linalg.solve(damped, r.unsqueeze(-1))).squeeze(-1)
 
 
 class Realtime:

@@ -13,3 +13,4 @@ JCOMP_DEG = [f"j{i}_comp_deg" for i in range(1, 7)]
 TARGET = ["target_x", "target_y", "target_z"]
 COMPENSATION = (["point_id"] + JOINTS_DEG + DJ_DEG + JCOMP_DEG + TARGET + PRED
                 + ["residual_mm", "iterations", "converged"])
+SPLITS = ("train", "val", "test")                          # values of the split column

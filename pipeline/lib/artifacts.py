@@ -1,0 +1,38 @@
+"""Where every pipeline artifact lives, and how a stage reads one back.
+
+Paths are relative to the project root (DVC runs every stage there). Each
+file here is an output of exactly one stage in dvc.yaml.
+"""
+from pathlib import Path
+
+import pandas as pd
+
+INTERIM, MODELS, REPORTS = Path("data/interim"), Path("models"), Path("reports")
+
+INGEST_TABLE = INTERIM / "ingest.parquet"             # ingest
+INGEST_JSON = REPORTS / "ingest.json"
+FRAME_JSON = REPORTS / "frame.json"                   # frame
+POINTS_TABLE = INTERIM / "points.parquet"             # theory
+THEORY_JSON = REPORTS / "theory.json"
+SPLIT_TABLE = INTERIM / "split.parquet"               # split
+SPLIT_JSON = REPORTS / "split.json"
+CALIBRATED_GEOMETRY = MODELS / "calibration.json"     # calibrate
+CALIBRATION_JSON = REPORTS / "calibration.json"
+MODEL_WEIGHTS = MODELS / "boter.pt"                   # train
+TRAIN_JSON = REPORTS / "train.json"
+LIVE = REPORTS / "live"                               #   dvclive; its curves under live/plots/metrics
+BASELINES_TABLE = INTERIM / "baselines.parquet"       # baselines
+BASELINES_JSON = REPORTS / "baselines_train.json"
+PREDICTIONS_TABLE = INTERIM / "predictions.parquet"   # evaluate
+METRICS_JSON = REPORTS / "metrics.json"
+BASELINES_MD = REPORTS / "baselines.md"
+COMPENSATION_CSV = REPORTS / "compensation.csv"       # compensate (the Δθ table, and as parquet)
+COMPENSATION_PARQUET = REPORTS / "compensation.parquet"
+COMPENSATION_JSON = REPORTS / "compensation.json"
+CONVERGENCE_CSV = REPORTS / "compensation_convergence.csv"
+DRIVE_CSV = REPORTS / "drive_check.csv"
+
+
+def load_points() -> pd.DataFrame:
+    """points.parquet joined with its split column."""
+    return pd.read_parquet(POINTS_TABLE).merge(pd.read_parquet(SPLIT_TABLE), on="point_id")

@@ -1,0 +1,98 @@
+"""params.yaml (the one owner of every setting), JSON writing, logging.
+
+`section(params, name)` hands a stage its section after checking the keys:
+an unknown or misspelt key, or a missing one, stops the stage with a message
+that lists the valid keys. The code never falls back to a default of its own.
+"""
+import json
+import logging
+import sys
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+PARAMS = Path("params.yaml")
+
+# The keys of every section (names only; the values live in params.yaml).
+SECTIONS = {
+    "robot": ("model", "dh", "joint_limits_deg", "tool_mm"),
+    "ingest": ("joints", "tracker", "sep", "decimal", "angle_unit", "length_unit", "columns",
+               "gross_outlier_mm"),
+    "ingest.columns": ("point_id", "joints", "position"),
+    "frame": ("outlier_k", "outlier_min_mm", "estimate_tool", "robust_loss", "robust_scale_mm"),
+    "split": ("seed", "fractions"),
+    "calibrate": ("loss", "loss_scale_mm", "params", "tilt_joints", "rank_tol", "tol", "max_nfev"),
+    "model": ("d_model", "n_layer", "n_head", "d_hidden", "mask", "head", "encoder", "physics",
+              "alpha0", "dropout", "init_seed"),
+    "loss": ("weighting", "physics", "lambda_data", "lambda_physics"),
+    "train": ("lr", "weight_decay", "batch_size", "grad_clip", "max_epochs", "patience", "seed"),
+    "baselines": ("other_physics",),
+    "compensate": ("solver", "lr", "max_iter", "tol_mse", "tol_mm", "jacobian_of", "drive_check",
+                   "twin", "drive_seed"),
+    "ablation": ("seeds", "max_epochs"),
+}
+
+
+class ParamsError(ValueError):
+    """A params.yaml section with an unknown, misspelt or missing key."""
+
+
+def check_keys(cfg, name: str) -> dict:
+    """cfg (the section `name`, e.g. "ingest.columns") if its keys are exactly SECTIONS[name]."""
+    valid = SECTIONS[name]
+    if not isinstance(cfg, dict):
+        raise ParamsError(f"params.yaml {name}: expected a mapping with keys {list(valid)}, got {cfg!r}")
+    unknown = [k for k in cfg if k not in valid]
+    missing = [k for k in valid if k not in cfg]
+    if unknown or missing:
+        what = "; ".join(([f"unknown key(s) {unknown}"] if unknown else [])
+                         + ([f"missing key(s) {missing}"] if missing else []))
+        raise ParamsError(f"params.yaml {name}: {what}. Valid keys: {', '.join(valid)}")
+    return cfg
+
+
+def section(params: dict, name: str) -> dict:
+    """params[name], its keys checked (and those of its nested sections)."""
+    if name not in params:
+        raise ParamsError(f"params.yaml: missing section {name!r} (keys: {', '.join(SECTIONS[name])})")
+    cfg = check_keys(params[name], name)
+    for sub in SECTIONS:
+        if sub.startswith(name + "."):
+            check_keys(cfg[sub.split(".", 1)[1]], sub)
+    return cfg
+
+
+def load_params(path: Path | str = PARAMS) -> dict:
+    with open(path) as f:
+        return yaml.safe_load(f)
+
+
+def _jsonable(o):
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, (np.floating, np.integer, np.bool_)):
+        return o.item()
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"not JSON-serialisable: {type(o)}")
+
+
+def write_json(path: Path | str, obj) -> None:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(obj, indent=2, default=_jsonable) + "\n")
+
+
+def read_json(path: Path | str):
+    return json.loads(Path(path).read_text())
+
+
+def logger(name: str) -> logging.Logger:
+    """A stage's logger, named after its module even when run as `python -m pipeline.<stage>`."""
+    if name == "__main__":
+        spec = getattr(sys.modules["__main__"], "__spec__", None)
+        name = spec.name if spec else name
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s",
+                        datefmt="%H:%M:%S")
+    return logging.getLogger(name.removeprefix("pipeline.").removeprefix("lib."))

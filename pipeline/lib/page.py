@@ -1,0 +1,343 @@
+"""The report's page, reports/index.md, as markdown text: settings, metrics beside the
+paper's, data / frame / calibration / training / compensation summaries, the figures.
+
+Each section takes what the report stage read (a dict, or None for a missing input)
+and returns markdown. Links are relative to REPORTS (lib/artifacts.py), index.md's
+directory; the stage writes the file.
+"""
+import math
+from pathlib import Path
+
+import numpy as np
+
+from .artifacts import (BASELINES_MD, CALIBRATION_JSON, COMPENSATION_CSV, COMPENSATION_JSON, DRIVE_CSV, FRAME_JSON,
+                        INGEST_JSON, METRICS_JSON, REPORTS, THEORY_JSON, TRAIN_JSON)
+from .columns import AXES
+from .config import PARAMS
+from .figures import DRIVE_TOL_MM, FIGURES, PLY_CMAP, PLY_PERCENTILE, caption
+from .metrics import drive_table
+from .paper import PAPER_ABLATION_EPOCHS, PAPER_DRIVE, PAPER_DRIVE_WITHIN, PAPER_METHODS, PAPER_TEST
+
+
+def fmt(v, nd=4) -> str:
+    if v is None:
+        return "–"
+    if isinstance(v, bool):
+        return str(v).lower()
+    if isinstance(v, (int, np.integer)):
+        return str(v)
+    if isinstance(v, (float, np.floating)):
+        if not math.isfinite(v):
+            return "–"
+        return f"{v:.{nd}g}" if (v != 0 and (abs(v) < 1e-3 or abs(v) >= 1e5)) else f"{v:.{nd}f}"
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(fmt(x, nd) for x in v) + "]"
+    return str(v)
+
+
+def table(header: list, rows: list) -> str:
+    out = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    out += ["| " + " | ".join(fmt(c) if not isinstance(c, str) else c for c in r) + " |" for r in rows]
+    return "\n".join(out) + "\n"
+
+
+def rel(path: Path) -> str:
+    """`path` (relative to the project root) as seen from REPORTS."""
+    path = Path(path)
+    try:
+        return path.relative_to(REPORTS).as_posix()
+    except ValueError:
+        return Path("..", path).as_posix()
+
+
+def link(path: Path, text: str | None = None) -> str:
+    """A relative link to `path` if it exists, else the bare name."""
+    path = Path(path)
+    return f"[{text or rel(path)}]({rel(path)})" if path.exists() else f"`{text or path.as_posix()}` (not found)"
+
+
+def section_settings(params: dict) -> str:
+    lines = ["## Settings", "", f"From {link(PARAMS)} (one line per section):", "", "```yaml"]
+    for sec, v in params.items():
+        if isinstance(v, dict):
+            body = ", ".join(f"{k}: {_yaml_inline(x)}" for k, x in v.items())
+            lines.append(f"{sec}: {{{body}}}")
+        else:
+            lines.append(f"{sec}: {_yaml_inline(v)}")
+    return "\n".join(lines + ["```", ""])
+
+
+def _yaml_inline(v) -> str:
+    if v is None:
+        return "null"
+    if isinstance(v, bool):
+        return str(v).lower()
+    if isinstance(v, dict):
+        return "{" + ", ".join(f"{k}: {_yaml_inline(x)}" for k, x in v.items()) + "}"
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_yaml_inline(x) for x in v) + "]"
+    return str(v)
+
+
+def section_metrics(m: dict, counts: dict) -> str:
+    name = m.get("model", "model")
+    out = ["## Model metrics", "",
+           f"`{name}` per split and axis ({link(METRICS_JSON)}; eqs. 27-42). Errors are "
+           "prediction − measurement in mm; R² compares the predicted error Δ̂ = pred − theory "
+           "with the real one Δ = meas − theory. The paper's SPI-BoTER test numbers (UR5, 724 "
+           "samples; Tables 6 and 8, the baseline rows) are beside this run's test rows.", ""]
+    rows = []
+    for split in ("train", "val", "test"):
+        if split not in m:
+            continue
+        for ax in AXES + ["3d"]:
+            s = m[split][ax]
+            row = [split if ax == "x" else "", fmt(int(counts.get(split, 0))) if ax == "x" else "",
+                   ax.upper() if ax != "3d" else "3D", s["mae"], s["mse"], s["rmse"], s["r2"]]
+            p = PAPER_TEST[ax] if split == "test" else {}
+            row += [p.get("mae"), p.get("mse"), p.get("rmse"), p.get("r2")]
+            rows.append(row)
+    out.append(table(["split", "n", "axis", "MAE mm", "MSE mm²", "RMSE mm", "R²",
+                      "paper MAE", "paper MSE", "paper RMSE", "paper R²"], rows))
+    if "test" in m:
+        t = m["test"]["3d"]
+        p = PAPER_TEST["3d"]
+        out += ["", f"**Test 3D: MAE {t['mae']:.4f} mm (paper {p['mae']}), RMSE {t['rmse']:.4f} mm "
+                f"(paper {p['rmse']}), R² {t['r2']:.4f} (paper {p['r2']}).**", ""]
+    return "\n".join(out)
+
+
+def section_baselines(m: dict, md: str | None) -> str:
+    """md: reports/baselines.md's text, or None."""
+    out = ["## Comparison methods (test split)", ""]
+    if md is not None:
+        out += [f"From {link(BASELINES_MD)}:", "", md.strip(), ""]
+    elif m.get("baselines"):
+        out += ["From reports/metrics.json \"baselines\":", ""]
+        rows = [[n, s["test"]["3d"]["mae"], s["test"]["3d"]["rmse"], s["test"]["3d"]["r2"]]
+                for n, s in m["baselines"].items() if "test" in s]
+        out += [table(["method (test)", "3D MAE mm", "3D RMSE mm", "3D R²"], rows)]
+    else:
+        out += ["_No baselines (reports/baselines.md and metrics.json \"baselines\" missing)._", ""]
+    out += ["The paper's numbers (UR5, test split, Table 4):", "",
+            table(["paper method", "3D MAE mm", "3D RMSE mm", "3D R²"],
+                  [[k, v["mae"], v["rmse"], v["r2"]] for k, v in PAPER_METHODS.items()]),
+            "Here `nominal_dh` is the uncompensated robot (nominal DH after the frame fit); "
+            "`dnn` corresponds to the paper's DNN, `spi_boter_nominal` to its SPI-BoTER.", ""]
+    return "\n".join(out)
+
+
+def section_data(ing: dict | None, fr: dict | None, th: dict | None, sp: dict | None,
+                 counts: dict) -> str:
+    """The ingest, frame, theory and split summaries; counts: points per split (if no split.json)."""
+    out = ["## Data: ingest, frame, theory, split", ""]
+    if ing:
+        dropped = ing.get("dropped_counts") or {}
+        out += [f"**Ingest** ({link(INGEST_JSON)}): rows read "
+                + ", ".join(f"{k} {v}" for k, v in (ing.get("n_read") or {}).items())
+                + f"; points kept **{ing.get('n_kept')}**; dropped: "
+                + (", ".join(f"{n} {r}" for r, n in dropped.items()) if dropped else "none") + ".", ""]
+        if ing.get("dropped"):
+            shown = ing["dropped"][:20]
+            out.append(table(["point_id", "file", "row", "reason", "detail"],
+                             [[str(d.get("point_id")), str(d.get("file")), str(d.get("row")),
+                               str(d.get("reason")), str(d.get("detail", ""))] for d in shown]))
+            if len(ing["dropped"]) > len(shown):
+                out.append(f"… and {len(ing['dropped']) - len(shown)} more in ingest.json.\n")
+    else:
+        out += ["_reports/ingest.json not found._", ""]
+    if fr:
+        outl = fr.get("outliers") or []
+        res = fr.get("outlier_residual_mm") or {}
+        out += [f"**Frame** ({link(FRAME_JSON)}, base → tracker, {fr.get('method', 'kabsch')}): "
+                f"rms {fmt(fr.get('rms_mm'))} mm, mean {fmt(fr.get('mean_mm'))} mm, max "
+                f"{fmt(fr.get('max_mm'))} mm over n_used = {fr.get('n_used')} points; "
+                f"tool offset {fmt(fr.get('tool_mm'), 3)} mm (flange frame); "
+                f"condition {fmt(fr.get('condition'))}; translation t = {fmt(fr.get('t'), 2)} mm; "
+                f"{len(outl)} outlier(s)"
+                + (": " + ", ".join(f"{p} ({fmt(res.get(p), 3)} mm)" if p in res else p
+                                    for p in outl[:30]) if outl else "")
+                + ("…" if len(outl) > 30 else "") + ".", ""]
+    else:
+        out += ["_reports/frame.json not found._", ""]
+    if th:
+        e = th.get("nominal_error_mm") or {}
+        out += [f"**Theory** ({link(THEORY_JSON)}): {th.get('n_points')} points, "
+                f"{th.get('n_dropped', 0)} dropped as frame outliers; nominal DH error after the "
+                f"frame fit: mean {fmt(e.get('mean'))}, rms {fmt(e.get('rms'))}, max "
+                f"{fmt(e.get('max'))} mm.", ""]
+    else:
+        out += ["_reports/theory.json not found._", ""]
+    counts = sp.get("counts") if sp else counts
+    out += ["**Split**: " + ", ".join(f"{k} {v}" for k, v in counts.items())
+            + (f" (seed {sp.get('seed')}, fractions {fmt(sp.get('fractions'), 2)})" if sp else "")
+            + ".", ""]
+    return "\n".join(out)
+
+
+def section_calibration(c: dict | None) -> str:
+    out = ["## Classical kinematic calibration", ""]
+    if not c:
+        return "\n".join(out + ["_reports/calibration.json not found (calibrate stage not run)._", ""])
+    fixed = c.get("fixed") or []
+    fixed_txt = (", ".join(f"{k} ({v})" for k, v in fixed.items()) if isinstance(fixed, dict)
+                 else ", ".join(map(str, fixed)))
+    out += [f"{link(CALIBRATION_JSON)}: {len(c.get('identified', []))} of "
+            f"{c.get('n_candidates')} parameters identified (rank {c.get('rank')}), condition number "
+            f"{fmt(c.get('condition_number'))}, residual σ {fmt(c.get('residual_sigma_mm'))} mm, "
+            f"loss {c.get('loss')} (scale {fmt(c.get('loss_scale_mm'))} mm), {c.get('nfev')} evaluations.",
+            "", f"Identified: {', '.join(c.get('identified', [])) or 'none'}.", "",
+            f"Fixed (unidentifiable or not selected): {fixed_txt or 'none'}.", ""]
+    if c.get("splits"):
+        rows = [[s, v.get("n"), v["nominal"]["mean_mm"], v["calibrated"]["mean_mm"],
+                 v["nominal"]["rms_mm"], v["calibrated"]["rms_mm"], v["nominal"]["max_mm"],
+                 v["calibrated"]["max_mm"]] for s, v in c["splits"].items()]
+        out.append(table(["split", "n", "nominal mean mm", "calibrated mean mm", "nominal rms",
+                          "calibrated rms", "nominal max", "calibrated max"], rows))
+    est = c.get("estimates") or {}
+    if est:
+        big = sorted(est.items(), key=lambda kv: -abs(kv[1]["delta"] / (kv[1]["se"] or 1e-12)))[:12]
+        out += ["Largest corrections by |Δ/σ| (of " + str(len(est)) + "):", "",
+                table(["parameter", "Δ", "σ", "unit"], [[k, v["delta"], v["se"], v["unit"]] for k, v in big])]
+    return "\n".join(out)
+
+
+def section_training(tr: dict | None) -> str:
+    if not tr:
+        return "## Training\n\n_reports/train.json not found._\n"
+    return ("## Training\n\n"
+            f"{link(TRAIN_JSON)}: {tr.get('n_params')} parameters, {tr.get('n_train')} "
+            f"training / {tr.get('n_val')} validation points; best validation 3D MAE "
+            f"{fmt(tr.get('best_val_mae_3d_mm'))} mm at epoch {tr.get('best_epoch')} of "
+            f"{tr.get('epochs_run')} run ({fmt(tr.get('seconds'), 3)} s, "
+            f"{fmt(tr.get('seconds_per_epoch'), 3)} s/epoch); fusion weight α = {fmt(tr.get('alpha'))}; "
+            f"loss weights (data, physics) {fmt(tr.get('loss_weights'))}. "
+            f"The paper's best epoch: {PAPER_ABLATION_EPOCHS['baseline']} of 150.\n")
+
+
+def drive_rows(dc: dict) -> list:
+    rows = []
+    for ax in AXES:
+        b, a, p = dc["before"][ax], dc["after"][ax], PAPER_DRIVE[ax]
+        rows.append([ax.upper(), b["std"], b["max"], b["min"], a["std"], a["max"], a["min"],
+                     p["std"], p["max"], p["min"]])
+    b, a = dc["before"]["3d"], dc["after"]["3d"]
+    rows.append(["3D", b["std"], b["max"], b["min"], a["std"], a["max"], a["min"], None, None, None])
+    tol = dc["after"]["tol_mm"]
+    nb, na = dc["before"].get("n"), dc["after"].get("n")
+    rows.append([f"within ±{tol:g} mm (every axis)",
+                 f"{round(dc['before']['within_tol_share'] * nb)}/{nb}", "", "",
+                 f"{round(dc['after']['within_tol_share'] * na)}/{na}", "", "",
+                 PAPER_DRIVE_WITHIN, "", ""])
+    return rows
+
+
+def drive_summary(comp: dict | None, d) -> dict | None:
+    """The drive check's Table 9 statistics: from compensation.json, else from the
+    drive_check.csv table `d` (or None)."""
+    if comp and comp.get("drive_check"):
+        return comp["drive_check"]
+    if d is None:
+        return None
+    zero = np.zeros((len(d), 3))
+    return {w: drive_table(d[[f"{w}_{a}" for a in AXES]].to_numpy(), zero, DRIVE_TOL_MM)
+            for w in ("before", "after")}
+
+
+def section_compensation(comp: dict | None, drive) -> str:
+    """comp: compensation.json; drive: the drive_check.csv table (or None)."""
+    out = ["## Inverse compensation", ""]
+    if comp:
+        solvers = [s for s in ("adam", "lm") if s in comp]
+        out += [f"{link(COMPENSATION_JSON)}: {comp.get('n_points')} points; the Δθ table "
+                f"{link(COMPENSATION_CSV)} comes from solver `{comp.get('solver')}`. "
+                "The paper (Adam): 147 iterations on average to 0.01 mm.", ""]
+        rows = [[s, f"{100 * comp[s]['converged_share']:.1f} %", comp[s]["iterations_mean"],
+                 comp[s]["iterations_max"], comp[s]["residual_mm_mean"], comp[s]["residual_mm_max"],
+                 comp[s].get("ms_per_point")] for s in solvers]
+        out.append(table(["solver", "converged", "iterations mean", "iterations max",
+                          "residual mean mm", "residual max mm", "ms / point"], rows))
+        rt = comp.get("realtime")
+        if rt:
+            out += [f"Single poses through the controller path (`pipeline/realtime.py`, two model "
+                    f"evaluations per call): {100 * rt['verified_share']:.0f} % verified by the second "
+                    f"evaluation, {100 * rt['converged_share']:.0f} % converged, residual max "
+                    f"{fmt(rt['true_residual_mm_max'])} mm measured; where not verified, "
+                    f"{fmt(rt['predicted_residual_mm_max'])} mm predicted, "
+                    f"{fmt(rt['unverified_true_residual_mm_max'])} mm measured.", ""]
+    else:
+        out += ["_reports/compensation.json not found (compensate stage not run)._", ""]
+    dc = drive_summary(comp, drive)
+    if dc:
+        nf = dc.get("noise_floor_mm")
+        out += ["### Drive check (the paper's Table 9 layout)", "",
+                f"The compensated angles driven on the digital twin and measured "
+                f"({link(DRIVE_CSV)}); achieved − target in the base frame, mm: "
+                "std of the signed error, max and min of its absolute value per axis. (The paper's text "
+                "gives a max deviation of 0.62 mm, below its own table's Y and Z maxima.)"
+                + (f" Twin measurement noise floor {fmt(nf)} mm." if nf is not None else ""), "",
+                table(["axis", "before std", "before max", "before min", "after std", "after max",
+                       "after min", "paper std", "paper max", "paper min"], drive_rows(dc))]
+    else:
+        out += ["_No drive check (reports/drive_check.csv missing or empty: real data, or "
+                "compensate.twin off); the compensation is then only checked against the model._", ""]
+    return "\n".join(out)
+
+
+def section_ablation() -> str:
+    """Static: the ablation is opt-in, and this page does not read its outputs."""
+    md, js, png = (rel(REPORTS / f"ablation.{x}") for x in ("md", "json", "png"))
+    return ("## Ablation\n\n"
+            "Opt-in, outside `dvc repro`: `python -m pipeline.ablation -j 2` retrains each variant "
+            "over `ablation.seeds` and writes "
+            f"[{md}]({md}) (test 3D MAE per variant beside the paper's MAE and epochs), "
+            f"[{js}]({js}) and the figure [{png}]({png}). This page does not read them.\n")
+
+
+def section_figures(figs: dict) -> str:
+    out = ["## Figures", ""]
+    for name, (status, what) in figs.items():
+        fn = FIGURES[name]
+        if status == "ok":
+            out += [f"### `{name}`", "", caption(fn), "", f"![{name}]({rel(what)})", ""]
+        else:
+            out += [f"### `{name}`", "", caption(fn), "", f"_Skipped: {what}._", ""]
+    return "\n".join(out)
+
+
+def section_pointcloud(ply: dict) -> str:
+    return ("## Point cloud\n\n"
+            f"{link(ply['path'])}: the {ply['n']} measured points (all splits; base frame, mm) coloured by "
+            f"their residual |pred − meas| with the `{PLY_CMAP}` colormap, linear from "
+            f"{ply['lo']:g} mm (dark purple) to {ply['hi']:.4f} mm (yellow; the "
+            f"{PLY_PERCENTILE:g}th percentile, larger residuals clipped to yellow). Open it in "
+            "any 3D viewer (Open3D, MeshLab, CloudCompare); the `points_error` figure is its "
+            "preview with the colour key.\n")
+
+
+def write_index(ctx, figs: dict, ply: dict) -> str:
+    """index.md's text. ctx: the report stage's Context; figs: render_figures' result;
+    ply: write_ply's."""
+    m, s = ctx.metrics, ctx.summaries
+    counts = ctx.pred.split.value_counts().to_dict()
+    head = ["# SPI-BoTER calibration report", "",
+            "Generated by `python -m pipeline.report` (dvc stage `report`); open this page first.", ""]
+    if "test" in m:
+        t, p = m["test"]["3d"], PAPER_TEST["3d"]
+        nom = (m.get("baselines") or {}).get("nominal_dh", {}).get("test", {}).get("3d")
+        head += [f"**Summary:** model `{m.get('model', '?')}`, test 3D MAE **{t['mae']:.4f} mm**, "
+                 f"RMSE {t['rmse']:.4f} mm, R² {t['r2']:.4f} "
+                 f"(paper: {p['mae']:.4f} / {p['rmse']:.4f} / {p['r2']:.4f})"
+                 + (f"; uncompensated nominal DH on the same points: {nom['mae']:.4f} mm" if nom else "")
+                 + ".", ""]
+    skipped = [n for n, (st, _) in figs.items() if st != "ok"]
+    head += ["Contents: settings · model metrics · comparison methods · data · calibration · "
+             "training · compensation · ablation · point cloud · figures"
+             + (f" (skipped: {', '.join(skipped)})" if skipped else ""), ""]
+    parts = ["\n".join(head), section_settings(ctx.params), section_metrics(m, counts),
+             section_baselines(m, ctx.baselines_md),
+             section_data(s["ingest"], s["frame"], s["theory"], s["split"], counts),
+             section_calibration(s["calibration"]), section_training(s["train"]),
+             section_compensation(s["compensation"], ctx.drive), section_ablation(),
+             section_pointcloud(ply), section_figures(figs)]
+    return "\n".join(p.rstrip() + "\n" for p in parts)

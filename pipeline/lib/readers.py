@@ -1,0 +1,697 @@
+"""Reading tracker/controller exports -> one table of points (DATA_FORMAT.md).
+
+`ingest(params)` does it all and writes nothing (the ingest stage writes).
+Inputs, chosen by settings alone (`ingest:` and `robot:`):
+- paired files: `ingest.joints` (point_id, j1_deg..j6_deg) and `ingest.tracker`
+  (Name, X, Y, Z), paired by point id; or a tracker point cloud
+  (.ply/.pcd/.xyz/.pts, read with open3d), paired with the joint rows by order
+  (counts must match; ids come from the joints file);
+- one table with joints and positions together: `ingest.joints` and
+  `ingest.tracker` name the same file; ids from
+  `columns.point_id`, else a point_id/name/id column, else the row number
+  ("R0001" = first data row).
+Headers match ignoring case and surrounding spaces. `columns.point_id` is one
+header (both files) or [joints header, tracker header]. Separator (`,` `;` tab)
+is sniffed from the header line and the decimal mark (`.` `,`) from the cells,
+unless set. A joint column's name fixes its unit (`*_rad`, `actual_q_*`:
+radians; `*_deg`: degrees), otherwise `angle_unit` does; positions are in
+`length_unit`.
+
+Output, data/interim/ingest.parquet, rows in input order (of the joints file):
+    point_id (str), j1_deg..j6_deg (degrees), meas_x, meas_y, meas_z (mm, the file's frame),
+    then every other input column under its own header (float if every kept cell
+    is a number, else text); a name already taken gets its file's role as a
+    prefix ("tracker_x"), a blank header becomes "<role>_col<k>".
+and reports/ingest.json: files, n_read (data rows per file), n_kept, dropped
+[{point_id, file, row, reason, detail}], dropped_counts {reason: n}, units,
+geometry, gross_outlier. `row` is the 1-based line number in the file, header
+included (for a point cloud: the 1-based point index).
+
+A per-row problem drops the row and lists it; `reason` is one of
+    field_count      more or fewer cells than the header (a stray separator?); empty cells
+                     after the last column pass when most rows have them (trailing separator)
+    missing_id       the id cell is empty
+    duplicate        id already used by an earlier row of the same file (the first row
+                     keeps the id, even if that row is itself dropped for another reason)
+    empty, nan, non_numeric   a joint/position cell (the detail names the column)
+    unpaired         id in one file only
+    partner_dropped  the point's row in the other file was dropped
+    joint_limit      an angle outside the robot's limits
+    gross_outlier    for point i, median_j | |m_i-m_j| - |t_i-t_j| | > gross_outlier_mm,
+                     t = nominal FK with tool (frame-free: rigid-motion invariant)
+A dropped point lists its row in every file it has one in, so for each file
+n_kept + (dropped rows of that file) == n_read.
+
+Fatal problems raise IngestError, whose message names file, row and column:
+    unreadable file, no data rows, a missing or ambiguous required column
+    (the headers found are listed), an unbalanced quote;
+    more than half of a file's rows with bad cells (wrong sep/decimal setting?)
+    or out of joint limits (degrees read as radians?);
+    point cloud and joint rows of different counts; no ids in common;
+    a position scale that does not fit the robot (extent outside reach/50 ..
+    50*reach after length_unit) or degree angles all within +-2*pi (radians?);
+    the gross-outlier check flagging more than half the points (wrong robot,
+    tool or units); fewer than 10 points left; measured points (nearly)
+    collinear or coincident. Nearly coplanar points only warn (geometry.coplanar).
+"""
+import csv
+import io
+import re
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from .columns import JOINTS_DEG, MEAS
+from .config import check_keys, logger
+from .kinematics import fk_numpy
+from .robots import load_robot
+
+log = logger(__name__)
+
+CLOUD_SUFFIXES = {".ply", ".pcd", ".xyz", ".pts"}
+MIN_POINTS = 10
+SCALE_RANGE = 50.0          # positions must span reach/50 .. 50*reach (mm)
+FLAT_RATIO = 1e-2           # singular value ratio below which the points are a line / plane
+AUTO_ID = {"joints": ["point_id", "name", "id"], "tracker": ["name", "point_id", "id"],
+           "table": ["point_id", "name", "id"]}
+AUTO_JOINTS = [JOINTS_DEG, [f"j{i}_rad" for i in range(1, 7)],
+               [f"actual_q_{i}" for i in range(6)], [f"j{i}" for i in range(1, 7)]]
+AUTO_POSITION = [["x", "y", "z"], MEAS]
+CELL_REASONS = ("field_count", "missing_id", "empty", "nan", "non_numeric")
+NAN_WORDS = {"nan", "-nan", "na", "n/a", "null", "none"}
+NUMBER = re.compile(r"[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?")
+COMMA_DECIMAL = re.compile(r"[+-]?\d*,\d+([eE][+-]?\d+)?")
+DOT_DECIMAL = re.compile(r"[+-]?\d*\.\d+([eE][+-]?\d+)?")
+SEPARATORS = {",": ",", ";": ";", "\t": "\t", "tab": "\t", "\\t": "\t"}
+
+
+class IngestError(ValueError):
+    """Bad input that stops the stage; `file`, `row`, `column` say where."""
+
+    def __init__(self, message: str, file=None, row=None, column=None):
+        self.file, self.row, self.column = file, row, column
+        where = [str(file)] if file is not None else []
+        if row is not None:
+            where.append(f"row {row}")
+        if column is not None:
+            where.append(f"column '{column}'")
+        super().__init__(", ".join(where) + ": " + message if where else message)
+
+
+# -------------------------------------------------------------------- reading
+
+@dataclass
+class Rows:
+    """One input file's data rows: ids, the required numbers, and each row's problem."""
+    path: str
+    role: str                       # joints | tracker | table
+    lines: list                     # 1-based line number (or point index) of each row
+    ids: list                       # point id of each row ("" if none)
+    values: np.ndarray              # (n, k) the required columns, NaN where unreadable
+    problem: list                   # None or (reason, detail, column) per row
+    headers: list = field(default_factory=list)   # the k required columns' headers
+    extras: list = field(default_factory=list)    # [(header, [cell per row])]
+    sep: str | None = None
+    decimal: str = "."
+
+    def first_rows(self) -> dict:
+        """id -> index of the first row with that id (whatever its problems)."""
+        out = {}
+        for r, pid in enumerate(self.ids):
+            if pid:
+                out.setdefault(pid, r)
+        return out
+
+
+def read_text(path: str) -> str:
+    """File contents as text (UTF-8, with or without BOM; else Latin-1)."""
+    try:
+        data = Path(path).read_bytes()
+    except OSError as e:
+        raise IngestError(f"cannot read the file ({e.strerror})", file=path) from None
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError:
+        return data.decode("latin-1")
+
+
+def sniff_sep(header_line: str) -> str:
+    """The separator used most in the header line (',' if none)."""
+    counts = {s: header_line.count(s) for s in ("\t", ";", ",")}
+    best = max(counts, key=counts.get)
+    return best if counts[best] else ","
+
+
+def sniff_decimal(cells: list, sep: str) -> str:
+    """',' when the cells hold more decimal-comma numbers than decimal-point ones."""
+    if sep == ",":
+        return "."
+    flat = [c.strip() for row in cells for c in row]
+    commas = sum(bool(COMMA_DECIMAL.fullmatch(c)) for c in flat)
+    dots = sum(bool(DOT_DECIMAL.fullmatch(c)) for c in flat)
+    return "," if commas > dots else "."
+
+
+def split_records(text: str, sep: str, path: str):
+    """CSV records with the line number of each; blank lines skipped."""
+    reader = csv.reader(io.StringIO(text, newline=""), delimiter=sep)
+    records, last = [], 0
+    try:
+        for rec in reader:
+            line = reader.line_num
+            if line - last > 1:
+                raise IngestError(f"a quoted cell runs over lines {last + 1}..{line} "
+                                  "(unbalanced quote?)", file=path, row=last + 1)
+            last = line
+            if rec and any(c.strip() for c in rec):
+                records.append((line, rec))
+    except csv.Error as e:
+        raise IngestError(f"not a readable table ({e})", file=path, row=reader.line_num) from None
+    return records
+
+
+def read_table(path: str, sep: str, decimal: str):
+    """A delimited text table -> (header, cells per row, line numbers, sep, decimal)."""
+    text = read_text(path)
+    header_line = next((ln for ln in text.splitlines() if ln.strip()), None)
+    if header_line is None:
+        raise IngestError("the file is empty", file=path)
+    sep = sniff_sep(header_line) if sep == "auto" else sep
+    records = split_records(text, sep, path)
+    header = [h.strip() for h in records[0][1]]
+    body = records[1:]
+    if not body:
+        raise IngestError(f"no data rows below the header ({', '.join(header)})", file=path)
+    cells = [rec for _, rec in body]
+    decimal = sniff_decimal(cells, sep) if decimal == "auto" else decimal
+    return header, cells, [line for line, _ in body], sep, decimal
+
+
+def parse_number(cell: str, decimal: str):
+    """(value, None) or (nan, (reason, message)) for one cell."""
+    s = cell.strip()
+    if not s:
+        return np.nan, ("empty", "empty cell")
+    if s.lower() in NAN_WORDS:
+        return np.nan, ("nan", f"{s!r} (missing value)")
+    t = s.replace(",", ".") if decimal == "," else s
+    if NUMBER.fullmatch(t) and not (decimal == "," and "." in s):
+        return float(t), None
+    return np.nan, ("non_numeric", f"{s!r} is not a number")
+
+
+def headers_found(header: list) -> str:
+    hint = " (a single column: is ingest.sep right?)" if len(header) == 1 else ""
+    return "headers found: " + ", ".join(repr(h) for h in header) + hint
+
+
+def find_column(header: list, name: str, what: str, path: str) -> int:
+    """Index of the header matching `name` (case and surrounding spaces ignored)."""
+    key = str(name).strip().lower()
+    hits = [i for i, h in enumerate(header) if h.lower() == key]
+    if len(hits) == 1:
+        return hits[0]
+    if hits:
+        raise IngestError(f"{what} column '{name}' appears {len(hits)} times in the header",
+                          file=path, column=name)
+    raise IngestError(f"missing {what} column '{name}'; {headers_found(header)}", file=path, column=name)
+
+
+def pick_columns(header: list, setting, candidates: list, what: str, path: str) -> list:
+    """Indices of a column group: the names in `setting`, else the first complete auto candidate."""
+    if setting is not None:
+        names = [str(n) for n in (setting if isinstance(setting, (list, tuple)) else [setting])]
+        if len(names) != len(candidates[0]):
+            raise IngestError(f"ingest.columns.{what} needs {len(candidates[0])} headers, "
+                              f"got {names}", file="params.yaml")
+        return [find_column(header, n, what, path) for n in names]
+    have = {h.lower() for h in header}
+    for names in candidates:
+        if all(n.lower() in have for n in names):
+            return [find_column(header, n, what, path) for n in names]
+    best = max(candidates, key=lambda c: sum(n.lower() in have for n in c))
+    missing = [n for n in best if n.lower() not in have]
+    tried = " or ".join(f"{c[0]}..{c[-1]}" for c in candidates)
+    raise IngestError(f"missing {what} column(s) {', '.join(missing)} (looked for {tried}; "
+                      f"else set ingest.columns.{what}); {headers_found(header)}",
+                      file=path, column=missing[0])
+
+
+def pick_id(header: list, setting, role: str, path: str):
+    """Index of the id column, or None (table without ids: row numbers)."""
+    if setting is not None:
+        return find_column(header, setting, "point id", path)
+    for name in AUTO_ID[role]:
+        if name in {h.lower() for h in header}:
+            return find_column(header, name, "point id", path)
+    if role == "table":
+        return None
+    raise IngestError(f"missing point id column (looked for {', '.join(AUTO_ID[role])}; else set "
+                      f"ingest.columns.point_id); {headers_found(header)}",
+                      file=path, column=AUTO_ID[role][0])
+
+
+def row_ids(n: int) -> list:
+    """Ids from row numbers: R0001, R0002, ... (wider when n needs it)."""
+    width = max(4, len(str(n)))
+    return [f"R{r + 1:0{width}d}" for r in range(n)]
+
+
+def read_rows(path: str, role: str, cfg: dict, id_setting, groups: list) -> Rows:
+    """Read a text table and check every row; groups = [(setting, candidates, what)] of required columns."""
+    header, cells, lines, sep, decimal = read_table(path, cfg["sep"], cfg["decimal"])
+    id_col = pick_id(header, id_setting, role, path)
+    cols = [c for setting, cands, what in groups for c in pick_columns(header, setting, cands, what, path)]
+    width, n = len(header), len(cells)
+    ids = row_ids(n) if id_col is None else [""] * n
+    values = np.full((n, len(cols)), np.nan)
+    problem = [None] * n
+    # empty cells after the last column are a trailing separator when most rows have them (an
+    # export's style); on a few rows they mean a cell split in two by a stray separator
+    padded = [len(row) > width and not any(c.strip() for c in row[width:]) for row in cells]
+    trailing_ok = 2 * sum(padded) > n
+    for r, row in enumerate(cells):
+        if id_col is not None:
+            ids[r] = row[id_col].strip() if id_col < len(row) else ""
+        if len(row) < width or (len(row) > width and not (trailing_ok and padded[r])):
+            problem[r] = ("field_count", f"{len(row)} cells but the header has {width} "
+                          "(a separator or decimal comma inside a cell?)", None)
+            continue
+        if id_col is not None:
+            if not ids[r]:
+                problem[r] = ("missing_id", "empty id cell", header[id_col])
+                continue
+        for k, c in enumerate(cols):
+            values[r, k], err = parse_number(row[c], decimal)
+            if err:
+                problem[r] = (err[0], f"column '{header[c]}': {err[1]}", header[c])
+                break
+    used = set(cols) | ({id_col} if id_col is not None else set())
+    extras = [(header[c] or f"{role}_col{c + 1}", [row[c] if c < len(row) else "" for row in cells])
+              for c in range(width) if c not in used]
+    rows = Rows(path, role, lines, ids, values, problem, [header[c] for c in cols], extras, sep, decimal)
+    mark_duplicates(rows)
+    check_mostly_readable(rows)
+    return rows
+
+
+def read_cloud(path: str) -> Rows:
+    """A point cloud file (open3d) -> Rows with one row per point, in file order."""
+    import open3d as o3d      # lazily: it needs system libraries the other stages don't
+    if not Path(path).is_file():
+        raise IngestError("no such file", file=path)
+    pcd = o3d.io.read_point_cloud(str(path), remove_nan_points=False, remove_infinite_points=False)
+    pts = np.asarray(pcd.points, dtype=float)
+    if len(pts) == 0:
+        raise IngestError("no points read (empty, or not a point cloud open3d can read)", file=path)
+    bad = ~np.isfinite(pts).all(axis=1)
+    problem = [("nan", f"point {i + 1} has a non-finite coordinate", None) if b else None
+               for i, b in enumerate(bad)]
+    return Rows(path, "tracker", list(range(1, len(pts) + 1)), [""] * len(pts), pts, problem,
+                ["x", "y", "z"])
+
+
+def mark_duplicates(rows: Rows) -> None:
+    """Every row after the first with the same id gets the `duplicate` problem."""
+    first = rows.first_rows()
+    for r, pid in enumerate(rows.ids):
+        field_count = rows.problem[r] and rows.problem[r][0] == "field_count"
+        if pid and first[pid] != r and not field_count:
+            rows.problem[r] = ("duplicate", f"id {pid!r} already on row {rows.lines[first[pid]]}", None)
+
+
+def check_mostly_readable(rows: Rows) -> None:
+    """Stop if more than half the rows have unreadable cells: a setting is likely wrong."""
+    bad = [r for r, p in enumerate(rows.problem) if p and p[0] in CELL_REASONS]
+    if 2 * len(bad) > len(rows.problem):
+        r = bad[0]
+        reason, detail, column = rows.problem[r]
+        detail = detail.split(": ", 1)[-1] if column else detail
+        raise IngestError(f"{detail}; {len(bad)} of {len(rows.problem)} rows are unreadable "
+                          f"like this: check ingest.sep / ingest.decimal (read with sep "
+                          f"{rows.sep!r}, decimal {rows.decimal!r})",
+                          file=rows.path, row=rows.lines[r], column=column)
+
+
+# -------------------------------------------------------------------- points
+
+@dataclass
+class Points:
+    """Paired points: ids, angles (deg), positions (mm), and their source rows per file."""
+    ids: np.ndarray                 # (n,) str
+    q: np.ndarray                   # (n, 6) degrees
+    m: np.ndarray                   # (n, 3) mm
+    src: dict                       # role -> (Rows, (n,) row indices)
+
+    def __len__(self):
+        return len(self.ids)
+
+    def drop(self, mask: np.ndarray, reason: str, details: list, dropped: list) -> "Points":
+        """Points without `mask`; each dropped point's rows go to `dropped`."""
+        for k in np.flatnonzero(mask):
+            for rows, idx in self.src.values():
+                dropped.append(entry(rows, idx[k], reason, details[k], self.ids[k]))
+        keep = ~np.asarray(mask)
+        return Points(self.ids[keep], self.q[keep], self.m[keep],
+                      {role: (rows, idx[keep]) for role, (rows, idx) in self.src.items()})
+
+
+def entry(rows: Rows, r: int, reason: str, detail: str, pid=None) -> dict:
+    """One line of reports/ingest.json `dropped`."""
+    return {"point_id": str(pid if pid is not None else rows.ids[r]), "file": rows.path,
+            "row": int(rows.lines[r]), "reason": reason, "detail": detail}
+
+
+def row_problems(rows: Rows) -> list:
+    """Dropped entries for the rows that failed their own checks."""
+    return [entry(rows, r, p[0], p[1]) for r, p in enumerate(rows.problem) if p]
+
+
+def make_points(pairs: list, joints: Rows, tracker: Rows | None) -> Points:
+    """Points from (joint row, tracker row) index pairs; tracker None: positions are in `joints`."""
+    j = np.array([a for a, _ in pairs], dtype=int)
+    if tracker is None:
+        return Points(np.array([joints.ids[r] for r in j], dtype=object), joints.values[j, :6],
+                      joints.values[j, 6:9], {"table": (joints, j)})
+    t = np.array([b for _, b in pairs], dtype=int)
+    return Points(np.array([joints.ids[r] for r in j], dtype=object), joints.values[j, :6],
+                  tracker.values[t, :3], {"joints": (joints, j), "tracker": (tracker, t)})
+
+
+def pair_by_id(J: Rows, T: Rows, dropped: list) -> list:
+    """(joint row, tracker row) pairs with the same id; the rest listed as unpaired."""
+    jfirst, tfirst = J.first_rows(), T.first_rows()
+    if not set(jfirst) & set(tfirst):
+        show = lambda ids: ", ".join(list(ids)[:4]) + (" ..." if len(ids) > 4 else "")
+        raise IngestError(f"no point ids in common with {J.path} (ids there: {show(jfirst) or 'none'}; "
+                          f"here: {show(tfirst) or 'none'}); are the right two files paired?",
+                          file=T.path)
+    pairs = []
+    for A, B, other, from_joints in ((J, T, tfirst, True), (T, J, jfirst, False)):
+        for r, pid in enumerate(A.ids):
+            if A.problem[r]:
+                continue
+            o = other.get(pid)
+            if o is None:
+                dropped.append(entry(A, r, "unpaired", f"id {pid!r} is not in {B.path}"))
+            elif B.problem[o]:
+                dropped.append(entry(A, r, "partner_dropped",
+                                     f"its row {B.lines[o]} in {B.path} was dropped ({B.problem[o][0]})"))
+            elif from_joints:
+                pairs.append((r, o))
+    return pairs
+
+
+def pair_by_order(J: Rows, C: Rows, dropped: list) -> list:
+    """The i-th point with the i-th joint row; the counts must match."""
+    if len(C.lines) != len(J.lines):
+        raise IngestError(f"{len(C.lines)} points but {len(J.lines)} joint rows in {J.path}; a point "
+                          "cloud is paired with the joint rows by order, so the counts must match",
+                          file=C.path)
+    C.ids = list(J.ids)
+    pairs = []
+    for r in range(len(J.lines)):
+        jp, cp = J.problem[r], C.problem[r]
+        if jp is None and cp is None:
+            pairs.append((r, r))
+        elif jp is None:
+            dropped.append(entry(J, r, "partner_dropped",
+                                 f"point {r + 1} in {C.path} was dropped ({cp[0]})"))
+        elif cp is None:
+            dropped.append(entry(C, r, "partner_dropped",
+                                 f"its row {J.lines[r]} in {J.path} was dropped ({jp[0]})"))
+    return pairs
+
+
+# -------------------------------------------------------------------- checks
+
+def drop_joint_limits(pts: Points, robot, headers: list, dropped: list) -> Points:
+    """Drop points with an angle outside the robot's limits (stop if most are: unit error)."""
+    out = robot.check_joints(pts.q)
+    bad = out.any(axis=1)
+    if 2 * bad.sum() > len(pts) > 0:
+        k = int(np.flatnonzero(bad)[0])
+        rows, idx = next(iter(pts.src.values()))
+        j = int(np.flatnonzero(out[k])[0])
+        raise IngestError(f"{int(bad.sum())} of {len(pts)} points have joint angles outside the "
+                          f"{robot.name} limits (e.g. {pts.q[k, j]:.6g} deg): degrees read as "
+                          "radians? check ingest.angle_unit", file=rows.path,
+                          row=rows.lines[idx[k]], column=headers[j])
+    details = []
+    for k in range(len(pts)):
+        j = np.flatnonzero(out[k])
+        details.append("; ".join(f"column '{headers[i]}' = {pts.q[k, i]:.6g} deg outside "
+                                 f"[{robot.limits_deg[i, 0]:g}, {robot.limits_deg[i, 1]:g}]" for i in j))
+    return pts.drop(bad, "joint_limit", details, dropped)
+
+
+def check_count(pts: Points, dropped: list, path: str) -> None:
+    if len(pts) < MIN_POINTS:
+        raise IngestError(f"only {len(pts)} points left after dropping {len(dropped)} rows "
+                          f"(need at least {MIN_POINTS}); see the reasons above or in "
+                          f"reports/ingest.json: {dict(Counter(d['reason'] for d in dropped))}", file=path)
+
+
+def check_scale(pts: Points, robot, length_unit: str, headers: list, path: str) -> float:
+    """Stop if the positions' extent does not fit the robot's reach; returns the extent (mm)."""
+    extent = float(np.linalg.norm(np.ptp(pts.m, axis=0)))
+    lo, hi = robot.reach / SCALE_RANGE, robot.reach * SCALE_RANGE
+    cols = ", ".join(headers)
+    if 0 < extent < lo:
+        guess = "these look like metres: set ingest.length_unit: m" if length_unit == "mm" \
+            else "implausibly small: check the columns and ingest.length_unit"
+        raise IngestError(f"positions ({cols}, read as {length_unit}) span only {extent:.4g} mm but a "
+                          f"{robot.name} reaches ~{robot.reach:.0f} mm: {guess} "
+                          "(a scale that looks wrong is an error, not a guess)", file=path)
+    if extent > hi:
+        guess = "these look like millimetres: set ingest.length_unit: mm" if length_unit == "m" \
+            else "implausibly large: check the columns and ingest.length_unit"
+        raise IngestError(f"positions ({cols}, read as {length_unit}) span {extent:.4g} mm but a "
+                          f"{robot.name} reaches ~{robot.reach:.0f} mm: {guess} "
+                          "(a scale that looks wrong is an error, not a guess)", file=path)
+    return extent
+
+
+def check_angle_scale(pts: Points, units: list, headers: list, path: str) -> None:
+    """Stop if every degree-read angle lies within +-2*pi: they are radians."""
+    deg = [i for i, u in enumerate(units) if u == "deg"]
+    if len(deg) == 6 and len(pts) >= MIN_POINTS and np.abs(pts.q).max() <= 2 * np.pi + 1e-9:
+        raise IngestError(f"every joint angle ({', '.join(headers)}), read as degrees, lies within "
+                          "+-6.29: these look like radians; set ingest.angle_unit: rad", file=path)
+
+
+def consistency_scores(m: np.ndarray, t: np.ndarray, chunk: int = 256) -> np.ndarray:
+    """Per point: median over the others of | |m_i - m_j| - |t_i - t_j| | (mm)."""
+    n = len(m)
+    out = np.empty(n)
+    for a in range(0, n, chunk):
+        b = min(a + chunk, n)
+        dm = np.linalg.norm(m[a:b, None] - m[None], axis=-1)
+        dt = np.linalg.norm(t[a:b, None] - t[None], axis=-1)
+        e = np.abs(dm - dt)
+        e[np.arange(b - a), np.arange(a, b)] = np.nan          # not against itself
+        out[a:b] = np.nanmedian(e, axis=1)
+    return out
+
+
+def drop_gross_outliers(pts: Points, robot, limit, dropped: list, path: str):
+    """Drop points whose distances to the others disagree with nominal FK by more than `limit` mm."""
+    if limit is None:
+        return pts, None
+    s = consistency_scores(pts.m, fk_numpy(pts.q, robot))
+    bad = s > float(limit)
+    info = {"limit_mm": float(limit), "median_mm": float(np.median(s)), "max_mm": float(s.max()),
+            "n_dropped": int(bad.sum())}
+    if 2 * bad.sum() > len(pts):
+        raise IngestError(f"{int(bad.sum())} of {len(pts)} points fail the distance check against nominal "
+                          f"{robot.name} kinematics (median disagreement {np.median(s):.1f} mm > "
+                          f"gross_outlier_mm {limit:g}): robot model, tool_mm, angle or length units "
+                          "probably don't match the measurements", file=path)
+    details = [f"distances to the other points disagree with nominal FK by {v:.2f} mm (median), "
+               f"limit {float(limit):g} mm" for v in s]
+    return pts.drop(bad, "gross_outlier", details, dropped), info
+
+
+def check_geometry(pts: Points, path: str) -> dict:
+    """Stop if the measured points are (nearly) collinear; flag them if (nearly) coplanar."""
+    sv = np.linalg.svd(pts.m - pts.m.mean(axis=0), compute_uv=False) / np.sqrt(len(pts))
+    if sv[0] == 0:
+        raise IngestError(f"all {len(pts)} measured points are the same point", file=path)
+    if sv[1] < FLAT_RATIO * sv[0]:
+        raise IngestError(f"the {len(pts)} measured points lie on a line (spread {sv[0]:.3g} mm along it, "
+                          f"{sv[1]:.3g} mm across): no frame can be fitted", file=path)
+    coplanar = bool(sv[2] < FLAT_RATIO * sv[0])
+    if coplanar:
+        log.warning("the measured points are nearly coplanar (spread %.3g mm off the plane)", sv[2])
+    return {"spread_mm": sv.tolist(), "coplanar": coplanar}
+
+
+# -------------------------------------------------------------------- output
+
+def numeric_or_text(cells: list, decimal: str):
+    """A column as floats if every cell is a number (or empty/NaN), else as stripped text."""
+    values = []
+    for c in cells:
+        v, err = parse_number(c, decimal)
+        if err and err[0] == "non_numeric":
+            return [c.strip() for c in cells]
+        values.append(v)
+    return np.array(values, dtype=float)
+
+
+def extra_columns(pts: Points) -> dict:
+    """The inputs' other columns, for the kept points, under unique names."""
+    taken, out = {"point_id", *JOINTS_DEG, *MEAS}, {}
+    for role, (rows, idx) in pts.src.items():
+        for header, cells in rows.extras:
+            name = header if header not in taken else f"{role}_{header}"
+            k = 2
+            while name in taken:
+                name, k = f"{role}_{header}_{k}", k + 1
+            taken.add(name)
+            out[name] = numeric_or_text([cells[r] for r in idx], rows.decimal)
+    return out
+
+
+def to_frame(pts: Points) -> pd.DataFrame:
+    df = pd.DataFrame({"point_id": [str(p) for p in pts.ids]})
+    for i, c in enumerate(JOINTS_DEG):
+        df[c] = pts.q[:, i].astype(np.float64)
+    for i, c in enumerate(MEAS):
+        df[c] = pts.m[:, i].astype(np.float64)
+    for name, col in extra_columns(pts).items():
+        df[name] = col
+    return df
+
+
+def file_info(rows: Rows) -> dict:
+    return {"path": rows.path, "sep": rows.sep, "decimal": rows.decimal if rows.sep else None,
+            "columns": rows.headers, "n_rows": len(rows.lines)}
+
+
+# -------------------------------------------------------------------- settings and the whole read
+
+def settings(params: dict) -> dict:
+    """The `ingest:` section, checked (keys, separators, units), `table` set when both inputs are one file."""
+    cfg = dict(check_keys(params["ingest"], "ingest"))
+    check_keys(cfg["columns"], "ingest.columns")
+    cfg["table"] = cfg["joints"] if str(cfg["joints"]) == str(cfg["tracker"]) else None
+    if cfg["sep"] != "auto":
+        if cfg["sep"] not in SEPARATORS:
+            raise IngestError(f"ingest.sep must be auto, ',', ';' or tab, got {cfg['sep']!r}",
+                              file="params.yaml")
+        cfg["sep"] = SEPARATORS[cfg["sep"]]
+    allowed = {"decimal": ("auto", ".", ","), "angle_unit": ("deg", "rad"), "length_unit": ("mm", "m")}
+    for key, ok in allowed.items():
+        if cfg[key] not in ok:
+            raise IngestError(f"ingest.{key} must be one of {', '.join(ok)}, got {cfg[key]!r}",
+                              file="params.yaml")
+    return cfg
+
+
+def id_settings(setting) -> tuple:
+    """columns.point_id -> (joints header, tracker header)."""
+    if isinstance(setting, (list, tuple)):
+        if len(setting) != 2:
+            raise IngestError("ingest.columns.point_id: one header, or [joints header, tracker header]",
+                              file="params.yaml")
+        return setting[0], setting[1]
+    return setting, setting
+
+
+def read_inputs(cfg: dict, dropped: list):
+    """Read the configured files -> (points, [Rows], path named in whole-set errors)."""
+    cols = cfg["columns"]
+    joint_group = (cols["joints"], AUTO_JOINTS, "joints")
+    pos_group = (cols["position"], AUTO_POSITION, "position")
+    if cfg["table"]:
+        rows = read_rows(str(cfg["table"]), "table", cfg, cols["point_id"], [joint_group, pos_group])
+        dropped += row_problems(rows)
+        pairs = [(r, r) for r, p in enumerate(rows.problem) if p is None]
+        return make_points(pairs, rows, None), [rows], rows.path
+    jid, tid = id_settings(cols["point_id"])
+    J = read_rows(str(cfg["joints"]), "joints", cfg, jid, [joint_group])
+    tracker = str(cfg["tracker"])
+    if Path(tracker).suffix.lower() in CLOUD_SUFFIXES:
+        T = read_cloud(tracker)
+        dropped += row_problems(J)
+        pairs = pair_by_order(J, T, dropped)
+        dropped += row_problems(T)
+    else:
+        T = read_rows(tracker, "tracker", cfg, tid, [pos_group])
+        pairs = pair_by_id(J, T, dropped)
+        dropped += row_problems(J) + row_problems(T)
+    return make_points(pairs, J, T), [J, T], T.path
+
+
+def convert_units(pts: Points, joints: Rows, cfg: dict) -> list:
+    """Angles to degrees (column by column), positions to mm; returns each joint column's unit."""
+    units = [unit_of(h, cfg["angle_unit"]) for h in joints.headers[:6]]
+    for i, u in enumerate(units):
+        if u == "rad":
+            pts.q[:, i] = np.degrees(pts.q[:, i])
+    if cfg["length_unit"] == "m":
+        pts.m *= 1000.0
+    return units
+
+
+def unit_of(header: str, setting: str) -> str:
+    """A joint column's angle unit: its name's if it says (_rad, actual_q_, _deg), else the setting."""
+    h = header.lower()
+    if h.endswith("_rad") or h.startswith("actual_q_"):
+        return "rad"
+    if h.endswith("_deg"):
+        return "deg"
+    return setting
+
+
+def ingest(params: dict):
+    """Read, pair, check and convert the inputs -> (table, summary). Writes nothing."""
+    cfg = settings(params)
+    robot = load_robot(params["robot"])
+    dropped = []
+    pts, files, path = read_inputs(cfg, dropped)
+    joints, positions = files[0], files[-1]
+    jh, ph = joints.headers[:6], positions.headers[-3:]
+    units = convert_units(pts, joints, cfg)
+    for h, u in zip(jh, units):
+        if u != cfg["angle_unit"]:
+            log.info("column %r is read in %s (its name says so), whatever angle_unit says", h, u)
+    check_count(pts, dropped, path)
+    check_angle_scale(pts, units, jh, joints.path)
+    pts = drop_joint_limits(pts, robot, jh, dropped)
+    check_count(pts, dropped, path)
+    extent = check_scale(pts, robot, cfg["length_unit"], ph, positions.path)
+    pts, outliers = drop_gross_outliers(pts, robot, cfg["gross_outlier_mm"], dropped, path)
+    check_count(pts, dropped, path)
+    geometry = {"extent_mm": extent, **check_geometry(pts, path)}
+
+    order = {rows.path: i for i, rows in enumerate(files)}
+    dropped.sort(key=lambda d: (order[d["file"]], d["row"]))
+    summary = {
+        "files": {rows.role: file_info(rows) for rows in files},
+        "n_read": {rows.role: len(rows.lines) for rows in files},
+        "n_kept": len(pts),
+        "dropped": dropped,
+        "dropped_counts": dict(Counter(d["reason"] for d in dropped)),
+        "units": {"joints": {c: {"column": h, "unit": u} for c, h, u in zip(JOINTS_DEG, jh, units)},
+                  "position": {"columns": ph, "unit": cfg["length_unit"],
+                               "to_mm": 1000.0 if cfg["length_unit"] == "m" else 1.0}},
+        "geometry": geometry,
+        "gross_outlier": outliers,
+    }
+    log_counts(summary, files)
+    return to_frame(pts), summary
+
+
+def log_counts(summary: dict, files: list) -> None:
+    """One line: rows read per file, points kept, rows dropped per file by reason."""
+    parts = []
+    for rows in files:
+        c = Counter(d["reason"] for d in summary["dropped"] if d["file"] == rows.path)
+        why = " (" + ", ".join(f"{n} {r}" for r, n in c.most_common()) + ")" if c else ""
+        parts.append(f"{rows.path}: read {len(rows.lines)}, dropped {sum(c.values())}{why}")
+    log.info("%s; kept %d points", "; ".join(parts), summary["n_kept"])

@@ -1,0 +1,145 @@
+"""Compensation: joint angles that put the model's prediction on a target (sec. 2.3, eq. 19).
+
+For each target point, find joint angles θ whose predicted position hits the
+target; start from the recorded angles. Two solvers, both batched over all
+points:
+  adam  the paper's: Adam on θ, lr 1e-4, ≤ 500 iterations, stop at MSE < 1e-4 mm²
+        (each point stops on its own; Adam's update is per-coordinate, so one
+        batched run equals independent runs).
+  lm    damped Gauss-Newton / Levenberg-Marquardt on autograd Jacobians:
+        Δθ = -Jᵀ (J Jᵀ + λI)⁻¹ r, the minimum-norm joint correction (3 equations,
+        6 unknowns), λ adapted per point, joint limits respected, stop at
+        |r| < tol_mm.
+`min_norm_step` is the damped minimum-norm step both `lm` and the controller
+path (realtime.py: one pose per call, two model evaluations) take.
+"""
+import time
+
+import numpy as np
+import torch
+
+from .kinematics import DTYPE, fk_jacobian
+
+
+def min_norm_step(J, r, lam):
+    """Damped minimum-norm joint correction Δθ = -Jᵀ (J Jᵀ + λ·mean(diag J Jᵀ)·I)⁻¹ r.
+
+    J (B, 3, 6) mm/rad, r (B, 3) mm, lam (B,) or a float -> Δθ (B, 6) rad. Shared by the
+    batched lm (λ adapted per point) and the controller path (realtime.py, λ tiny, fixed).
+    """
+    JJt = J @ J.transpose(1, 2)                             # (B, 3, 3)
+    scale = torch.as_tensor(lam, dtype=DTYPE) * JJt.diagonal(dim1=1, dim2=2).mean(1)   # (B,)
+    damped = JJt + scale[:, None, None] * torch.eye(3, dtype=DTYPE)
+    return -(J.transpose(1, 2) @ torch.linalg.solve(damped, r.unsqueeze(-1))).squeeze(-1)
+
+
+def predict(model, q):                                     # (B, 6) -> (B, 3)
+    return model(q)[0]
+
+
+def jacobian(f, q):
+    """Batched Jacobian J (B, 3, 6) = df/dq of a function f: (B, 6) -> (B, 3).
+
+    Each output row depends only on its own input row (eval mode), so the
+    gradient of the batch sum of output k gives every point's row k at once.
+    """
+    q = q.detach().requires_grad_(True)
+    p = f(q)
+    rows = [torch.autograd.grad(p[:, k].sum(), q, retain_graph=k < 2)[0] for k in range(3)]
+    return torch.stack(rows, 1)
+
+
+def solve_adam(model, q0, target, cfg: dict, limits=None):
+    """The paper's procedure (sec. 2.3): cfg lr, max_iter, tol_mse (the `compensate:` section).
+    Returns q, prediction, iterations, converged, history. (Joint limits are not enforced.)"""
+    lr, max_iter, tol_mse = cfg["lr"], cfg["max_iter"], cfg["tol_mse"]
+    q = q0.clone().requires_grad_(True)
+    opt = torch.optim.Adam([q], lr=lr)
+    q_final, iters = q0.clone(), torch.full((len(q0),), max_iter)
+    done = torch.zeros(len(q0), dtype=torch.bool)
+    history = []
+    for it in range(max_iter + 1):
+        r = predict(model, q) - target
+        mse = (r ** 2).mean(1)                              # (B,) per-point MSE, mm²
+        history.append(r.detach().norm(dim=1))
+        new = (mse < tol_mse).detach() & ~done
+        q_final[new], iters[new] = q.detach()[new], it
+        done |= new
+        if done.all() or it == max_iter:
+            break
+        opt.zero_grad()
+        mse.sum().backward()
+        opt.step()
+    q_final[~done] = q.detach()[~done]
+    with torch.no_grad():
+        pred = predict(model, q_final)
+    return q_final, pred, iters, done, torch.stack(history)
+
+
+def solve_lm(model, q0, target, cfg: dict, limits=None, lam0=1e-3):
+    """Batched Levenberg-Marquardt on the frozen model: cfg max_iter, tol_mm, jacobian_of.
+    Returns q, prediction, iterations, converged, history.
+
+    jacobian_of: "model" differentiates the whole model by autograd; "physics"
+    takes its DH branch's geometric Jacobian (kinematics.fk_jacobian: exact,
+    float64, one FK pass), leaving out the network's small slope: each step is
+    then a chord step, the residual always from the whole model.
+    """
+    max_iter, tol_mm = cfg["max_iter"], cfg["tol_mm"]
+    if cfg["jacobian_of"] == "physics":
+        jac = lambda q: fk_jacobian(q, model.physics.geometry())[1]
+    elif cfg["jacobian_of"] == "model":
+        jac = lambda q: jacobian(lambda x: predict(model, x), q)
+    else:
+        raise ValueError(f"params.yaml compensate.jacobian_of: {cfg['jacobian_of']!r}; use physics or model")
+    q = q0.clone()
+    lam = torch.full((len(q0),), lam0, dtype=DTYPE)
+    iters = torch.full((len(q0),), max_iter)
+    done = torch.zeros(len(q0), dtype=torch.bool)
+    with torch.no_grad():
+        r = predict(model, q) - target                      # (B, 3) residual, mm
+    err = r.norm(dim=1)
+    history = [err.clone()]
+    for it in range(max_iter):
+        new = (err < tol_mm) & ~done
+        iters[new] = it
+        done |= new
+        if done.all():
+            break
+        a = (~done).nonzero().squeeze(1)                    # active points
+        J = jac(q[a])                                       # (A, 3, 6)
+        q_try = q[a] + min_norm_step(J, r[a], lam[a])       # (A, 6)
+        if limits is not None:
+            q_try = q_try.clamp(limits[:, 0], limits[:, 1])
+        with torch.no_grad():
+            r_try = predict(model, q_try) - target[a]
+        ok = r_try.norm(dim=1) < err[a]
+        q[a[ok]], r[a[ok]] = q_try[ok], r_try[ok]
+        err[a[ok]] = r_try[ok].norm(dim=1)
+        lam[a] = torch.where(ok, lam[a] / 3, lam[a] * 10)
+        history.append(err.clone())
+    else:
+        new = (err < tol_mm) & ~done
+        iters[new] = max_iter
+        done |= new
+    return q, r + target, iters, done, torch.stack(history)
+
+
+SOLVERS = {"adam": solve_adam, "lm": solve_lm}
+
+
+def compensate(model, q0_deg: np.ndarray, target: np.ndarray, cfg: dict, robot=None, solver=None):
+    """Solve for every point; returns (q_deg (n, 6), pred (n, 3), iterations, converged, history, seconds)."""
+    solver = solver or cfg["solver"]
+    if solver not in SOLVERS:
+        raise ValueError(f"params.yaml compensate.solver: unknown {solver!r}; use one of {sorted(SOLVERS)}")
+    for p in model.parameters():
+        p.requires_grad_(False)                             # Step 1: freeze
+    model.eval()
+    limits = None if robot is None else torch.as_tensor(np.radians(robot.limits_deg), dtype=DTYPE)
+    q0 = torch.as_tensor(np.radians(q0_deg), dtype=DTYPE)
+    tgt = torch.as_tensor(target, dtype=DTYPE)
+    t0 = time.perf_counter()
+    q, pred, iters, ok, hist = SOLVERS[solver](model, q0, tgt, cfg, limits)
+    seconds = time.perf_counter() - t0
+    return np.degrees(q.numpy()), pred.numpy(), iters.numpy(), ok.numpy(), hist.numpy(), seconds

@@ -1,0 +1,15 @@
+"""The 8:1:1 split with torch's random_split semantics (SPEC.md stage 4).
+
+`random_split(range(n), [0.8, 0.1, 0.1], generator=Generator().manual_seed(7))`
+gives 580/72/72 for 724 rows, as in the paper.
+"""
+import torch
+from torch.utils.data import random_split
+
+from .columns import SPLITS
+
+
+def split_indices(n: int, fractions, seed: int) -> dict[str, list[int]]:
+    """Row indices of each split, exactly as torch.utils.data.random_split draws them."""
+    parts = random_split(range(n), list(fractions), generator=torch.Generator().manual_seed(seed))
+    return {name: list(p.indices) for name, p in zip(SPLITS, parts)}

@@ -1,0 +1,121 @@
+"""Training (sec. 3.2): BoTER with the SPI loss, and the paper's DNN baseline.
+
+AdamW (lr 1e-4, weight decay 1e-6), batch 256, gradient clipping at 1.0, at
+most `max_epochs`, the best checkpoint by validation 3D MAE kept, early stop
+after `patience` epochs without improvement (the `train:` section).
+"""
+import copy
+import time
+
+import numpy as np
+import pandas as pd
+import torch
+from tqdm import tqdm
+
+from .artifacts import MODEL_WEIGHTS
+from .columns import JOINTS_DEG, MEAS
+from .geometry import physics_geometry
+from .kinematics import DTYPE
+from .loss import SPILoss, data_loss
+from .model import DNN, BoTER, check_config, n_params
+
+
+def tensors(df: pd.DataFrame) -> tuple[torch.Tensor, torch.Tensor]:
+    """Joint angles (n, 6) rad and measured positions (n, 3) mm as float64 tensors."""
+    q = torch.tensor(np.radians(df[JOINTS_DEG].to_numpy()), dtype=DTYPE)
+    return q, torch.tensor(df[MEAS].to_numpy(), dtype=DTYPE)
+
+
+def make_model(cfg: dict, geometry: dict, kind: str = "boter"):
+    """BoTER (the `model:` section) or the DNN baseline on `geometry`, weights from cfg["init_seed"]."""
+    check_config(cfg)
+    torch.manual_seed(cfg["init_seed"])
+    if kind == "dnn":
+        return DNN(geometry)
+    return BoTER(geometry, d_model=cfg["d_model"], n_layer=cfg["n_layer"], n_head=cfg["n_head"],
+                 d_hidden=cfg["d_hidden"], mask=cfg["mask"], head=cfg["head"], encoder=cfg["encoder"],
+                 alpha0=cfg["alpha0"], dropout=cfg["dropout"])
+
+
+def load_model(params: dict) -> BoTER:
+    """The trained BoTER (models/boter.pt, weights_only=True) on its physics branch, in eval mode."""
+    model = make_model(params["model"], physics_geometry(params, params["model"]["physics"]))
+    model.load_state_dict(torch.load(MODEL_WEIGHTS, weights_only=True))
+    return model.eval()
+
+
+@torch.no_grad()
+def predict(model, df: pd.DataFrame, batch: int = 4096) -> np.ndarray:
+    """Model predictions (n, 3) mm, base frame."""
+    q, _ = tensors(df)
+    return torch.cat([model(qb)[0] for qb in q.split(batch)]).numpy()
+
+
+@torch.no_grad()
+def mae_3d(model, q, p) -> float:
+    model.eval()
+    return float((model(q)[0] - p).norm(dim=1).mean())
+
+
+def fit(model, loss_fn, train, val, cfg: dict, live=None, desc="train", progress=True) -> dict:
+    """Train `model` on `train` = (q, p) with `loss_fn(p_pred, p_gt, p_theory) -> (loss, parts)`.
+
+    Returns the history summary; `model` is left holding its best (validation) weights.
+    """
+    q, p = train
+    gen = torch.Generator().manual_seed(cfg["seed"])
+    params = list(model.parameters()) + list(getattr(loss_fn, "parameters", lambda: [])())
+    opt = torch.optim.AdamW(params, lr=cfg["lr"], weight_decay=cfg["weight_decay"])
+    best, best_epoch, best_state, t0 = np.inf, -1, None, time.perf_counter()
+    bar = tqdm(range(cfg["max_epochs"]), desc=desc, disable=not progress, mininterval=1.0)
+    for epoch in bar:
+        model.train()
+        losses = []
+        for idx in torch.randperm(len(q), generator=gen).split(cfg["batch_size"]):
+            p_pred, p_theory = model(q[idx])
+            loss, parts = loss_fn(p_pred, p[idx], p_theory)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(model.parameters(), cfg["grad_clip"])
+            opt.step()
+            losses.append((loss.item(), parts, (p_pred - p[idx]).detach().norm(dim=1).sum().item()))
+        val_mae = mae_3d(model, *val)
+        train_mae = sum(l[2] for l in losses) / len(q)       # over the epoch's batches, train mode
+        if val_mae < best:
+            best, best_epoch, best_state = val_mae, epoch, copy.deepcopy(model.state_dict())
+        bar.set_postfix(val_mae=f"{val_mae:.4f}", best=f"{best:.4f}@{best_epoch}", refresh=False)
+        if live is not None:
+            live.log_metric("loss", float(np.mean([l[0] for l in losses])))
+            live.log_metric("data_loss", float(np.mean([l[1]["data"] for l in losses])))
+            live.log_metric("physics_loss", float(np.mean([l[1]["physics"] for l in losses])))
+            live.log_metric("train_mae_3d_mm", train_mae)
+            live.log_metric("val_mae_3d_mm", val_mae)
+            if hasattr(model, "alpha"):
+                live.log_metric("alpha", model.alpha.item())
+            live.next_step()
+        if epoch - best_epoch >= cfg["patience"]:
+            break
+    model.load_state_dict(best_state)
+    return {"epochs_run": epoch + 1, "best_epoch": best_epoch + 1, "best_val_mae_3d_mm": best,
+            "seconds": time.perf_counter() - t0,
+            "seconds_per_epoch": (time.perf_counter() - t0) / (epoch + 1)}
+
+
+def train_boter(params: dict, df: pd.DataFrame, geometry: dict, live=None, progress=True):
+    """Build and train BoTER with the SPI loss on df's train split; returns (model, summary)."""
+    model = make_model(params["model"], geometry)
+    loss_fn = SPILoss(**params["loss"])
+    train, val = tensors(df[df.split == "train"]), tensors(df[df.split == "val"])
+    hist = fit(model, loss_fn, train, val, params["train"], live, "SPI-BoTER", progress)
+    hist.update(n_params=n_params(model), alpha=model.alpha.item(),
+                loss_weights=loss_fn.weights().tolist(), n_train=len(train[0]), n_val=len(val[0]))
+    return model, hist
+
+
+def train_dnn(params: dict, df: pd.DataFrame, geometry: dict, progress=True):
+    """The paper's DNN baseline: same splits and optimiser, data loss only."""
+    model = make_model(params["model"], geometry, kind="dnn")
+    loss_fn = lambda pp, pg, pt: (data_loss(pp, pg), {"data": 0.0, "physics": 0.0})
+    train, val = tensors(df[df.split == "train"]), tensors(df[df.split == "val"])
+    hist = fit(model, loss_fn, train, val, params["train"], None, "DNN", progress)
+    return model, hist

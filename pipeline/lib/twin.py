@@ -1,0 +1,414 @@
+"""Digital twin: a virtual UR5 that is as wrong as a real one, and the default campaign.
+
+The twin's true arm differs from the nominal UR5 table (SPEC.md stage 3) the
+way real arms do:
+  geometric      DH length errors (d, a), twist errors (alpha), joint zero
+                 offsets, parallel-axis tilts (beta, joints 2-3), and a marker
+                 offset on the flange (the pipeline's nominal tool is 0);
+  non-geometric  gravity-driven joint compliance (torque of the link masses at
+                 their centres of mass about each joint axis, computed on the
+                 true chain, divided by a joint stiffness) and periodic gear
+                 error (1 and 2 cycles per revolution of each joint);
+  measurement    joint repeatability noise, tracker noise, a few gross tracker
+                 misreads, and an unknown tracker pose ≈3 m from the robot.
+Everything derives from one seed (SEED), through named random streams, so a
+change in one part (say, the poses) does not reshuffle the others.
+
+API
+    twin = Twin(seed=SEED)              # or Twin(errors=zero_errors()) for a perfect arm
+    twin = Twin.from_json("data/raw/twin.json")   # the twin a campaign was made with
+    twin.actual_joints(q_deg)           # (n, 6) joint angles the arm really takes (deg)
+    twin.expected_position(q_deg)       # (n, 3) base-frame marker position, noise-free
+    twin.to_tracker(p_base)             # (n, 3) base -> tracker frame, P = R Q + t (eq. 20)
+    twin.drive(q_deg, rng)              # (n, 3) one tracker measurement per pose (noisy, no misreads)
+    twin.noise_floor_mm                 # 3D MAE a perfect model still shows (Monte Carlo)
+    twin.campaign(n=724)                # (joints_df, tracker_df, misreads {id: offset mm}),
+                                        # the tables in DATA_FORMAT.md format
+
+`python -m pipeline.twin` (generate) writes data/raw/{joints.csv, tracker.csv, twin.json}:
+twin.json holds the seed, the true errors, the noise floor, the misread ids and
+the measured difficulty (nominal DH after the frame fit; classical calibration).
+"""
+from functools import cached_property
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import torch
+from scipy.spatial.transform import Rotation
+
+from .columns import JOINTS_DEG
+from .config import read_json, write_json
+from .frames import robust_kabsch, to_base
+from .identify import identify
+from .kinematics import DTYPE, dh_matrices, fk, nominal_geometry
+from .metrics import drive_table
+from .robots import nominal_robot
+from .splits import split_indices
+
+
+SEED = 724
+RAW = Path("data/raw")
+N_POINTS = 724
+N_MISREADS = 5
+GRAVITY = np.array([0.0, 0.0, -9.80665])      # m/s², base frame: the UR5 stands level on its table
+
+# UR5 link masses (kg; the last includes the marker mount) and centres of mass in
+# each link's own DH frame (mm), after Universal Robots' published dynamics table.
+LINK_MASS = np.array([3.7, 8.4, 2.3, 1.2, 1.2, 0.25])
+LINK_COM = np.array([[0.0, -25.61, 1.93], [212.5, 0.0, 113.36], [150.0, 0.0, 26.5],
+                     [0.0, -1.8, 16.34], [0.0, 1.8, 16.34], [0.0, 0.0, -1.159]])
+
+# Magnitudes, tuned so that the campaign is as hard as a real UR5 (measured into
+# twin.json): nominal DH is ≈1.1 mm off after the frame fit, and a classical DH
+# calibration still leaves ≈0.24 mm (test split) of non-geometric error.
+# Each geometric parameter is drawn as sign * U(lo, hi) from the "errors" stream.
+RANGES = {
+    "d_mm": (0.07, 0.35), "a_mm": (0.07, 0.35),
+    "alpha_deg": (0.015, 0.07), "offset_deg": (0.015, 0.07), "beta_deg": (0.015, 0.055),
+    "gear_amp_deg": (0.005, 0.02),             # per joint and harmonic (1, 2 cycles/rev)
+}
+TILT_JOINTS = (2, 3)                           # 1-based: the parallel axes
+# Marker offset in the flange frame, each component scaled by U(0.8, 1.2). Sub-mm:
+# the tracker software defines the flange centre from a scan of the flange and
+# target tool (paper sec. 3.1), so only a residual offset remains. With the wrist
+# turned over the whole sphere, |tool| mm of offset costs ≈|tool| mm of nominal
+# error after the frame fit, so a few mm would swamp everything else.
+TOOL_MM = np.array([0.15, -0.2, 0.45])
+# Effective joint stiffness (gear and link flexibility lumped), scaled by U(0.8, 1.2):
+# the shoulder sags ≈0.2° under the arm's own weight when stretched.
+STIFFNESS_NM_PER_RAD = np.array([1.0e4, 1.0e4, 5.0e3, 1.3e3, 1.3e3, 1.3e3])
+# The factory set the joint zeros under gravity, in this pose: deflections are
+# relative to it, tau(q) - tau(q_zero) (a constant part would be a zero offset).
+ZERO_POSE_DEG = [0.0, -65.0, 95.0, -110.0, 0.0, 0.0]
+JOINT_SIGMA_DEG = 0.002                        # repeatability, per joint (1 sigma)
+TRACKER_SIGMA_MM = 0.03                        # tracker noise, per axis (1 sigma)
+MISREAD_MM = (5.0, 40.0)                       # size of a gross misread
+TRACKER_DISTANCE_MM = (2800.0, 3200.0)         # robot base to tracker origin
+MEAN_NORM_3D = 2.0 * np.sqrt(2.0 / np.pi)      # E|x| for x ~ N(0, I_3): 1.5958
+
+STREAMS = {"errors": 1, "tracker": 2, "poses": 3, "noise": 4, "misreads": 5, "floor": 6}
+
+
+def stream(seed: int, name: str) -> np.random.Generator:
+    """Independent random stream `name` of the master seed."""
+    return np.random.default_rng(np.random.SeedSequence([seed, STREAMS[name]]))
+
+
+def ur5():
+    return nominal_robot("ur5")
+
+
+# ----------------------------------------------------------------------------- errors
+
+def sample_errors(seed: int = SEED) -> dict:
+    """The twin's true deviations from nominal (numpy, readable units)."""
+    rng = stream(seed, "errors")
+    signed = lambda lo_hi, n: rng.choice([-1.0, 1.0], n) * rng.uniform(*lo_hi, n)
+    beta = np.zeros(6)
+    beta[[j - 1 for j in TILT_JOINTS]] = signed(RANGES["beta_deg"], len(TILT_JOINTS))
+    return {
+        "d_mm": signed(RANGES["d_mm"], 6),
+        "a_mm": signed(RANGES["a_mm"], 6),
+        "alpha_deg": signed(RANGES["alpha_deg"], 6),
+        "offset_deg": signed(RANGES["offset_deg"], 6),
+        "beta_deg": beta,
+        "tool_mm": TOOL_MM * rng.uniform(0.8, 1.2, 3),
+        "stiffness_Nm_per_rad": STIFFNESS_NM_PER_RAD * rng.uniform(0.8, 1.2, 6),
+        "gear_amp_deg": rng.uniform(*RANGES["gear_amp_deg"], (6, 2)),   # harmonics 1, 2 per rev
+        "gear_phase_rad": rng.uniform(0.0, 2 * np.pi, (6, 2)),
+        "joint_sigma_deg": JOINT_SIGMA_DEG,
+        "tracker_sigma_mm": TRACKER_SIGMA_MM,
+    }
+
+
+def zero_errors() -> dict:
+    """A perfect arm and instrument: nominal geometry, rigid, no gear error, no noise."""
+    e = {k: np.zeros_like(v) for k, v in sample_errors(0).items()
+         if isinstance(v, np.ndarray)}
+    e["stiffness_Nm_per_rad"] = np.full(6, np.inf)
+    return {**e, "joint_sigma_deg": 0.0, "tracker_sigma_mm": 0.0}
+
+
+def true_geometry(errors: dict, robot=None) -> dict:
+    """Nominal UR5 geometry plus the geometric errors (kinematics geometry dict)."""
+    g = nominal_geometry(robot or ur5())
+    t = lambda v: torch.as_tensor(np.asarray(v, float), dtype=DTYPE)
+    return {**g,
+            "d": g["d"] + t(errors["d_mm"]), "a": g["a"] + t(errors["a_mm"]),
+            "alpha": g["alpha"] + t(np.radians(errors["alpha_deg"])),
+            "offset": g["offset"] + t(np.radians(errors["offset_deg"])),
+            "beta": g["beta"] + t(np.radians(errors["beta_deg"])),
+            "tool": g["tool"] + t(errors["tool_mm"])}
+
+
+def sample_tracker_pose(seed: int = SEED) -> tuple[np.ndarray, np.ndarray]:
+    """Unknown tracker pose: any rotation, robot base ≈3 m from the tracker origin."""
+    rng = stream(seed, "tracker")
+    R = Rotation.random(random_state=rng).as_matrix()
+    direction = rng.normal(size=3)
+    t = direction / np.linalg.norm(direction) * rng.uniform(*TRACKER_DISTANCE_MM)
+    return R, t
+
+
+# ----------------------------------------------------------------------------- physics
+
+def link_frames(q: torch.Tensor, g: dict) -> torch.Tensor:
+    """Frames 0..6 of the chain in the base frame: (B, 6) rad -> (B, 7, 4, 4)."""
+    T = dh_matrices(q, g)
+    F = [torch.eye(4, dtype=DTYPE).expand(len(q), 4, 4)]
+    for i in range(6):
+        F.append(F[-1] @ T[:, i])
+    return torch.stack(F, 1)
+
+
+def gravity_torques(q: torch.Tensor, g: dict) -> torch.Tensor:
+    """Static gravity torque about each joint axis (N·m), (B, 6) rad -> (B, 6).
+
+    tau_i = z_{i-1} · sum_{k >= i} (c_k - o_{i-1}) x (m_k g), with joint i turning
+    about z of frame i-1 and link k (its centre of mass c_k) carried by frame k.
+    """
+    F = link_frames(q, g)                                           # (B, 7, 4, 4)
+    com = torch.as_tensor(LINK_COM, dtype=DTYPE)
+    c = torch.einsum("bkij,kj->bki", F[:, 1:, :3, :3], com) + F[:, 1:, :3, 3]   # (B, 6, 3) mm
+    f = torch.as_tensor(LINK_MASS[:, None] * GRAVITY, dtype=DTYPE)              # (6, 3) N
+    tau = []
+    for i in range(6):
+        z, o = F[:, i, :3, 2], F[:, i, :3, 3]                       # joint i+1 axis and origin
+        moment = torch.cross(c[:, i:] - o[:, None], f[i:].expand_as(c[:, i:]), dim=-1).sum(1)
+        tau.append((z * moment).sum(-1) / 1000.0)                   # N·mm -> N·m
+    return torch.stack(tau, -1)
+
+
+def gear_error_rad(q: np.ndarray, amp_deg: np.ndarray, phase: np.ndarray) -> np.ndarray:
+    """Periodic transmission error: sum over h = 1, 2 of A_h sin(h q + phi_h), rad."""
+    h = np.array([1.0, 2.0])
+    return np.radians((amp_deg * np.sin(q[..., None] * h + phase)).sum(-1))
+
+
+# ----------------------------------------------------------------------------- poses
+
+def sample_poses(n: int, rng: np.random.Generator, robot=None) -> np.ndarray:
+    """n commanded poses (deg, 6 decimals) spread over the frontal workspace.
+
+    Rejection sampling from wide joint ranges; a pose is kept when (nominal FK):
+    the flange is in front of the robot (azimuth within ±60° of -x, 300-850 mm
+    from the base axis, 0-750 mm above the table), the elbow is up and above
+    the wrist, every wrist frame clears the table (z > 40 mm) and the base column
+    (> 180 mm from the axis), and the elbow (|sin q3| > 0.15) and wrist
+    (|sin q5| > 0.2) stay away from their singularities.
+    """
+    g = nominal_geometry(robot or ur5())
+    lo = np.array([-60.0, -160.0, -160.0, -270.0, -160.0, -180.0])
+    hi = np.array([60.0, -20.0, 160.0, 90.0, 160.0, 180.0])
+    out = []
+    while sum(len(o) for o in out) < n:
+        q = np.round(rng.uniform(lo, hi, (4 * n, 6)), 6)
+        out.append(q[_acceptable(q, g)])
+    return np.concatenate(out)[:n]
+
+
+def _acceptable(q_deg: np.ndarray, g: dict) -> np.ndarray:
+    with torch.no_grad():
+        F = link_frames(torch.as_tensor(np.radians(q_deg), dtype=DTYPE), g).numpy()
+    o = F[:, :, :3, 3]                                              # frame origins (n, 7, 3)
+    p = o[:, 6]
+    r = np.hypot(p[:, 0], p[:, 1])
+    azimuth = np.degrees(np.arctan2(p[:, 1], -p[:, 0]))
+    s3, s5 = np.abs(np.sin(np.radians(q_deg[:, 2]))), np.abs(np.sin(np.radians(q_deg[:, 4])))
+    wrist_r = np.hypot(o[:, 3:, 0], o[:, 3:, 1]).min(1)
+    return ((np.abs(azimuth) < 60) & (r > 300) & (r < 850) & (p[:, 2] > 0) & (p[:, 2] < 750)
+            & (o[:, 2, 2] > o[:, 3, 2]) & (o[:, 2, 2] > 150) & (o[:, 3:, 2].min(1) > 40)
+            & (wrist_r > 180) & (s3 > 0.15) & (s5 > 0.2))
+
+
+# ----------------------------------------------------------------------------- twin
+
+class Twin:
+    """A virtual UR5 with true geometric and non-geometric errors and a tracker."""
+
+    def __init__(self, seed: int = SEED, errors: dict | None = None,
+                 tracker_pose: tuple | None = None):
+        self.seed = seed
+        self.errors = sample_errors(seed) if errors is None else errors
+        self.R, self.t = sample_tracker_pose(seed) if tracker_pose is None else tracker_pose
+        self.geometry = true_geometry(self.errors)
+        self.compliance = 1.0 / np.asarray(self.errors["stiffness_Nm_per_rad"], float)  # rad/(N·m)
+        q_ref = torch.as_tensor(np.radians([ZERO_POSE_DEG]), dtype=DTYPE)
+        with torch.no_grad():      # the joint zeros were set under gravity, in this pose
+            self.tau_ref = gravity_torques(q_ref, self.geometry).numpy()[0]
+
+    @classmethod
+    def from_json(cls, path) -> "Twin":
+        """The twin recorded in a twin.json (its errors and tracker pose, as written)."""
+        rec = read_json(path)
+        errors = {k: np.asarray(v, float) if isinstance(v, list) else float(v)
+                  for k, v in rec["errors"].items()}
+        pose = np.asarray(rec["tracker_pose"]["R"]), np.asarray(rec["tracker_pose"]["t"])
+        twin = cls(rec["seed"], errors, pose)
+        if "noise_floor_mm" in rec:
+            twin.__dict__["noise_floor_mm"] = rec["noise_floor_mm"]    # fills the cached_property
+        return twin
+
+    def actual_joints(self, q_deg) -> np.ndarray:
+        """Joint angles (deg) the arm really takes when commanded q_deg: gear error + compliance."""
+        q = np.radians(np.asarray(q_deg, float))
+        q = q + gear_error_rad(q, self.errors["gear_amp_deg"], self.errors["gear_phase_rad"])
+        with torch.no_grad():
+            tau = gravity_torques(torch.as_tensor(q, dtype=DTYPE), self.geometry).numpy()
+        return np.degrees(q + (tau - self.tau_ref) * self.compliance)  # joint gives way to torque
+
+    def _fk(self, q_deg: np.ndarray) -> np.ndarray:
+        with torch.no_grad():
+            return fk(torch.as_tensor(np.radians(q_deg), dtype=DTYPE), self.geometry).numpy()
+
+    def expected_position(self, q_deg) -> np.ndarray:
+        """Noise-free base-frame marker position (mm) for commanded q_deg (n, 6)."""
+        return self._fk(self.actual_joints(q_deg))
+
+    def to_tracker(self, p_base) -> np.ndarray:
+        """Base frame -> tracker frame: P = R Q + t (eq. 20)."""
+        return np.asarray(p_base, float) @ self.R.T + self.t
+
+    def drive(self, q_deg, rng: np.random.Generator) -> np.ndarray:
+        """Command q_deg (n, 6) once; the tracker's reading (n, 3) of where the marker lands."""
+        q = self.actual_joints(q_deg)
+        q = q + rng.normal(0.0, self.errors["joint_sigma_deg"], q.shape)
+        p = self.to_tracker(self._fk(q))
+        return p + rng.normal(0.0, self.errors["tracker_sigma_mm"], p.shape)
+
+    def poses(self, n: int = N_POINTS, seed: int | None = None) -> np.ndarray:
+        """The campaign's commanded poses (deg)."""
+        return sample_poses(n, stream(self.seed if seed is None else seed, "poses"))
+
+    def noise_floor(self, q_deg, repeats: int = 64, seed: int | None = None) -> float:
+        """Monte Carlo mean |measured - expected| (mm) over poses q_deg and repeated drives."""
+        rng = stream(self.seed if seed is None else seed, "floor")
+        expected = self.to_tracker(self.expected_position(q_deg))
+        q = np.repeat(np.asarray(q_deg, float), repeats, axis=0)
+        err = self.drive(q, rng) - np.repeat(expected, repeats, axis=0)
+        return float(np.linalg.norm(err, axis=1).mean())
+
+    @cached_property
+    def noise_floor_mm(self) -> float:
+        """The 3D MAE a perfect model would still show on the campaign's poses."""
+        return self.noise_floor(self.poses())
+
+    def campaign(self, n: int = N_POINTS, seed: int | None = None):
+        """(joints_df, tracker_df, misreads) in the DATA_FORMAT.md format; misreads: {id: offset mm}."""
+        seed = self.seed if seed is None else seed
+        q = self.poses(n, seed)
+        ids = [f"P{i + 1:04d}" for i in range(n)]
+        P = self.drive(q, stream(seed, "noise"))
+        rng = stream(seed, "misreads")
+        misreads = {}
+        for i in sorted(rng.choice(n, min(N_MISREADS, n), replace=False)):
+            u = rng.normal(size=3)
+            off = u / np.linalg.norm(u) * rng.uniform(*MISREAD_MM)
+            P[i] += off
+            misreads[ids[i]] = off
+        joints = pd.DataFrame(q, columns=JOINTS_DEG)
+        joints.insert(0, "point_id", ids)
+        tracker = pd.DataFrame(P, columns=["X", "Y", "Z"])
+        tracker.insert(0, "Name", ids)
+        return joints, tracker, misreads
+
+
+# ----------------------------------------------------------------------------- difficulty
+
+def difficulty(joints: pd.DataFrame, tracker: pd.DataFrame, params: dict,
+               twin: Twin | None = None) -> dict:
+    """How hard the campaign is, measured the pipeline's way.
+
+    1. robust Kabsch frame (eqs. 20-26) of nominal DH (tool 0) on the tracker points;
+    2. nominal DH error after that frame (mean 3D, inliers);
+    3. classical calibration (identify.identify) on the SPEC split's train
+       points; its mean 3D error on train/val/test, and vs the noise-free truth.
+    """
+    q_deg = joints[JOINTS_DEG].to_numpy()
+    P = tracker[["X", "Y", "Z"]].to_numpy()
+    with torch.no_grad():
+        q = torch.as_tensor(np.radians(q_deg), dtype=DTYPE)
+        theory = fk(q, nominal_geometry(ur5())).numpy()
+    R, t, inl, _ = robust_kabsch(theory, P, params["frame"]["outlier_k"],
+                                 params["frame"]["outlier_min_mm"])
+    meas = (P - t) @ R                                               # base frame
+    e_nom = np.linalg.norm(meas - theory, axis=1)[inl]
+    keep = np.flatnonzero(inl)
+    idx = split_indices(len(keep), params["split"]["fractions"], params["split"]["seed"])
+    train = keep[idx["train"]]
+    geo, rep = identify(q[train], meas[train], nominal_geometry(ur5()), params["calibrate"])
+    with torch.no_grad():
+        e_cal = np.linalg.norm(fk(q, geo).numpy() - meas, axis=1)
+    out = {
+        "frame_outliers": joints["point_id"][~inl].tolist(),
+        "nominal_after_frame_mean_mm": float(e_nom.mean()),
+        "nominal_after_frame_rms_mm": float(np.sqrt((e_nom ** 2).mean())),
+        "nominal_after_frame_max_mm": float(e_nom.max()),
+        "classical_fit_mean_mm": {k: float(e_cal[keep[v]].mean()) for k, v in idx.items()},
+        "classical_fit_identified": rep["identified"],
+        "classical_fit_fixed": sorted(rep["fixed"]),
+    }
+    if twin is not None:       # model error alone: calibrated FK vs the noise-free truth
+        truth_base = (twin.to_tracker(twin.expected_position(q_deg)) - t) @ R
+        with torch.no_grad():
+            truth = np.linalg.norm(fk(q, geo).numpy() - truth_base, axis=1)
+        out["classical_fit_vs_truth_mean_mm"] = float(truth[keep].mean())
+    return out
+
+
+# ----------------------------------------------------------------------------- stage
+
+def twin_record(twin: Twin, misreads: dict) -> dict:
+    """The twin's truth for twin.json (everything but the measured difficulty)."""
+    e = twin.errors
+    return {
+        "seed": twin.seed,
+        "robot": "ur5",
+        "errors": {k: np.asarray(v).round(12).tolist() for k, v in e.items()},
+        "notes": ("commanded q -> actual q = q + gear(q) + (tau(q) - tau(zero_pose)) / stiffness "
+                  "+ N(0, joint_sigma); marker = fk(true_geometry, actual q); tracker reading = "
+                  "R marker + t + N(0, tracker_sigma) (+ misread offset)"),
+        "true_geometry": {k: v.numpy().round(12).tolist() for k, v in twin.geometry.items()},
+        "zero_pose_deg": ZERO_POSE_DEG,
+        "gravity_m_s2": GRAVITY.tolist(),
+        "link_mass_kg": LINK_MASS.tolist(),
+        "link_com_mm": LINK_COM.tolist(),
+        "tracker_pose": {"R": twin.R.round(12).tolist(), "t": twin.t.round(9).tolist(),
+                         "convention": "P_tracker = R @ p_base + t"},
+        "misread_ids": sorted(misreads),
+        "misreads": {k: np.round(v, 6).tolist() for k, v in misreads.items()},
+    }
+
+
+def generate(out_dir: Path | str = RAW, seed: int = SEED, params: dict | None = None) -> dict:
+    """Write joints.csv, tracker.csv and twin.json; with params, also measure the difficulty."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    twin = Twin(seed)
+    joints, tracker, misreads = twin.campaign()
+    joints.to_csv(out_dir / "joints.csv", index=False, float_format="%.6f", lineterminator="\n")
+    tracker.to_csv(out_dir / "tracker.csv", index=False, float_format="%.4f", lineterminator="\n")
+    record = twin_record(twin, misreads)
+    record["noise_floor_mm"] = round(twin.noise_floor_mm, 6)
+    record["noise_floor_method"] = ("Monte Carlo: 64 drives of each campaign pose, stream "
+                                    "'floor'; tracker-only analytic value 1.5958 * sigma")
+    record["noise_floor_tracker_only_mm"] = MEAN_NORM_3D * TRACKER_SIGMA_MM
+    if params is not None:
+        # measured from the files as written (rounded), as the pipeline will see them
+        joints = pd.read_csv(out_dir / "joints.csv")
+        tracker = pd.read_csv(out_dir / "tracker.csv")
+        record["difficulty"] = difficulty(joints, tracker, params, twin)
+    write_json(out_dir / "twin.json", record)
+    return record
+
+
+def drive_check(twin: Twin, frame: dict, rng: np.random.Generator, q_before: np.ndarray,
+                q_after: np.ndarray, target: np.ndarray):
+    """Drive the twin to the recorded and the compensated angles (deg), measure, map to base with
+    the fitted frame; returns (the paper's Table 9 stats, per-point errors (n, 6) mm)."""
+    before = to_base(twin.drive(q_before, rng), frame)
+    after = to_base(twin.drive(q_after, rng), frame)
+    summary = {"before": drive_table(before, target), "after": drive_table(after, target),
+               "noise_floor_mm": twin.noise_floor_mm}
+    return summary, np.hstack([before - target, after - target])

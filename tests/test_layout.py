@@ -1,0 +1,161 @@
+"""The architecture, checked: the library never imports a stage, no stage imports another,
+and every stage's dvc.yaml deps cover exactly the project code it runs."""
+import ast
+import json
+import os
+import shutil
+import subprocess
+from pathlib import Path
+
+import pytest
+import yaml
+
+ROOT = Path(__file__).resolve().parents[1]
+PKG = ROOT / "pipeline"
+
+
+def module_path(name: str) -> Path:
+    """pipeline.lib.model -> pipeline/lib/model.py (a package -> its __init__.py)."""
+    p = ROOT.joinpath(*name.split("."))
+    return p / "__init__.py" if p.is_dir() else p.with_suffix(".py")
+
+
+def imports(name: str) -> set[str]:
+    """Project modules `name` imports directly, anywhere in the file (function-local too)."""
+    path = module_path(name)
+    pkg = name if path.name == "__init__.py" else name.rsplit(".", 1)[0]
+    out = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            out |= {a.name for a in node.names if a.name.split(".")[0] == "pipeline"}
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                parts = pkg.split(".")
+                base = ".".join(parts[:len(parts) - node.level + 1] + ([base] if base else []))
+            if base.split(".")[0] != "pipeline":
+                continue
+            for a in node.names:           # `from . import x` imports a module; `from .x import f` a name
+                sub = f"{base}.{a.name}"
+                out.add(sub if module_path(sub).exists() else base)
+    return out
+
+
+def closure(name: str) -> set[str]:
+    """`name`, every project module it imports transitively, and the packages they sit in."""
+    seen, todo = set(), [name]
+    while todo:
+        m = todo.pop()
+        if m in seen:
+            continue
+        seen.add(m)
+        parts = m.split(".")
+        todo += [".".join(parts[:i]) for i in range(1, len(parts))]    # importing a.b.c runs a, a.b
+        todo += imports(m)
+    return seen
+
+
+DVC_FILES = ["dvc.yaml", "ablation/dvc.yaml"]      # the pipeline and the opt-in ablation (wdir: ..)
+
+
+def dvc_stages() -> dict:
+    """{stage name: stage} of every dvc.yaml (ablation stages as "ablation/<name>")."""
+    out = {}
+    for f in DVC_FILES:
+        for name, stage in yaml.safe_load((ROOT / f).read_text())["stages"].items():
+            out[name if f == "dvc.yaml" else f"{Path(f).parent}/{name}"] = stage
+    return out
+
+
+def stage_module(stage: dict) -> str:
+    cmd = stage["cmd"].split()
+    assert cmd[:2] == ["python", "-m"], stage["cmd"]
+    return cmd[2]
+
+
+STAGES = {name: stage_module(s) for name, s in dvc_stages().items()}
+LIB = sorted(f"pipeline.lib.{p.stem}" for p in (PKG / "lib").glob("*.py") if p.stem != "__init__")
+TOP = sorted(f"pipeline.{p.stem}" for p in PKG.glob("*.py") if p.stem != "__init__")
+
+
+def test_every_stage_is_a_pipeline_module():
+    assert set(STAGES.values()) <= set(TOP)
+    assert len(STAGES) == 12
+    assert {"pipeline.ingest", "pipeline.train", "pipeline.report"} <= set(STAGES.values())
+
+
+@pytest.mark.parametrize("lib", LIB)
+def test_library_imports_only_the_library(lib):
+    outside = {m for m in imports(lib) if not m.startswith("pipeline.lib")}
+    assert not outside, f"{lib} imports {outside}: the library must not import a stage or command"
+
+
+@pytest.mark.parametrize("mod", TOP)
+def test_no_stage_imports_a_stage_or_command(mod):
+    top = {m for m in imports(mod) if not m.startswith("pipeline.lib") and m != "pipeline"}
+    assert not top, f"{mod} imports {top}: stages and commands import only pipeline.lib"
+
+
+@pytest.mark.parametrize("name", sorted(STAGES))
+def test_stage_deps_are_exactly_the_code_it_runs(name):
+    """deps' .py files == the stage module + the project modules it imports (transitively)."""
+    stage = dvc_stages()[name]
+    code = {str(module_path(m).relative_to(ROOT)) for m in closure(STAGES[name])}
+    deps = {d for d in stage["deps"] if d.endswith(".py")}
+    assert not code - deps, f"stage {name}: code it runs but does not depend on: {sorted(code - deps)}"
+    assert not deps - code, f"stage {name}: depends on code it does not run: {sorted(deps - code)}"
+
+
+def test_closure_sees_function_local_and_transitive_imports(tmp_path):
+    """The walk behind the deps test: train reaches robots.py only through the library."""
+    c = closure("pipeline.train")
+    assert {"pipeline.lib.robots", "pipeline.lib.kinematics", "pipeline.lib.model",
+            "pipeline.lib.config", "pipeline"} <= c
+    assert "pipeline.lib.readers" not in c and "pipeline.ingest" not in c
+
+
+def git_dvc_repo(tmp: Path) -> dict:
+    """A copy of the project (code, dvc.yaml, params, raw data) in a fresh git + DVC repo whose
+    dvc.lock records every stage as run (outputs are placeholders: nothing is computed)."""
+    for p in ["pipeline", "data/raw", "dvc.yaml", "params.yaml"]:
+        src, dst = ROOT / p, tmp / p
+        if src.is_dir():
+            shutil.copytree(src, dst, ignore=shutil.ignore_patterns("__pycache__"))
+        else:
+            shutil.copy(src, dst)
+    env = {**os.environ, "DVC_NO_ANALYTICS": "1", "GIT_AUTHOR_NAME": "t", "GIT_AUTHOR_EMAIL": "t@t",
+           "GIT_COMMITTER_NAME": "t", "GIT_COMMITTER_EMAIL": "t@t"}
+    run = lambda *cmd: subprocess.run(cmd, cwd=tmp, env=env, check=True, capture_output=True, text=True)
+    run("git", "init", "-q")
+    run("dvc", "init", "-q")
+    for stage in dvc_stages().values():
+        if "matrix" in stage:
+            continue
+        for out in stage.get("outs", []) + stage.get("metrics", []) + stage.get("plots", []):
+            path = tmp / (out if isinstance(out, str) else next(iter(out)))
+            if path.suffix:                                    # a file
+                path.parent.mkdir(parents=True, exist_ok=True)
+                path.write_text("placeholder\n")
+            else:                                              # a folder
+                path.mkdir(parents=True, exist_ok=True)
+                (path / "placeholder.tsv").write_text("step\n")
+    run("dvc", "commit", "-f", "-q")
+    return {"run": run}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("edited", ["pipeline/lib/robots.py", "pipeline/lib/kinematics.py",
+                                    "pipeline/lib/model.py"])
+def test_editing_library_code_makes_dvc_status_report_its_stages(tmp_path, edited):
+    repo = git_dvc_repo(tmp_path)
+    assert "Data and pipelines are up to date" in repo["run"]("dvc", "status").stdout
+    with open(tmp_path / edited, "a") as f:
+        f.write("# an edit\n")
+    status = json.loads(repo["run"]("dvc", "status", "--json").stdout)
+    stale = {name for name, changes in status.items()
+             if any(c.get("changed deps", {}).get(edited) == "modified" for c in changes if isinstance(c, dict))}
+    users = {name for name, mod in STAGES.items() if not name.startswith("ablation/")
+             and edited in {str(module_path(m).relative_to(ROOT)) for m in closure(mod)}}
+    assert stale == users and stale                    # every stage that runs it, and only those
+    if edited.endswith("robots.py"):                   # the DH tables reach every stage but split
+        assert stale == set(STAGES) - {"split"} - {s for s in STAGES if s.startswith("ablation/")}
