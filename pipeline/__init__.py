@@ -1,4 +1,5 @@
-"""SPI-BoTER calibration pipeline: one module per DVC stage plus the pieces they share."""
+"""SPI-BoTER calibration pipeline: thin stages (pipeline/<stage>.py, one per DVC stage) and
+commands over one library (pipeline/lib/), which never imports them."""
 import os
 
 # Before numpy loads: BLAS threads on the small matrices here only fight torch's
