@@ -71,3 +71,20 @@ def test_apply_rewrites_params_keeping_comments(tmp_path, capsys):
 def test_unknown_preset():
     with pytest.raises(ValueError, match="unknown preset 'nope'; known: gtpn-ur5, ipa-ur10"):
         merged_params("nope", BASE)
+
+
+def test_apply_after_dvc_rewrote_params_in_block_style(tmp_path):
+    """`dvc exp run -S` rewrites params.yaml with block lists; a preset applied after it keeps valid YAML."""
+    from ruamel.yaml import YAML
+    path = tmp_path / "params.yaml"
+    rt = YAML()
+    doc = rt.load((ROOT / "params.yaml").read_text())
+    for sec in doc.values():                                     # every list in block style, as DVC does
+        for k, v in list(sec.items()):
+            if isinstance(v, list):
+                v.fa.set_block_style()
+    with open(path, "w") as f:
+        rt.dump(doc, f)
+    before = yaml.safe_load(path.read_text())
+    assert apply_preset("ipa-ur10", path) != []
+    assert yaml.safe_load(path.read_text()) == merged_params("ipa-ur10", before)

@@ -66,12 +66,17 @@ def changes(old: dict, new: dict, prefix: str = "") -> list:
 
 
 def _roundtrip_merge(node, over: dict) -> None:
-    """Merge `over` into a ruamel CommentedMap in place (lists written in flow style)."""
+    """Merge `over` into a ruamel CommentedMap in place (new lists in flow style; a list the
+    file already holds is refilled in place, keeping its style and the comments around it)."""
     from ruamel.yaml.comments import CommentedMap, CommentedSeq
     from ruamel.yaml.scalarstring import DoubleQuotedScalarString
     for k, v in over.items():
+        if node.get(k) == v:
+            continue                                    # unchanged: leave the text as it is
         if isinstance(v, dict) and isinstance(node.get(k), CommentedMap):
             _roundtrip_merge(node[k], v)
+        elif isinstance(v, list) and isinstance(node.get(k), CommentedSeq) and not node[k].fa.flow_style():
+            node[k][:] = v                              # a block list (as `dvc exp run -S` writes them)
         elif isinstance(v, list):
             seq = CommentedSeq(v)
             seq.fa.set_flow_style()
@@ -99,8 +104,8 @@ def render(text: str, preset: dict) -> str:
         out = buf.getvalue()
         if yaml.safe_load(out) == merged:
             return out
-    except ImportError:
-        pass
+    except (ImportError, yaml.YAMLError):
+        pass                                            # no ruamel, or it lost the layout: plain YAML
     return yaml.safe_dump(merged, sort_keys=False)
 
 
