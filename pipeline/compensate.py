@@ -19,7 +19,7 @@ import numpy as np
 import pandas as pd
 
 from .lib.artifacts import (COMPENSATION_CSV, COMPENSATION_JSON, COMPENSATION_PARQUET, CONVERGENCE_CSV,
-                            DRIVE_CSV, FRAME_JSON, REPORTS, load_points)
+                            DRIVE_CSV, FRAME_JSON, REPORTS, WORKSPACE_JSON, load_points)
 from .lib.columns import COMPENSATION, DJ_DEG, JCOMP_DEG, JOINTS_DEG, PRED, TARGET, THEORY
 from .lib.config import load_params, logger, read_json, section, write_json
 from .lib.realtime import Realtime, check
@@ -27,6 +27,7 @@ from .lib.robots import load_robot
 from .lib.solvers import SOLVERS, compensate
 from .lib.training import load_model
 from .lib.twin import Twin, drive_check
+from .lib.workspace import Workspace
 
 log = logger(__name__)
 
@@ -49,7 +50,7 @@ def read_targets(path: str) -> pd.DataFrame:
 def solve(params: dict, df: pd.DataFrame):
     """Both solvers on df's targets -> (the Δθ table of compensate.solver, summary, histories)."""
     cfg, robot = params["compensate"], load_robot(params["robot"])
-    model = load_model(params)
+    model, workspace = load_model(params), Workspace.from_dict(read_json(WORKSPACE_JSON))
     q0, target = df[JOINTS_DEG].to_numpy(), df[TARGET].to_numpy()
     summary, histories = {"solver": cfg["solver"], "n_points": len(df)}, {}
     for solver in SOLVERS:                                  # both, for the comparison; table from cfg
@@ -69,11 +70,15 @@ def solve(params: dict, df: pd.DataFrame):
             table[JCOMP_DEG] = q
             table[TARGET], table[PRED] = target, pred
             table["residual_mm"], table["iterations"], table["converged"] = res, iters, ok
-    rt = Realtime(model, np.radians(robot.limits_deg), cfg["tol_mm"])   # the controller path, same targets
+            table["uncertainty_mm"], table["in_workspace"] = workspace(q)   # at the compensated angles
+            summary["outside_workspace"] = int((~table["in_workspace"]).sum())
+    rt = Realtime(model, np.radians(robot.limits_deg), cfg["tol_mm"], workspace=workspace)   # same targets
     summary["realtime"] = check(rt, np.radians(q0), target)
     log.info("realtime (one pose per call, 2 model evaluations): %.0f%% verified, %.0f%% converged, "
-             "residual max %.2e mm", 100 * summary["realtime"]["verified_share"],
-             100 * summary["realtime"]["converged_share"], summary["realtime"]["true_residual_mm_max"])
+             "residual max %.2e mm; %d of %d targets outside the trained workspace (%s table: %d)",
+             100 * summary["realtime"]["verified_share"], 100 * summary["realtime"]["converged_share"],
+             summary["realtime"]["true_residual_mm_max"], summary["realtime"]["outside_workspace"], len(df),
+             cfg["solver"], summary["outside_workspace"])
     return table[COMPENSATION], summary, histories
 
 

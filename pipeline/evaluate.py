@@ -7,16 +7,22 @@ comparison method on the same splits:
     calibrated_dh   classical kinematic calibration (calibrate stage)
     dnn             the paper's DNN baseline (baselines stage)
     spi_boter_*     SPI-BoTER on nominal / calibrated physics
-Also data/interim/predictions.parquet (every point's prediction) and
-reports/baselines.md (the test-split table).
+Also data/interim/predictions.parquet (every point's prediction, with the
+model's `uncertainty_mm` and `in_workspace`), reports/baselines.md (the
+test-split table) and models/workspace.json (lib/workspace.py: the training
+poses' coverage and the model's error scale, fitted on the validation split;
+metrics.json["uncertainty"] says how often the actual error stayed within it).
 """
+import numpy as np
 import pandas as pd
 
-from .lib.artifacts import BASELINES_MD, BASELINES_TABLE, METRICS_JSON, PREDICTIONS_TABLE, load_points
+from .lib.artifacts import (BASELINES_MD, BASELINES_TABLE, METRICS_JSON, PREDICTIONS_TABLE, WORKSPACE_JSON,
+                            load_points)
 from .lib.columns import JOINTS_DEG, MEAS, PRED, SPLITS, THEORY
 from .lib.config import load_params, logger, section, write_json
 from .lib.metrics import split_metrics
 from .lib.training import load_model, predict
+from .lib.workspace import Workspace
 
 log = logger(__name__)
 
@@ -34,10 +40,17 @@ def markdown_table(baselines: dict, split: str = "test") -> str:
 
 def run(params: dict) -> dict:
     section(params, "robot"), section(params, "model")
+    cfg = section(params, "workspace")
     df = load_points()
     pred = predict(load_model(params), df)
+    err = np.linalg.norm(pred - df[MEAS].to_numpy(), axis=1)
+    q = df[JOINTS_DEG].to_numpy()
+    val = (df.split == "val").to_numpy()
+    ws = Workspace.fit(q[(df.split == "train").to_numpy()], err[val], cfg)
+    write_json(WORKSPACE_JSON, ws.to_dict())
     out = df[["point_id", "split"] + JOINTS_DEG + THEORY + MEAS].copy()
     out[PRED] = pred
+    out["uncertainty_mm"], out["in_workspace"] = ws(q)
     out.to_parquet(PREDICTIONS_TABLE, index=False)
 
     metrics = split_metrics(df, pred)
@@ -49,11 +62,20 @@ def run(params: dict) -> dict:
         methods.setdefault(stem, base[[f"{stem}_{a}" for a in "xyz"]].to_numpy())
     metrics["baselines"] = {k: split_metrics(df, v) for k, v in methods.items()}
     metrics["model"] = name
+    metrics["uncertainty"] = {s: {"coverage": float((err[m] <= out["uncertainty_mm"].to_numpy()[m]).mean()),
+                                  "in_workspace_share": float(out["in_workspace"].to_numpy()[m].mean()),
+                                  "uncertainty_mm_mean": float(out["uncertainty_mm"].to_numpy()[m].mean())}
+                              for s in SPLITS if (m := (df.split == s).to_numpy()).any()}
+    metrics["uncertainty"]["target_coverage"] = cfg["coverage"]
     write_json(METRICS_JSON, metrics)
     table = markdown_table(metrics["baselines"])
     (BASELINES_MD).write_text(table)
     log.info("evaluated %s on %s points\n%s", name,
              {s: int((df.split == s).sum()) for s in SPLITS}, table)
+    log.info("workspace: radius %.1f deg over joints %s, u0 %.4f mm; test: %.0f%% in the workspace, "
+             "uncertainty covers the error on %.0f%% (target %.0f%%)", ws.radius, ws.to_dict()["joints"],
+             ws.u0, 100 * metrics["uncertainty"].get("test", {}).get("in_workspace_share", np.nan),
+             100 * metrics["uncertainty"].get("test", {}).get("coverage", np.nan), 100 * cfg["coverage"])
     return metrics
 
 

@@ -68,7 +68,7 @@ def dvc_stages() -> dict:
 
 
 def stage_module(stage: dict) -> str:
-    cmd = stage["cmd"].split()
+    cmd = stage.get("do", stage)["cmd"].split()                 # a foreach stage keeps it under `do`
     assert cmd[:2] == ["python", "-m"], stage["cmd"]
     return cmd[2]
 
@@ -80,7 +80,7 @@ TOP = sorted(f"pipeline.{p.stem}" for p in PKG.glob("*.py") if p.stem != "__init
 
 def test_every_stage_is_a_pipeline_module():
     assert set(STAGES.values()) <= set(TOP)
-    assert len(STAGES) == 12
+    assert len(STAGES) == 14
     assert {"pipeline.ingest", "pipeline.train", "pipeline.report"} <= set(STAGES.values())
 
 
@@ -101,7 +101,7 @@ def test_stage_deps_are_exactly_the_code_it_runs(name):
     """deps' .py files == the stage module + the project modules it imports (transitively)."""
     stage = dvc_stages()[name]
     code = {str(module_path(m).relative_to(ROOT)) for m in closure(STAGES[name])}
-    deps = {d for d in stage["deps"] if d.endswith(".py")}
+    deps = {d for d in stage.get("do", stage)["deps"] if d.endswith(".py")}
     assert not code - deps, f"stage {name}: code it runs but does not depend on: {sorted(code - deps)}"
     assert not deps - code, f"stage {name}: depends on code it does not run: {sorted(deps - code)}"
 
@@ -117,28 +117,39 @@ def test_closure_sees_function_local_and_transitive_imports(tmp_path):
 def git_dvc_repo(tmp: Path) -> dict:
     """A copy of the project (code, dvc.yaml, params, raw data) in a fresh git + DVC repo whose
     dvc.lock records every stage as run (outputs are placeholders: nothing is computed)."""
-    for p in ["pipeline", "data/raw", "dvc.yaml", "params.yaml"]:
+    for p in ["pipeline", "data/raw", "dvc.yaml", "params.yaml", "reports/validation/.gitkeep"]:
         src, dst = ROOT / p, tmp / p
         if src.is_dir():
             shutil.copytree(src, dst, ignore=shutil.ignore_patterns("__pycache__"))
         else:
+            dst.parent.mkdir(parents=True, exist_ok=True)
             shutil.copy(src, dst)
     env = {**os.environ, "DVC_NO_ANALYTICS": "1", "GIT_AUTHOR_NAME": "t", "GIT_AUTHOR_EMAIL": "t@t",
            "GIT_COMMITTER_NAME": "t", "GIT_COMMITTER_EMAIL": "t@t"}
     run = lambda *cmd: subprocess.run(cmd, cwd=tmp, env=env, check=True, capture_output=True, text=True)
     run("git", "init", "-q")
     run("dvc", "init", "-q")
+    params = yaml.safe_load((tmp / "params.yaml").read_text())
     for stage in dvc_stages().values():
         if "matrix" in stage:
             continue
-        for out in stage.get("outs", []) + stage.get("metrics", []) + stage.get("plots", []):
-            path = tmp / (out if isinstance(out, str) else next(iter(out)))
-            if path.suffix:                                    # a file
-                path.parent.mkdir(parents=True, exist_ok=True)
-                path.write_text("placeholder\n")
-            else:                                              # a folder
-                path.mkdir(parents=True, exist_ok=True)
-                (path / "placeholder.tsv").write_text("step\n")
+        keys = [None]
+        if "foreach" in stage:                                 # foreach: ${section.key} of params.yaml
+            node = params
+            for part in stage["foreach"].strip("${}").split("."):
+                node = node[part]
+            keys = list(node)
+        for key in keys:
+            body = stage.get("do", stage)
+            for out in body.get("outs", []) + body.get("metrics", []) + body.get("plots", []):
+                name = (out if isinstance(out, str) else next(iter(out))).replace("${key}", str(key))
+                path = tmp / name
+                if path.suffix:                                # a file
+                    path.parent.mkdir(parents=True, exist_ok=True)
+                    path.write_text("placeholder\n")
+                else:                                          # a folder
+                    path.mkdir(parents=True, exist_ok=True)
+                    (path / "placeholder.tsv").write_text("step\n")
     run("dvc", "commit", "-f", "-q")
     return {"run": run}
 
@@ -156,6 +167,10 @@ def test_editing_library_code_makes_dvc_status_report_its_stages(tmp_path, edite
              if any(c.get("changed deps", {}).get(edited) == "modified" for c in changes if isinstance(c, dict))}
     users = {name for name, mod in STAGES.items() if not name.startswith("ablation/")
              and edited in {str(module_path(m).relative_to(ROOT)) for m in closure(mod)}}
+    users = {f"validate@{k}" if u == "validate" else u         # the foreach stage, once per campaign
+             for u in users for k in (yaml.safe_load((tmp_path / "params.yaml").read_text())
+                                      ["validate"]["campaigns"] if u == "validate" else [None])}
     assert stale == users and stale                    # every stage that runs it, and only those
     if edited.endswith("robots.py"):                   # the DH tables reach every stage but split
-        assert stale == set(STAGES) - {"split"} - {s for s in STAGES if s.startswith("ablation/")}
+        assert stale == {"ingest", "frame", "theory", "calibrate", "train", "baselines", "evaluate",
+                         "compensate", "validate@twin_side", "validation", "report"}

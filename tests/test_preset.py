@@ -14,7 +14,7 @@ BASE = yaml.safe_load((ROOT / "params.yaml").read_text())
 
 def leaves(d, prefix=""):
     for k, v in d.items():
-        if isinstance(v, dict) and v:
+        if isinstance(v, dict) and v and k != "campaigns":      # a preset replaces campaigns whole
             yield from leaves(v, f"{prefix}{k}.")
         else:
             yield f"{prefix}{k}"
@@ -44,6 +44,7 @@ def test_presets_only_set_known_keys(name):
 
 def test_ipa_preset_settings():
     p = merged_params("ipa-ur10", BASE)
+    assert set(p["validate"]["campaigns"]) == {"series_b_same", "series_b_refit"}   # replaced, not merged
     assert p["robot"]["model"] == "ur10" and p["robot"]["tool_mm"] == [0.0, 0.0, 109.0]
     assert p["frame"]["estimate_tool"] is True
     assert (p["ingest"]["sep"], p["ingest"]["decimal"], p["ingest"]["angle_unit"]) == (";", ",", "rad")

@@ -26,11 +26,15 @@ BASELINES_JSON = REPORTS / "baselines_train.json"
 PREDICTIONS_TABLE = INTERIM / "predictions.parquet"   # evaluate
 METRICS_JSON = REPORTS / "metrics.json"
 BASELINES_MD = REPORTS / "baselines.md"
+WORKSPACE_JSON = MODELS / "workspace.json"           #   the trained workspace, the error scale
 COMPENSATION_CSV = REPORTS / "compensation.csv"       # compensate (the Δθ table, and as parquet)
 COMPENSATION_PARQUET = REPORTS / "compensation.parquet"
 COMPENSATION_JSON = REPORTS / "compensation.json"
 CONVERGENCE_CSV = REPORTS / "compensation_convergence.csv"
 DRIVE_CSV = REPORTS / "drive_check.csv"
+VALIDATION_DIR = REPORTS / "validation"               # validate@<campaign>: <campaign>.json/.parquet
+VALIDATION_JSON = REPORTS / "validation.json"         # validation (all campaigns)
+VALIDATION_TABLE = REPORTS / "validation.parquet"
 
 
 def load_points() -> pd.DataFrame:

@@ -28,6 +28,10 @@ SECTIONS = {
     "loss": ("weighting", "physics", "lambda_data", "lambda_physics"),
     "train": ("lr", "weight_decay", "batch_size", "grad_clip", "max_epochs", "patience", "seed"),
     "baselines": ("other_physics",),
+    "workspace": ("radius_quantile", "coverage"),
+    "validate": ("register_points", "campaigns"),
+    "validate.campaign": ("ingest", "frame", "commanded"),
+    "validate.commanded": ("columns", "unit", "rz_deg"),
     "compensate": ("solver", "lr", "max_iter", "tol_mse", "tol_mm", "jacobian_of", "drive_check",
                    "twin", "drive_seed"),
     "ablation": ("seeds", "max_epochs"),
@@ -57,8 +61,8 @@ def section(params: dict, name: str) -> dict:
     if name not in params:
         raise ParamsError(f"params.yaml: missing section {name!r} (keys: {', '.join(SECTIONS[name])})")
     cfg = check_keys(params[name], name)
-    for sub in SECTIONS:
-        if sub.startswith(name + "."):
+    for sub in SECTIONS:                               # nested sections (not validate.campaign: one per entry)
+        if sub.startswith(name + ".") and sub.split(".", 1)[1] in SECTIONS[name]:
             check_keys(cfg[sub.split(".", 1)[1]], sub)
     return cfg
 

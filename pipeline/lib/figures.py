@@ -3,8 +3,8 @@ string saying why it was skipped. Its docstring's first paragraph is its caption
 Adding a figure = writing the function + one FIGURES line.
 
 `ctx` is the report stage's Context (duck-typed): params, metrics, pred (the predictions
-table), convergence, drive (tables or None), live(name) (a dvclive curve or None) and
-model (the trained model or None).
+table), convergence, drive, validation (tables or None), live(name) (a dvclive curve or
+None) and model (the trained model or None).
 """
 import math
 from pathlib import Path
@@ -431,6 +431,44 @@ def _equal_3d(ax, P: np.ndarray) -> None:
 
 # name -> function; the PNG is <out_dir>/<name>.png, the order is index.md's.
 # (fig_ablation is not here: `python -m pipeline.ablation` draws it from its own summary.)
+def fig_validation(ctx):
+    """Independent campaigns (validate stage): each judged point's 3D error per method, and the
+    error distribution per method, split by whether the pose lies in the trained workspace."""
+    plt = _plt()
+    v = ctx.validation
+    if v is None or not len(v):
+        return "no validation campaign (validate.campaigns is empty)"
+    v = v[~v.registered]
+    names = list(dict.fromkeys(v.campaign))
+    methods = ("nominal", "calibrated", "model")
+    fig, axes = plt.subplots(len(names), 2, figsize=(12, 3.8 * len(names)), squeeze=False,
+                             constrained_layout=True)
+    for (a1, a2), name in zip(axes, names):
+        c = v[v.campaign == name].reset_index(drop=True)
+        inside = c.in_workspace.to_numpy()
+        for k, m in enumerate(methods):
+            e = c[f"error_{m}_mm"].to_numpy()
+            a1.scatter(np.flatnonzero(inside), e[inside], s=9, color=f"C{k}", label=f"{m}, in workspace")
+            a1.scatter(np.flatnonzero(~inside), e[~inside], s=12, marker="x", color=f"C{k}",
+                       label=f"{m}, outside")
+        a1.plot(c.uncertainty_mm.to_numpy(), color="k", lw=0.8, label="model's uncertainty_mm")
+        a1.set(yscale="log", xlabel="judged point (campaign order)", ylabel="3D error (mm)",
+               title=f"{name}: error per point ({inside.mean():.0%} in the trained workspace)")
+        a1.legend(fontsize=7, ncol=2)
+        a1.grid(alpha=0.3)
+        data, labels = [], []
+        for m in methods:
+            for w, sel in (("in", inside), ("out", ~inside)):
+                if sel.any():
+                    data.append(c.loc[sel, f"error_{m}_mm"].to_numpy())
+                    labels.append(f"{m}\n{w}")
+        a2.boxplot(data, whis=(5, 95), showfliers=False)
+        a2.set_xticks(range(1, len(labels) + 1), labels, fontsize=8)
+        a2.set(ylabel="3D error (mm)", title=f"{name}: distribution (box: quartiles, whiskers 5-95 %)")
+        a2.grid(alpha=0.3)
+    return fig
+
+
 FIGURES = {
     "error_scatter": fig_error_scatter,
     "error_hist": fig_error_hist,
@@ -442,6 +480,7 @@ FIGURES = {
     "points_error": fig_points_error,
     "drive_check": fig_drive_check,
     "methods": fig_methods,
+    "validation": fig_validation,
 }
 
 

@@ -315,6 +315,50 @@ def section_pointcloud(ply: dict) -> str:
             "preview with the colour key.\n")
 
 
+def section_validation(v: dict | None, uncertainty: dict | None) -> str:
+    """Independent campaigns (validate stage), and how often the model's uncertainty held."""
+    out = ["## Validation on independent campaigns", ""]
+    if uncertainty:
+        rows = [[s, u["in_workspace_share"], u["coverage"], u["uncertainty_mm_mean"]]
+                for s, u in uncertainty.items() if isinstance(u, dict)]
+        out += [f"The model's `uncertainty_mm` is meant to cover its 3D error on "
+                f"{uncertainty['target_coverage']:.0%} of the poses inside the trained workspace; measured "
+                "on the campaign it trained on:", "",
+                table(["split", "in workspace", "error ≤ uncertainty", "mean uncertainty mm"], rows), ""]
+    campaigns = (v or {}).get("campaigns") or {}
+    if not campaigns:
+        return "\n".join(out + ["_No validation campaign (`validate.campaigns` is empty)._", ""])
+    for name, c in campaigns.items():
+        frame = ("the training campaign's frame (tracker not moved)" if c["frame"] == "same" else
+                 f"each method's own rigid frame fitted on {c['n_register']} registration points")
+        share = c["in_workspace_share"]
+        out += [f"### `{name}`", "", f"{c['n']} points, {c['n_judged']} judged in {frame}. "
+                f"**{share:.0%} of them lie inside the joint-space coverage the model was trained on"
+                + ("; outside it the model extrapolates, and its numbers there are a guess to be "
+                   "checked, not a calibration to trust.**" if share < 0.95 else ".**"), ""]
+        rows = []
+        for w, label in (("all", "all judged"), ("in", "in workspace"), ("out", "outside")):
+            for m in ("nominal", "calibrated", "model"):
+                st = ({"n": c["n_judged"], "mean": c["mean_3d_mm"][m], "p95": c["p95_3d_mm"][m],
+                       "max": c["max_3d_mm"][m]} if w == "all" else c["by_workspace"][w][m])
+                rows.append([label if m == "nominal" else "", m, st["n"], st["mean"], st["p95"], st["max"]])
+        out += [table(["points", "method", "n", "mean mm", "p95 mm", "max mm"], rows), ""]
+        cov = c["uncertainty_coverage"]
+        out += [f"Model error ≤ its uncertainty_mm on {fmt(cov['all'], 2)} of the judged points "
+                f"(inside {fmt(cov['in'], 2)}, outside {fmt(cov['out'], 2)}); mean uncertainty "
+                f"{fmt(c['uncertainty_mm_mean'])} mm. Ingest kept {c['ingest']['n_kept']} points, dropped "
+                f"{len(c['ingest']['dropped'])} ({c['ingest']['dropped_counts'] or 'none'}).", ""]
+        if c.get("position_accuracy"):
+            rows = [[m, a["positions"], a["ap_measured_mm"], a["ap_predicted_mm"], a["bar_error_mm"],
+                     a["rp_measured_mm"], a["rp_predicted_mm"]] for m, a in c["position_accuracy"].items()]
+            out += ["ISO 9283 position accuracy over the commanded positions reached several times "
+                    "(means over positions, mm; `|pred − meas| mean`: how far the method's predicted mean "
+                    "attained position is from the measured one):", "",
+                    table(["method", "positions", "AP_P measured", "AP_P predicted", "|pred − meas| mean",
+                           "RP measured", "RP predicted"], rows), ""]
+    return "\n".join(out)
+
+
 def write_index(ctx, figs: dict, ply: dict) -> str:
     """index.md's text. ctx: the report stage's Context; figs: render_figures' result;
     ply: write_ply's."""
@@ -332,12 +376,13 @@ def write_index(ctx, figs: dict, ply: dict) -> str:
                  + ".", ""]
     skipped = [n for n, (st, _) in figs.items() if st != "ok"]
     head += ["Contents: settings · model metrics · comparison methods · data · calibration · "
-             "training · compensation · ablation · point cloud · figures"
+             "training · compensation · validation · ablation · point cloud · figures"
              + (f" (skipped: {', '.join(skipped)})" if skipped else ""), ""]
     parts = ["\n".join(head), section_settings(ctx.params), section_metrics(m, counts),
              section_baselines(m, ctx.baselines_md),
              section_data(s["ingest"], s["frame"], s["theory"], s["split"], counts),
              section_calibration(s["calibration"]), section_training(s["train"]),
-             section_compensation(s["compensation"], ctx.drive), section_ablation(),
+             section_compensation(s["compensation"], ctx.drive),
+             section_validation(s["validation"], m.get("uncertainty")), section_ablation(),
              section_pointcloud(ply), section_figures(figs)]
     return "\n".join(p.rstrip() + "\n" for p in parts)

@@ -36,11 +36,14 @@ def load_preset(name_or_path) -> dict:
         return yaml.safe_load(f) or {}
 
 
+REPLACED = {"campaigns"}        # mappings a preset replaces whole: its own validation campaigns
+
+
 def deep_merge(base: dict, over: dict) -> dict:
-    """A new dict: `over` on top of `base`, mappings merged recursively."""
+    """A new dict: `over` on top of `base`, mappings merged recursively (but REPLACED keys)."""
     out = copy.deepcopy(base)
     for k, v in over.items():
-        if isinstance(v, dict) and isinstance(out.get(k), dict):
+        if isinstance(v, dict) and isinstance(out.get(k), dict) and k not in REPLACED:
             out[k] = deep_merge(out[k], v)
         else:
             out[k] = copy.deepcopy(v)
@@ -73,7 +76,7 @@ def _roundtrip_merge(node, over: dict) -> None:
     for k, v in over.items():
         if node.get(k) == v:
             continue                                    # unchanged: leave the text as it is
-        if isinstance(v, dict) and isinstance(node.get(k), CommentedMap):
+        if isinstance(v, dict) and isinstance(node.get(k), CommentedMap) and k not in REPLACED:
             _roundtrip_merge(node[k], v)
         elif isinstance(v, list) and isinstance(node.get(k), CommentedSeq) and not node[k].fa.flow_style():
             node[k][:] = v                              # a block list (as `dvc exp run -S` writes them)

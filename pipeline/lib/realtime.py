@@ -36,20 +36,21 @@ class Result:
     residual_mm: float     # |p(q) - target|: measured when verified, else predicted
     verified: bool         # residual_mm was measured by the second evaluation
     converged: bool        # residual_mm < tol_mm
+    in_workspace: bool | None = None   # q within the trained workspace (None: no workspace given)
 
 
 class Realtime:
     """Compensate single poses with a frozen BoTER: `Realtime(model)(q0_rad, target_mm) -> Result`."""
 
     def __init__(self, model, limits_rad: np.ndarray | None = None, tol_mm: float = 1e-3,
-                 damping: float = 1e-9, compile: bool = False):
+                 damping: float = 1e-9, compile: bool = False, workspace=None):
         model.eval()
         for p in model.parameters():
             p.requires_grad_(False)
         self.model, self.tol = model, tol_mm
         lim = np.array([[-np.inf, np.inf]] * 6) if limits_rad is None else np.asarray(limits_rad, float)
         self.lo, self.hi = (torch.as_tensor(lim[:, i], dtype=DTYPE) for i in (0, 1))
-        self.damping = damping
+        self.damping, self.workspace = damping, workspace   # workspace: lib/workspace.Workspace
         self.solve = self._solve
         if compile:                                         # compile now, not in the first cycle
             self.solve = torch.compile(self._solve, dynamic=False)
@@ -76,9 +77,14 @@ class Realtime:
         q1, q2, r0, r1 = self.solve(q0, target)
         r0, r1 = float(r0), float(r1)
         if r1 < self.tol:
-            return Result(q1[0].numpy(), r1, True, True)
+            return self._flag(Result(q1[0].numpy(), r1, True, True))
         predicted = r1 * r1 / r0 if r1 < r0 else float("inf")
-        return Result(q2[0].numpy(), predicted, False, predicted < self.tol)
+        return self._flag(Result(q2[0].numpy(), predicted, False, predicted < self.tol))
+
+    def _flag(self, r: Result) -> Result:
+        if self.workspace is not None:
+            r.in_workspace = bool(self.workspace(np.degrees(r.q))[1][0])
+        return r
 
 
 def check(rt: Realtime, q0_rad: np.ndarray, targets: np.ndarray) -> dict:
@@ -95,4 +101,6 @@ def check(rt: Realtime, q0_rad: np.ndarray, targets: np.ndarray) -> dict:
             # the answers returned on a prediction: what was predicted, what they measure
             "predicted_residual_mm_max": max([r.residual_mm for r in results if not r.verified], default=0.0),
             "unverified_true_residual_mm_max": float(max([t for r, t in zip(results, true) if not r.verified],
-                                                         default=0.0))}
+                                                         default=0.0)),
+            "outside_workspace": (None if rt.workspace is None
+                                  else int(sum(not r.in_workspace for r in results)))}

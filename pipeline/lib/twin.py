@@ -87,6 +87,15 @@ MISREAD_MM = (5.0, 40.0)                       # size of a gross misread
 TRACKER_DISTANCE_MM = (2800.0, 3200.0)         # robot base to tracker origin
 MEAN_NORM_3D = 2.0 * np.sqrt(2.0 / np.pi)      # E|x| for x ~ N(0, I_3): 1.5958
 
+# Regions of the workspace: joint 1 sampling range and flange azimuth window (deg, from -x).
+# The default campaign covers the front; the validation campaign adds the side (joint 1 at
+# 70-150°, which the default campaign never visits).
+REGIONS = {"front": ((-60.0, 60.0), (-60.0, 60.0)), "side": ((70.0, 150.0), (-150.0, -80.0))}
+# The validation campaign: the same arm another day, the tracker moved (its own tracker pose,
+# from this seed's streams), half the poses in the front (inside the default campaign's
+# coverage), half at the side (outside it). No misreads: a validation campaign is cleaned.
+VALIDATION = {"seed": 725, "n": {"front": 150, "side": 150}, "dir": "validation"}
+
 STREAMS = {"errors": 1, "tracker": 2, "poses": 3, "noise": 4, "misreads": 5, "floor": 6}
 
 
@@ -188,27 +197,28 @@ def gear_error_rad(q: np.ndarray, amp_deg: np.ndarray, phase: np.ndarray) -> np.
 
 # ----------------------------------------------------------------------------- poses
 
-def sample_poses(n: int, rng: np.random.Generator, robot=None) -> np.ndarray:
-    """n commanded poses (deg, 6 decimals) spread over the frontal workspace.
+def sample_poses(n: int, rng: np.random.Generator, robot=None, region: str = "front") -> np.ndarray:
+    """n commanded poses (deg, 6 decimals) spread over a region of the workspace (REGIONS).
 
     Rejection sampling from wide joint ranges; a pose is kept when (nominal FK):
-    the flange is in front of the robot (azimuth within ±60° of -x, 300-850 mm
+    the flange is in the region (front: azimuth within ±60° of -x; side: -150..-80°), 300-850 mm
     from the base axis, 0-750 mm above the table), the elbow is up and above
     the wrist, every wrist frame clears the table (z > 40 mm) and the base column
     (> 180 mm from the axis), and the elbow (|sin q3| > 0.15) and wrist
     (|sin q5| > 0.2) stay away from their singularities.
     """
     g = nominal_geometry(robot or ur5())
-    lo = np.array([-60.0, -160.0, -160.0, -270.0, -160.0, -180.0])
-    hi = np.array([60.0, -20.0, 160.0, 90.0, 160.0, 180.0])
+    j1, azimuth = REGIONS[region]
+    lo = np.array([j1[0], -160.0, -160.0, -270.0, -160.0, -180.0])
+    hi = np.array([j1[1], -20.0, 160.0, 90.0, 160.0, 180.0])
     out = []
     while sum(len(o) for o in out) < n:
         q = np.round(rng.uniform(lo, hi, (4 * n, 6)), 6)
-        out.append(q[_acceptable(q, g)])
+        out.append(q[_acceptable(q, g, azimuth)])
     return np.concatenate(out)[:n]
 
 
-def _acceptable(q_deg: np.ndarray, g: dict) -> np.ndarray:
+def _acceptable(q_deg: np.ndarray, g: dict, azimuth_deg: tuple) -> np.ndarray:
     with torch.no_grad():
         F = link_frames(torch.as_tensor(np.radians(q_deg), dtype=DTYPE), g).numpy()
     o = F[:, :, :3, 3]                                              # frame origins (n, 7, 3)
@@ -217,7 +227,7 @@ def _acceptable(q_deg: np.ndarray, g: dict) -> np.ndarray:
     azimuth = np.degrees(np.arctan2(p[:, 1], -p[:, 0]))
     s3, s5 = np.abs(np.sin(np.radians(q_deg[:, 2]))), np.abs(np.sin(np.radians(q_deg[:, 4])))
     wrist_r = np.hypot(o[:, 3:, 0], o[:, 3:, 1]).min(1)
-    return ((np.abs(azimuth) < 60) & (r > 300) & (r < 850) & (p[:, 2] > 0) & (p[:, 2] < 750)
+    return ((azimuth > azimuth_deg[0]) & (azimuth < azimuth_deg[1]) & (r > 300) & (r < 850) & (p[:, 2] > 0) & (p[:, 2] < 750)
             & (o[:, 2, 2] > o[:, 3, 2]) & (o[:, 2, 2] > 150) & (o[:, 3:, 2].min(1) > 40)
             & (wrist_r > 180) & (s3 > 0.15) & (s5 > 0.2))
 
@@ -277,9 +287,9 @@ class Twin:
         p = self.to_tracker(self._fk(q))
         return p + rng.normal(0.0, self.errors["tracker_sigma_mm"], p.shape)
 
-    def poses(self, n: int = N_POINTS, seed: int | None = None) -> np.ndarray:
+    def poses(self, n: int = N_POINTS, seed: int | None = None, region: str = "front") -> np.ndarray:
         """The campaign's commanded poses (deg)."""
-        return sample_poses(n, stream(self.seed if seed is None else seed, "poses"))
+        return sample_poses(n, stream(self.seed if seed is None else seed, "poses"), region=region)
 
     def noise_floor(self, q_deg, repeats: int = 64, seed: int | None = None) -> float:
         """Monte Carlo mean |measured - expected| (mm) over poses q_deg and repeated drives."""
@@ -312,6 +322,21 @@ class Twin:
         tracker = pd.DataFrame(P, columns=["X", "Y", "Z"])
         tracker.insert(0, "Name", ids)
         return joints, tracker, misreads
+
+
+    def validation_campaign(self, seed: int = VALIDATION["seed"], n: dict = VALIDATION["n"]):
+        """A second campaign of this arm (joints_df, tracker_df, tracker pose (R, t)): the tracker at
+        another pose, n[region] poses per region, ids V0001..; measured without misreads."""
+        R, t = sample_tracker_pose(seed)
+        moved = Twin(self.seed, self.errors, (R, t))
+        rng = stream(seed, "poses")
+        q = np.concatenate([sample_poses(k, rng, region=r) for r, k in n.items()])
+        ids = [f"V{i + 1:04d}" for i in range(len(q))]
+        joints = pd.DataFrame(q, columns=JOINTS_DEG)
+        joints.insert(0, "point_id", ids)
+        tracker = pd.DataFrame(moved.drive(q, stream(seed, "noise")), columns=["X", "Y", "Z"])
+        tracker.insert(0, "Name", ids)
+        return joints, tracker, (R, t)
 
 
 # ----------------------------------------------------------------------------- difficulty
@@ -382,7 +407,8 @@ def twin_record(twin: Twin, misreads: dict) -> dict:
 
 
 def generate(out_dir: Path | str = RAW, seed: int = SEED, params: dict | None = None) -> dict:
-    """Write joints.csv, tracker.csv and twin.json; with params, also measure the difficulty."""
+    """Write joints.csv, tracker.csv, validation/{joints,tracker}.csv and twin.json; with params,
+    also measure the difficulty."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     twin = Twin(seed)
@@ -394,6 +420,14 @@ def generate(out_dir: Path | str = RAW, seed: int = SEED, params: dict | None = 
     record["noise_floor_method"] = ("Monte Carlo: 64 drives of each campaign pose, stream "
                                     "'floor'; tracker-only analytic value 1.5958 * sigma")
     record["noise_floor_tracker_only_mm"] = MEAN_NORM_3D * TRACKER_SIGMA_MM
+    vdir = out_dir / VALIDATION["dir"]
+    vdir.mkdir(exist_ok=True)
+    vj, vt, (R, t) = twin.validation_campaign()
+    vj.to_csv(vdir / "joints.csv", index=False, float_format="%.6f", lineterminator="\n")
+    vt.to_csv(vdir / "tracker.csv", index=False, float_format="%.4f", lineterminator="\n")
+    record["validation"] = {"seed": VALIDATION["seed"], "n": VALIDATION["n"], "files": str(vdir),
+                            "regions": {k: REGIONS[k] for k in VALIDATION["n"]},
+                            "tracker_pose": {"R": R.round(12).tolist(), "t": t.round(9).tolist()}}
     if params is not None:
         # measured from the files as written (rounded), as the pipeline will see them
         joints = pd.read_csv(out_dir / "joints.csv")

@@ -1,0 +1,116 @@
+"""Stage validate: judge nominal DH, the classical calibration and the model on independent campaigns.
+
+    python -m pipeline.validate campaign NAME   dvc stage validate@NAME (foreach validate.campaigns)
+    python -m pipeline.validate summary         dvc stage validation: every campaign in one file
+
+A campaign is read by the ingest rules (lib/readers.py, bad rows listed,
+fatal errors naming file, row and column) with its own `ingest` overrides,
+and judged `same` or `refit` (lib/validation.py). Writes
+reports/validation/NAME.json and .parquet; the summary stage writes
+reports/validation.json and reports/validation.parquet (DATA_FORMAT.md), an
+empty summary when there are no campaigns.
+"""
+import argparse
+
+import numpy as np
+import pandas as pd
+
+from .lib.artifacts import (CALIBRATED_GEOMETRY, FRAME_JSON, VALIDATION_DIR, VALIDATION_JSON, VALIDATION_TABLE,
+                            WORKSPACE_JSON)
+from .lib.columns import JOINTS_DEG, MEAS
+from .lib.config import check_keys, load_params, logger, read_json, section, write_json
+from .lib.geometry import theory_geometry
+from .lib.kinematics import fk_numpy, load_geometry
+from .lib.presets import deep_merge
+from .lib.readers import ingest
+from .lib.training import load_model, predict
+from .lib.validation import METHODS, judge, position_accuracy, summary
+from .lib.workspace import Workspace
+
+log = logger(__name__)
+
+
+def campaign_settings(params: dict, name: str) -> dict:
+    campaigns = section(params, "validate")["campaigns"] or {}
+    if name not in campaigns:
+        raise ValueError(f"params.yaml validate.campaigns: no campaign {name!r}; have {sorted(campaigns)}")
+    c = check_keys(campaigns[name], "validate.campaign")
+    for key in ("joints", "tracker"):
+        if key not in (c["ingest"] or {}):
+            raise ValueError(f"params.yaml validate.campaigns.{name}.ingest: needs {key} (the campaign's file)")
+    return c
+
+
+def commanded_positions(df: pd.DataFrame, spec: dict, name: str) -> np.ndarray:
+    """The commanded positions (n, 3) mm in the DH base frame, from the columns `spec` names (in `unit`,
+    in the controller's base frame, which is the DH base turned by `rz_deg` about z: 180 on a UR)."""
+    check_keys(spec, "validate.commanded")
+    missing = [c for c in spec["columns"] if c not in df.columns]
+    if missing:
+        raise ValueError(f"params.yaml validate.campaigns.{name}.commanded: column(s) {missing} not in the "
+                         f"campaign; it has {list(df.columns)}")
+    c = df[spec["columns"]].to_numpy(float) * {"mm": 1.0, "m": 1000.0}[spec["unit"]]
+    a = np.radians(spec["rz_deg"])
+    return c @ np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]]).T
+
+
+def run_campaign(params: dict, name: str) -> dict:
+    section(params, "robot"), section(params, "model"), section(params, "frame")
+    c = campaign_settings(params, name)
+    df, ingested = ingest(deep_merge(params, {"ingest": c["ingest"]}))
+    q = df[JOINTS_DEG].to_numpy()
+    robot, g_nominal = theory_geometry(params)
+    pred = {"nominal": fk_numpy(q, robot, g_nominal),
+            "calibrated": fk_numpy(q, robot, load_geometry(CALIBRATED_GEOMETRY)),
+            "model": predict(load_model(params), df)}
+    P = df[MEAS].to_numpy()
+    errors, registered, frames = judge(pred, P, c["frame"], read_json(FRAME_JSON),
+                                       params["validate"]["register_points"], params["frame"])
+    u, inside = Workspace.from_dict(read_json(WORKSPACE_JSON))(q)
+    table = pd.DataFrame({"point_id": df.point_id, "campaign": name, "registered": registered,
+                          **{f"error_{m}_mm": errors[m] for m in METHODS},
+                          "uncertainty_mm": u, "in_workspace": inside})
+    out = summary(table, c["frame"], params["validate"]["register_points"])
+    out["ingest"] = {k: ingested[k] for k in ("n_read", "n_kept", "dropped", "dropped_counts")}
+    if c["commanded"]:
+        measured = {m: (P - frames[m]["t"]) @ frames[m]["R"] for m in METHODS}   # each method's base frame
+        out["position_accuracy"] = position_accuracy(commanded_positions(df, c["commanded"], name),
+                                                     measured, pred, ~registered)
+    VALIDATION_DIR.mkdir(parents=True, exist_ok=True)
+    table.to_parquet(VALIDATION_DIR / f"{name}.parquet", index=False)
+    write_json(VALIDATION_DIR / f"{name}.json", out)
+    m = out["mean_3d_mm"]
+    log.info("%s (%s frame): %d points, %d judged, %.0f%% in the trained workspace; mean 3D error "
+             "nominal %.3f, calibrated %.3f, model %.3f mm; %d rows dropped at ingest", name, c["frame"],
+             out["n"], out["n_judged"], 100 * out["in_workspace_share"], m["nominal"], m["calibrated"],
+             m["model"], len(ingested["dropped"]))
+    return out
+
+
+def run_summary(params: dict) -> dict:
+    """reports/validation.json and .parquet from the campaigns params.yaml lists now."""
+    names = sorted(section(params, "validate")["campaigns"] or {})
+    out = {"campaigns": {n: read_json(VALIDATION_DIR / f"{n}.json") for n in names}}
+    tables = [pd.read_parquet(VALIDATION_DIR / f"{n}.parquet") for n in names]
+    empty = pd.DataFrame({"point_id": pd.Series(dtype=str), "campaign": pd.Series(dtype=str),
+                          "registered": pd.Series(dtype=bool),
+                          **{f"error_{m}_mm": pd.Series(dtype=float) for m in METHODS},
+                          "uncertainty_mm": pd.Series(dtype=float), "in_workspace": pd.Series(dtype=bool)})
+    pd.concat(tables or [empty], ignore_index=True).to_parquet(VALIDATION_TABLE, index=False)
+    write_json(VALIDATION_JSON, out)
+    log.info("validation summary: %d campaign(s) %s", len(names), names)
+    return out
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(prog="python -m pipeline.validate", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("what", choices=["campaign", "summary"])
+    ap.add_argument("name", nargs="?", help="campaign name (with `campaign`)")
+    a = ap.parse_args(argv)
+    params = load_params()
+    run_campaign(params, a.name) if a.what == "campaign" else run_summary(params)
+
+
+if __name__ == "__main__":
+    main()

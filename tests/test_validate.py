@@ -1,0 +1,114 @@
+"""Validation on an independent campaign: refit registration, bad rows, the workspace guard."""
+import json
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+from scipy.spatial.transform import Rotation
+
+from pipeline import validate
+from pipeline.lib import twin as T
+from pipeline.lib.config import load_params, write_json
+from pipeline.lib.kinematics import fk_numpy, nominal_geometry, save_geometry
+from pipeline.lib.robots import nominal_robot
+from pipeline.lib.training import make_model
+from pipeline.lib.validation import judge, registration_subset, summary
+from pipeline.lib.workspace import Workspace
+
+ROOT = Path(__file__).resolve().parents[1]
+PARAMS = load_params(ROOT / "params.yaml")
+UR5 = nominal_robot("ur5")
+
+
+def test_refit_recovers_a_known_frame_and_judges_only_the_other_points():
+    rng = np.random.default_rng(0)
+    q = T.sample_poses(200, rng)
+    p = fk_numpy(q, UR5)                                          # what the method predicts (base frame)
+    R, t = Rotation.from_euler("xyz", [20, -35, 110], degrees=True).as_matrix(), np.array([900., -2500, 400])
+    P = p @ R.T + t + rng.normal(0, 0.01, p.shape)                # the campaign, in a moved tracker's frame
+    reg = registration_subset(P, 30)
+    P[np.flatnonzero(reg)[3]] += [0.0, 25.0, 0.0]                 # a misread among the registration points
+    errors, registered, frames = judge({"nominal": p}, P, "refit", {}, 30, PARAMS["frame"])
+    assert (registered == reg).all() and registered.sum() == 30
+    np.testing.assert_allclose(frames["nominal"]["R"], R, atol=5e-5)     # the misread was rejected
+    np.testing.assert_allclose(frames["nominal"]["t"], t, atol=0.1)      # mm (25 mm kept: ~1 mm)
+    assert errors["nominal"][~registered].max() < 0.06               # judged: noise only
+    table = pd.DataFrame({"registered": registered, "in_workspace": True, "uncertainty_mm": 0.1,
+                          **{f"error_{m}_mm": errors["nominal"] for m in ("nominal", "calibrated", "model")}})
+    s = summary(table, "refit", 30)
+    assert s["n_judged"] == 170 and s["n_register"] == 30
+    assert s["max_3d_mm"]["nominal"] == pytest.approx(errors["nominal"][~registered].max())
+    assert s["max_3d_mm"]["nominal"] < 0.06                        # the 25 mm misread was not judged
+
+
+def test_registration_points_spread_over_the_campaign():
+    P = np.random.default_rng(1).uniform(-500, 500, (400, 3))
+    sel = P[registration_subset(P, 20)]
+    assert np.ptp(sel, axis=0).min() > 800                         # corners reached, not a clump
+
+
+def test_workspace_flags_poses_outside_the_training_coverage():
+    rng = np.random.default_rng(1)
+    train, front, side = (T.sample_poses(576, rng), T.sample_poses(200, rng),
+                          T.sample_poses(200, rng, region="side"))
+    ws = Workspace.fit(train, np.full(72, 0.1), PARAMS["workspace"])
+    (u_front, in_front), (u_side, in_side) = ws(front), ws(side)
+    assert in_front.mean() > 0.95 and in_side.mean() < 0.2
+    assert u_front.min() == pytest.approx(0.1) and u_side.mean() > 1.4 * u_front.mean()
+    far = side[ws.distance(side).argmax()]
+    assert ws(far[None])[0][0] > ws(side[:1])[0][0] or not ws(far[None])[1][0]
+    again = Workspace.from_dict(json.loads(json.dumps(ws.to_dict())))
+    np.testing.assert_allclose(again(side)[0], u_side)
+
+
+@pytest.fixture()
+def project(tmp_path, monkeypatch):
+    """A trained-looking project in tmp_path (identity frame, nominal geometry, a small model)
+    and the twin's validation campaign with one bad row."""
+    monkeypatch.chdir(tmp_path)
+    params = json.loads(json.dumps(PARAMS))
+    params["model"].update(d_model=12, n_head=2, n_layer=1, d_hidden=16)
+    write_json("reports/frame.json", {"R": np.eye(3), "t": np.zeros(3), "tool_mm": [0.0, 0.0, 0.0]})
+    save_geometry("models/calibration.json", nominal_geometry(UR5))
+    torch.save(make_model(params["model"], nominal_geometry(UR5)).state_dict(), "models/boter.pt")
+    rng = np.random.default_rng(2)
+    write_json("models/workspace.json", Workspace.fit(T.sample_poses(300, rng), np.full(10, 0.1),
+                                                      params["workspace"]).to_dict())
+    joints, tracker, _ = T.Twin().validation_campaign(n={"front": 30, "side": 30})
+    joints.loc[7, "j3_deg"] = np.nan                                # a bad row
+    Path("c").mkdir()
+    joints.to_csv("c/joints.csv", index=False)
+    tracker.to_csv("c/tracker.csv", index=False)
+    params["validate"]["campaigns"] = {
+        "moved": {"ingest": {"joints": "c/joints.csv", "tracker": "c/tracker.csv"}, "frame": "refit",
+                  "commanded": None}}
+    params["validate"]["register_points"] = 12
+    return params
+
+
+def test_campaign_with_a_bad_row_lists_it_and_is_judged(project):
+    out = validate.run_campaign(project, "moved")
+    dropped = out["ingest"]["dropped"]
+    assert len(dropped) == 2 and {d["file"] for d in dropped} == {"c/joints.csv", "c/tracker.csv"}
+    bad = next(d for d in dropped if d["file"] == "c/joints.csv")
+    assert bad["point_id"] == "V0008" and bad["row"] == 9 and bad["reason"] == "empty" and "j3_deg" in bad["detail"]
+    assert out["n"] == 59 and out["n_judged"] == 47 and out["frame"] == "refit"
+    # nominal DH against the twin: ~1 mm; the untrained model sits on nominal physics too
+    assert 0.5 < out["mean_3d_mm"]["nominal"] < 2.0
+    assert 0.3 < out["in_workspace_share"] < 0.8                    # half the poses at the side
+    table = pd.read_parquet("reports/validation/moved.parquet")
+    assert list(table.columns) == ["point_id", "campaign", "registered", "error_nominal_mm",
+                                   "error_calibrated_mm", "error_model_mm", "uncertainty_mm", "in_workspace"]
+    s = validate.run_summary(project)
+    assert set(s["campaigns"]) == {"moved"} and len(pd.read_parquet("reports/validation.parquet")) == 59
+    project["validate"]["campaigns"] = {}
+    assert validate.run_summary(project) == {"campaigns": {}}      # none: an empty summary
+    assert len(pd.read_parquet("reports/validation.parquet")) == 0
+
+
+def test_campaign_needs_its_own_files(project):
+    del project["validate"]["campaigns"]["moved"]["ingest"]["tracker"]
+    with pytest.raises(ValueError, match=r"validate.campaigns.moved.ingest: needs tracker"):
+        validate.run_campaign(project, "moved")
