@@ -110,6 +110,15 @@ def test_realtime_lands_every_pose_within_0_001_mm_in_two_evaluations(model):
     assert np.abs(np.degrees([r.q for r in results]) - q_lm).max() < 1e-3
 
 
+def test_realtime_flags_answers_outside_the_trained_workspace(model):
+    from pipeline.lib.workspace import Workspace
+    q0, tgt = targets(model, n=3)
+    ws = Workspace(q0[:1], radius_deg=5.0, u0_mm=0.1)             # trained on the first pose only
+    r = [Realtime(model, workspace=ws)(np.radians(a), b) for a, b in zip(q0, tgt)]
+    assert [x.in_workspace for x in r] == [True, False, False]
+    assert Realtime(model)(np.radians(q0[0]), tgt[0]).in_workspace is None
+
+
 def test_realtime_respects_joint_limits_and_says_when_it_failed(model):
     q0, tgt = targets(model, n=1)
     lim = np.radians([[a - 0.01, a + 0.01] for a in q0[0]])   # ±0.01°: the target is out of reach

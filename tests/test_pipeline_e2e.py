@@ -72,6 +72,18 @@ def test_repro_produces_contract_outputs_and_is_idempotent(repo):
                                   check_dtype=False, atol=1e-6)
     summary = json.loads((repo / "reports/compensation.json").read_text())
     assert summary["drive_check"]["after"]["n"] == len(comp)
+    assert summary["outside_workspace"] == int((~comp.in_workspace).sum())
+    assert summary["realtime"]["outside_workspace"] == summary["outside_workspace"]
+
+    pred = pd.read_parquet(repo / "data/interim/predictions.parquet")
+    assert (pred.uncertainty_mm > 0).all() and pred.in_workspace[pred.split == "train"].all()
+    val = json.loads((repo / "reports/validation.json").read_text())["campaigns"]["twin_side"]
+    assert val["frame"] == "refit" and val["n"] == 300 and val["n_judged"] == 270
+    assert 0.4 < val["in_workspace_share"] < 0.7                  # half the campaign is at the side
+    assert val["mean_3d_mm"]["calibrated"] < 0.5 * val["mean_3d_mm"]["nominal"]
+    table = pd.read_parquet(repo / "reports/validation.parquet")
+    assert len(table) == 300 and table.registered.sum() == 30
+    assert "## Validation on independent campaigns" in (repo / "reports/index.md").read_text()
 
     again = sh("dvc repro", repo).stdout
     assert "up to date" in again and "Running stage" not in again

@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from pipeline.lib import twin as T
+from pipeline.lib.columns import JOINTS_DEG
 from pipeline.lib.config import load_params
 from pipeline.lib.kinematics import DTYPE, fk, fk_numpy
 
@@ -27,7 +28,7 @@ def recorded():
 
 def test_committed_files_are_what_the_generator_makes(tmp_path, recorded):
     rec = T.generate(tmp_path, T.SEED, params=None)         # no difficulty: fast
-    for name in ("joints.csv", "tracker.csv"):
+    for name in ("joints.csv", "tracker.csv", "validation/joints.csv", "validation/tracker.csv"):
         assert (tmp_path / name).read_bytes() == (RAW / name).read_bytes(), name
     fresh = json.loads((tmp_path / "twin.json").read_text())
     assert {k: v for k, v in recorded.items() if k != "difficulty"} == fresh
@@ -124,3 +125,22 @@ def test_difficulty_is_that_of_a_real_ur5(twin, recorded):
     assert 0.9 < d["nominal_after_frame_mean_mm"] < 1.3           # real UR5: ≈1 mm
     assert 0.15 < d["classical_fit_mean_mm"]["test"] < 0.35       # non-geometric error remains
     assert d["classical_fit_mean_mm"]["test"] > 3 * recorded["noise_floor_mm"]
+
+
+def test_validation_campaign_is_the_same_arm_from_another_tracker_pose(twin, recorded):
+    """Half the validation poses in the default campaign's region, half at the side (joint 1 at
+    70-150°, never visited by the default campaign); measured from another tracker pose."""
+    v = recorded["validation"]
+    j = pd.read_csv(RAW / "validation" / "joints.csv")
+    t = pd.read_csv(RAW / "validation" / "tracker.csv")
+    assert len(j) == len(t) == sum(v["n"].values()) == 300 and (j.point_id == t.Name).all()
+    front, side = j.j1_deg[:150], j.j1_deg[150:]
+    default = pd.read_csv(RAW / "joints.csv").j1_deg
+    assert front.between(default.min() - 1, default.max() + 1).all()
+    assert side.min() > default.max() + 10
+    R = np.asarray(v["tracker_pose"]["R"])
+    assert np.degrees(np.arccos((np.trace(R.T @ twin.R) - 1) / 2)) > 10     # the tracker moved
+    moved = T.Twin(twin.seed, twin.errors, (R, np.asarray(v["tracker_pose"]["t"])))
+    q = j[JOINTS_DEG].to_numpy()
+    expected = moved.to_tracker(moved.expected_position(q))
+    assert np.linalg.norm(t[["X", "Y", "Z"]].to_numpy() - expected, axis=1).mean() < 0.1   # noise only

@@ -425,7 +425,7 @@ def generate(out_dir: Path | str = RAW, seed: int = SEED, params: dict | None = 
     vj, vt, (R, t) = twin.validation_campaign()
     vj.to_csv(vdir / "joints.csv", index=False, float_format="%.6f", lineterminator="\n")
     vt.to_csv(vdir / "tracker.csv", index=False, float_format="%.4f", lineterminator="\n")
-    record["validation"] = {"seed": VALIDATION["seed"], "n": VALIDATION["n"], "files": str(vdir),
+    record["validation"] = {"seed": VALIDATION["seed"], "n": VALIDATION["n"], "files": VALIDATION["dir"],
                             "regions": {k: REGIONS[k] for k in VALIDATION["n"]},
                             "tracker_pose": {"R": R.round(12).tolist(), "t": t.round(9).tolist()}}
     if params is not None:
