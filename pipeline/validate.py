@@ -14,6 +14,7 @@ import argparse
 
 import numpy as np
 import pandas as pd
+from scipy.spatial.transform import Rotation
 
 from .lib.artifacts import (CALIBRATED_GEOMETRY, FRAME_JSON, VALIDATION_DIR, VALIDATION_JSON, VALIDATION_TABLE,
                             WORKSPACE_JSON)
@@ -41,17 +42,26 @@ def campaign_settings(params: dict, name: str) -> dict:
     return c
 
 
-def commanded_positions(df: pd.DataFrame, spec: dict, name: str) -> np.ndarray:
-    """The commanded positions (n, 3) mm in the DH base frame, from the columns `spec` names (in `unit`,
-    in the controller's base frame, which is the DH base turned by `rz_deg` about z: 180 on a UR)."""
+def commanded_positions(df: pd.DataFrame, spec: dict, tool_mm, name: str) -> np.ndarray:
+    """Where the marker was commanded to be, (n, 3) mm in the DH base frame.
+
+    The campaign commands a TCP (`columns`, in `unit`) planned with `planned_tool_mm`; the marker
+    sits at the frame stage's tool_mm instead, so with the commanded orientation (`orientation`
+    columns, radians, scipy Euler `euler`) the marker's commanded position is
+    c + R (tool - planned_tool). The controller's base frame is the DH base turned by `rz_deg`
+    about z (180 on a UR).
+    """
     check_keys(spec, "validate.commanded")
-    missing = [c for c in spec["columns"] if c not in df.columns]
+    cols = spec["columns"] + (spec["orientation"] or [])
+    missing = [c for c in cols if c not in df.columns]
     if missing:
         raise ValueError(f"params.yaml validate.campaigns.{name}.commanded: column(s) {missing} not in the "
                          f"campaign; it has {list(df.columns)}")
     c = df[spec["columns"]].to_numpy(float) * {"mm": 1.0, "m": 1000.0}[spec["unit"]]
-    a = np.radians(spec["rz_deg"])
-    return c @ np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]]).T
+    if spec["orientation"]:
+        R = Rotation.from_euler(spec["euler"], df[spec["orientation"]].to_numpy(float)).as_matrix()
+        c = c + np.einsum("nij,j->ni", R, np.asarray(tool_mm, float) - np.asarray(spec["planned_tool_mm"], float))
+    return c @ Rotation.from_euler("z", spec["rz_deg"], degrees=True).as_matrix().T
 
 
 def run_campaign(params: dict, name: str) -> dict:
@@ -74,8 +84,8 @@ def run_campaign(params: dict, name: str) -> dict:
     out["ingest"] = {k: ingested[k] for k in ("n_read", "n_kept", "dropped", "dropped_counts")}
     if c["commanded"]:
         measured = {m: (P - frames[m]["t"]) @ frames[m]["R"] for m in METHODS}   # each method's base frame
-        out["position_accuracy"] = position_accuracy(commanded_positions(df, c["commanded"], name),
-                                                     measured, pred, ~registered)
+        commanded = commanded_positions(df, c["commanded"], read_json(FRAME_JSON)["tool_mm"], name)
+        out["position_accuracy"] = position_accuracy(commanded, measured, pred, ~registered)
     VALIDATION_DIR.mkdir(parents=True, exist_ok=True)
     table.to_parquet(VALIDATION_DIR / f"{name}.parquet", index=False)
     write_json(VALIDATION_DIR / f"{name}.json", out)

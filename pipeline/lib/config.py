@@ -31,7 +31,7 @@ SECTIONS = {
     "workspace": ("radius_quantile", "coverage"),
     "validate": ("register_points", "campaigns"),
     "validate.campaign": ("ingest", "frame", "commanded"),
-    "validate.commanded": ("columns", "unit", "rz_deg"),
+    "validate.commanded": ("columns", "unit", "rz_deg", "orientation", "euler", "planned_tool_mm"),
     "compensate": ("solver", "lr", "max_iter", "tol_mse", "tol_mm", "jacobian_of", "drive_check",
                    "twin", "drive_seed"),
     "ablation": ("seeds", "max_epochs"),

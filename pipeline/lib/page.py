@@ -259,7 +259,7 @@ def section_compensation(comp: dict | None, drive) -> str:
                           "residual mean mm", "residual max mm", "ms / point"], rows))
         rt = comp.get("realtime")
         if rt:
-            out += [f"Single poses through the controller path (`pipeline/realtime.py`, two model "
+            out += [f"Single poses through the controller path (`pipeline/lib/realtime.py`, two model "
                     f"evaluations per call): {100 * rt['verified_share']:.0f} % verified by the second "
                     f"evaluation, {100 * rt['converged_share']:.0f} % converged, residual max "
                     f"{fmt(rt['true_residual_mm_max'])} mm measured; where not verified, "

@@ -24,9 +24,11 @@ API
     twin.noise_floor_mm                 # 3D MAE a perfect model still shows (Monte Carlo)
     twin.campaign(n=724)                # (joints_df, tracker_df, misreads {id: offset mm}),
                                         # the tables in DATA_FORMAT.md format
+    twin.validation_campaign()          # a second campaign: tracker moved, poses front and side
 
-`python -m pipeline.twin` (generate) writes data/raw/{joints.csv, tracker.csv, twin.json}:
-twin.json holds the seed, the true errors, the noise floor, the misread ids and
+`python -m pipeline.twin` (generate) writes data/raw/{joints.csv, tracker.csv, twin.json}
+and data/raw/validation/{joints.csv, tracker.csv}: twin.json holds the seed, the true
+errors, the noise floor, the misread ids, the validation campaign's tracker pose and
 the measured difficulty (nominal DH after the frame fit; classical calibration).
 """
 from functools import cached_property
