@@ -85,7 +85,8 @@ def run_campaign(params: dict, name: str) -> dict:
     if c["commanded"]:
         measured = {m: (P - frames[m]["t"]) @ frames[m]["R"] for m in METHODS}   # each method's base frame
         commanded = commanded_positions(df, c["commanded"], read_json(FRAME_JSON)["tool_mm"], name)
-        out["position_accuracy"] = position_accuracy(commanded, measured, pred, ~registered)
+        out["position_accuracy"] = position_accuracy(commanded, df[c["commanded"]["columns"]].to_numpy(float),
+                                                     measured, pred, ~registered)
     VALIDATION_DIR.mkdir(parents=True, exist_ok=True)
     table.to_parquet(VALIDATION_DIR / f"{name}.parquet", index=False)
     write_json(VALIDATION_DIR / f"{name}.json", out)

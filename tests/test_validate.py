@@ -14,7 +14,7 @@ from pipeline.lib.config import load_params, write_json
 from pipeline.lib.kinematics import fk_numpy, nominal_geometry, save_geometry
 from pipeline.lib.robots import nominal_robot
 from pipeline.lib.training import make_model
-from pipeline.lib.validation import judge, registration_subset, summary
+from pipeline.lib.validation import judge, position_accuracy, registration_subset, summary
 from pipeline.lib.workspace import Workspace
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -112,3 +112,17 @@ def test_campaign_needs_its_own_files(project):
     del project["validate"]["campaigns"]["moved"]["ingest"]["tracker"]
     with pytest.raises(ValueError, match=r"validate.campaigns.moved.ingest: needs tracker"):
         validate.run_campaign(project, "moved")
+
+
+def test_position_accuracy_worked_example():
+    """Two commanded positions, each reached 3 times; the robot lands 1 mm off in x at the first
+    (spread ±0.5 mm in y), exactly at the second; a method predicting exactly the measurements."""
+    c = np.array([[0, 0, 0]] * 3 + [[100, 0, 0]] * 3, float)
+    x = c + np.array([[1, -0.5, 0], [1, 0, 0], [1, 0.5, 0], [0, 0, 0], [0, 0, 0], [0, 0, 0]])
+    group = c.copy()
+    pa = position_accuracy(c, group, {"m": x}, {"m": x + [0, 0, 0.2]}, np.ones(6, bool))["m"]
+    assert pa["positions"] == 2
+    assert pa["ap_measured_mm"] == pytest.approx((1 + 0) / 2)
+    assert pa["rp_measured_mm"] == pytest.approx((0.5 + 0 + 0.5) / 3 / 2)
+    assert pa["bar_error_mm"] == pytest.approx(0.2)
+    assert pa["ap_predicted_mm"] == pytest.approx((np.hypot(1, 0.2) + 0.2) / 2)

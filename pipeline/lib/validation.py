@@ -15,11 +15,13 @@ measured it in its tracker's frame. Two ways to compare them:
             registered alike.
 
 ISO 9283 position accuracy where the campaign commands one position several
-times (a `commanded` column group): per commanded position c with attained
-positions x_i (base frame), AP_P = |mean(x_i) - c| and the spread
-RP = mean |x_i - mean(x_i)|, both from the measurements and from each
-method's predictions, and bar_error = |predicted mean - measured mean|: how
-well the method knows where the robot really goes for that command.
+times (a `commanded` column group): per commanded position, with the
+deviations d_i = x_i - c_i of the attained marker positions from where the
+command put the marker (its orientation may differ between visits),
+AP_P = |mean d_i| and the spread RP = mean |d_i - mean d|, both from the
+measurements and from each method's predictions, and bar_error =
+|predicted mean - measured mean|: how well the method knows where the robot
+really goes for that command.
 """
 import numpy as np
 import pandas as pd
@@ -89,28 +91,33 @@ def summary(table: pd.DataFrame, mode: str, n_register: int) -> dict:
     }
 
 
-def position_accuracy(commanded: np.ndarray, measured: dict, pred: dict, judged: np.ndarray) -> dict:
+def position_accuracy(commanded: np.ndarray, group: np.ndarray, measured: dict, pred: dict,
+                      judged: np.ndarray) -> dict:
     """ISO 9283 AP_P and RP per method, measured and predicted, averaged over commanded positions.
 
-    commanded (m, 3) base frame mm; measured {method: (m, 3) base frame, in that method's frame};
-    pred {method: (m, 3)}; only judged points, positions reached at least twice.
+    commanded (m, 3): each point's commanded marker position (base frame, mm); group (m, k): what
+    was commanded (points with equal rows reached the same commanded position, maybe in another
+    joint configuration and orientation); measured {method: (m, 3) in that method's base frame};
+    pred {method: (m, 3)}. Per position, with deviations d_i = x_i - c_i: AP_P = |mean d_i|,
+    RP = mean |d_i - mean d|, bar_error = |mean(pred) - mean(measured)|. Judged points only,
+    positions reached at least twice.
     """
-    keys = np.round(commanded[judged], 3)
-    _, group = np.unique(keys, axis=0, return_inverse=True)
-    group = group.ravel()
+    _, g = np.unique(np.round(group[judged], 6), axis=0, return_inverse=True)
+    g = g.ravel()
+    c = commanded[judged]
     out = {}
     for m in pred:
         rows = {"ap_measured": [], "ap_predicted": [], "rp_measured": [], "rp_predicted": [], "bar_error": []}
-        for g in np.unique(group):
-            idx = np.flatnonzero(group == g)
+        for k in np.unique(g):
+            idx = np.flatnonzero(g == k)
             if len(idx) < 2:
                 continue
-            c = commanded[judged][idx[0]]
             bars = {}
             for kind, x in (("measured", measured[m][judged][idx]), ("predicted", pred[m][judged][idx])):
-                bars[kind] = x.mean(0)
-                rows[f"ap_{kind}"].append(np.linalg.norm(bars[kind] - c))
-                rows[f"rp_{kind}"].append(np.linalg.norm(x - bars[kind], axis=1).mean())
+                d = x - c[idx]
+                bars[kind] = d.mean(0)
+                rows[f"ap_{kind}"].append(np.linalg.norm(bars[kind]))
+                rows[f"rp_{kind}"].append(np.linalg.norm(d - bars[kind], axis=1).mean())
             rows["bar_error"].append(np.linalg.norm(bars["predicted"] - bars["measured"]))
         out[m] = {"positions": len(rows["ap_measured"]),        # means over the commanded positions
                   **{f"{k}_mm": (float(np.mean(v)) if v else None) for k, v in rows.items()}}
