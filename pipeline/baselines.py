@@ -2,8 +2,10 @@
 
     calibrated_dh        classical kinematic calibration alone (calibrate stage's geometry)
     dnn                  the paper's DNN baseline: an MLP from joint angles to the error
+                         (opt-in: baselines.dnn)
     spi_boter_<other>    SPI-BoTER on the physics branch the main model does not use
-                         (opt-in: baselines.other_physics; the paper's comparison)
+                         (opt-in: baselines.other_physics)
+The opt-in ones are the paper's comparison, one `-S` away; `bench real` trains them.
 
 Writes data/interim/baselines.parquet (point_id, <name>_x, <name>_y, <name>_z)
 for evaluate, and reports/baselines_train.json.
@@ -33,8 +35,9 @@ def run(params: dict) -> dict:
         out[[f"{name}_{a}" for a in "xyz"]] = pred
 
     add("calibrated_dh", fk_numpy(df[JOINTS_DEG].to_numpy(), None, physics_geometry(params, "calibrated")))
-    dnn, summary["dnn"] = train_dnn(params, df, physics_geometry(params, "nominal"))
-    add("dnn", predict(dnn.eval(), df))
+    if cfg["dnn"]:
+        dnn, summary["dnn"] = train_dnn(params, df, physics_geometry(params, "nominal"))
+        add("dnn", predict(dnn.eval(), df))
     if cfg["other_physics"]:
         other = "calibrated" if params["model"]["physics"] == "nominal" else "nominal"
         alt = copy.deepcopy(params)
@@ -43,9 +46,9 @@ def run(params: dict) -> dict:
         add(f"spi_boter_{other}", predict(model.eval(), df))
     out.to_parquet(BASELINES_TABLE, index=False)
     write_json(BASELINES_JSON, summary)
-    log.info("baselines on %d points: %s", len(df),
-             {k: f"best val 3D MAE {v['best_val_mae_3d_mm']:.4f} mm at epoch {v['best_epoch']}"
-              for k, v in summary.items()})
+    log.info("baselines on %d points: calibrated_dh%s", len(df),
+             "".join(f", {k} (best val 3D MAE {v['best_val_mae_3d_mm']:.4f} mm at epoch {v['best_epoch']})"
+                     for k, v in summary.items()))
     return summary
 
 

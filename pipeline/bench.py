@@ -90,6 +90,7 @@ def run_set(name: str, seeds: list[int], epochs: int | None, other_physics: bool
             for i, seed in enumerate(seeds):
                 p = copy.deepcopy(params)
                 p["model"]["init_seed"], p["train"]["seed"] = seed, seed
+                p["baselines"]["dnn"] = True
                 p["baselines"]["other_physics"] = other_physics and i == 0   # first seed only
                 for name_ in ("train", "baselines", "evaluate"):
                     stage(name_, p)

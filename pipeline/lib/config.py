@@ -27,7 +27,7 @@ SECTIONS = {
               "alpha0", "dropout", "init_seed"),
     "loss": ("weighting", "physics", "lambda_data", "lambda_physics"),
     "train": ("lr", "weight_decay", "batch_size", "grad_clip", "max_epochs", "patience", "seed"),
-    "baselines": ("other_physics",),
+    "baselines": ("dnn", "other_physics"),
     "workspace": ("radius_quantile", "coverage"),
     "validate": ("register_points", "campaigns"),
     "validate.campaign": ("ingest", "frame", "commanded"),
