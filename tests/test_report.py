@@ -17,6 +17,7 @@ from pipeline.lib.kinematics import nominal_geometry
 from pipeline.lib.metrics import drive_table, regression_metrics
 from pipeline.lib.robots import nominal_robot
 from pipeline.lib.training import make_model
+from pipeline.lib.validation import summary
 
 ROOT = Path(__file__).resolve().parents[1]
 SMALL_MODEL = {"d_model": 12, "n_head": 2, "n_layer": 2, "d_hidden": 16}
@@ -90,6 +91,16 @@ def write_inputs(root: Path, params: dict, optional: bool = True) -> pd.DataFram
          "dropped": [{"point_id": "P0001", "file": "joints.csv", "row": 3, "reason": "duplicate",
                       "detail": "id already used"}]}))
     (root / "reports/baselines.md").write_text("| method (test) | 3D MAE mm |\n|---|---|\n| x | 1.0 |\n")
+    inside = np.arange(40) < 25                            # a validation campaign, 15 points outside
+    val = pd.DataFrame({"point_id": [f"V{i:04d}" for i in range(40)], "campaign": "moved",
+                        "registered": np.arange(40) < 5, "error_nominal_mm": rng.uniform(0.5, 2, 40),
+                        "error_calibrated_mm": rng.uniform(0.1, 0.4, 40),
+                        "error_model_mm": np.where(inside, 0.1, 0.3), "uncertainty_mm": 0.15,
+                        "in_workspace": inside})
+    val.to_parquet(root / "reports/validation.parquet", index=False)
+    (root / "reports/validation.json").write_text(json.dumps({"campaigns": {"moved": summary(val, "refit", 5)
+                                                                            | {"ingest": {"n_kept": 40,
+                                                                               "dropped": [], "dropped_counts": {}}}}}))
     return df
 
 
@@ -116,6 +127,9 @@ def test_report_writes_every_figure_index_and_ply(tmp_path, monkeypatch):
     df = write_inputs(tmp_path, params)
     (tmp_path / "reports/ablation.json").write_text("{not json")   # the report must not read it
     out = report.run(params)
+    text = (tmp_path / "reports/index.md").read_text()
+    assert "### `moved`" in text and "**57% of them lie inside the joint-space coverage" in text
+    assert "the model extrapolates" in text
 
     assert out["figures"] == {name: "ok" for name in figures.FIGURES}
     for name in figures.FIGURES:
@@ -153,7 +167,8 @@ def test_missing_optional_inputs_are_skipped_with_a_note(tmp_path, monkeypatch):
     out = report.run(params)
 
     skipped = {n for n, s in out["figures"].items() if s != "ok"}
-    assert skipped == {"training_curves", "attention_maps", "compensation_convergence", "drive_check"}
+    assert skipped == {"training_curves", "attention_maps", "compensation_convergence", "drive_check",
+                       "validation"}
     for name in figures.FIGURES:
         assert (plots / f"{name}.png").exists() == (name not in skipped)
     index = tmp_path / "reports/index.md"
