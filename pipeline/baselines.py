@@ -16,7 +16,7 @@ import pandas as pd
 
 from .lib.artifacts import BASELINES_JSON, BASELINES_TABLE, load_points
 from .lib.columns import JOINTS_DEG
-from .lib.config import load_params, logger, section, write_json
+from .lib.config import load_params, logger, section, sections, write_json
 from .lib.geometry import physics_geometry
 from .lib.kinematics import fk_numpy
 from .lib.training import predict, train_boter, train_dnn
@@ -25,8 +25,7 @@ log = logger(__name__)
 
 
 def run(params: dict) -> dict:
-    for name in ("robot", "model", "loss", "train"):
-        section(params, name)
+    sections(params, "robot", "model", "loss", "train")
     cfg = section(params, "baselines")
     df = load_points()
     out, summary = pd.DataFrame({"point_id": df["point_id"]}), {}

@@ -21,7 +21,7 @@ import pandas as pd
 from .lib.artifacts import (COMPENSATION_CSV, COMPENSATION_JSON, COMPENSATION_PARQUET, CONVERGENCE_CSV,
                             DRIVE_CSV, FRAME_JSON, REPORTS, WORKSPACE_JSON, load_points)
 from .lib.columns import COMPENSATION, DJ_DEG, JCOMP_DEG, JOINTS_DEG, PRED, TARGET, THEORY
-from .lib.config import load_params, logger, read_json, section, write_json
+from .lib.config import load_params, logger, read_json, sections, write_json
 from .lib.realtime import Realtime, check
 from .lib.robots import load_robot
 from .lib.solvers import SOLVERS, compensate
@@ -90,8 +90,7 @@ def convergence_table(histories: dict) -> pd.DataFrame:
 
 
 def run(params: dict) -> dict:
-    section(params, "robot"), section(params, "model")
-    cfg = section(params, "compensate")
+    *_, cfg = sections(params, "robot", "model", "compensate")
     table, summary, histories = solve(params, test_targets())
     table.to_csv(COMPENSATION_CSV, index=False, float_format="%.6f")
     table.to_parquet(COMPENSATION_PARQUET, index=False)
@@ -122,7 +121,7 @@ def main(argv=None):
     params = load_params()
     if a.targets is None:
         return run(params)
-    section(params, "robot"), section(params, "model"), section(params, "compensate")
+    sections(params, "robot", "model", "compensate")
     table, summary, _ = solve(params, read_targets(a.targets))
     out = REPORTS / f"compensation_{Path(a.targets).stem}.csv"
     table.to_csv(out, index=False, float_format="%.6f")

@@ -19,7 +19,7 @@ import pandas as pd
 from .lib.artifacts import (BASELINES_MD, BASELINES_TABLE, METRICS_JSON, PREDICTIONS_TABLE, WORKSPACE_JSON,
                             load_points)
 from .lib.columns import JOINTS_DEG, MEAS, PRED, SPLITS, THEORY
-from .lib.config import load_params, logger, section, write_json
+from .lib.config import load_params, logger, sections, write_json
 from .lib.metrics import split_metrics
 from .lib.training import load_model, predict
 from .lib.workspace import Workspace
@@ -39,8 +39,7 @@ def markdown_table(baselines: dict, split: str = "test") -> str:
 
 
 def run(params: dict) -> dict:
-    section(params, "robot"), section(params, "model")
-    cfg = section(params, "workspace")
+    *_, cfg = sections(params, "robot", "model", "workspace")
     df = load_points()
     pred = predict(load_model(params), df)
     err = np.linalg.norm(pred - df[MEAS].to_numpy(), axis=1)
@@ -50,7 +49,8 @@ def run(params: dict) -> dict:
     write_json(WORKSPACE_JSON, ws.to_dict())
     out = df[["point_id", "split"] + JOINTS_DEG + THEORY + MEAS].copy()
     out[PRED] = pred
-    out["uncertainty_mm"], out["in_workspace"] = ws(q)
+    u, inside = ws(q)
+    out["uncertainty_mm"], out["in_workspace"] = u, inside
     out.to_parquet(PREDICTIONS_TABLE, index=False)
 
     metrics = split_metrics(df, pred)
@@ -62,14 +62,14 @@ def run(params: dict) -> dict:
         methods.setdefault(stem, base[[f"{stem}_{a}" for a in "xyz"]].to_numpy())
     metrics["baselines"] = {k: split_metrics(df, v) for k, v in methods.items()}
     metrics["model"] = name
-    metrics["uncertainty"] = {s: {"coverage": float((err[m] <= out["uncertainty_mm"].to_numpy()[m]).mean()),
-                                  "in_workspace_share": float(out["in_workspace"].to_numpy()[m].mean()),
-                                  "uncertainty_mm_mean": float(out["uncertainty_mm"].to_numpy()[m].mean())}
+    metrics["uncertainty"] = {s: {"coverage": float((err[m] <= u[m]).mean()),
+                                  "in_workspace_share": float(inside[m].mean()),
+                                  "uncertainty_mm_mean": float(u[m].mean())}
                               for s in SPLITS if (m := (df.split == s).to_numpy()).any()}
     metrics["uncertainty"]["target_coverage"] = cfg["coverage"]
     write_json(METRICS_JSON, metrics)
     table = markdown_table(metrics["baselines"])
-    (BASELINES_MD).write_text(table)
+    BASELINES_MD.write_text(table)
     log.info("evaluated %s on %s points\n%s", name,
              {s: int((df.split == s).sum()) for s in SPLITS}, table)
     log.info("workspace: radius %.1f deg over joints %s, u0 %.4f mm; test: %.0f%% in the workspace, "

@@ -5,14 +5,14 @@ file); pairing, units, checks and the dropped-row list are lib/readers.py's.
 Writes the table and reports/ingest.json (every dropped row with its reason).
 """
 from .lib.artifacts import INGEST_JSON, INGEST_TABLE
-from .lib.config import load_params, logger, section, write_json
+from .lib.config import load_params, logger, sections, write_json
 from .lib.readers import ingest
 
 log = logger(__name__)
 
 
 def run(params: dict) -> dict:
-    section(params, "robot"), section(params, "ingest")
+    sections(params, "robot", "ingest")
     df, summary = ingest(params)
     INGEST_TABLE.parent.mkdir(parents=True, exist_ok=True)
     df.to_parquet(INGEST_TABLE, index=False)

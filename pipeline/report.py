@@ -20,7 +20,7 @@ from .lib.artifacts import (BASELINES_MD, CALIBRATION_JSON, COMPENSATION_JSON, C
                             FRAME_JSON, INGEST_JSON, LIVE, METRICS_JSON, MODEL_WEIGHTS, PREDICTIONS_TABLE,
                             REPORTS, SPLIT_JSON, THEORY_JSON, TRAIN_JSON, VALIDATION_JSON, VALIDATION_TABLE)
 from .lib.columns import MEAS, PRED, THEORY
-from .lib.config import load_params, logger, read_json, section
+from .lib.config import load_params, logger, read_json, sections
 from .lib.training import load_model
 
 log = logger(__name__)
@@ -94,8 +94,7 @@ class Context:
 
 
 def run(params: dict) -> dict:
-    for name in ("robot", "model", "compensate"):
-        section(params, name)
+    sections(params, "robot", "model", "compensate")
     ctx = Context(params)
     figs = figures.render_figures(ctx, PLOTS)
     ply = figures.write_ply(ctx, PLY)

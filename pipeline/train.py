@@ -9,7 +9,7 @@ import torch
 from dvclive import Live
 
 from .lib.artifacts import LIVE, MODEL_WEIGHTS, TRAIN_JSON, load_points
-from .lib.config import load_params, logger, section, write_json
+from .lib.config import load_params, logger, sections, write_json
 from .lib.geometry import physics_geometry
 from .lib.training import train_boter
 
@@ -17,8 +17,7 @@ log = logger(__name__)
 
 
 def run(params: dict) -> dict:
-    for name in ("robot", "model", "loss", "train"):
-        section(params, name)
+    sections(params, "robot", "model", "loss", "train")
     df = load_points()
     geometry = physics_geometry(params, params["model"]["physics"])
     with Live(dir=str(LIVE), save_dvc_exp=False, dvcyaml=False) as live:

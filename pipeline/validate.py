@@ -19,7 +19,7 @@ from scipy.spatial.transform import Rotation
 from .lib.artifacts import (CALIBRATED_GEOMETRY, FRAME_JSON, VALIDATION_DIR, VALIDATION_JSON, VALIDATION_TABLE,
                             WORKSPACE_JSON)
 from .lib.columns import JOINTS_DEG, MEAS
-from .lib.config import check_keys, load_params, logger, read_json, section, write_json
+from .lib.config import check_keys, load_params, logger, read_json, section, sections, write_json
 from .lib.geometry import theory_geometry
 from .lib.kinematics import fk_numpy, load_geometry
 from .lib.presets import deep_merge
@@ -65,7 +65,7 @@ def commanded_positions(df: pd.DataFrame, spec: dict, tool_mm, name: str) -> np.
 
 
 def run_campaign(params: dict, name: str) -> dict:
-    section(params, "robot"), section(params, "model"), section(params, "frame")
+    *_, frame_cfg, cfg = sections(params, "robot", "model", "frame", "validate")
     c = campaign_settings(params, name)
     df, ingested = ingest(deep_merge(params, {"ingest": c["ingest"]}))
     q = df[JOINTS_DEG].to_numpy()
@@ -74,17 +74,17 @@ def run_campaign(params: dict, name: str) -> dict:
             "calibrated": fk_numpy(q, robot, load_geometry(CALIBRATED_GEOMETRY)),
             "model": predict(load_model(params), df)}
     P = df[MEAS].to_numpy()
-    errors, registered, frames = judge(pred, P, c["frame"], read_json(FRAME_JSON),
-                                       params["validate"]["register_points"], params["frame"])
+    frame = read_json(FRAME_JSON)
+    errors, registered, frames = judge(pred, P, c["frame"], frame, cfg["register_points"], frame_cfg)
     u, inside = Workspace.from_dict(read_json(WORKSPACE_JSON))(q)
     table = pd.DataFrame({"point_id": df.point_id, "campaign": name, "registered": registered,
                           **{f"error_{m}_mm": errors[m] for m in METHODS},
                           "uncertainty_mm": u, "in_workspace": inside})
-    out = summary(table, c["frame"], params["validate"]["register_points"])
+    out = summary(table, c["frame"])
     out["ingest"] = {k: ingested[k] for k in ("n_read", "n_kept", "dropped", "dropped_counts")}
     if c["commanded"]:
         measured = {m: (P - frames[m]["t"]) @ frames[m]["R"] for m in METHODS}   # each method's base frame
-        commanded = commanded_positions(df, c["commanded"], read_json(FRAME_JSON)["tool_mm"], name)
+        commanded = commanded_positions(df, c["commanded"], frame["tool_mm"], name)
         out["position_accuracy"] = position_accuracy(commanded, df[c["commanded"]["columns"]].to_numpy(float),
                                                      measured, pred, ~registered)
     VALIDATION_DIR.mkdir(parents=True, exist_ok=True)
@@ -120,7 +120,10 @@ def main(argv=None):
     ap.add_argument("name", nargs="?", help="campaign name (with `campaign`)")
     a = ap.parse_args(argv)
     params = load_params()
-    run_campaign(params, a.name) if a.what == "campaign" else run_summary(params)
+    if a.what == "campaign":
+        run_campaign(params, a.name)
+    else:
+        run_summary(params)
 
 
 if __name__ == "__main__":

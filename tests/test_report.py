@@ -98,7 +98,7 @@ def write_inputs(root: Path, params: dict, optional: bool = True) -> pd.DataFram
                         "error_model_mm": np.where(inside, 0.1, 0.3), "uncertainty_mm": 0.15,
                         "in_workspace": inside})
     val.to_parquet(root / "reports/validation.parquet", index=False)
-    (root / "reports/validation.json").write_text(json.dumps({"campaigns": {"moved": summary(val, "refit", 5)
+    (root / "reports/validation.json").write_text(json.dumps({"campaigns": {"moved": summary(val, "refit")
                                                                             | {"ingest": {"n_kept": 40,
                                                                                "dropped": [], "dropped_counts": {}}}}}))
     return df

@@ -37,7 +37,7 @@ def test_refit_recovers_a_known_frame_and_judges_only_the_other_points():
     assert errors["nominal"][~registered].max() < 0.06               # judged: noise only
     table = pd.DataFrame({"registered": registered, "in_workspace": True, "uncertainty_mm": 0.1,
                           **{f"error_{m}_mm": errors["nominal"] for m in ("nominal", "calibrated", "model")}})
-    s = summary(table, "refit", 30)
+    s = summary(table, "refit")
     assert s["n_judged"] == 170 and s["n_register"] == 30
     assert s["max_3d_mm"]["nominal"] == pytest.approx(errors["nominal"][~registered].max())
     assert s["max_3d_mm"]["nominal"] < 0.06                        # the 25 mm misread was not judged

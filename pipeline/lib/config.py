@@ -67,6 +67,11 @@ def section(params: dict, name: str) -> dict:
     return cfg
 
 
+def sections(params: dict, *names: str) -> list[dict]:
+    """The sections `names`, each checked by `section`."""
+    return [section(params, n) for n in names]
+
+
 def load_params(path: Path | str = PARAMS) -> dict:
     with open(path) as f:
         return yaml.safe_load(f)

@@ -72,7 +72,7 @@ def stats(e: np.ndarray) -> dict:
     return {"n": int(len(e)), "mean": float(e.mean()), "p95": float(np.percentile(e, 95)), "max": float(e.max())}
 
 
-def summary(table: pd.DataFrame, mode: str, n_register: int) -> dict:
+def summary(table: pd.DataFrame, mode: str) -> dict:
     """validation.json's entry for one campaign (DATA_FORMAT.md keys, then the in/out split)."""
     j = table[~table.registered]
     s = {m: stats(j[f"error_{m}_mm"].to_numpy()) for m in METHODS}
