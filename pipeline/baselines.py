@@ -25,7 +25,7 @@ log = logger(__name__)
 
 
 def run(params: dict) -> dict:
-    sections(params, "robot", "model", "loss", "train")
+    sections(params, "robot", "model", "loss", "train", "workspace")
     cfg = section(params, "baselines")
     df = load_points()
     out, summary = pd.DataFrame({"point_id": df["point_id"]}), {}

@@ -17,7 +17,7 @@ log = logger(__name__)
 
 
 def run(params: dict) -> dict:
-    sections(params, "robot", "model", "loss", "train")
+    sections(params, "robot", "model", "loss", "train", "workspace")
     df = load_points()
     geometry = physics_geometry(params, params["model"]["physics"])
     with Live(dir=str(LIVE), save_dvc_exp=False, dvcyaml=False) as live:

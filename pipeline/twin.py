@@ -14,8 +14,8 @@ def run(params: dict) -> dict:
     rec = generate(RAW, SEED, params)
     d = rec["difficulty"]
     log.info("twin seed %d: wrote %s; noise floor %.4f mm; nominal DH after frame %.3f mm mean; "
-             "classical fit %.3f mm mean (test); misreads %s", SEED, RAW, rec["noise_floor_mm"],
-             d["nominal_after_frame_mean_mm"], d["classical_fit_mean_mm"]["test"],
+             "classical fit %.3f mm mean (test; rigid DH %.3f); misreads %s", SEED, RAW, rec["noise_floor_mm"],
+             d["nominal_after_frame_mean_mm"], d["classical_fit_mean_mm"]["test"], d["rigid_fit_mean_mm"]["test"],
              list(rec["misreads"]))
     return rec
 

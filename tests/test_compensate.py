@@ -20,7 +20,7 @@ def model():
     """A small BoTER whose network term is large (α = 1): a strongly non-nominal forward model."""
     torch.manual_seed(0)
     m = BoTER(nominal_geometry(ROBOT), d_model=12, n_layer=1, n_head=2, d_hidden=32, mask="spi",
-              head="resnet", encoder=True, alpha0=0.1, dropout=0.0)
+              head="resnet", encoder=True, alpha0=0.1, dropout=0.0, fade_to=None)
     with torch.no_grad():
         m.alpha.fill_(1.0)
     return m.eval()

@@ -73,14 +73,24 @@ def test_custom_robot_and_bad_tables():
 def test_geometric_jacobian_equals_autograd_with_every_error_term():
     g = nominal_geometry(load_robot({"model": "ur5", "tool_mm": [1.0, -2.0, 100.0], "dh": None, "joint_limits_deg": None}))
     gen = torch.Generator().manual_seed(3)
-    g = {k: v + 1e-2 * torch.randn(v.shape, generator=gen, dtype=torch.float64) for k, v in g.items()}
+    rigid = {k: v + 1e-2 * torch.randn(v.shape, generator=gen, dtype=torch.float64)
+             if k not in ("compliance", "mass", "com") else v for k, v in g.items()}
     q = (torch.rand(8, 6, generator=gen, dtype=torch.float64) * 2 - 1) * 3
-    p, J = fk_jacobian(q, g)
-    torch.testing.assert_close(p, fk(q, g), rtol=0, atol=1e-12)
+    p, J = fk_jacobian(q, rigid)
+    torch.testing.assert_close(p, fk(q, rigid), rtol=0, atol=1e-12)
     for k in range(3):
         qk = q.clone().requires_grad_(True)
-        (grad,) = torch.autograd.grad(fk(qk, g)[:, k].sum(), qk)
+        (grad,) = torch.autograd.grad(fk(qk, rigid)[:, k].sum(), qk)
         torch.testing.assert_close(J[:, k], grad, rtol=0, atol=1e-9)        # J ~ 1e2-1e3 mm/rad
+    # a compliant arm (UR-like 1e4 N·m/rad): the position is exact, the Jacobian leaves out only
+    # compliance * dtau/dq, under 1 % of the whole
+    elastic = {**rigid, "compliance": torch.full((6,), 1e-4, dtype=torch.float64)}
+    p, J = fk_jacobian(q, elastic)
+    torch.testing.assert_close(p, fk(q, elastic), rtol=0, atol=1e-12)
+    assert (p - fk(q, rigid)).norm(dim=1).max() > 0.05                      # the sag is there
+    qk = q.clone().requires_grad_(True)
+    J_auto = torch.func.vmap(torch.func.jacrev(lambda x: fk(x[None], elastic)[0]))(qk.detach())
+    assert (J - J_auto).norm() < 0.01 * J_auto.norm()
     # nominal UR5: joint 6 turns the tool (1, -2, 100) about the flange z axis, on a radius of √5 mm
     p, J = fk_jacobian(q, nominal_geometry(load_robot({"model": "ur5", "tool_mm": [1.0, -2.0, 100.0], "dh": None, "joint_limits_deg": None})))
     torch.testing.assert_close(J[:, :, 5].norm(dim=1), torch.full((8,), 5 ** 0.5, dtype=torch.float64))

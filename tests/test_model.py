@@ -1,4 +1,5 @@
-"""BoTER: the eq. 4 mask exactly, the mask really blocking attention, shapes, config checks."""
+"""BoTER: the eq. 4 mask exactly, the mask really blocking attention, shapes, config checks, the fade."""
+import numpy as np
 import pytest
 import torch
 
@@ -8,9 +9,9 @@ from pipeline.lib.robots import nominal_robot
 
 G = nominal_geometry(nominal_robot("ur5"))
 SMALL = dict(d_model=12, n_layer=1, n_head=2, d_hidden=16, head="resnet", encoder=True, alpha0=0.1,
-             dropout=0.0)
+             dropout=0.0, fade_to=None)
 CFG = {"d_model": 126, "n_layer": 4, "n_head": 9, "d_hidden": 512, "mask": "spi",
-       "head": "resnet", "physics": "nominal"}
+       "head": "resnet", "physics": "nominal", "fade_to": 2.0}
 
 
 def test_spi_mask_is_eq4():
@@ -60,8 +61,35 @@ def test_forward_fuses_physics_and_alpha_delta():
     ({"head": "mlp"}, "unknown head 'mlp'"),
     ({"d_model": 0}, "model.d_model must be a positive integer"),
     ({"physics": "learned"}, "model.physics: 'learned'"),
+    ({"fade_to": 1.0}, "model.fade_to: a number of workspace radii > 1 or null"),
 ])
 def test_invalid_configs_stop_with_a_clear_message(change, message):
     with pytest.raises(ValueError, match=message):
         check_config({**CFG, **change})
     check_config(CFG)
+
+
+def test_correction_fades_away_from_the_training_poses():
+    """Within the workspace radius the full correction, beyond fade_to radii the physics alone,
+    linear between; the training poses travel in the state dict (and size it on load)."""
+    torch.manual_seed(0)
+    m = BoTER(G, mask="spi", **{**SMALL, "fade_to": 2.0}).eval()
+    train = np.zeros((3, 6))
+    train[:, 0] = [0.0, 10.0, 20.0]                                  # deg, along joint 1
+    m.fade.fit(train, radius_deg=10.0)
+    q = np.zeros((5, 6))
+    q[:, 0] = [10.0, 25.0, 35.0, 45.0, -170.0]                       # 0, 0.5, 1.5, 2.5 and 17 radii away
+    q[:, 5] = 90.0                                                   # joint 6 is not part of the distance
+    qt = torch.as_tensor(np.radians(q))
+    w = m.fade(qt)[:, 0].numpy()
+    np.testing.assert_allclose(w, [1.0, 1.0, 0.5, 0.0, 0.0], atol=1e-12)
+    full = BoTER(G, mask="spi", **SMALL).eval()
+    full.load_state_dict({k: v for k, v in m.state_dict().items() if not k.startswith("fade.")}, strict=False)
+    torch.testing.assert_close(m.delta(qt), full.delta(qt) * torch.as_tensor(w)[:, None])
+    p, p_th = m(qt)
+    torch.testing.assert_close(p[3:], p_th[3:], rtol=0, atol=0)      # far away: the physics, exactly
+    again = BoTER(G, mask="spi", **{**SMALL, "fade_to": 2.0})
+    again.load_state_dict(m.state_dict())
+    torch.testing.assert_close(again.eval()(qt)[0], p)
+    m.train()                                                        # training sees the raw correction
+    torch.testing.assert_close(m.delta(qt), full.train().delta(qt))

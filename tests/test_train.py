@@ -14,7 +14,8 @@ from pipeline.lib.training import mae_3d, tensors, train_boter
 PARAMS = {
     "robot": {"model": "ur5", "tool_mm": [0.0, 0.0, 0.0], "dh": None, "joint_limits_deg": None},
     "model": {"d_model": 12, "n_layer": 1, "n_head": 2, "d_hidden": 16, "mask": "spi", "head": "resnet",
-              "encoder": True, "physics": "nominal", "alpha0": 0.1, "dropout": 0.1, "init_seed": 3},
+              "encoder": True, "physics": "nominal", "alpha0": 0.1, "dropout": 0.1, "fade_to": None, "init_seed": 3},
+    "workspace": {"radius_quantile": 0.99, "coverage": 0.9},
     "loss": {"weighting": "uncertainty", "physics": True, "lambda_data": 1.0, "lambda_physics": 1.0},
     "train": {"lr": 1e-3, "weight_decay": 1e-6, "batch_size": 32, "grad_clip": 1.0, "max_epochs": 15,
               "patience": 5, "seed": 3},

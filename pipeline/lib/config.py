@@ -24,7 +24,7 @@ SECTIONS = {
     "split": ("seed", "fractions"),
     "calibrate": ("loss", "loss_scale_mm", "params", "tilt_joints", "rank_tol", "tol", "max_nfev"),
     "model": ("d_model", "n_layer", "n_head", "d_hidden", "mask", "head", "encoder", "physics",
-              "alpha0", "dropout", "init_seed"),
+              "alpha0", "dropout", "fade_to", "init_seed"),
     "loss": ("weighting", "physics", "lambda_data", "lambda_physics"),
     "train": ("lr", "weight_decay", "batch_size", "grad_clip", "max_epochs", "patience", "seed"),
     "baselines": ("dnn", "other_physics"),

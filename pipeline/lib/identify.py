@@ -1,4 +1,4 @@
-"""Classical kinematic calibration: identify the geometry (the baseline the network must beat).
+"""Classical elasto-geometric calibration: identify the geometry (the baseline the network must beat).
 
 Identifies small corrections to the geometry (pipeline.kinematics) from
 measured positions in the base frame:
@@ -6,11 +6,14 @@ measured positions in the base frame:
     beta                  Ry tilt of the parallel axes (`tilt_joints`)
     tool                  marker offset in the flange frame
     base                  base-frame correction [rx, ry, rz, tx, ty, tz]
+    compliance            joint compliance under the links' gravity torques (kinematics.deflected):
+                          the configuration-dependent sag of the arm, reported also as stiffness
 by robust trust-region least squares (scipy `least_squares`, Jacobian from
 torch autograd of `fk`). Before solving, parameters the data cannot tell
 apart are found by column-pivoted QR of the column-scaled Jacobian and kept
 at nominal (delta 0): e.g. d1 vs base tz, offset1 vs base rz, d2/d3/d4 on
-the parallel axes.
+the parallel axes; compliance of joint 1 (its axis is vertical: no gravity torque) and of
+joint 6 (the flange's centre of mass lies on its axis).
 
 The identified geometry is written and read back by kinematics.save_geometry / load_geometry.
 """
@@ -22,7 +25,7 @@ import torch
 from scipy.optimize import least_squares
 
 from .kinematics import DTYPE, GEOMETRY_KEYS, fk
-GROUPS = ("d", "a", "alpha", "offset", "beta", "tool", "base")
+GROUPS = ("d", "a", "alpha", "offset", "beta", "tool", "base", "compliance")
 BASE_NAMES = ["rx", "ry", "rz", "tx", "ty", "tz"]
 TOOL_NAMES = ["x", "y", "z"]
 
@@ -37,6 +40,8 @@ def parameter_spec(cfg: dict) -> list[tuple[str, str, int]]:
             raise ValueError(f"params.yaml calibrate.params: unknown group {grp!r}; use {GROUPS}")
         if grp in ("d", "a", "alpha", "offset"):
             spec += [(f"{grp}{j + 1}", grp, j) for j in range(6)]
+        elif grp == "compliance":
+            spec += [(f"c{j + 1}", grp, j) for j in range(6)]
         elif grp == "beta":
             tilt = cfg["tilt_joints"]
             if not set(tilt) <= set(range(1, 7)):
@@ -50,13 +55,13 @@ def parameter_spec(cfg: dict) -> list[tuple[str, str, int]]:
 
 
 def is_angular(key: str, index: int) -> bool:
-    """Angles are rad internally and reported in degrees; lengths in mm."""
-    return key in ("alpha", "offset", "beta") or (key == "base" and index < 3)
+    """Angles are rad internally and reported in degrees (compliance in deg/(N·m)); lengths in mm."""
+    return key in ("alpha", "offset", "beta", "compliance") or (key == "base" and index < 3)
 
 
 def selectors(spec) -> dict:
     """Per geometry key, a (size, P) 0/1 matrix placing the parameter vector's deltas."""
-    sizes = {"d": 6, "a": 6, "alpha": 6, "offset": 6, "beta": 6, "tool": 3, "base": 6}
+    sizes = {"d": 6, "a": 6, "alpha": 6, "offset": 6, "beta": 6, "tool": 3, "base": 6, "compliance": 6}
     S = {k: torch.zeros(n, len(spec), dtype=DTYPE) for k, n in sizes.items()}
     for p, (_, key, i) in enumerate(spec):
         S[key][i, p] = 1.0
@@ -64,8 +69,8 @@ def selectors(spec) -> dict:
 
 
 def apply_deltas(x: torch.Tensor, g0: dict, S: dict) -> dict:
-    """Geometry g0 + deltas x (mm / rad), differentiable in x."""
-    return {k: g0[k] + S[k] @ x for k in GEOMETRY_KEYS}
+    """Geometry g0 + deltas x (mm / rad), differentiable in x (masses are never identified)."""
+    return {k: g0[k] + S[k] @ x if k in S else g0[k] for k in GEOMETRY_KEYS}
 
 
 def jacobian(q: torch.Tensor, x: torch.Tensor, g0: dict, S: dict) -> torch.Tensor:
@@ -173,8 +178,11 @@ def identify(q: torch.Tensor | np.ndarray, p_meas: np.ndarray, geometry0: dict, 
     estimates = {}
     for k, (name, key, i) in enumerate([s for s, kk in zip(spec, keep) if kk]):
         f = np.degrees(1.0) if is_angular(key, i) else 1.0
-        estimates[name] = {"delta": float(sol.x[k] * f), "se": float(se[k] * f),
-                           "unit": "deg" if f != 1.0 else "mm"}
+        unit = "deg/(N·m)" if key == "compliance" else "deg" if f != 1.0 else "mm"
+        estimates[name] = {"delta": float(sol.x[k] * f), "se": float(se[k] * f), "unit": unit}
+    # compliance as the stiffness a robot datasheet quotes (N·m/rad): 1 / (c0 + delta)
+    c = geometry["compliance"].numpy()
+    stiffness = {f"k{j + 1}": float(1.0 / c[j]) for j in range(6) if f"c{j + 1}" in estimates and c[j] > 0}
     with torch.no_grad():
         before = errors_3d(fk(q, g0).numpy(), p_meas)
         after = errors_3d(fk(q, geometry).numpy(), p_meas)
@@ -183,6 +191,7 @@ def identify(q: torch.Tensor | np.ndarray, p_meas: np.ndarray, geometry0: dict, 
         "identified": [n for n, k in zip(names, keep) if k],
         "fixed": ident["fixed"],
         "estimates": estimates,
+        "stiffness_Nm_per_rad": stiffness,
         "condition_number": ident["condition"],
         "rank": ident["rank"], "n_candidates": P,
         "residual_sigma_mm": float(np.sqrt(sigma2)),

@@ -11,6 +11,15 @@ Geometry keys (all float64 tensors):
                                 parallel-axis tilt (Hayati) standard DH cannot express
     tool                  (3,)  marker offset in the flange frame, mm
     base                  (6,)  small base-frame correction [rx, ry, rz (rad), tx, ty, tz (mm)]
+    compliance            (6,)  joint compliance, rad/(N·m): under the gravity torque tau_i(q)
+                                of the links it carries, joint i turns by compliance_i * tau_i
+                                (the elasto-geometric model; 0 = rigid)
+    mass, com             (6,), (6, 3)  link masses (kg) and centres of mass (mm, link DH frame):
+                                robot data (robots.py), never identified
+
+Every chain function first deflects the joints (`deflected`): q -> q + c * tau(q),
+tau from the nominal-to-date geometry at the commanded q (the deflection is
+≤0.3°, so tau at the deflected q differs by a second-order amount).
 """
 import numpy as np
 import torch
@@ -20,7 +29,8 @@ from .config import read_json, write_json
 from .robots import Robot
 
 DTYPE = torch.float64
-GEOMETRY_KEYS = ("d", "a", "alpha", "offset", "beta", "tool", "base")
+GEOMETRY_KEYS = ("d", "a", "alpha", "offset", "beta", "tool", "base", "compliance", "mass", "com")
+GRAVITY = (0.0, 0.0, -9.80665)          # m/s² in the robot's base frame: the arm stands level
 
 
 def nominal_geometry(robot: Robot) -> dict:
@@ -28,7 +38,8 @@ def nominal_geometry(robot: Robot) -> dict:
     t = lambda v: torch.as_tensor(np.asarray(v, dtype=float), dtype=DTYPE)
     return {"d": t(robot.d), "a": t(robot.a), "alpha": t(robot.alpha),
             "offset": t(robot.offset), "beta": torch.zeros(6, dtype=DTYPE),
-            "tool": t(robot.tool), "base": torch.zeros(6, dtype=DTYPE)}
+            "tool": t(robot.tool), "base": torch.zeros(6, dtype=DTYPE),
+            "compliance": torch.zeros(6, dtype=DTYPE), "mass": t(robot.mass), "com": t(robot.com)}
 
 
 def rotation_xyz(r: torch.Tensor) -> torch.Tensor:
@@ -69,9 +80,41 @@ def dh_matrices(q: torch.Tensor, g: dict) -> torch.Tensor:
     return torch.stack(rows, -2)                           # (B, 6, 4, 4)
 
 
-def fk_frames(q: torch.Tensor, g: dict) -> list[torch.Tensor]:
-    """Cumulative frames T_1, T_1 T_2, ..., T_1..T_6: six (B, 4, 4) poses in the base frame."""
+def link_frames(q: torch.Tensor, g: dict) -> torch.Tensor:
+    """Frames 0..6 of the rigid chain (no deflection) in the base frame: (B, 6) rad -> (B, 7, 4, 4)."""
     T = dh_matrices(q, g)
+    F = [torch.eye(4, dtype=T.dtype).expand(len(q), 4, 4)]
+    for i in range(6):
+        F.append(F[-1] @ T[:, i])
+    return torch.stack(F, 1)
+
+
+def gravity_torques(q: torch.Tensor, g: dict) -> torch.Tensor:
+    """Static gravity torque about each joint axis (N·m), (B, 6) rad -> (B, 6).
+
+    tau_i = z_{i-1} · sum_{k >= i} (c_k - o_{i-1}) x (m_k g), with joint i turning
+    about z of frame i-1 and link k (its centre of mass c_k) carried by frame k.
+    """
+    F = link_frames(q, g)                                                     # (B, 7, 4, 4)
+    c = torch.einsum("bkij,kj->bki", F[:, 1:, :3, :3], g["com"]) + F[:, 1:, :3, 3]   # (B, 6, 3) mm
+    f = g["mass"][:, None] * torch.tensor(GRAVITY, dtype=c.dtype)            # (6, 3) N
+    tau = []
+    for i in range(6):
+        z, o = F[:, i, :3, 2], F[:, i, :3, 3]                                 # joint i+1 axis, origin
+        moment = torch.linalg.cross(c[:, i:] - o[:, None], f[i:].expand_as(c[:, i:]), dim=-1).sum(1)
+        tau.append((z * moment).sum(-1) / 1000.0)                             # N·mm -> N·m
+    return torch.stack(tau, -1)
+
+
+def deflected(q: torch.Tensor, g: dict) -> torch.Tensor:
+    """Joint angles the arm takes under its own weight: q + compliance * tau(q), (B, 6) rad."""
+    return q + g["compliance"] * gravity_torques(q, g)
+
+
+def fk_frames(q: torch.Tensor, g: dict) -> list[torch.Tensor]:
+    """Cumulative frames T_1, T_1 T_2, ..., T_1..T_6: six (B, 4, 4) poses in the base frame
+    (joints deflected under gravity by the geometry's compliance)."""
+    T = dh_matrices(deflected(q, g), g)
     frames = [T[:, 0]]
     for i in range(1, 6):
         frames.append(frames[-1] @ T[:, i])
@@ -99,7 +142,9 @@ def fk_jacobian(q: torch.Tensor, g: dict) -> tuple[torch.Tensor, torch.Tensor]:
 
     Joint i turns about the z axis of the frame before it (T_i starts with Rz),
     so column i is z_{i-1} x (p - o_{i-1}), with frame 0 the base; the base
-    correction then rotates every column. One FK pass, no autograd (whose three
+    correction then rotates every column. The joint deflection's own derivative
+    (compliance * dtau/dq, ≤1e-3 of the identity) is left out: solvers iterate on
+    the exact position, so it only slows them by a hair. One FK pass, no autograd (whose three
     backward passes cost about five times as much at batch 1).
     """
     frames = fk_frames(q, g)

@@ -2,7 +2,11 @@
 
     q (B, 6) rad ──► DHChain ───────────────────────────────► p_theory (B, 3)
           └────► JointEmbedding (B, 6, d) ► Encoder(mask) ► Head ► Δp (B, 3)
-    p_pred = p_theory + α·Δp                                      (eq. 9)
+    p_pred = p_theory + w(q)·α·Δp                                 (eq. 9)
+
+w(q) (workspace.Fade, eval mode only) is 1 near the training poses and fades to 0 at
+`fade_to` workspace radii from them: outside the joint space it learned from, the
+model falls back on the physics it sits on instead of extrapolating (w = 1 is the paper).
 
 The physics branch runs in float64 (positions ~1 m, wanted to 1e-3 mm); the
 network in float32 (it only learns the ~1 mm error, and float32 trains 1.6x
@@ -14,6 +18,7 @@ import torch
 from torch import nn
 
 from .kinematics import DTYPE, DHChain
+from .workspace import Fade
 
 # eq. 4, row i = query joint i, True = may not attend (SPEC.md)
 SPI_MASK = [[0, 0, 0, 0, 0, 0],
@@ -55,6 +60,9 @@ def check_config(cfg: dict) -> None:
         raise ValueError(f"params.yaml model: n_head={cfg['n_head']} does not divide d_model={d} "
                          f"(multi-head attention splits d_model into n_head equal parts); "
                          f"n_head could be {[h for h in range(1, d + 1) if d % h == 0][:12]}")
+    if cfg["fade_to"] is not None and not (isinstance(cfg["fade_to"], (int, float)) and cfg["fade_to"] > 1):
+        raise ValueError(f"params.yaml model.fade_to: a number of workspace radii > 1 or null, "
+                         f"got {cfg['fade_to']!r}")
     if cfg["physics"] not in ("nominal", "calibrated"):
         raise ValueError(f"params.yaml model.physics: {cfg['physics']!r}; use nominal or calibrated")
 
@@ -96,7 +104,8 @@ class ResidualHead(nn.Module):
 
 class BoTER(nn.Module):
     def __init__(self, geometry: dict, *, d_model: int, n_layer: int, n_head: int, d_hidden: int,
-                 mask: str, head: str, encoder: bool, alpha0: float, dropout: float):
+                 mask: str, head: str, encoder: bool, alpha0: float, dropout: float,
+                 fade_to: float | None):
         """The `model:` section's settings (params.yaml owns the values)."""
         super().__init__()
         self.physics = DHChain(geometry)
@@ -107,12 +116,14 @@ class BoTER(nn.Module):
             n_layer, enable_nested_tensor=False) if encoder else None
         self.head = ResidualHead(6 * d_model, d_hidden, shortcut=(head == "resnet"))
         self.alpha = nn.Parameter(torch.tensor(float(alpha0)))   # eq. 9, trainable
+        self.fade = Fade(fade_to)                          # fitted to the training poses by training
 
-    def delta(self, q):                                    # (B, 6) rad -> α·Δp (B, 3), float64
+    def delta(self, q):                                    # (B, 6) rad -> w·α·Δp (B, 3), float64
         x = self.embed(q.float())                          # (B, 6, d)
         if self.encoder is not None:
             x = self.encoder(x, mask=self.mask, is_causal=False)   # (B, 6, d); skips a causal-mask probe
-        return (self.alpha * self.head(x.flatten(1))).to(DTYPE)   # (B, 6d) -> (B, 3)
+        dp = (self.alpha * self.head(x.flatten(1))).to(DTYPE)     # (B, 6d) -> (B, 3)
+        return dp if self.training else dp * self.fade(q)
 
     def forward(self, q):
         """q (B, 6) rad -> (p_pred, p_theory), both (B, 3) mm in the base frame."""

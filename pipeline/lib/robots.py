@@ -14,32 +14,43 @@ from .config import check_keys
 PI2 = np.pi / 2
 
 # CB3 nominal tables (SPEC.md). Joint limits are the controller's software
-# limits (±360° on every UR joint).
+# limits (±360° on every UR joint). Link masses (kg) and centres of mass (mm, in
+# each link's own DH frame) after Universal Robots' "Parameters for calculations
+# of kinematics and dynamics": the gravity torques of the elasto-geometric
+# calibration (kinematics.gravity_torques) are computed from them.
 TABLES = {
     "ur5": dict(
         d=[89.159, 0.0, 0.0, 109.15, 94.65, 82.3],
         a=[0.0, -425.0, -392.25, 0.0, 0.0, 0.0],
         alpha=[PI2, 0.0, 0.0, PI2, -PI2, 0.0],
         limits_deg=[[-360.0, 360.0]] * 6,
+        mass=[3.7, 8.393, 2.33, 1.219, 1.219, 0.1879],
+        com=[[0.0, -25.61, 1.93], [212.5, 0.0, 113.36], [150.0, 0.0, 26.5],
+             [0.0, -1.8, 16.34], [0.0, 1.8, 16.34], [0.0, 0.0, -1.159]],
     ),
     "ur10": dict(
         d=[127.3, 0.0, 0.0, 163.941, 115.7, 92.2],
         a=[0.0, -612.0, -572.3, 0.0, 0.0, 0.0],
         alpha=[PI2, 0.0, 0.0, PI2, -PI2, 0.0],
         limits_deg=[[-360.0, 360.0]] * 6,
+        mass=[7.1, 12.7, 4.27, 2.0, 2.0, 0.365],
+        com=[[21.0, 0.0, 27.0], [380.0, 0.0, 158.0], [240.0, 0.0, 68.0],
+             [0.0, 7.0, 18.0], [0.0, 7.0, 18.0], [0.0, 0.0, -26.0]],
     ),
 }
 
 
 @dataclass
 class Robot:
-    """A six-joint arm: nominal standard-DH table, joint limits, tool (marker) offset."""
+    """A six-joint arm: nominal standard-DH table, joint limits, link masses, tool (marker) offset."""
     name: str
     d: np.ndarray                 # (6,) mm
     a: np.ndarray                 # (6,) mm
     alpha: np.ndarray             # (6,) rad
     offset: np.ndarray            # (6,) rad, joint zero offsets
     limits_deg: np.ndarray        # (6, 2) min, max
+    mass: np.ndarray              # (6,) kg per link (custom: 0, no gravity torques)
+    com: np.ndarray               # (6, 3) mm, each link's centre of mass in its DH frame
     tool: np.ndarray = field(default_factory=lambda: np.zeros(3))  # (3,) mm, in the flange frame
 
     @property
@@ -70,7 +81,8 @@ def load_robot(cfg: dict) -> Robot:
             raise ValueError(f"params.yaml robot.dh: custom robot needs {missing} "
                              f"(keys d, a, alpha_deg, offset_deg)")
         table = dict(d=dh["d"], a=dh["a"], alpha=np.radians(dh["alpha_deg"]),
-                     offset=np.radians(dh["offset_deg"]), limits_deg=[[-360.0, 360.0]] * 6)
+                     offset=np.radians(dh["offset_deg"]), limits_deg=[[-360.0, 360.0]] * 6,
+                     mass=[0.0] * 6, com=[[0.0] * 3] * 6)
     elif name in TABLES:
         table = dict(TABLES[name], offset=[0.0] * 6)
     else:
@@ -79,7 +91,7 @@ def load_robot(cfg: dict) -> Robot:
     if cfg["joint_limits_deg"] is not None:
         table["limits_deg"] = cfg["joint_limits_deg"]
     arr = {k: np.asarray(v, dtype=float) for k, v in table.items()}
-    for k in ("d", "a", "alpha", "offset"):
+    for k in ("d", "a", "alpha", "offset", "mass"):
         if arr[k].shape != (6,):
             raise ValueError(f"params.yaml robot: {k} must have 6 entries, got {arr[k].shape}")
     if arr["limits_deg"].shape != (6, 2):

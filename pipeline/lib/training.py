@@ -18,6 +18,7 @@ from .geometry import physics_geometry
 from .kinematics import DTYPE
 from .loss import SPILoss, data_loss
 from .model import DNN, BoTER, check_config, n_params
+from .workspace import workspace_radius
 
 
 def tensors(df: pd.DataFrame) -> tuple[torch.Tensor, torch.Tensor]:
@@ -34,7 +35,7 @@ def make_model(cfg: dict, geometry: dict, kind: str = "boter"):
         return DNN(geometry)
     return BoTER(geometry, d_model=cfg["d_model"], n_layer=cfg["n_layer"], n_head=cfg["n_head"],
                  d_hidden=cfg["d_hidden"], mask=cfg["mask"], head=cfg["head"], encoder=cfg["encoder"],
-                 alpha0=cfg["alpha0"], dropout=cfg["dropout"])
+                 alpha0=cfg["alpha0"], dropout=cfg["dropout"], fade_to=cfg["fade_to"])
 
 
 def load_model(params: dict) -> BoTER:
@@ -104,6 +105,8 @@ def fit(model, loss_fn, train, val, cfg: dict, live=None, desc="train", progress
 def train_boter(params: dict, df: pd.DataFrame, geometry: dict, live=None, progress=True):
     """Build and train BoTER with the SPI loss on df's train split; returns (model, summary)."""
     model = make_model(params["model"], geometry)
+    train_q = df.loc[df.split == "train", JOINTS_DEG].to_numpy()
+    model.fade.fit(train_q, workspace_radius(train_q, params["workspace"]["radius_quantile"]))
     loss_fn = SPILoss(**params["loss"])
     train, val = tensors(df[df.split == "train"]), tensors(df[df.split == "val"])
     hist = fit(model, loss_fn, train, val, params["train"], live, "SPI-BoTER", progress)

@@ -43,7 +43,7 @@ from .columns import JOINTS_DEG
 from .config import read_json, write_json
 from .frames import robust_kabsch, to_base
 from .identify import identify
-from .kinematics import DTYPE, dh_matrices, fk, nominal_geometry
+from .kinematics import DTYPE, GRAVITY, fk, gravity_torques, link_frames, nominal_geometry
 from .metrics import drive_table
 from .robots import nominal_robot
 from .splits import split_indices
@@ -53,17 +53,19 @@ SEED = 724
 RAW = Path("data/raw")
 N_POINTS = 724
 N_MISREADS = 5
-GRAVITY = np.array([0.0, 0.0, -9.80665])      # m/s², base frame: the UR5 stands level on its table
 
-# UR5 link masses (kg; the last includes the marker mount) and centres of mass in
-# each link's own DH frame (mm), after Universal Robots' published dynamics table.
+# The true arm's link masses (kg; the last includes the marker mount) and centres of
+# mass in each link's own DH frame (mm): Universal Robots' published table (robots.py),
+# rounded, as a real arm differs from its datasheet.
 LINK_MASS = np.array([3.7, 8.4, 2.3, 1.2, 1.2, 0.25])
 LINK_COM = np.array([[0.0, -25.61, 1.93], [212.5, 0.0, 113.36], [150.0, 0.0, 26.5],
                      [0.0, -1.8, 16.34], [0.0, 1.8, 16.34], [0.0, 0.0, -1.159]])
 
 # Magnitudes, tuned so that the campaign is as hard as a real UR5 (measured into
-# twin.json): nominal DH is ≈1.1 mm off after the frame fit, and a classical DH
-# calibration still leaves ≈0.24 mm (test split) of non-geometric error.
+# twin.json): nominal DH is ≈1.1 mm off after the frame fit, and a rigid DH
+# calibration still leaves ≈0.24 mm (test split) of non-geometric error; an
+# elasto-geometric one (joint compliance under gravity) explains the sag and leaves
+# the gear error, ≈0.075 mm, above the noise floor (≈0.056 mm).
 # Each geometric parameter is drawn as sign * U(lo, hi) from the "errors" stream.
 RANGES = {
     "d_mm": (0.07, 0.35), "a_mm": (0.07, 0.35),
@@ -142,7 +144,8 @@ def zero_errors() -> dict:
 
 
 def true_geometry(errors: dict, robot=None) -> dict:
-    """Nominal UR5 geometry plus the geometric errors (kinematics geometry dict)."""
+    """Nominal UR5 geometry plus the geometric errors (kinematics geometry dict), the true
+    link masses; rigid (the twin applies its joint compliance itself, relative to its zero pose)."""
     g = nominal_geometry(robot or ur5())
     t = lambda v: torch.as_tensor(np.asarray(v, float), dtype=DTYPE)
     return {**g,
@@ -150,7 +153,7 @@ def true_geometry(errors: dict, robot=None) -> dict:
             "alpha": g["alpha"] + t(np.radians(errors["alpha_deg"])),
             "offset": g["offset"] + t(np.radians(errors["offset_deg"])),
             "beta": g["beta"] + t(np.radians(errors["beta_deg"])),
-            "tool": g["tool"] + t(errors["tool_mm"])}
+            "tool": g["tool"] + t(errors["tool_mm"]), "mass": t(LINK_MASS), "com": t(LINK_COM)}
 
 
 def sample_tracker_pose(seed: int = SEED) -> tuple[np.ndarray, np.ndarray]:
@@ -163,33 +166,6 @@ def sample_tracker_pose(seed: int = SEED) -> tuple[np.ndarray, np.ndarray]:
 
 
 # ----------------------------------------------------------------------------- physics
-
-def link_frames(q: torch.Tensor, g: dict) -> torch.Tensor:
-    """Frames 0..6 of the chain in the base frame: (B, 6) rad -> (B, 7, 4, 4)."""
-    T = dh_matrices(q, g)
-    F = [torch.eye(4, dtype=DTYPE).expand(len(q), 4, 4)]
-    for i in range(6):
-        F.append(F[-1] @ T[:, i])
-    return torch.stack(F, 1)
-
-
-def gravity_torques(q: torch.Tensor, g: dict) -> torch.Tensor:
-    """Static gravity torque about each joint axis (N·m), (B, 6) rad -> (B, 6).
-
-    tau_i = z_{i-1} · sum_{k >= i} (c_k - o_{i-1}) x (m_k g), with joint i turning
-    about z of frame i-1 and link k (its centre of mass c_k) carried by frame k.
-    """
-    F = link_frames(q, g)                                           # (B, 7, 4, 4)
-    com = torch.as_tensor(LINK_COM, dtype=DTYPE)
-    c = torch.einsum("bkij,kj->bki", F[:, 1:, :3, :3], com) + F[:, 1:, :3, 3]   # (B, 6, 3) mm
-    f = torch.as_tensor(LINK_MASS[:, None] * GRAVITY, dtype=DTYPE)              # (6, 3) N
-    tau = []
-    for i in range(6):
-        z, o = F[:, i, :3, 2], F[:, i, :3, 3]                       # joint i+1 axis and origin
-        moment = torch.cross(c[:, i:] - o[:, None], f[i:].expand_as(c[:, i:]), dim=-1).sum(1)
-        tau.append((z * moment).sum(-1) / 1000.0)                   # N·mm -> N·m
-    return torch.stack(tau, -1)
-
 
 def gear_error_rad(q: np.ndarray, amp_deg: np.ndarray, phase: np.ndarray) -> np.ndarray:
     """Periodic transmission error: sum over h = 1, 2 of A_h sin(h q + phi_h), rad."""
@@ -349,8 +325,9 @@ def difficulty(joints: pd.DataFrame, tracker: pd.DataFrame, params: dict,
 
     1. robust Kabsch frame (eqs. 20-26) of nominal DH (tool 0) on the tracker points;
     2. nominal DH error after that frame (mean 3D, inliers);
-    3. classical calibration (identify.identify) on the SPEC split's train
-       points; its mean 3D error on train/val/test, and vs the noise-free truth.
+    3. classical calibration (identify.identify, params' groups: elasto-geometric by
+       default) on the SPEC split's train points; its mean 3D error on train/val/test, and
+       vs the noise-free truth; the same without the compliance group (rigid).
     """
     q_deg = joints[JOINTS_DEG].to_numpy()
     P = tracker[["X", "Y", "Z"]].to_numpy()
@@ -364,15 +341,20 @@ def difficulty(joints: pd.DataFrame, tracker: pd.DataFrame, params: dict,
     keep = np.flatnonzero(inl)
     idx = split_indices(len(keep), params["split"]["fractions"], params["split"]["seed"])
     train = keep[idx["train"]]
-    geo, rep = identify(q[train], meas[train], nominal_geometry(ur5()), params["calibrate"])
+    cfg = params["calibrate"]
+    geo, rep = identify(q[train], meas[train], nominal_geometry(ur5()), cfg)
+    rigid, _ = identify(q[train], meas[train], nominal_geometry(ur5()),
+                        {**cfg, "params": [p for p in cfg["params"] if p != "compliance"]})
     with torch.no_grad():
         e_cal = np.linalg.norm(fk(q, geo).numpy() - meas, axis=1)
+        e_rigid = np.linalg.norm(fk(q, rigid).numpy() - meas, axis=1)
     out = {
         "frame_outliers": joints["point_id"][~inl].tolist(),
         "nominal_after_frame_mean_mm": float(e_nom.mean()),
         "nominal_after_frame_rms_mm": float(np.sqrt((e_nom ** 2).mean())),
         "nominal_after_frame_max_mm": float(e_nom.max()),
         "classical_fit_mean_mm": {k: float(e_cal[keep[v]].mean()) for k, v in idx.items()},
+        "rigid_fit_mean_mm": {k: float(e_rigid[keep[v]].mean()) for k, v in idx.items()},
         "classical_fit_identified": rep["identified"],
         "classical_fit_fixed": sorted(rep["fixed"]),
     }
@@ -398,7 +380,7 @@ def twin_record(twin: Twin, misreads: dict) -> dict:
                   "R marker + t + N(0, tracker_sigma) (+ misread offset)"),
         "true_geometry": {k: v.numpy().round(12).tolist() for k, v in twin.geometry.items()},
         "zero_pose_deg": ZERO_POSE_DEG,
-        "gravity_m_s2": GRAVITY.tolist(),
+        "gravity_m_s2": list(GRAVITY),
         "link_mass_kg": LINK_MASS.tolist(),
         "link_com_mm": LINK_COM.tolist(),
         "tracker_pose": {"R": twin.R.round(12).tolist(), "t": twin.t.round(9).tolist(),

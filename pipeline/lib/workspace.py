@@ -14,28 +14,70 @@ not cover it. Angles are wrapped: 350° and -10° are the same angle.
                   validation-split 3D errors: inside, the model errs less than u0 on that share of poses;
                   outside, the estimate grows with the distance (the network extrapolates, the
                   error it adds grows with it). Its coverage is measured, not assumed (validate, report).
+    fade(q)       the network's correction weight (`Fade`, inside BoTER): 1 within radius_deg,
+                  falling linearly to 0 at `fade_to` radii, so far from every training pose the
+                  model is the calibrated physics it sits on.
 """
 import numpy as np
+import torch
+from torch import nn
 
 JOINTS = [0, 1, 2, 3, 4]                                   # joints 1-5 (0-based)
 
 
-def wrapped(a_deg: np.ndarray) -> np.ndarray:
-    """Angle differences wrapped to (-180, 180] degrees."""
-    return (np.asarray(a_deg, float) + 180.0) % 360.0 - 180.0
+def wrapped(a_deg):
+    """Angle differences wrapped to [-180, 180) degrees (numpy or torch)."""
+    return (a_deg + 180.0) % 360.0 - 180.0
 
 
-def nearest_distance(q_deg: np.ndarray, ref_deg: np.ndarray, chunk: int = 2048,
-                     leave_one_out: bool = False) -> np.ndarray:
-    """Distance (deg) from each pose q (n, 6) to the nearest of ref (m, 6), over JOINTS, wrapped."""
-    q, ref = np.asarray(q_deg, float)[:, JOINTS], np.asarray(ref_deg, float)[:, JOINTS]
-    out = np.empty(len(q))
+def nearest_distance(q_deg, ref_deg, chunk: int = 1024, leave_one_out: bool = False):
+    """Distance (deg) from each pose q (n, 6) to the nearest of ref (m, 6), over JOINTS, wrapped.
+
+    Tensors in, a tensor out (differentiable, exportable); arrays in, an array out.
+    """
+    as_numpy = not isinstance(q_deg, torch.Tensor)
+    q = torch.as_tensor(np.array(q_deg, float) if as_numpy else q_deg)[:, JOINTS]
+    ref = torch.as_tensor(np.array(ref_deg, float) if as_numpy else ref_deg)[:, JOINTS].to(q.dtype)
+    out = []
     for s in range(0, len(q), chunk):
-        d = np.linalg.norm(wrapped(q[s:s + chunk, None] - ref[None]), axis=-1)   # (c, m)
+        d = wrapped(q[s:s + chunk, None] - ref[None]).norm(dim=-1)               # (c, m)
         if leave_one_out:
-            d[np.arange(len(d)), s + np.arange(len(d))] = np.inf
-        out[s:s + chunk] = d.min(1)
-    return out
+            d[torch.arange(len(d)), s + torch.arange(len(d))] = torch.inf
+        out.append(d.min(1).values)
+    out = torch.cat(out)
+    return out.numpy() if as_numpy else out
+
+
+def workspace_radius(train_q_deg, quantile: float) -> float:
+    """The `radius_quantile` of the training poses' own (leave-one-out) nearest-neighbour distances."""
+    return float(np.quantile(nearest_distance(train_q_deg, train_q_deg, leave_one_out=True), quantile))
+
+
+class Fade(nn.Module):
+    """Weight of the network's correction: 1 within `radius` (deg) of a training pose, 0 beyond
+    `fade_to` radii, linear between; fade_to None: always 1 (the paper's model). Buffers, so the
+    training poses travel with the weights (sized from the state dict on load)."""
+
+    def __init__(self, fade_to: float | None):
+        super().__init__()
+        self.fade_to = fade_to
+        self.register_buffer("ref", torch.zeros(0, 6, dtype=torch.float64))   # (m, 6) deg
+        self.register_buffer("radius", torch.tensor(np.inf, dtype=torch.float64))
+
+    def fit(self, train_q_deg, radius_deg: float) -> None:
+        self.ref = torch.as_tensor(np.array(train_q_deg, float))
+        self.radius = torch.tensor(float(radius_deg), dtype=torch.float64)
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
+        if prefix + "ref" in state_dict:                    # the saved training poses set the size
+            self.ref = torch.empty_like(state_dict[prefix + "ref"])
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+
+    def forward(self, q):                                   # (B, 6) rad -> (B, 1)
+        if self.fade_to is None or len(self.ref) == 0:
+            return torch.ones(len(q), 1, dtype=q.dtype)
+        d = nearest_distance(torch.rad2deg(q.double()), self.ref) / self.radius     # (B,) in radii
+        return ((self.fade_to - d) / (self.fade_to - 1.0)).clamp(0.0, 1.0)[:, None].to(q.dtype)
 
 
 class Workspace:
@@ -49,8 +91,7 @@ class Workspace:
     def fit(cls, train_q_deg, val_error_mm, cfg: dict) -> "Workspace":
         """From the training poses (m, 6) deg, the model's 3D errors (mm) on the validation split and
         the `workspace:` section (radius_quantile, coverage)."""
-        nn = nearest_distance(train_q_deg, train_q_deg, leave_one_out=True)
-        return cls(train_q_deg, np.quantile(nn, cfg["radius_quantile"]),
+        return cls(train_q_deg, workspace_radius(train_q_deg, cfg["radius_quantile"]),
                    np.quantile(val_error_mm, cfg["coverage"]))
 
     def distance(self, q_deg) -> np.ndarray:
