@@ -9,7 +9,9 @@ seed 7) and reports test 3D MAE for
 nominal DH (no frame fit; only where the data are in the base frame), nominal
 after the frame fit, classical calibration, the DNN baseline and SPI-BoTER
 (on nominal and on calibrated physics), mean ± std over the training seeds,
-and the seeds' SPI-BoTER models averaged (an ensemble).
+and the seeds' SPI-BoTER models averaged (an ensemble); and, per seed, every
+`validate.campaigns` entry of the preset (e.g. ipa-ur10's Series_B): mean 3D
+error per method on the judged points, inside and outside the trained workspace.
 """
 import argparse
 import copy
@@ -27,7 +29,7 @@ import pandas as pd
 import torch
 import yaml
 
-from .lib.artifacts import INGEST_JSON, INGEST_TABLE, METRICS_JSON, PREDICTIONS_TABLE, load_points
+from .lib.artifacts import INGEST_JSON, INGEST_TABLE, METRICS_JSON, PREDICTIONS_TABLE, VALIDATION_DIR, load_points
 from .lib.columns import JOINTS_DEG, MEAS, PRED, TARGET
 from .lib.config import load_params, logger, read_json, write_json
 from .lib.geometry import physics_geometry
@@ -49,26 +51,56 @@ REAL_SETS = {"gtpn-ur5": {"base_frame": True}, "ipa-ur10": {"base_frame": False}
 def absolute_paths(params: dict) -> dict:
     """Input paths of the ingest section made absolute (from the project root)."""
     p = copy.deepcopy(params)
-    for k in ("joints", "tracker"):
-        p["ingest"][k] = str((ROOT / p["ingest"][k]).resolve())
+    for ingest in [p["ingest"]] + [c["ingest"] for c in (p["validate"]["campaigns"] or {}).values()]:
+        for k in ("joints", "tracker"):
+            ingest[k] = str((ROOT / ingest[k]).resolve())
     p["compensate"]["drive_check"] = False
     return p
 
 
-def stage(name: str, params: dict) -> None:
+def stage(name: str, params: dict, *args: str) -> None:
     """Run one stage as dvc repro would, on params written to ./params.yaml."""
     Path("params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
-    subprocess.run([sys.executable, "-m", f"pipeline.{name}"], check=True)
+    subprocess.run([sys.executable, "-m", f"pipeline.{name}", *args], check=True)
+
+
+def validation_runs(params: dict) -> dict:
+    """Every validate campaign of params, judged with the current models: mean 3D error per method
+    (all judged points, and inside / outside the trained workspace)."""
+    out = {}
+    for name in params["validate"]["campaigns"] or {}:
+        stage("validate", params, "campaign", name)
+        v = read_json(VALIDATION_DIR / f"{name}.json")
+        out[name] = {"n_judged": v["n_judged"], "frame": v["frame"], "in_workspace_share": v["in_workspace_share"],
+                     "mean_3d_mm": v["mean_3d_mm"],
+                     **{f"mean_3d_mm_{w}": {m: s["mean"] for m, s in v["by_workspace"][w].items()}
+                        for w in ("in", "out")}}
+    return out
+
+
+def overridden(params: dict, overrides: list[str]) -> dict:
+    """params with KEY=VALUE overrides applied (dotted keys, YAML values), as `dvc exp run -S`."""
+    p = copy.deepcopy(params)
+    for o in overrides:
+        key, sep, value = o.partition("=")
+        *path, last = key.split(".")
+        node = p
+        for k in path:
+            node = node.get(k) if isinstance(node, dict) else None
+        if not sep or not isinstance(node, dict) or last not in node:
+            raise ValueError(f"bench -S {o!r}: not KEY=VALUE with KEY an existing params.yaml key")
+        node[last] = yaml.safe_load(value)
+    return p
 
 
 def run_set(name: str, seeds: list[int], epochs: int | None, other_physics: bool = True,
-            on_seed=None) -> dict:
+            on_seed=None, overrides: list[str] = ()) -> dict:
     """The full pipeline on one real set, once per training seed.
 
     on_seed(partial summary) is called after every seed, so a long run that is
     stopped keeps the seeds it finished.
     """
-    params = absolute_paths(merged_params(name, load_params(ROOT / "params.yaml")))
+    params = absolute_paths(overridden(merged_params(name, load_params(ROOT / "params.yaml")), overrides))
     if epochs:
         params["train"]["max_epochs"] = epochs
     t0, cwd = time.perf_counter(), os.getcwd()
@@ -86,7 +118,7 @@ def run_set(name: str, seeds: list[int], epochs: int | None, other_physics: bool
                 robot = load_robot(params["robot"])
                 e = fk_numpy(raw[JOINTS_DEG].to_numpy(), robot) - raw[MEAS].to_numpy()
                 nominal = float(np.linalg.norm(e, axis=1).mean())
-            runs, preds = [], []
+            runs, preds, valid = [], [], []
             for i, seed in enumerate(seeds):
                 p = copy.deepcopy(params)
                 p["model"]["init_seed"], p["train"]["seed"] = seed, seed
@@ -94,6 +126,7 @@ def run_set(name: str, seeds: list[int], epochs: int | None, other_physics: bool
                 p["baselines"]["other_physics"] = other_physics and i == 0   # first seed only
                 for name_ in ("train", "baselines", "evaluate"):
                     stage(name_, p)
+                valid.append(validation_runs(p))
                 m = read_json(METRICS_JSON)["baselines"]
                 runs.append({k: v["test"]["3d"]["mae"] for k, v in m.items()})
                 pred = pd.read_parquet(PREDICTIONS_TABLE).set_index("point_id").loc[test.point_id]
@@ -101,19 +134,29 @@ def run_set(name: str, seeds: list[int], epochs: int | None, other_physics: bool
                 # the seeds' models averaged: a deep ensemble (n times the cost of one model)
                 ensemble = float(np.linalg.norm(np.mean(preds, 0) - test[MEAS].to_numpy(), axis=1).mean())
                 if on_seed:
-                    on_seed(set_summary(runs, ensemble, seeds[:i + 1], summary["ingest"], nominal, params, t0))
+                    on_seed(set_summary(runs, valid, ensemble, seeds[:i + 1], summary["ingest"], nominal,
+                                        params, t0))
         finally:
             os.chdir(cwd)
-    return set_summary(runs, ensemble, seeds, summary["ingest"], nominal, params, t0)
+    return set_summary(runs, valid, ensemble, seeds, summary["ingest"], nominal, params, t0)
 
 
-def set_summary(runs: list[dict], ensemble: float, seeds: list[int], n: int, nominal, params: dict,
-                t0: float) -> dict:
+def set_summary(runs: list[dict], valid: list[dict], ensemble: float, seeds: list[int], n: int, nominal,
+                params: dict, t0: float) -> dict:
     per = {k: [r[k] for r in runs if k in r] for k in runs[0]}
     out = {"n": n, "seeds": seeds, "physics": params["model"]["physics"], "seconds": time.perf_counter() - t0,
-           "max_epochs": params["train"]["max_epochs"]}
+           "max_epochs": params["train"]["max_epochs"], "train": params["train"],
+           "fade_to": params["model"]["fade_to"]}
+    validation = {}
+    for c in valid[0]:                      # per campaign and method: mean, std and every seed
+        validation[c] = {k: valid[0][c][k] for k in ("n_judged", "frame", "in_workspace_share")}
+        for key in ("mean_3d_mm", "mean_3d_mm_in", "mean_3d_mm_out"):
+            runs_ = {m: [v[c][key][m] for v in valid] for m in valid[0][c][key]}
+            validation[c][key] = {m: float(np.mean(r)) for m, r in runs_.items()}
+            validation[c][key + "_std"] = {m: float(np.std(r)) for m, r in runs_.items()}
+            validation[c][key + "_runs"] = runs_
     return {**out, **seed_summary(per, nominal, params["model"]["physics"]),
-            "test_3d_mae_ensemble": {"spi_boter": ensemble, "models": len(runs)}}
+            "test_3d_mae_ensemble": {"spi_boter": ensemble, "models": len(runs)}, "validation": validation}
 
 
 def seed_summary(per: dict, nominal: float | None, physics: str) -> dict:
@@ -130,7 +173,8 @@ def seed_summary(per: dict, nominal: float | None, physics: str) -> dict:
             "test_3d_mae_runs": {k: per[v] for k, v in names.items() if per.get(v)}}
 
 
-def bench_real(seeds: list[int], epochs: int | None, only: list[str] | None, other_physics=True) -> dict:
+def bench_real(seeds: list[int], epochs: int | None, only: list[str] | None, other_physics=True,
+               overrides: list[str] = ()) -> dict:
     out_path = BENCH / "real_data.json"
     out = read_json(out_path) if out_path.exists() else {}
     for name in only or REAL_SETS:
@@ -138,12 +182,13 @@ def bench_real(seeds: list[int], epochs: int | None, only: list[str] | None, oth
             log.info("skipping %s: %s not found", name, DATASETS / name)
             out[name] = {"skipped": f"{DATASETS / name} not found"}
             continue
-        log.info("running the pipeline on %s with seeds %s", name, seeds)
-        def save(partial, name=name):
-            out[name] = partial
+        key = name + ("@" + ",".join(overrides) if overrides else "")
+        log.info("running the pipeline on %s with seeds %s", key, seeds)
+        def save(partial, key=key):
+            out[key] = partial
             write_json(out_path, out)
-        out[name] = run_set(name, seeds, epochs, other_physics, on_seed=save)
-        log.info("%s: %s", name, out[name]["test_3d_mae"])
+        out[key] = run_set(name, seeds, epochs, other_physics, on_seed=save, overrides=overrides)
+        log.info("%s: %s", key, out[key]["test_3d_mae"])
         write_json(out_path, out)
     write_json(out_path, out)
     return out
@@ -247,9 +292,12 @@ def main(argv=None):
     ap.add_argument("--sets", nargs="+", choices=list(REAL_SETS), default=None, help="real sets to run")
     ap.add_argument("--other-physics", action=argparse.BooleanOptionalAction, default=True,
                     help="also train SPI-BoTER on the other physics branch (first seed)")
+    ap.add_argument("-S", "--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                    help="override a params.yaml value for the run (real), as dvc exp run -S: "
+                         "train.ema=0.999; recorded in the output under the set's name + '@' + overrides")
     a = ap.parse_args(argv)
     if a.what == "real":
-        bench_real(a.seeds, a.epochs, a.sets, a.other_physics)
+        bench_real(a.seeds, a.epochs, a.sets, a.other_physics, a.overrides)
     else:
         bench_speed()
 

@@ -18,6 +18,9 @@ log = logger(__name__)
 
 def run(params: dict) -> dict:
     sections(params, "robot", "model", "loss", "train", "workspace")
+    members = params["train"]["members"]
+    if not (isinstance(members, int) and members >= 1):
+        raise ValueError(f"params.yaml train.members: a positive integer, got {members!r}")
     df = load_points()
     geometry = physics_geometry(params, params["model"]["physics"])
     with Live(dir=str(LIVE), save_dvc_exp=False, dvcyaml=False) as live:
@@ -26,7 +29,7 @@ def run(params: dict) -> dict:
     torch.save(model.state_dict(), MODEL_WEIGHTS)
     write_json(TRAIN_JSON, summary)
     log.info("trained SPI-BoTER (%d parameters) on %d points: best val 3D MAE %.4f mm at epoch "
-             "%d of %d, %.1f s (%.3f s/epoch); alpha %.4f", summary["n_params"], summary["n_train"],
+             "%s of %d, %.1f s (%.3f s/epoch); alpha %s", summary["n_params"], summary["n_train"],
              summary["best_val_mae_3d_mm"], summary["best_epoch"], summary["epochs_run"],
              summary["seconds"], summary["seconds_per_epoch"], summary["alpha"])
     return summary

@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from pipeline.lib.kinematics import nominal_geometry
-from pipeline.lib.model import BODY_MASK, BoTER, attention_mask, check_config
+from pipeline.lib.model import Ensemble, BODY_MASK, BoTER, attention_mask, check_config
 from pipeline.lib.robots import nominal_robot
 
 G = nominal_geometry(nominal_robot("ur5"))
@@ -93,3 +93,31 @@ def test_correction_fades_away_from_the_training_poses():
     torch.testing.assert_close(again.eval()(qt)[0], p)
     m.train()                                                        # training sees the raw correction
     torch.testing.assert_close(m.delta(qt), full.train().delta(qt))
+
+
+def test_ensemble_batched_prediction_equals_its_members_averaged_one_by_one():
+    members = []
+    for k in range(3):
+        torch.manual_seed(k)
+        m = BoTER(G, mask="spi", **{**SMALL, "fade_to": 2.0, "n_layer": 2})
+        m.fade.fit(np.array([[0.0, -90, 90, -90, 90, 0], [90.0, -90, 90, -90, 90, 0]]), radius_deg=100.0)
+        members.append(m.eval())
+    ens = Ensemble(members).eval()
+    q = torch.as_tensor(np.radians(np.random.default_rng(0).uniform(-120, 120, (9, 6))))
+    with torch.no_grad():
+        p, p_th = ens(q)
+        one_by_one = torch.stack([m(q)[0] for m in members]).mean(0)
+        torch.testing.assert_close(p, one_by_one, rtol=0, atol=1e-6)           # mm (float32 network)
+        torch.testing.assert_close(p_th, members[0](q)[1], rtol=0, atol=0)
+        spread = torch.stack([m.delta(q) for m in members]).std(0)
+    assert spread.max() > 1e-3                                                  # the members do differ
+    assert 0 < (ens.fade(q) == 1).sum() < len(q)                               # some inside, some faded
+    # its state dict loads into a fresh ensemble of untrained members and predicts the same
+    again = []
+    for k in range(3):
+        torch.manual_seed(10 + k)
+        again.append(BoTER(G, mask="spi", **{**SMALL, "fade_to": 2.0, "n_layer": 2}))
+    fresh = Ensemble(again)
+    fresh.load_state_dict(ens.state_dict())
+    with torch.no_grad():
+        torch.testing.assert_close(fresh.eval()(q)[0], p, rtol=0, atol=0)

@@ -18,7 +18,7 @@ PARAMS = {
     "workspace": {"radius_quantile": 0.99, "coverage": 0.9},
     "loss": {"weighting": "uncertainty", "physics": True, "lambda_data": 1.0, "lambda_physics": 1.0},
     "train": {"lr": 1e-3, "weight_decay": 1e-6, "batch_size": 32, "grad_clip": 1.0, "max_epochs": 15,
-              "patience": 5, "seed": 3},
+              "patience": 5, "seed": 3, "ema": None, "members": 1},
 }
 G = nominal_geometry(load_robot(PARAMS["robot"]))
 
@@ -60,3 +60,22 @@ def test_early_stopping_and_a_different_seed_differs(points):
     m1, _ = train_boter(PARAMS, points, G, progress=False)
     m2, _ = train_boter(q, points, G, progress=False)
     assert not torch.equal(m1.head.out.weight, m2.head.out.weight)
+
+
+@pytest.mark.parametrize("change", [{"ema": 0.9}, {"members": 2}, {"ema": 0.9, "members": 2}])
+def test_ema_and_ensemble_training_are_deterministic_and_keep_their_best(points, change):
+    p = json.loads(json.dumps(PARAMS))
+    p["train"].update(change)
+    m1, h1 = train_boter(p, points, G, progress=False)
+    m2, h2 = train_boter(p, points, G, progress=False)
+    for (k, a), (_, b) in zip(m1.state_dict().items(), m2.state_dict().items()):
+        assert torch.equal(a, b), k
+    val = tensors(points[points.split == "val"])
+    assert mae_3d(m1, *val) == pytest.approx(h1["best_val_mae_3d_mm"], rel=1e-12)
+    plain, _ = train_boter(PARAMS, points, G, progress=False)
+    if change.get("members", 1) == 1:                         # EMA weights are not the last step's
+        assert not torch.equal(m1.head.out.weight, plain.head.out.weight)
+    else:                                                     # member 1 is the plain model (seeds + 0)
+        assert len(h1["members"]) == 2 and m1.n_members == 2
+        if "ema" not in change:
+            assert torch.equal(m1.stacked_m__head__out__weight[0], plain.head.out.weight)

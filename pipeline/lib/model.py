@@ -14,6 +14,9 @@ faster on CPU); the fusion is float64.
 
 Also the paper's DNN baseline (an MLP from joint angles to the position error).
 """
+import copy
+import warnings
+
 import torch
 from torch import nn
 
@@ -118,11 +121,14 @@ class BoTER(nn.Module):
         self.alpha = nn.Parameter(torch.tensor(float(alpha0)))   # eq. 9, trainable
         self.fade = Fade(fade_to)                          # fitted to the training poses by training
 
-    def delta(self, q):                                    # (B, 6) rad -> w·α·Δp (B, 3), float64
+    def correction(self, q):                               # (B, 6) rad -> α·Δp (B, 3), float64
         x = self.embed(q.float())                          # (B, 6, d)
         if self.encoder is not None:
             x = self.encoder(x, mask=self.mask, is_causal=False)   # (B, 6, d); skips a causal-mask probe
-        dp = (self.alpha * self.head(x.flatten(1))).to(DTYPE)     # (B, 6d) -> (B, 3)
+        return (self.alpha * self.head(x.flatten(1))).to(DTYPE)   # (B, 6d) -> (B, 3)
+
+    def delta(self, q):                                    # (B, 6) rad -> w·α·Δp (B, 3), float64
+        dp = self.correction(q)
         return dp if self.training else dp * self.fade(q)
 
     def forward(self, q):
@@ -140,6 +146,62 @@ class BoTER(nn.Module):
             maps.append(w)
             x = layer(x, src_mask=self.mask)
         return torch.stack(maps)
+
+
+class Ensemble(nn.Module):
+    """K BoTERs trained apart (seeds + k), evaluated as one batched call (inference only):
+
+        p_pred = p_theory + w(q) · mean_k α_k Δp_k(q)
+
+    The members' network weights are stacked (torch.func.stack_module_state: every tensor gains
+    a leading K axis) and one weightless skeleton runs them all under torch.func.vmap. Physics and
+    fade are shared: every member sits on the same physics branch and training poses.
+    """
+
+    def __init__(self, members: list[BoTER]):
+        super().__init__()
+        self.physics, self.fade = members[0].physics, members[0].fade
+        self.n_members = len(members)
+        params, buffers = torch.func.stack_module_state([Correction(m) for m in members])
+        self.names = [k for k in {**params, **buffers} if not k.startswith(("m.physics.", "m.fade."))]
+        for k, v in {**params, **buffers}.items():          # (K, ...) per tensor
+            if k in self.names:
+                self.register_buffer(_key(k), v.detach())
+        self.skeleton = [Correction(copy.deepcopy(members[0])).to("meta").eval()]   # a list: no submodule
+
+    def correction(self, q):                               # (B, 6) rad -> mean_k α_k Δp_k (B, 3)
+        stacked = {k: getattr(self, _key(k)) for k in self.names}
+        one = lambda w, x: torch.func.functional_call(self.skeleton[0], w, (x,))
+        fastpath = torch.backends.mha.get_fastpath_enabled()
+        torch.backends.mha.set_fastpath_enabled(False)     # the fused encoder kernel has no vmap rule
+        try:
+            with warnings.catch_warnings():                # attention runs member by member inside
+                warnings.filterwarnings("ignore", "There is a performance drop")
+                return torch.func.vmap(one, in_dims=(0, None))(stacked, q).mean(0)   # (K, B, 3) -> (B, 3)
+        finally:
+            torch.backends.mha.set_fastpath_enabled(fastpath)
+
+    def delta(self, q):
+        return self.correction(q) * self.fade(q)
+
+    def forward(self, q):
+        p_theory = self.physics(q)
+        return p_theory + self.delta(q), p_theory
+
+
+class Correction(nn.Module):
+    """A BoTER seen through its network correction α·Δp alone (what Ensemble stacks)."""
+
+    def __init__(self, m: BoTER):
+        super().__init__()
+        self.m = m
+
+    def forward(self, q):
+        return self.m.correction(q)
+
+
+def _key(name: str) -> str:
+    return "stacked_" + name.replace(".", "__")
 
 
 class DNN(nn.Module):

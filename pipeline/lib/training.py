@@ -2,7 +2,11 @@
 
 AdamW (lr 1e-4, weight decay 1e-6), batch 256, gradient clipping at 1.0, at
 most `max_epochs`, the best checkpoint by validation 3D MAE kept, early stop
-after `patience` epochs without improvement (the `train:` section).
+after `patience` epochs without improvement (the `train:` section). Beyond the paper:
+    ema       validate and keep an exponential moving average of the weights
+              (torch.optim.swa_utils.AveragedModel), not the last step's
+    members   K models from seeds (init_seed + k, seed + k), averaged as one
+              batched Ensemble (model.py): K times the training cost
 """
 import copy
 import time
@@ -17,7 +21,7 @@ from .columns import JOINTS_DEG, MEAS
 from .geometry import physics_geometry
 from .kinematics import DTYPE
 from .loss import SPILoss, data_loss
-from .model import DNN, BoTER, check_config, n_params
+from .model import DNN, BoTER, Ensemble, check_config, n_params
 from .workspace import workspace_radius
 
 
@@ -38,9 +42,12 @@ def make_model(cfg: dict, geometry: dict, kind: str = "boter"):
                  alpha0=cfg["alpha0"], dropout=cfg["dropout"], fade_to=cfg["fade_to"])
 
 
-def load_model(params: dict) -> BoTER:
-    """The trained BoTER (models/boter.pt, weights_only=True) on its physics branch, in eval mode."""
-    model = make_model(params["model"], physics_geometry(params, params["model"]["physics"]))
+def load_model(params: dict) -> BoTER | Ensemble:
+    """The trained BoTER or Ensemble (`train.members`; models/boter.pt, weights_only=True) on its
+    physics branch, in eval mode."""
+    geometry = physics_geometry(params, params["model"]["physics"])
+    members = [make_model(params["model"], geometry) for _ in range(params["train"]["members"])]
+    model = members[0] if len(members) == 1 else Ensemble(members)
     model.load_state_dict(torch.load(MODEL_WEIGHTS, weights_only=True))
     return model.eval()
 
@@ -67,6 +74,9 @@ def fit(model, loss_fn, train, val, cfg: dict, live=None, desc="train", progress
     gen = torch.Generator().manual_seed(cfg["seed"])
     params = list(model.parameters()) + list(getattr(loss_fn, "parameters", lambda: [])())
     opt = torch.optim.AdamW(params, lr=cfg["lr"], weight_decay=cfg["weight_decay"])
+    ema = (None if cfg["ema"] is None else torch.optim.swa_utils.AveragedModel(
+        model, multi_avg_fn=torch.optim.swa_utils.get_ema_multi_avg_fn(cfg["ema"])))
+    judged = model if ema is None else ema.module           # the weights validated and kept
     best, best_epoch, best_state, t0 = np.inf, -1, None, time.perf_counter()
     bar = tqdm(range(cfg["max_epochs"]), desc=desc, disable=not progress, mininterval=1.0)
     for epoch in bar:
@@ -79,11 +89,13 @@ def fit(model, loss_fn, train, val, cfg: dict, live=None, desc="train", progress
             loss.backward()
             torch.nn.utils.clip_grad_norm_(model.parameters(), cfg["grad_clip"])
             opt.step()
+            if ema is not None:
+                ema.update_parameters(model)
             losses.append((loss.item(), parts, (p_pred - p[idx]).detach().norm(dim=1).sum().item()))
-        val_mae = mae_3d(model, *val)
+        val_mae = mae_3d(judged, *val)
         train_mae = sum(l[2] for l in losses) / len(q)       # over the epoch's batches, train mode
         if val_mae < best:
-            best, best_epoch, best_state = val_mae, epoch, copy.deepcopy(model.state_dict())
+            best, best_epoch, best_state = val_mae, epoch, copy.deepcopy(judged.state_dict())
         bar.set_postfix(val_mae=f"{val_mae:.4f}", best=f"{best:.4f}@{best_epoch}", refresh=False)
         if live is not None:
             live.log_metric("loss", float(np.mean([l[0] for l in losses])))
@@ -103,16 +115,30 @@ def fit(model, loss_fn, train, val, cfg: dict, live=None, desc="train", progress
 
 
 def train_boter(params: dict, df: pd.DataFrame, geometry: dict, live=None, progress=True):
-    """Build and train BoTER with the SPI loss on df's train split; returns (model, summary)."""
-    model = make_model(params["model"], geometry)
+    """Build and train BoTER (or `train.members` of them, an Ensemble) with the SPI loss on df's
+    train split; returns (model, summary)."""
     train_q = df.loc[df.split == "train", JOINTS_DEG].to_numpy()
-    model.fade.fit(train_q, workspace_radius(train_q, params["workspace"]["radius_quantile"]))
-    loss_fn = SPILoss(**params["loss"])
+    radius = workspace_radius(train_q, params["workspace"]["radius_quantile"])
     train, val = tensors(df[df.split == "train"]), tensors(df[df.split == "val"])
-    hist = fit(model, loss_fn, train, val, params["train"], live, "SPI-BoTER", progress)
-    hist.update(n_params=n_params(model), alpha=model.alpha.item(),
-                loss_weights=loss_fn.weights().tolist(), n_train=len(train[0]), n_val=len(val[0]))
-    return model, hist
+    members, runs = [], []
+    for k in range(params["train"]["members"]):
+        model = make_model({**params["model"], "init_seed": params["model"]["init_seed"] + k}, geometry)
+        model.fade.fit(train_q, radius)
+        loss_fn = SPILoss(**params["loss"])
+        cfg = {**params["train"], "seed": params["train"]["seed"] + k}
+        desc = "SPI-BoTER" + (f" {k + 1}/{params['train']['members']}" if params["train"]["members"] > 1 else "")
+        hist = fit(model, loss_fn, train, val, cfg, live if k == 0 else None, desc, progress)
+        hist.update(alpha=model.alpha.item(), loss_weights=loss_fn.weights().tolist())
+        members.append(model)
+        runs.append(hist)
+    model = members[0] if len(members) == 1 else Ensemble(members).eval()
+    summary = dict(runs[0]) if len(runs) == 1 else {
+        "members": runs, "best_val_mae_3d_mm": mae_3d(model, *val),
+        **{k: sum(r[k] for r in runs) for k in ("seconds", "epochs_run")},
+        "seconds_per_epoch": sum(r["seconds"] for r in runs) / sum(r["epochs_run"] for r in runs),
+        "best_epoch": [r["best_epoch"] for r in runs], "alpha": [r["alpha"] for r in runs]}
+    summary.update(n_params=n_params(members[0]) * len(members), n_train=len(train[0]), n_val=len(val[0]))
+    return model, summary
 
 
 def train_dnn(params: dict, df: pd.DataFrame, geometry: dict, progress=True):
