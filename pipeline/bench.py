@@ -152,8 +152,9 @@ def set_summary(runs: list[dict], valid: list[dict], ensemble: float, seeds: lis
         validation[c] = {k: valid[0][c][k] for k in ("n_judged", "frame", "in_workspace_share")}
         for key in ("mean_3d_mm", "mean_3d_mm_in", "mean_3d_mm_out"):
             runs_ = {m: [v[c][key][m] for v in valid] for m in valid[0][c][key]}
-            validation[c][key] = {m: float(np.mean(r)) for m, r in runs_.items()}
-            validation[c][key + "_std"] = {m: float(np.std(r)) for m, r in runs_.items()}
+            stat = lambda f, r: None if None in r else float(f(r))    # None: no point in that part
+            validation[c][key] = {m: stat(np.mean, r) for m, r in runs_.items()}
+            validation[c][key + "_std"] = {m: stat(np.std, r) for m, r in runs_.items()}
             validation[c][key + "_runs"] = runs_
     return {**out, **seed_summary(per, nominal, params["model"]["physics"]),
             "test_3d_mae_ensemble": {"spi_boter": ensemble, "models": len(runs)}, "validation": validation}
