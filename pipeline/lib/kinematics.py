@@ -92,18 +92,17 @@ def link_frames(q: torch.Tensor, g: dict) -> torch.Tensor:
 def gravity_torques(q: torch.Tensor, g: dict) -> torch.Tensor:
     """Static gravity torque about each joint axis (N·m), (B, 6) rad -> (B, 6).
 
-    tau_i = z_{i-1} · sum_{k >= i} (c_k - o_{i-1}) x (m_k g), with joint i turning
-    about z of frame i-1 and link k (its centre of mass c_k) carried by frame k.
+    tau_i = z_{i-1} · sum_{k >= i} (c_k - o_{i-1}) x f_k, with joint i turning about z of
+    frame i-1, link k's centre of mass c_k carried by frame k and f_k = m_k g. With suffix
+    sums over k >= i, S_i = sum c_k x f_k and F_i = sum f_k: tau_i = z_{i-1} · (S_i - o_{i-1} x F_i).
     """
     F = link_frames(q, g)                                                     # (B, 7, 4, 4)
     c = torch.einsum("bkij,kj->bki", F[:, 1:, :3, :3], g["com"]) + F[:, 1:, :3, 3]   # (B, 6, 3) mm
-    f = g["mass"][:, None] * torch.tensor(GRAVITY, dtype=c.dtype)            # (6, 3) N
-    tau = []
-    for i in range(6):
-        z, o = F[:, i, :3, 2], F[:, i, :3, 3]                                 # joint i+1 axis, origin
-        moment = torch.linalg.cross(c[:, i:] - o[:, None], f[i:].expand_as(c[:, i:]), dim=-1).sum(1)
-        tau.append((z * moment).sum(-1) / 1000.0)                             # N·mm -> N·m
-    return torch.stack(tau, -1)
+    f = (g["mass"][:, None] * torch.tensor(GRAVITY, dtype=c.dtype)).expand_as(c)     # (B, 6, 3) N
+    suffix = lambda x: x.flip(1).cumsum(1).flip(1)                            # sum over k >= i
+    z, o = F[:, :6, :3, 2], F[:, :6, :3, 3]                                   # (B, 6, 3) joint axes, origins
+    moment = suffix(torch.linalg.cross(c, f, dim=-1)) - torch.linalg.cross(o, suffix(f), dim=-1)
+    return (z * moment).sum(-1) / 1000.0                                      # N·mm -> N·m
 
 
 def deflected(q: torch.Tensor, g: dict) -> torch.Tensor:
