@@ -148,11 +148,11 @@ def set_summary(runs: list[dict], valid: list[dict], ensemble: float, seeds: lis
            "max_epochs": params["train"]["max_epochs"], "train": params["train"],
            "fade_to": params["model"]["fade_to"]}
     validation = {}
+    stat = lambda f, r: None if None in r else float(f(r))            # None: no point in that part
     for c in valid[0]:                      # per campaign and method: mean, std and every seed
         validation[c] = {k: valid[0][c][k] for k in ("n_judged", "frame", "in_workspace_share")}
         for key in ("mean_3d_mm", "mean_3d_mm_in", "mean_3d_mm_out"):
             runs_ = {m: [v[c][key][m] for v in valid] for m in valid[0][c][key]}
-            stat = lambda f, r: None if None in r else float(f(r))    # None: no point in that part
             validation[c][key] = {m: stat(np.mean, r) for m, r in runs_.items()}
             validation[c][key + "_std"] = {m: stat(np.std, r) for m, r in runs_.items()}
             validation[c][key + "_runs"] = runs_

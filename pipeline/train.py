@@ -18,9 +18,6 @@ log = logger(__name__)
 
 def run(params: dict) -> dict:
     sections(params, "robot", "model", "loss", "train", "workspace")
-    members = params["train"]["members"]
-    if not (isinstance(members, int) and members >= 1):
-        raise ValueError(f"params.yaml train.members: a positive integer, got {members!r}")
     df = load_points()
     geometry = physics_geometry(params, params["model"]["physics"])
     with Live(dir=str(LIVE), save_dvc_exp=False, dvcyaml=False) as live:

@@ -79,3 +79,10 @@ def test_ema_and_ensemble_training_are_deterministic_and_keep_their_best(points,
         assert len(h1["members"]) == 2 and m1.n_members == 2
         if "ema" not in change:
             assert torch.equal(m1.stacked_m__head__out__weight[0], plain.head.out.weight)
+
+
+def test_members_must_be_a_positive_integer(points):
+    p = json.loads(json.dumps(PARAMS))
+    p["train"]["members"] = 0
+    with pytest.raises(ValueError, match=r"params.yaml train.members: a positive integer, got 0"):
+        train_boter(p, points, G, progress=False)

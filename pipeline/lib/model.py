@@ -163,10 +163,10 @@ class Ensemble(nn.Module):
         self.physics, self.fade = members[0].physics, members[0].fade
         self.n_members = len(members)
         params, buffers = torch.func.stack_module_state([Correction(m) for m in members])
-        self.names = [k for k in {**params, **buffers} if not k.startswith(("m.physics.", "m.fade."))]
-        for k, v in {**params, **buffers}.items():          # (K, ...) per tensor
-            if k in self.names:
-                self.register_buffer(_key(k), v.detach())
+        stacked = {k: v for k, v in {**params, **buffers}.items() if not k.startswith(("m.physics.", "m.fade."))}
+        self.names = list(stacked)
+        for k, v in stacked.items():                        # (K, ...) per tensor
+            self.register_buffer(_key(k), v.detach())
         self.skeleton = [Correction(copy.deepcopy(members[0])).to("meta").eval()]   # a list: no submodule
 
     def correction(self, q):                               # (B, 6) rad -> mean_k α_k Δp_k (B, 3)

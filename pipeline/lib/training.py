@@ -117,16 +117,19 @@ def fit(model, loss_fn, train, val, cfg: dict, live=None, desc="train", progress
 def train_boter(params: dict, df: pd.DataFrame, geometry: dict, live=None, progress=True):
     """Build and train BoTER (or `train.members` of them, an Ensemble) with the SPI loss on df's
     train split; returns (model, summary)."""
+    n_members = params["train"]["members"]
+    if not (isinstance(n_members, int) and n_members >= 1):
+        raise ValueError(f"params.yaml train.members: a positive integer, got {n_members!r}")
     train_q = df.loc[df.split == "train", JOINTS_DEG].to_numpy()
     radius = workspace_radius(train_q, params["workspace"]["radius_quantile"])
     train, val = tensors(df[df.split == "train"]), tensors(df[df.split == "val"])
     members, runs = [], []
-    for k in range(params["train"]["members"]):
+    for k in range(n_members):
         model = make_model({**params["model"], "init_seed": params["model"]["init_seed"] + k}, geometry)
         model.fade.fit(train_q, radius)
         loss_fn = SPILoss(**params["loss"])
         cfg = {**params["train"], "seed": params["train"]["seed"] + k}
-        desc = "SPI-BoTER" + (f" {k + 1}/{params['train']['members']}" if params["train"]["members"] > 1 else "")
+        desc = "SPI-BoTER" + (f" {k + 1}/{n_members}" if n_members > 1 else "")
         hist = fit(model, loss_fn, train, val, cfg, live if k == 0 else None, desc, progress)
         hist.update(alpha=model.alpha.item(), loss_weights=loss_fn.weights().tolist())
         members.append(model)
