@@ -18,7 +18,8 @@ PARAMS = {
     "workspace": {"radius_quantile": 0.99, "coverage": 0.9},
     "loss": {"weighting": "uncertainty", "physics": True, "lambda_data": 1.0, "lambda_physics": 1.0},
     "train": {"lr": 1e-3, "weight_decay": 1e-6, "batch_size": 32, "grad_clip": 1.0, "max_epochs": 15,
-              "patience": 5, "seed": 3, "ema": None, "members": 1},
+              "patience": 5, "seed": 3, "ema": None, "members": 1,
+              "lr_drop": None, "lr_patience": 40},
 }
 G = nominal_geometry(load_robot(PARAMS["robot"]))
 
@@ -62,8 +63,9 @@ def test_early_stopping_and_a_different_seed_differs(points):
     assert not torch.equal(m1.head.out.weight, m2.head.out.weight)
 
 
-@pytest.mark.parametrize("change", [{"ema": 0.9}, {"members": 2}, {"ema": 0.9, "members": 2}])
-def test_ema_and_ensemble_training_are_deterministic_and_keep_their_best(points, change):
+@pytest.mark.parametrize("change", [{"ema": 0.9}, {"members": 2}, {"ema": 0.9, "members": 2},
+                                    {"lr_drop": 0.5, "lr_patience": 0, "max_epochs": 40}])
+def test_ema_ensemble_and_lr_drop_training_are_deterministic_and_keep_their_best(points, change):
     p = json.loads(json.dumps(PARAMS))
     p["train"].update(change)
     m1, h1 = train_boter(p, points, G, progress=False)
@@ -73,6 +75,8 @@ def test_ema_and_ensemble_training_are_deterministic_and_keep_their_best(points,
     val = tensors(points[points.split == "val"])
     assert mae_3d(m1, *val) == pytest.approx(h1["best_val_mae_3d_mm"], rel=1e-12)
     plain, _ = train_boter(PARAMS, points, G, progress=False)
+    if "lr_drop" in change:                                   # the rate dropped, so the path differs
+        assert h1["final_lr"] < p["train"]["lr"]
     if change.get("members", 1) == 1:                         # EMA weights are not the last step's
         assert not torch.equal(m1.head.out.weight, plain.head.out.weight)
     else:                                                     # member 1 is the plain model (seeds + 0)

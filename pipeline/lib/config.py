@@ -27,7 +27,7 @@ SECTIONS = {
               "alpha0", "dropout", "fade_to", "init_seed"),
     "loss": ("weighting", "physics", "lambda_data", "lambda_physics"),
     "train": ("lr", "weight_decay", "batch_size", "grad_clip", "max_epochs", "patience", "seed", "ema",
-              "members"),
+              "members", "lr_drop", "lr_patience"),
     "baselines": ("dnn", "other_physics"),
     "workspace": ("radius_quantile", "coverage"),
     "validate": ("register_points", "campaigns"),

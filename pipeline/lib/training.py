@@ -7,6 +7,8 @@ after `patience` epochs without improvement (the `train:` section). Beyond the p
               (torch.optim.swa_utils.AveragedModel), not the last step's
     members   K models from seeds (init_seed + k, seed + k), averaged as one
               batched Ensemble (model.py): K times the training cost
+    lr_drop   multiply the learning rate by this after `lr_patience` epochs without a better
+              validation 3D MAE (ReduceLROnPlateau); null = constant (the paper)
 """
 import copy
 import time
@@ -77,6 +79,8 @@ def fit(model, loss_fn, train, val, cfg: dict, live=None, desc="train", progress
     ema = (None if cfg["ema"] is None else torch.optim.swa_utils.AveragedModel(
         model, multi_avg_fn=torch.optim.swa_utils.get_ema_multi_avg_fn(cfg["ema"])))
     judged = model if ema is None else ema.module           # the weights validated and kept
+    sched = (None if cfg["lr_drop"] is None else torch.optim.lr_scheduler.ReduceLROnPlateau(
+        opt, factor=cfg["lr_drop"], patience=cfg["lr_patience"], threshold=0.0))
     best, best_epoch, best_state, t0 = np.inf, -1, None, time.perf_counter()
     bar = tqdm(range(cfg["max_epochs"]), desc=desc, disable=not progress, mininterval=1.0)
     for epoch in bar:
@@ -96,6 +100,8 @@ def fit(model, loss_fn, train, val, cfg: dict, live=None, desc="train", progress
         train_mae = sum(l[2] for l in losses) / len(q)       # over the epoch's batches, train mode
         if val_mae < best:
             best, best_epoch, best_state = val_mae, epoch, copy.deepcopy(judged.state_dict())
+        if sched is not None:
+            sched.step(val_mae)
         bar.set_postfix(val_mae=f"{val_mae:.4f}", best=f"{best:.4f}@{best_epoch}", refresh=False)
         if live is not None:
             live.log_metric("loss", float(np.mean([l[0] for l in losses])))
@@ -103,6 +109,7 @@ def fit(model, loss_fn, train, val, cfg: dict, live=None, desc="train", progress
             live.log_metric("physics_loss", float(np.mean([l[1]["physics"] for l in losses])))
             live.log_metric("train_mae_3d_mm", train_mae)
             live.log_metric("val_mae_3d_mm", val_mae)
+            live.log_metric("lr", opt.param_groups[0]["lr"])
             if hasattr(model, "alpha"):
                 live.log_metric("alpha", model.alpha.item())
             live.next_step()
@@ -110,6 +117,7 @@ def fit(model, loss_fn, train, val, cfg: dict, live=None, desc="train", progress
             break
     model.load_state_dict(best_state)
     return {"epochs_run": epoch + 1, "best_epoch": best_epoch + 1, "best_val_mae_3d_mm": best,
+            "final_lr": opt.param_groups[0]["lr"],
             "seconds": time.perf_counter() - t0,
             "seconds_per_epoch": (time.perf_counter() - t0) / (epoch + 1)}
 
