@@ -24,7 +24,7 @@ import numpy as np
 from .lib.artifacts import REPORTS, load_points
 from .lib.config import load_params, logger, read_json, section, write_json
 from .lib.figures import fig_ablation, save
-from .lib.geometry import physics_geometry
+from .lib.geometry import aligned, physics_geometry
 from .lib.metrics import split_metrics
 from .lib.paper import PAPER_ABLATION, PAPER_ABLATION_EPOCHS
 from .lib.training import predict, train_boter
@@ -58,7 +58,7 @@ def train_one(args) -> dict:
     params, group, seed, threads = args
     import torch
     torch.set_num_threads(threads)
-    df = load_points()
+    df = aligned(load_points())
     p = group_params(params, group, seed)
     model, hist = train_boter(p, df, physics_geometry(p, p["model"]["physics"]), progress=False)
     test = split_metrics(df, predict(model.eval(), df))["test"]

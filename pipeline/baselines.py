@@ -17,7 +17,7 @@ import pandas as pd
 from .lib.artifacts import BASELINES_JSON, BASELINES_TABLE, load_points
 from .lib.columns import JOINTS_DEG
 from .lib.config import load_params, logger, section, sections, write_json
-from .lib.geometry import physics_geometry
+from .lib.geometry import aligned, physics_geometry
 from .lib.kinematics import fk_numpy
 from .lib.training import predict, train_boter, train_dnn
 
@@ -27,7 +27,7 @@ log = logger(__name__)
 def run(params: dict) -> dict:
     sections(params, "robot", "model", "loss", "train", "workspace")
     cfg = section(params, "baselines")
-    df = load_points()
+    df = aligned(load_points())
     out, summary = pd.DataFrame({"point_id": df["point_id"]}), {}
 
     def add(name, pred):

@@ -1,6 +1,7 @@
 """Benchmarks, written as JSON under reports/bench/.
 
     python -m pipeline.bench real  [--seeds 139 140 ...]   the real sets in ../shared/datasets
+    python -m pipeline.bench real --sets twin twin-2stations   the twin, from one and two stations
     python -m pipeline.bench speed                          training, prediction, compensation timings
 
 `real` runs the pipeline's stages (`python -m pipeline.<stage>`, as dvc repro
@@ -11,7 +12,9 @@ after the frame fit, classical calibration, the DNN baseline and SPI-BoTER
 (on nominal and on calibrated physics), mean ± std over the training seeds,
 and the seeds' SPI-BoTER models averaged (an ensemble); and, per seed, every
 `validate.campaigns` entry of the preset (e.g. ipa-ur10's Series_B): mean 3D
-error per method on the judged points, inside and outside the trained workspace.
+error per method on the judged points, inside and outside the trained workspace;
+and each training campaign's test 3D MAE per method (ipa-ur10-cb: Series_C and
+Series_B trained together).
 """
 import argparse
 import copy
@@ -32,7 +35,7 @@ import yaml
 from .lib.artifacts import INGEST_JSON, INGEST_TABLE, METRICS_JSON, PREDICTIONS_TABLE, VALIDATION_DIR, load_points
 from .lib.columns import JOINTS_DEG, MEAS, PRED, TARGET
 from .lib.config import load_params, logger, read_json, write_json
-from .lib.geometry import physics_geometry
+from .lib.geometry import aligned, physics_geometry
 from .lib.kinematics import fk_numpy
 from .lib.loss import SPILoss
 from .lib.presets import merged_params
@@ -45,13 +48,21 @@ log = logger(__name__)
 ROOT = Path(__file__).resolve().parents[1]
 DATASETS = ROOT.parent / "shared" / "datasets"
 BENCH = ROOT / "reports" / "bench"
-REAL_SETS = {"gtpn-ur5": {"base_frame": True}, "ipa-ur10": {"base_frame": False}}
+# name: the preset merged over params.yaml (None: params.yaml, the twin), the dataset it needs under
+# ../shared/datasets (None: the committed twin campaigns), and whether its positions are already
+# in the robot's base frame (then nominal DH is also judged without a frame fit)
+REAL_SETS = {"gtpn-ur5": {"preset": "gtpn-ur5", "dataset": "gtpn-ur5", "base_frame": True},
+             "ipa-ur10": {"preset": "ipa-ur10", "dataset": "ipa-ur10", "base_frame": False},
+             "ipa-ur10-cb": {"preset": "ipa-ur10-cb", "dataset": "ipa-ur10", "base_frame": False},
+             "twin": {"preset": None, "dataset": None, "base_frame": False},
+             "twin-2stations": {"preset": "twin-2stations", "dataset": None, "base_frame": False}}
 
 
 def absolute_paths(params: dict) -> dict:
     """Input paths of the ingest section made absolute (from the project root)."""
     p = copy.deepcopy(params)
-    for ingest in [p["ingest"]] + [c["ingest"] for c in (p["validate"]["campaigns"] or {}).values()]:
+    for ingest in ([p["ingest"]] + [c["ingest"] for c in (p["validate"]["campaigns"] or {}).values()]
+                   + [c["ingest"] for c in (p["campaigns"]["more"] or {}).values()]):
         for k in ("joints", "tracker"):
             ingest[k] = str((ROOT / ingest[k]).resolve())
     p["compensate"]["drive_check"] = False
@@ -100,17 +111,20 @@ def run_set(name: str, seeds: list[int], epochs: int | None, other_physics: bool
     on_seed(partial summary) is called after every seed, so a long run that is
     stopped keeps the seeds it finished.
     """
-    params = absolute_paths(overridden(merged_params(name, load_params(ROOT / "params.yaml")), overrides))
+    base, preset = load_params(ROOT / "params.yaml"), REAL_SETS[name]["preset"]
+    params = absolute_paths(overridden(base if preset is None else merged_params(preset, base), overrides))
     if epochs:
         params["train"]["max_epochs"] = epochs
     t0, cwd = time.perf_counter(), os.getcwd()
     with tempfile.TemporaryDirectory() as tmp:
         os.chdir(tmp)
         try:
+            for campaign in params["campaigns"]["more"] or {}:
+                stage("ingest", params, "campaign", campaign)
             for name_ in ("ingest", "frame", "theory", "split", "calibrate"):
                 stage(name_, params)
             summary = {"ingest": read_json(INGEST_JSON)["n_kept"]}
-            df = load_points()
+            df = aligned(load_points())
             test = df[df.split == "test"]
             raw = pd.read_parquet(INGEST_TABLE).set_index("point_id").loc[test.point_id]
             nominal = None
@@ -118,7 +132,7 @@ def run_set(name: str, seeds: list[int], epochs: int | None, other_physics: bool
                 robot = load_robot(params["robot"])
                 e = fk_numpy(raw[JOINTS_DEG].to_numpy(), robot) - raw[MEAS].to_numpy()
                 nominal = float(np.linalg.norm(e, axis=1).mean())
-            runs, preds, valid = [], [], []
+            runs, preds, valid, per_campaign = [], [], [], []
             for i, seed in enumerate(seeds):
                 p = copy.deepcopy(params)
                 p["model"]["init_seed"], p["train"]["seed"] = seed, seed
@@ -127,22 +141,24 @@ def run_set(name: str, seeds: list[int], epochs: int | None, other_physics: bool
                 for name_ in ("train", "baselines", "evaluate"):
                     stage(name_, p)
                 valid.append(validation_runs(p))
-                m = read_json(METRICS_JSON)["baselines"]
-                runs.append({k: v["test"]["3d"]["mae"] for k, v in m.items()})
+                metrics = read_json(METRICS_JSON)
+                runs.append({k: v["test"]["3d"]["mae"] for k, v in metrics["baselines"].items()})
+                per_campaign.append({c: {k: v[k]["test"]["mae"] for k in v if k not in ("station", "n")}
+                                     for c, v in metrics["campaigns"].items()})
                 pred = pd.read_parquet(PREDICTIONS_TABLE).set_index("point_id").loc[test.point_id]
                 preds.append(pred[PRED].to_numpy())
                 # the seeds' models averaged: a deep ensemble (n times the cost of one model)
                 ensemble = float(np.linalg.norm(np.mean(preds, 0) - test[MEAS].to_numpy(), axis=1).mean())
                 if on_seed:
-                    on_seed(set_summary(runs, valid, ensemble, seeds[:i + 1], summary["ingest"], nominal,
-                                        params, t0))
+                    on_seed(set_summary(runs, valid, per_campaign, ensemble, seeds[:i + 1], summary["ingest"],
+                                        nominal, params, t0))
         finally:
             os.chdir(cwd)
-    return set_summary(runs, valid, ensemble, seeds, summary["ingest"], nominal, params, t0)
+    return set_summary(runs, valid, per_campaign, ensemble, seeds, summary["ingest"], nominal, params, t0)
 
 
-def set_summary(runs: list[dict], valid: list[dict], ensemble: float, seeds: list[int], n: int, nominal,
-                params: dict, t0: float) -> dict:
+def set_summary(runs: list[dict], valid: list[dict], per_campaign: list[dict], ensemble: float, seeds: list[int],
+                n: int, nominal, params: dict, t0: float) -> dict:
     per = {k: [r[k] for r in runs if k in r] for k in runs[0]}
     out = {"n": n, "seeds": seeds, "physics": params["model"]["physics"], "seconds": time.perf_counter() - t0,
            "max_epochs": params["train"]["max_epochs"], "train": params["train"],
@@ -156,8 +172,13 @@ def set_summary(runs: list[dict], valid: list[dict], ensemble: float, seeds: lis
             validation[c][key] = {m: stat(np.mean, r) for m, r in runs_.items()}
             validation[c][key + "_std"] = {m: stat(np.std, r) for m, r in runs_.items()}
             validation[c][key + "_runs"] = runs_
+    campaigns = {}                          # per training campaign and method: mean, std, every seed
+    for c, methods in per_campaign[0].items():
+        runs_ = {m: [p[c][m] for p in per_campaign] for m in methods}
+        campaigns[c] = {m: {"mean": float(np.mean(r)), "std": float(np.std(r)), "runs": r} for m, r in runs_.items()}
     return {**out, **seed_summary(per, nominal, params["model"]["physics"]),
-            "test_3d_mae_ensemble": {"spi_boter": ensemble, "models": len(runs)}, "validation": validation}
+            "test_3d_mae_ensemble": {"spi_boter": ensemble, "models": len(runs)}, "validation": validation,
+            "test_3d_mae_per_campaign": campaigns}
 
 
 def seed_summary(per: dict, nominal: float | None, physics: str) -> dict:
@@ -178,10 +199,11 @@ def bench_real(seeds: list[int], epochs: int | None, only: list[str] | None, oth
                overrides: list[str] = ()) -> dict:
     out_path = BENCH / "real_data.json"
     out = read_json(out_path) if out_path.exists() else {}
-    for name in only or REAL_SETS:
-        if not (DATASETS / name).is_dir():
-            log.info("skipping %s: %s not found", name, DATASETS / name)
-            out[name] = {"skipped": f"{DATASETS / name} not found"}
+    for name in only or [k for k, v in REAL_SETS.items() if v["dataset"]]:
+        dataset = REAL_SETS[name]["dataset"]
+        if dataset and not (DATASETS / dataset).is_dir():
+            log.info("skipping %s: %s not found", name, DATASETS / dataset)
+            out[name] = {"skipped": f"{DATASETS / dataset} not found"}
             continue
         key = name + ("@" + ",".join(overrides) if overrides else "")
         log.info("running the pipeline on %s with seeds %s", key, seeds)
@@ -233,7 +255,7 @@ def bench_realtime(model, q0: np.ndarray, tgt: np.ndarray, limits: np.ndarray, t
 def bench_speed() -> dict:
     """Needs a finished `dvc repro` in the project (model, points, split)."""
     params = load_params()
-    df = load_points()
+    df = aligned(load_points())
     train_t, val_t = tensors(df[df.split == "train"]), tensors(df[df.split == "val"])
     model = make_model(params["model"], physics_geometry(params, params["model"]["physics"]))
     cfg = {**params["train"], "max_epochs": 10, "patience": 10}
@@ -290,7 +312,8 @@ def main(argv=None):
     ap.add_argument("what", choices=["real", "speed"])
     ap.add_argument("--seeds", type=int, nargs="+", default=[139], help="training seeds (real)")
     ap.add_argument("--epochs", type=int, default=None, help="override train.max_epochs (real)")
-    ap.add_argument("--sets", nargs="+", choices=list(REAL_SETS), default=None, help="real sets to run")
+    ap.add_argument("--sets", nargs="+", choices=list(REAL_SETS), default=None,
+                    help="sets to run (default: the real ones; twin and twin-2stations on request)")
     ap.add_argument("--other-physics", action=argparse.BooleanOptionalAction, default=True,
                     help="also train SPI-BoTER on the other physics branch (first seed)")
     ap.add_argument("-S", "--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",

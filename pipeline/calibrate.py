@@ -2,17 +2,21 @@
 
 Starts from nominal DH with the frame stage's tool, identifies the groups in
 `calibrate.params` (DH errors, parallel-axis tilts, tool, base correction)
-by robust least squares, fixing what the data cannot tell apart. Writes
-models/calibration.json (the geometry) and reports/calibration.json (the
-identification report and the error per split, nominal vs calibrated).
+by robust least squares, fixing what the data cannot tell apart. With several
+tracker stations, each further station's frame correction is identified
+jointly (the robot's parameters are shared). Writes models/calibration.json
+(the geometry, and the station corrections that map every station's points
+into the first station's base frame: lib/geometry.py aligned) and
+reports/calibration.json (the identification report and the error per split
+and per campaign, nominal vs calibrated, on the aligned points).
 """
 import numpy as np
 import torch
 
 from .lib.artifacts import CALIBRATED_GEOMETRY, CALIBRATION_JSON, load_points
-from .lib.columns import JOINTS_DEG, MEAS, SPLITS
+from .lib.columns import CAMPAIGN, JOINTS_DEG, MEAS, SPLITS, STATION
 from .lib.config import load_params, logger, section, write_json
-from .lib.geometry import theory_geometry
+from .lib.geometry import aligned, theory_geometry
 from .lib.identify import errors_3d, identify
 from .lib.kinematics import DTYPE, fk, save_geometry
 
@@ -24,18 +28,25 @@ def run(params: dict) -> dict:
     cfg = section(params, "calibrate")
     pts = load_points()
     q = np.radians(pts[JOINTS_DEG].to_numpy())
-    p = pts[MEAS].to_numpy()
+    stations = list(pts[STATION].unique())            # theory keeps the ingest order: the first station first
     train = (pts["split"] == "train").to_numpy()
     g0 = theory_geometry(params)[1]
-    geometry, report = identify(q[train], p[train], g0, cfg)
+    station = pts[STATION].map({s: k for k, s in enumerate(stations)}).to_numpy()
+    geometry, report = identify(q[train], pts[MEAS].to_numpy()[train], g0, cfg, station[train], stations)
+    p = aligned(pts, report["stations"])[MEAS].to_numpy()
     qt = torch.as_tensor(q, dtype=DTYPE)
     with torch.no_grad():
         p_cal, p_nom = fk(qt, geometry).numpy(), fk(qt, g0).numpy()
-    report["splits"] = {
-        s: {"n": int(m.sum()), "calibrated": errors_3d(p_cal[m], p[m]), "nominal": errors_3d(p_nom[m], p[m])}
-        for s in SPLITS if (m := (pts["split"] == s).to_numpy()).any()}
+
+    def errors(m):                                    # per split of the points m
+        return {s: {"n": int(k.sum()), "calibrated": errors_3d(p_cal[k], p[k]),
+                    "nominal": errors_3d(p_nom[k], p[k])}
+                for s in SPLITS if (k := m & (pts["split"] == s).to_numpy()).any()}
+    report["splits"] = errors(np.ones(len(pts), bool))
+    report["campaigns"] = {c: errors((pts[CAMPAIGN] == c).to_numpy()) for c in pts[CAMPAIGN].unique()}
     save_geometry(CALIBRATED_GEOMETRY, geometry, {"robot": params["robot"]["model"],
-                                                "identified": report["identified"]})
+                                                "identified": report["identified"],
+                                                "stations": report["stations"]})
     write_json(CALIBRATION_JSON, report)
     sp = report["splits"]
     last = sp.get("test", sp["train"])

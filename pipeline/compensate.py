@@ -21,6 +21,7 @@ import pandas as pd
 from .lib.artifacts import (COMPENSATION_CSV, COMPENSATION_JSON, COMPENSATION_PARQUET, CONVERGENCE_CSV,
                             DRIVE_CSV, FRAME_JSON, REPORTS, WORKSPACE_JSON, load_points)
 from .lib.columns import COMPENSATION, DJ_DEG, JCOMP_DEG, JOINTS_DEG, PRED, TARGET, THEORY
+from .lib.geometry import aligned
 from .lib.config import load_params, logger, read_json, sections, write_json
 from .lib.realtime import Realtime, check
 from .lib.robots import load_robot
@@ -34,7 +35,7 @@ log = logger(__name__)
 
 def test_targets() -> pd.DataFrame:
     """point_id, j1_deg..j6_deg, target_x..z: every test point, target = its theory position."""
-    df = load_points()
+    df = aligned(load_points())
     df = df[df.split == "test"].reset_index(drop=True)
     return df[["point_id"] + JOINTS_DEG].assign(**dict(zip(TARGET, df[THEORY].to_numpy().T)))
 

@@ -1,7 +1,8 @@
 """Stage evaluate: MAE/MSE/RMSE/R² per split and axis (eqs. 27-42) for the model and baselines.
 
 reports/metrics.json holds the model's metrics at the top level per split
-(DATA_FORMAT.md) and, under "baselines", the same metrics for every
+(DATA_FORMAT.md), under "campaigns" every training campaign's 3D MAE/RMSE
+per method and split, and, under "baselines", the same metrics for every
 comparison method on the same splits:
     nominal_dh      nominal DH after the frame fit (what the robot does uncompensated)
     calibrated_dh   classical kinematic calibration (calibrate stage)
@@ -18,7 +19,8 @@ import pandas as pd
 
 from .lib.artifacts import (BASELINES_MD, BASELINES_TABLE, METRICS_JSON, PREDICTIONS_TABLE, WORKSPACE_JSON,
                             load_points)
-from .lib.columns import JOINTS_DEG, MEAS, PRED, SPLITS, THEORY
+from .lib.columns import CAMPAIGN, JOINTS_DEG, MEAS, PRED, SPLITS, STATION, THEORY
+from .lib.geometry import aligned
 from .lib.config import load_params, logger, sections, write_json
 from .lib.metrics import split_metrics
 from .lib.training import load_model, predict
@@ -38,16 +40,39 @@ def markdown_table(baselines: dict, split: str = "test") -> str:
     return "\n".join(rows) + "\n"
 
 
+def campaign_metrics(df: pd.DataFrame, methods: dict) -> dict:
+    """Per training campaign: its station, and every method's 3D MAE and RMSE per split."""
+    out = {}
+    for c in df[CAMPAIGN].unique():
+        m = (df[CAMPAIGN] == c).to_numpy()
+        sub = df[m].reset_index(drop=True)
+        out[c] = {"station": sub[STATION].iloc[0], "n": {s: int((sub.split == s).sum()) for s in SPLITS},
+                  **{k: {s: {q: v["3d"][q] for q in ("mae", "rmse")} for s, v in split_metrics(sub, p[m]).items()}
+                     for k, p in methods.items()}}
+    return out
+
+
+def campaign_table(campaigns: dict, split: str = "test") -> str:
+    """Campaigns x methods, 3D MAE on one split, as a markdown table."""
+    methods = [k for k in next(iter(campaigns.values())) if k not in ("station", "n")]
+    rows = [f"| campaign (station), {split} 3D MAE mm | n | " + " | ".join(methods) + " |",
+            "|---|---|" + "---|" * len(methods)]
+    for c, v in campaigns.items():
+        rows.append(f"| {c} ({v['station']}) | {v['n'][split]} | "
+                    + " | ".join(f"{v[k][split]['mae']:.4f}" if split in v[k] else "-" for k in methods) + " |")
+    return "\n".join(rows) + "\n"
+
+
 def run(params: dict) -> dict:
     *_, cfg = sections(params, "robot", "model", "workspace")
-    df = load_points()
+    df = aligned(load_points())
     pred = predict(load_model(params), df)
     err = np.linalg.norm(pred - df[MEAS].to_numpy(), axis=1)
     q = df[JOINTS_DEG].to_numpy()
     val = (df.split == "val").to_numpy()
     ws = Workspace.fit(q[(df.split == "train").to_numpy()], err[val], cfg)
     write_json(WORKSPACE_JSON, ws.to_dict())
-    out = df[["point_id", "split"] + JOINTS_DEG + THEORY + MEAS].copy()
+    out = df[["point_id", CAMPAIGN, STATION, "split"] + JOINTS_DEG + THEORY + MEAS].copy()
     out[PRED] = pred
     u, inside = ws(q)
     out["uncertainty_mm"], out["in_workspace"] = u, inside
@@ -62,6 +87,7 @@ def run(params: dict) -> dict:
         methods.setdefault(stem, base[[f"{stem}_{a}" for a in "xyz"]].to_numpy())
     metrics["baselines"] = {k: split_metrics(df, v) for k, v in methods.items()}
     metrics["model"] = name
+    metrics["campaigns"] = campaign_metrics(df, methods)
     metrics["uncertainty"] = {s: {"coverage": float((err[m] <= u[m]).mean()),
                                   "in_workspace_share": float(inside[m].mean()),
                                   "uncertainty_mm_mean": float(u[m].mean())}
@@ -69,6 +95,8 @@ def run(params: dict) -> dict:
     metrics["uncertainty"]["target_coverage"] = cfg["coverage"]
     write_json(METRICS_JSON, metrics)
     table = markdown_table(metrics["baselines"])
+    if len(metrics["campaigns"]) > 1:
+        table += "\n" + campaign_table(metrics["campaigns"])
     BASELINES_MD.write_text(table)
     log.info("evaluated %s on %s points\n%s", name,
              {s: int((df.split == s).sum()) for s in SPLITS}, table)

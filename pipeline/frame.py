@@ -1,43 +1,60 @@
 """Stage frame: fit the base-to-world (tracker) frame, P_world = R Q_base + t (eqs. 20-26).
 
-Robust Kabsch on the nominal theory points (lib/frames.py), optionally with
-the tool offset (`frame.estimate_tool`). Writes reports/frame.json
-(DATA_FORMAT.md): R, t, rms_mm, n_used, outliers, plus tool_mm (the tool
-offset every later stage uses) and fit diagnostics.
+Robust Kabsch on the nominal theory points (lib/frames.py), one frame per
+tracker station (the `station` column; campaigns.station / campaigns.more),
+optionally refined jointly with one shared tool offset (`frame.estimate_tool`).
+Writes reports/frame.json (DATA_FORMAT.md): R, t, rms_mm, n_used of the first
+station (the base frame the later stages work in), outliers of every station,
+tool_mm (the tool offset every later stage uses), fit diagnostics, and under
+"stations" every station's frame and fit.
 """
 import numpy as np
 import pandas as pd
 
 from .lib.artifacts import FRAME_JSON, INGEST_TABLE
-from .lib.columns import JOINTS_DEG, MEAS
+from .lib.columns import CAMPAIGN, JOINTS_DEG, MEAS, STATION
 from .lib.config import load_params, logger, section, write_json
-from .lib.frames import fit_frame
+from .lib.frames import fit_frames
 from .lib.robots import load_robot
 
 log = logger(__name__)
 
 
+def fit_stats(r: np.ndarray, inl: np.ndarray) -> dict:
+    return {"rms_mm": float(np.sqrt(np.mean(r[inl] ** 2))), "n_used": int(inl.sum()),
+            "mean_mm": float(r[inl].mean()), "max_mm": float(r[inl].max())}
+
+
 def run(params: dict) -> dict:
     robot = load_robot(section(params, "robot"))
     df = pd.read_parquet(INGEST_TABLE)
-    fit = fit_frame(df[JOINTS_DEG].to_numpy(), df[MEAS].to_numpy(), robot, section(params, "frame"))
+    fit = fit_frames(df[JOINTS_DEG].to_numpy(), df[MEAS].to_numpy(), df[STATION].to_numpy(), robot,
+                     section(params, "frame"))
     inl, r = fit["inliers"], fit["residual_mm"]
     outliers = df.loc[~inl, "point_id"].tolist()
+    stations = {}
+    for s, f in fit["stations"].items():
+        m = f["points"]
+        stations[s] = {"R": f["R"], "t": f["t"], **fit_stats(r[m], inl[m]), "n": int(m.sum()),
+                       "campaigns": sorted(df.loc[m, CAMPAIGN].unique()),
+                       "outliers": df.loc[m & ~inl, "point_id"].tolist()}
+    first = next(iter(stations.values()))
     summary = {
-        "R": fit["R"], "t": fit["t"],
-        "rms_mm": float(np.sqrt(np.mean(r[inl] ** 2))),
-        "n_used": int(inl.sum()),
+        "R": first["R"], "t": first["t"],
+        **{k: first[k] for k in ("rms_mm", "n_used")},
         "outliers": outliers,
         "outlier_residual_mm": {p: round(float(v), 4) for p, v in zip(outliers, r[~inl])},
-        "mean_mm": float(r[inl].mean()), "max_mm": float(r[inl].max()),
+        **{k: first[k] for k in ("mean_mm", "max_mm")},
         "tool_mm": fit["tool_mm"], "method": fit["method"], "condition": fit["condition"],
-        "det_R": float(np.linalg.det(fit["R"])),
+        "det_R": float(np.linalg.det(first["R"])),
+        "stations": stations,
     }
     write_json(FRAME_JSON, summary)
-    log.info("fitted base frame (%s) on %d of %d points: rms %.4f mm, mean %.4f mm; "
-             "%d outliers rejected %s; tool %s mm", fit["method"], inl.sum(), len(df),
-             summary["rms_mm"], summary["mean_mm"], len(outliers), outliers,
-             np.round(fit["tool_mm"], 3).tolist())
+    for s, f in stations.items():
+        log.info("station %s (%s): fitted base frame (%s) on %d of %d points: rms %.4f mm, mean %.4f mm; "
+                 "%d outliers rejected %s", s, ", ".join(f["campaigns"]), fit["method"], f["n_used"], f["n"],
+                 f["rms_mm"], f["mean_mm"], len(f["outliers"]), f["outliers"])
+    log.info("tool %s mm", np.round(fit["tool_mm"], 3).tolist())
     return summary
 
 

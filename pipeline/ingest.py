@@ -1,25 +1,95 @@
 """Stage ingest: the tracker/controller exports -> data/interim/ingest.parquet (DATA_FORMAT.md).
 
+    python -m pipeline.ingest                  dvc stage ingest: the ingest section's campaign,
+                                               joined with every campaigns.more campaign
+    python -m pipeline.ingest campaign NAME    dvc stage ingest_campaign@NAME (foreach campaigns.more)
+
 Reads `ingest.joints` and `ingest.tracker` (one table when both name the same
 file); pairing, units, checks and the dropped-row list are lib/readers.py's.
-Writes the table and reports/ingest.json (every dropped row with its reason).
+A `more` campaign is read the same way with its own overrides (lib/campaigns.py)
+into data/interim/campaigns/NAME.parquet and reports/campaigns/NAME.json.
+Writes the table (with each point's campaign and station) and reports/ingest.json:
+every dropped row, of every campaign, with its reason.
 """
-from .lib.artifacts import INGEST_JSON, INGEST_TABLE
-from .lib.config import load_params, logger, sections, write_json
+import argparse
+from collections import Counter
+
+import pandas as pd
+
+from .lib.artifacts import CAMPAIGNS_DIR, CAMPAIGNS_REPORTS, INGEST_JSON, INGEST_TABLE
+from .lib.campaigns import campaign_entry, campaign_params, campaign_stations, point_id
+from .lib.columns import CAMPAIGN, STATION
+from .lib.config import load_params, logger, read_json, sections, write_json
 from .lib.readers import ingest
 
 log = logger(__name__)
 
 
-def run(params: dict) -> dict:
+def labelled(df: pd.DataFrame, campaign: str, station: str) -> pd.DataFrame:
+    """df with its campaign and station columns (last)."""
+    return df.assign(**{CAMPAIGN: campaign, STATION: station})
+
+
+def run_campaign(params: dict, name: str) -> dict:
+    """Ingest one campaigns.more campaign; ids become NAME:id."""
     sections(params, "robot", "ingest")
-    df, summary = ingest(params)
-    INGEST_TABLE.parent.mkdir(parents=True, exist_ok=True)
-    df.to_parquet(INGEST_TABLE, index=False)
-    write_json(INGEST_JSON, summary)
-    log.info("wrote %s (%d rows) and %s", INGEST_TABLE, len(df), INGEST_JSON)
+    station = campaign_entry(params, name)["station"]
+    df, summary = ingest(campaign_params(params, name))
+    df["point_id"] = [point_id(name, p) for p in df["point_id"]]
+    CAMPAIGNS_DIR.mkdir(parents=True, exist_ok=True)
+    labelled(df, name, station).to_parquet(CAMPAIGNS_DIR / f"{name}.parquet", index=False)
+    write_json(CAMPAIGNS_REPORTS / f"{name}.json", {"campaign": name, "station": station, **summary})
+    log.info("campaign %s (station %s): %d points", name, station, len(df))
     return summary
 
 
+def run(params: dict) -> dict:
+    sections(params, "robot", "ingest")
+    stations = campaign_stations(params)
+    first, *more = stations
+    df, summary = ingest(params)
+    parts = [labelled(df, first, stations[first])]
+    summary["campaigns"] = {first: {"station": stations[first], "n_kept": len(df),
+                                    "n_dropped": len(summary["dropped"])}}
+    for name in more:
+        path = CAMPAIGNS_DIR / f"{name}.parquet"
+        if not path.exists():
+            raise FileNotFoundError(f"{path}: campaign {name!r} (params.yaml campaigns.more) is not ingested; "
+                                    f"run dvc repro, or python -m pipeline.ingest campaign {name}")
+        part, rep = pd.read_parquet(path), read_json(CAMPAIGNS_REPORTS / f"{name}.json")
+        if (part[STATION] != stations[name]).any():
+            raise ValueError(f"{path}: ingested for station {part[STATION].iloc[0]!r}, params.yaml "
+                             f"campaigns.more.{name}.station says {stations[name]!r}; re-run its ingest")
+        parts.append(part)
+        summary["dropped"] += [{**d, "campaign": name} for d in rep["dropped"]]
+        summary["campaigns"][name] = {"station": stations[name], "n_kept": len(part),
+                                      "n_dropped": len(rep["dropped"]), "files": rep["files"]}
+    out = pd.concat(parts, ignore_index=True)
+    if more:
+        summary["n_kept"] = len(out)
+        summary["dropped_counts"] = dict(Counter(d["reason"] for d in summary["dropped"]))
+    INGEST_TABLE.parent.mkdir(parents=True, exist_ok=True)
+    out.to_parquet(INGEST_TABLE, index=False)
+    write_json(INGEST_JSON, summary)
+    log.info("wrote %s (%d rows: %s) and %s", INGEST_TABLE, len(out),
+             ", ".join(f"{c} {v['n_kept']} (station {v['station']})" for c, v in summary["campaigns"].items()),
+             INGEST_JSON)
+    return summary
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(prog="python -m pipeline.ingest", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("what", nargs="?", choices=["campaign"], help="ingest one campaigns.more campaign")
+    ap.add_argument("name", nargs="?")
+    a = ap.parse_args(argv)
+    if a.what == "campaign":
+        if not a.name:
+            ap.error("campaign: give its name (params.yaml campaigns.more)")
+        run_campaign(load_params(), a.name)
+    else:
+        run(load_params())
+
+
 if __name__ == "__main__":
-    run(load_params())
+    main()

@@ -1,10 +1,16 @@
 """Stage split: random 8:1:1 train/val/test split, seed 7, torch's random_split semantics.
 
+Several training campaigns: each campaign is split on its own (8:1:1, seed 7,
+in its table order), so every campaign has test points and a campaign's split
+does not change when another campaign is added. One campaign: the paper's split.
+
 Writes data/interim/split.parquet (point_id, split) and reports/split.json.
 """
+import numpy as np
 import pandas as pd
 
 from .lib.artifacts import POINTS_TABLE, SPLIT_JSON, SPLIT_TABLE
+from .lib.columns import CAMPAIGN, SPLITS
 from .lib.config import load_params, logger, section, write_json
 from .lib.splits import split_indices
 
@@ -13,17 +19,22 @@ log = logger(__name__)
 
 def run(params: dict) -> dict:
     cfg = section(params, "split")
-    ids = pd.read_parquet(POINTS_TABLE, columns=["point_id"])["point_id"]
-    idx = split_indices(len(ids), cfg["fractions"], cfg["seed"])
-    split = pd.Series("", index=ids.index)
-    for name, rows in idx.items():
-        split.iloc[rows] = name
+    pts = pd.read_parquet(POINTS_TABLE, columns=["point_id", CAMPAIGN])
+    split = pd.Series("", index=pts.index)
+    per = {}
+    for campaign in pts[CAMPAIGN].unique():
+        rows = np.flatnonzero(pts[CAMPAIGN] == campaign)                           # positions, table order
+        idx = split_indices(len(rows), cfg["fractions"], cfg["seed"])
+        for name, r in idx.items():
+            split.iloc[rows[r]] = name
+        per[campaign] = {k: len(v) for k, v in idx.items()}
     SPLIT_TABLE.parent.mkdir(parents=True, exist_ok=True)
-    pd.DataFrame({"point_id": ids, "split": split}).to_parquet(SPLIT_TABLE, index=False)
+    pd.DataFrame({"point_id": pts["point_id"], "split": split}).to_parquet(SPLIT_TABLE, index=False)
     summary = {"seed": cfg["seed"], "fractions": cfg["fractions"],
-               "counts": {k: len(v) for k, v in idx.items()}}
+               "counts": {k: sum(c[k] for c in per.values()) for k in SPLITS},
+               "per_campaign": per}
     write_json(SPLIT_JSON, summary)
-    log.info("split %d points with seed %d: %s", len(ids), cfg["seed"], summary["counts"])
+    log.info("split %d points with seed %d: %s", len(pts), cfg["seed"], summary["counts"])
     return summary
 
 

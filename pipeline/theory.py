@@ -1,7 +1,7 @@
 """Stage theory: nominal DH theory points (eq. 1) and measured points in the base frame.
 
 theory = nominal DH + tool (tool from reports/frame.json: fixed or estimated),
-meas   = R^T (P_world - t) with the fitted frame (inverse of eq. 20),
+meas   = R^T (P_world - t) with the fitted frame of the point's station (inverse of eq. 20),
 err    = meas - theory, what the network learns.
 Points the frame fit rejected as gross outliers are dropped here and listed
 in reports/theory.json with their residual.
@@ -11,7 +11,7 @@ import pandas as pd
 
 from .lib.artifacts import FRAME_JSON, INGEST_TABLE, POINTS_TABLE, THEORY_JSON
 from .lib.geometry import theory_geometry
-from .lib.columns import ERR, JOINTS_DEG, MEAS, THEORY
+from .lib.columns import CAMPAIGN, ERR, JOINTS_DEG, MEAS, STATION, THEORY
 from .lib.config import load_params, logger, read_json, section, write_json
 from .lib.frames import to_base
 from .lib.kinematics import fk_numpy
@@ -24,10 +24,13 @@ def run(params: dict) -> dict:
     frame = read_json(FRAME_JSON)
     robot, g = theory_geometry(params)
     df = pd.read_parquet(INGEST_TABLE)
-    out = pd.DataFrame({"point_id": df["point_id"]})
-    out[JOINTS_DEG] = df[JOINTS_DEG]
+    out = df[["point_id", CAMPAIGN, STATION] + JOINTS_DEG].copy()
     out[THEORY] = fk_numpy(df[JOINTS_DEG].to_numpy(), robot, g)
-    out[MEAS] = to_base(df[MEAS].to_numpy(), frame)
+    meas = np.full((len(df), 3), np.nan)
+    for s, f in frame["stations"].items():
+        m = (df[STATION] == s).to_numpy()
+        meas[m] = to_base(df.loc[m, MEAS].to_numpy(), f)
+    out[MEAS] = meas
     out[ERR] = out[MEAS].to_numpy() - out[THEORY].to_numpy()
     bad = out["point_id"].isin(frame["outliers"])
     dropped = [{"point_id": p, "reason": "frame outlier",
@@ -38,7 +41,9 @@ def run(params: dict) -> dict:
     e = np.linalg.norm(out[ERR].to_numpy(), axis=1)
     summary = {"n_points": len(out), "n_dropped": len(dropped), "dropped": dropped,
                "nominal_error_mm": {"mean": float(e.mean()), "rms": float(np.sqrt((e ** 2).mean())),
-                                    "max": float(e.max())}}
+                                    "max": float(e.max())},
+               "campaigns": {c: {"n": int(m.sum()), "nominal_error_mean_mm": float(e[m].mean())}
+                             for c in out[CAMPAIGN].unique() if (m := (out[CAMPAIGN] == c).to_numpy()).any()}}
     write_json(THEORY_JSON, summary)
     log.info("theory points for %d poses (%d frame outliers dropped); nominal DH error after "
              "frame fit: mean %.3f mm, max %.3f mm", len(out), len(dropped), e.mean(), e.max())

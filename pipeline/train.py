@@ -10,7 +10,7 @@ from dvclive import Live
 
 from .lib.artifacts import LIVE, MODEL_WEIGHTS, TRAIN_JSON, load_points
 from .lib.config import load_params, logger, sections, write_json
-from .lib.geometry import physics_geometry
+from .lib.geometry import aligned, physics_geometry
 from .lib.training import train_boter
 
 log = logger(__name__)
@@ -18,7 +18,7 @@ log = logger(__name__)
 
 def run(params: dict) -> dict:
     sections(params, "robot", "model", "loss", "train", "workspace")
-    df = load_points()
+    df = aligned(load_points())
     geometry = physics_geometry(params, params["model"]["physics"])
     with Live(dir=str(LIVE), save_dvc_exp=False, dvcyaml=False) as live:
         model, summary = train_boter(params, df, geometry, live)   # dvclive needs a git repo with a commit

@@ -137,7 +137,7 @@ def test_stage_writes_model_and_report(tmp_path, monkeypatch):
     P = twin.drive(q, np.random.default_rng(0))
     R, t = kabsch(theory, P)
     meas = (P - t) @ R
-    pts = pd.DataFrame({"point_id": [f"P{i:04d}" for i in range(len(q))]})
+    pts = pd.DataFrame({"point_id": [f"P{i:04d}" for i in range(len(q))], "campaign": "main", "station": "main"})
     pts[JOINTS_DEG], pts[THEORY], pts[MEAS], pts[ERR] = q, theory, meas, meas - theory
     split = pd.DataFrame({"point_id": pts["point_id"],
                           "split": np.where(np.arange(len(q)) < 120, "train",

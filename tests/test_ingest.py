@@ -44,7 +44,8 @@ def params(**ingest_cfg):
         ingest_cfg["joints"] = ingest_cfg["tracker"] = ingest_cfg.pop("table")
     cfg.update(ingest_cfg)
     cfg["columns"] = {"point_id": None, "joints": None, "position": None, **cfg["columns"]}
-    return {"robot": {"model": "ur5", "tool_mm": TOOL, "dh": None, "joint_limits_deg": None}, "ingest": cfg}
+    return {"robot": {"model": "ur5", "tool_mm": TOOL, "dh": None, "joint_limits_deg": None}, "ingest": cfg,
+            "campaigns": {"name": "main", "station": "main", "more": {}}}
 
 
 def num(x, decimal="."):

@@ -73,6 +73,16 @@ def stage_module(stage: dict) -> str:
     return cmd[2]
 
 
+def foreach_keys(stage: dict, params: dict) -> list:
+    """The keys a foreach stage (foreach: ${section.key} of params.yaml) runs for; [None] otherwise."""
+    if "foreach" not in stage:
+        return [None]
+    node = params
+    for part in stage["foreach"].strip("${}").split("."):
+        node = node[part]
+    return list(node or {})
+
+
 STAGES = {name: stage_module(s) for name, s in dvc_stages().items()}
 LIB = sorted(f"pipeline.lib.{p.stem}" for p in (PKG / "lib").glob("*.py") if p.stem != "__init__")
 TOP = sorted(f"pipeline.{p.stem}" for p in PKG.glob("*.py") if p.stem != "__init__")
@@ -80,7 +90,7 @@ TOP = sorted(f"pipeline.{p.stem}" for p in PKG.glob("*.py") if p.stem != "__init
 
 def test_every_stage_is_a_pipeline_module():
     assert set(STAGES.values()) <= set(TOP)
-    assert len(STAGES) == 14
+    assert len(STAGES) == 15
     assert {"pipeline.ingest", "pipeline.train", "pipeline.report"} <= set(STAGES.values())
 
 
@@ -117,7 +127,8 @@ def test_closure_sees_function_local_and_transitive_imports(tmp_path):
 def git_dvc_repo(tmp: Path) -> dict:
     """A copy of the project (code, dvc.yaml, params, raw data) in a fresh git + DVC repo whose
     dvc.lock records every stage as run (outputs are placeholders: nothing is computed)."""
-    for p in ["pipeline", "data/raw", "dvc.yaml", "params.yaml", "reports/validation/.gitkeep"]:
+    for p in ["pipeline", "data/raw", "dvc.yaml", "params.yaml", "reports/validation/.gitkeep",
+              "reports/campaigns/.gitkeep", "data/interim/campaigns/.gitkeep"]:
         src, dst = ROOT / p, tmp / p
         if src.is_dir():
             shutil.copytree(src, dst, ignore=shutil.ignore_patterns("__pycache__"))
@@ -133,13 +144,7 @@ def git_dvc_repo(tmp: Path) -> dict:
     for stage in dvc_stages().values():
         if "matrix" in stage:
             continue
-        keys = [None]
-        if "foreach" in stage:                                 # foreach: ${section.key} of params.yaml
-            node = params
-            for part in stage["foreach"].strip("${}").split("."):
-                node = node[part]
-            keys = list(node)
-        for key in keys:
+        for key in foreach_keys(stage, params):
             body = stage.get("do", stage)
             for out in body.get("outs", []) + body.get("metrics", []) + body.get("plots", []):
                 name = (out if isinstance(out, str) else next(iter(out))).replace("${key}", str(key))
@@ -167,9 +172,9 @@ def test_editing_library_code_makes_dvc_status_report_its_stages(tmp_path, edite
              if any(c.get("changed deps", {}).get(edited) == "modified" for c in changes if isinstance(c, dict))}
     users = {name for name, mod in STAGES.items() if not name.startswith("ablation/")
              and edited in {str(module_path(m).relative_to(ROOT)) for m in closure(mod)}}
-    users = {f"validate@{k}" if u == "validate" else u         # the foreach stage, once per campaign
-             for u in users for k in (yaml.safe_load((tmp_path / "params.yaml").read_text())
-                                      ["validate"]["campaigns"] if u == "validate" else [None])}
+    params = yaml.safe_load((tmp_path / "params.yaml").read_text())
+    users = {u if k is None else f"{u}@{k}"                   # a foreach stage, once per item
+             for u in users for k in foreach_keys(dvc_stages()[u], params)}
     assert stale == users and stale                    # every stage that runs it, and only those
     if edited.endswith("robots.py"):                   # the DH tables reach every stage but split
         assert stale == {"ingest", "frame", "theory", "calibrate", "train", "baselines", "evaluate",

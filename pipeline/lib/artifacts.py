@@ -11,6 +11,8 @@ INTERIM, MODELS, REPORTS = Path("data/interim"), Path("models"), Path("reports")
 
 INGEST_TABLE = INTERIM / "ingest.parquet"             # ingest
 INGEST_JSON = REPORTS / "ingest.json"
+CAMPAIGNS_DIR = INTERIM / "campaigns"                 # ingest_campaign@<name>: <name>.parquet
+CAMPAIGNS_REPORTS = REPORTS / "campaigns"             #   and its <name>.json (dropped rows)
 FRAME_JSON = REPORTS / "frame.json"                   # frame
 POINTS_TABLE = INTERIM / "points.parquet"             # theory
 THEORY_JSON = REPORTS / "theory.json"

@@ -6,6 +6,7 @@ THEORY = ["theory_x", "theory_y", "theory_z"]             # nominal DH + tool, b
 ERR = ["err_x", "err_y", "err_z"]                         # meas - theory, base frame, mm
 PRED = ["pred_x", "pred_y", "pred_z"]                     # model prediction, base frame, mm
 AXES = ["x", "y", "z"]
+CAMPAIGN, STATION = "campaign", "station"                 # each point's campaign and tracker station
 
 # reports/compensation.csv (DATA_FORMAT.md: names are a contract)
 DJ_DEG = [f"dj{i}_deg" for i in range(1, 7)]

@@ -20,6 +20,8 @@ SECTIONS = {
     "ingest": ("joints", "tracker", "sep", "decimal", "angle_unit", "length_unit", "columns",
                "gross_outlier_mm"),
     "ingest.columns": ("point_id", "joints", "position"),
+    "campaigns": ("name", "station", "more"),
+    "campaigns.campaign": ("ingest", "station"),
     "frame": ("outlier_k", "outlier_min_mm", "estimate_tool", "robust_loss", "robust_scale_mm"),
     "split": ("seed", "fractions"),
     "calibrate": ("loss", "loss_scale_mm", "params", "tilt_joints", "rank_tol", "tol", "max_nfev"),
@@ -62,7 +64,7 @@ def section(params: dict, name: str) -> dict:
     if name not in params:
         raise ParamsError(f"params.yaml: missing section {name!r} (keys: {', '.join(SECTIONS[name])})")
     cfg = check_keys(params[name], name)
-    for sub in SECTIONS:                               # nested sections (not validate.campaign: one per entry)
+    for sub in SECTIONS:                               # nested sections (not validate.campaign / campaigns.campaign: one per entry)
         if sub.startswith(name + ".") and sub.split(".", 1)[1] in SECTIONS[name]:
             check_keys(cfg[sub.split(".", 1)[1]], sub)
     return cfg

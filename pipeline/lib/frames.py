@@ -3,7 +3,9 @@
 Kabsch/SVD (eqs. 21-26) between the nominal theory points Q and the measured
 points P, made robust by iterated rejection of gross outliers (listed, not
 hidden). With `frame.estimate_tool`, base frame and tool offset are then
-refined jointly by robust least squares on the inliers.
+refined jointly by robust least squares on the inliers. Several tracker
+stations (campaigns measured from different tracker placements): one frame
+each, the tool shared, all refined together (`fit_frames`).
 
 `to_base` maps tracker points back into the base frame (inverse of eq. 20).
 """
@@ -66,43 +68,79 @@ def flange_poses(q_deg: np.ndarray, geometry: dict) -> tuple[np.ndarray, np.ndar
     return T[:, :3, :3], T[:, :3, 3]
 
 
-def refine_with_tool(Rf, pf, P, R0, t0, tool0, loss="soft_l1", f_scale=0.5):
-    """Jointly fit base frame (rotation vector, t) and tool offset by robust least squares.
+def tool_points(Rf, pf, tool) -> np.ndarray:
+    """Marker positions (n, 3) in the base frame: Rf_i tool + pf_i."""
+    return np.einsum("nij,j->ni", Rf, tool) + pf
 
-    Model: P_i = R (Rf_i tool + pf_i) + t. Returns R, t, tool, diagnostics.
+
+def refine_with_tool(Rf, pf, P, frames, tool0, station=None, loss="soft_l1", f_scale=0.5):
+    """Jointly fit one base frame per station (rotation vector, t) and the shared tool offset by
+    robust least squares.
+
+    Model: P_i = R_s (Rf_i tool + pf_i) + t_s, s = station[i] (index into frames; None: all 0).
+    frames: [(R0, t0)] starts. Returns [(R, t)], tool, diagnostics.
     """
+    S = len(frames)
+    station = np.zeros(len(P), int) if station is None else np.asarray(station)
+
     def unpack(x):
-        return Rotation.from_rotvec(x[:3]).as_matrix(), x[3:6], x[6:9]
+        Rs = Rotation.from_rotvec(x[:6 * S].reshape(S, 6)[:, :3]).as_matrix()      # (S, 3, 3)
+        return Rs, x[:6 * S].reshape(S, 6)[:, 3:], x[6 * S:]
 
     def residuals(x):
-        R, t, tool = unpack(x)
-        Q = np.einsum("nij,j->ni", Rf, tool) + pf
-        return (Q @ R.T + t - P).ravel()
+        Rs, ts, tool = unpack(x)
+        Q = tool_points(Rf, pf, tool)
+        return (np.einsum("nij,nj->ni", Rs[station], Q) + ts[station] - P).ravel()
 
-    x0 = np.concatenate([Rotation.from_matrix(R0).as_rotvec(), t0, tool0])
+    x0 = np.concatenate([np.concatenate([Rotation.from_matrix(R).as_rotvec(), t]) for R, t in frames]
+                        + [tool0])
     sol = least_squares(residuals, x0, loss=loss, f_scale=f_scale, x_scale="jac")
-    R, t, tool = unpack(sol.x)
+    Rs, ts, tool = unpack(sol.x)
     s = np.linalg.svd(sol.jac, compute_uv=False)
-    return R, t, tool, {"condition": float(s[0] / s[-1]), "nfev": int(sol.nfev),
-                        "status": sol.message}
+    return list(zip(Rs, ts)), tool, {"condition": float(s[0] / s[-1]), "nfev": int(sol.nfev),
+                                     "status": sol.message}
+
+
+def fit_frames(q_deg: np.ndarray, P: np.ndarray, station: np.ndarray, robot, cfg: dict) -> dict:
+    """One base-to-world frame per tracker station (and optionally the shared tool) for measured
+    points P (n, 3); station (n,) names, the first one's frame first.
+
+    Each station: robust Kabsch on its points (outliers per station). With
+    cfg["estimate_tool"], all frames and one tool are then refined jointly on the inliers.
+    Returns {"stations": {name: {"R", "t", "inliers" (n,) of all points, "residual_mm" (n,)}},
+    "tool_mm", "method", "condition"}.
+    """
+    station = np.asarray(station)
+    names = list(dict.fromkeys(station))
+    idx = np.array([names.index(s) for s in station], int)
+    Rf, pf = flange_poses(q_deg, nominal_geometry(robot))
+    tool = robot.tool.copy()
+    Q = tool_points(Rf, pf, tool)                                # nominal theory points (n, 3)
+    frames, inl, conds = [], np.zeros(len(P), bool), []
+    for k in range(len(names)):
+        m = idx == k
+        R, t, inl_k, _ = robust_kabsch(Q[m], P[m], cfg["outlier_k"], cfg["outlier_min_mm"])
+        frames.append((R, t))
+        inl[np.flatnonzero(m)[inl_k]] = True
+        sv = np.linalg.svd(Q[m][inl_k] - Q[m][inl_k].mean(0), compute_uv=False)
+        conds.append(float(sv[0] / sv[-1]))
+    diag = {"method": "kabsch", "condition": max(conds)}
+    if cfg["estimate_tool"]:
+        frames, tool, diag = refine_with_tool(Rf[inl], pf[inl], P[inl], frames, tool, idx[inl],
+                                              cfg["robust_loss"], cfg["robust_scale_mm"])
+        diag["method"] = "kabsch + least-squares base frame" + ("s" if len(names) > 1 else "") + " and tool"
+        Q = tool_points(Rf, pf, tool)
+    Rs, ts = np.stack([R for R, _ in frames]), np.stack([t for _, t in frames])
+    r = np.linalg.norm(np.einsum("nij,nj->ni", Rs[idx], Q) + ts[idx] - P, axis=1)
+    return {"stations": {s: {"R": Rs[k], "t": ts[k], "points": idx == k} for k, s in enumerate(names)},
+            "inliers": inl, "residual_mm": r, "tool_mm": tool, **diag}
 
 
 def fit_frame(q_deg: np.ndarray, P: np.ndarray, robot, cfg: dict) -> dict:
-    """Fit the base-to-world frame (and optionally the tool) to measured points P (n, 3)."""
-    g = nominal_geometry(robot)
-    Rf, pf = flange_poses(q_deg, g)
-    tool = robot.tool.copy()
-    Q = np.einsum("nij,j->ni", Rf, tool) + pf                  # nominal theory points (n, 3)
-    R, t, inl, r = robust_kabsch(Q, P, cfg["outlier_k"], cfg["outlier_min_mm"])
-    s = np.linalg.svd(Q[inl] - Q[inl].mean(0), compute_uv=False)
-    diag = {"method": "kabsch", "condition": float(s[0] / s[-1])}
-    if cfg["estimate_tool"]:
-        R, t, tool, diag = refine_with_tool(Rf[inl], pf[inl], P[inl], R, t, tool,
-                                            cfg["robust_loss"], cfg["robust_scale_mm"])
-        diag["method"] = "kabsch + least-squares base frame and tool"
-        Q = np.einsum("nij,j->ni", Rf, tool) + pf
-        r = np.linalg.norm(Q @ R.T + t - P, axis=1)
-    return {"R": R, "t": t, "tool_mm": tool, "inliers": inl, "residual_mm": r, **diag}
+    """Fit the base-to-world frame (and optionally the tool) to measured points P (n, 3) of one station."""
+    fit = fit_frames(q_deg, P, np.zeros(len(P), int), robot, cfg)
+    (frame,) = fit.pop("stations").values()
+    return {"R": frame["R"], "t": frame["t"], **fit}
 
 
 def to_base(P_world: np.ndarray, frame: dict) -> np.ndarray:

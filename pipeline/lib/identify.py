@@ -8,6 +8,9 @@ measured positions in the base frame:
     base                  base-frame correction [rx, ry, rz, tx, ty, tz]
     compliance            joint compliance under the links' gravity torques (kinematics.deflected):
                           the configuration-dependent sag of the arm, reported also as stiffness
+    <station>_rx..tz      with several tracker stations: each further station's frame, relative to
+                          the first's (its points are measured as D_s(base(chain(q)))); identified
+                          jointly with the robot, so one geometry explains every station
 by robust trust-region least squares (scipy `least_squares`, Jacobian from
 torch autograd of `fk`). Before solving, parameters the data cannot tell
 apart are found by column-pivoted QR of the column-scaled Jacobian and kept
@@ -24,7 +27,7 @@ import scipy.linalg
 import torch
 from scipy.optimize import least_squares
 
-from .kinematics import DTYPE, GEOMETRY_KEYS, fk
+from .kinematics import DTYPE, GEOMETRY_KEYS, fk, rigid_xyz
 GROUPS = ("d", "a", "alpha", "offset", "beta", "tool", "base", "compliance")
 BASE_NAMES = ["rx", "ry", "rz", "tx", "ty", "tz"]
 TOOL_NAMES = ["x", "y", "z"]
@@ -56,12 +59,19 @@ def parameter_spec(cfg: dict) -> list[tuple[str, str, int]]:
 
 def is_angular(key: str, index: int) -> bool:
     """Angles are rad internally and reported in degrees (compliance in deg/(N·m)); lengths in mm."""
-    return key in ("alpha", "offset", "beta", "compliance") or (key == "base" and index < 3)
+    return key in ("alpha", "offset", "beta", "compliance") or (key in ("base", "station") and index % 6 < 3)
 
 
-def selectors(spec) -> dict:
-    """Per geometry key, a (size, P) 0/1 matrix placing the parameter vector's deltas."""
-    sizes = {"d": 6, "a": 6, "alpha": 6, "offset": 6, "beta": 6, "tool": 3, "base": 6, "compliance": 6}
+def station_spec(stations: list[str]) -> list[tuple[str, str, int]]:
+    """The frame correction of every station but the first: 6 parameters each, key "station"."""
+    return [(f"{s}_{c}", "station", 6 * k + i) for k, s in enumerate(stations) if k > 0
+            for i, c in enumerate(BASE_NAMES)]
+
+
+def selectors(spec, n_stations: int = 1) -> dict:
+    """Per geometry key (and "station"), a (size, P) 0/1 matrix placing the parameter vector's deltas."""
+    sizes = {"d": 6, "a": 6, "alpha": 6, "offset": 6, "beta": 6, "tool": 3, "base": 6, "compliance": 6,
+             "station": 6 * n_stations}
     S = {k: torch.zeros(n, len(spec), dtype=DTYPE) for k, n in sizes.items()}
     for p, (_, key, i) in enumerate(spec):
         S[key][i, p] = 1.0
@@ -73,10 +83,18 @@ def apply_deltas(x: torch.Tensor, g0: dict, S: dict) -> dict:
     return {k: g0[k] + S[k] @ x if k in S else g0[k] for k in GEOMETRY_KEYS}
 
 
-def jacobian(q: torch.Tensor, x: torch.Tensor, g0: dict, S: dict) -> torch.Tensor:
-    """d fk / d x, flattened: (3n, P), by forward-mode autograd (P << 3n)."""
-    f = lambda v: fk(q, apply_deltas(v, g0, S)).reshape(-1)
-    return torch.func.jacfwd(f)(x)
+def positions(q: torch.Tensor, x: torch.Tensor, g0: dict, S: dict, station: torch.Tensor | None):
+    """Measured-position model (n, 3): fk of g0 + deltas, then each point's station correction."""
+    p = fk(q, apply_deltas(x, g0, S))
+    if station is None:
+        return p
+    R, t = rigid_xyz((S["station"] @ x).reshape(-1, 6))                   # (S, 3, 3), (S, 3)
+    return torch.einsum("nij,nj->ni", R[station], p) + t[station]
+
+
+def jacobian(q: torch.Tensor, x: torch.Tensor, g0: dict, S: dict, station=None) -> torch.Tensor:
+    """d positions / d x, flattened: (3n, P), by forward-mode autograd (P << 3n)."""
+    return torch.func.jacfwd(lambda v: positions(q, v, g0, S, station).reshape(-1))(x)
 
 
 # ----------------------------------------------------------------------------- identifiability
@@ -126,25 +144,35 @@ def errors_3d(p: np.ndarray, p_meas: np.ndarray) -> dict:
             "max_mm": float(e.max())}
 
 
-def identify(q: torch.Tensor | np.ndarray, p_meas: np.ndarray, geometry0: dict, cfg: dict):
+def identify(q: torch.Tensor | np.ndarray, p_meas: np.ndarray, geometry0: dict, cfg: dict,
+             station: np.ndarray | None = None, stations: list[str] | None = None):
     """Identify geometry corrections from joint angles q (n, 6) rad and positions p_meas (n, 3) mm.
 
-    Returns (geometry dict of tensors, report dict). cfg: the `calibrate:` section
-    (params, tilt_joints, loss, loss_scale_mm, rank_tol, tol, max_nfev).
+    With several tracker stations, station (n,) indexes `stations` (the first is the base frame
+    the geometry lives in) and each further station's frame correction is identified jointly.
+    Returns (geometry dict of tensors, report dict); report["stations"] holds the corrections.
+    cfg: the `calibrate:` section (params, tilt_joints, loss, loss_scale_mm, rank_tol, tol, max_nfev).
     """
     t0 = time.perf_counter()
     q = torch.as_tensor(np.asarray(q, float), dtype=DTYPE)
     p_meas = np.asarray(p_meas, float)
     g0 = {k: torch.as_tensor(geometry0[k], dtype=DTYPE) for k in GEOMETRY_KEYS}
-    spec = parameter_spec(cfg)
+    stations = stations or ["main"]
+    station = None if len(stations) == 1 else torch.as_tensor(np.asarray(station), dtype=torch.long)
+    robot_spec = parameter_spec(cfg)
+    spec = robot_spec + station_spec(stations)
     names = [s[0] for s in spec]
-    S = selectors(spec)
+    S = selectors(spec, len(stations))
     P = len(spec)
     x0 = torch.zeros(P, dtype=DTYPE)
 
-    J0 = jacobian(q, x0, g0, S).numpy()
+    J0 = jacobian(q, x0, g0, S, station).numpy()
     ident = identifiability(J0, names, cfg["rank_tol"])
     keep = ident["keep"]
+    fixed_by_stations = {}
+    if station is not None:       # what the free station frames cost: robot parameters fixed only with them
+        alone = identifiability(J0[:, :len(robot_spec)], names[:len(robot_spec)], cfg["rank_tol"])["fixed"]
+        fixed_by_stations = {n: why for n, why in ident["fixed"].items() if n not in alone}
     scale = 1.0 / np.linalg.norm(J0[:, keep], axis=0)        # x_scale: unit-norm columns
 
     def full(xk):
@@ -154,10 +182,10 @@ def identify(q: torch.Tensor | np.ndarray, p_meas: np.ndarray, geometry0: dict, 
 
     def residuals(xk):
         with torch.no_grad():
-            return (fk(q, apply_deltas(full(xk), g0, S)).numpy() - p_meas).ravel()
+            return (positions(q, full(xk), g0, S, station).numpy() - p_meas).ravel()
 
     def jac(xk):
-        return jacobian(q, full(xk), g0, S).numpy()[:, keep]
+        return jacobian(q, full(xk), g0, S, station).numpy()[:, keep]
 
     tol = cfg["tol"]
     sol = least_squares(residuals, np.zeros(keep.sum()), jac=jac, method="trf",
@@ -184,13 +212,16 @@ def identify(q: torch.Tensor | np.ndarray, p_meas: np.ndarray, geometry0: dict, 
     c = geometry["compliance"].numpy()
     stiffness = {f"k{j + 1}": float(1.0 / c[j]) for j in range(6) if f"c{j + 1}" in estimates and c[j] > 0}
     with torch.no_grad():
-        before = errors_3d(fk(q, g0).numpy(), p_meas)
-        after = errors_3d(fk(q, geometry).numpy(), p_meas)
+        before = errors_3d(positions(q, x0, g0, S, station).numpy(), p_meas)
+        after = errors_3d(positions(q, x, g0, S, station).numpy(), p_meas)
     report = {
         "n_points": len(p_meas),
         "identified": [n for n, k in zip(names, keep) if k],
         "fixed": ident["fixed"],
         "estimates": estimates,
+        "stations": {st: (S["station"] @ x).reshape(-1, 6)[k].tolist() for k, st in enumerate(stations)},
+        "stations_units": "[rx, ry, rz] rad, [tx, ty, tz] mm: p_station = R p_first + t (first: zeros)",
+        "fixed_because_of_stations": fixed_by_stations,
         "stiffness_Nm_per_rad": stiffness,
         "condition_number": ident["condition"],
         "rank": ident["rank"], "n_candidates": P,

@@ -53,6 +53,11 @@ def rotation_xyz(r: torch.Tensor) -> torch.Tensor:
     ], -2)
 
 
+def rigid_xyz(d: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """A small rigid correction [rx, ry, rz (rad), tx, ty, tz (mm)] (..., 6) -> R (..., 3, 3), t (..., 3)."""
+    return rotation_xyz(d[..., :3]), d[..., 3:]
+
+
 def dh_matrices(q: torch.Tensor, g: dict) -> torch.Tensor:
     """Per-joint transforms T_i = Rz(q+offset) Tz(d) Tx(a) Rx(alpha) Ry(beta).
 

@@ -158,6 +158,12 @@ def section_data(ing: dict | None, fr: dict | None, th: dict | None, sp: dict | 
                 + (": " + ", ".join(f"{p} ({fmt(res.get(p), 3)} mm)" if p in res else p
                                     for p in outl[:30]) if outl else "")
                 + ("…" if len(outl) > 30 else "") + ".", ""]
+        if len(fr.get("stations") or {}) > 1:
+            out += ["Tracker stations (one frame each, the tool shared; the first is the base frame "
+                    "every later stage works in):", "",
+                    table(["station", "campaigns", "n", "n_used", "rms mm", "t mm"],
+                          [[s, ", ".join(f["campaigns"]), f["n"], f["n_used"], f["rms_mm"], fmt(f["t"], 2)]
+                           for s, f in fr["stations"].items()])]
     else:
         out += ["_reports/frame.json not found._", ""]
     if th:
@@ -194,6 +200,19 @@ def section_calibration(c: dict | None) -> str:
                  v["calibrated"]["max_mm"]] for s, v in c["splits"].items()]
         out.append(table(["split", "n", "nominal mean mm", "calibrated mean mm", "nominal rms",
                           "calibrated rms", "nominal max", "calibrated max"], rows))
+    stations = c.get("stations") or {}
+    if len(stations) > 1:
+        by = c.get("fixed_because_of_stations") or {}
+        out += ["Station frames identified jointly with the robot (correction of each station's frame "
+                "relative to the first's; rx, ry, rz deg, tx, ty, tz mm). Robot parameters fixed only "
+                "because the station frames are free: " + (", ".join(by) if by else "none") + ".", "",
+                table(["station", "rx", "ry", "rz", "tx", "ty", "tz"],
+                      [[s] + [np.degrees(v) for v in d[:3]] + list(d[3:]) for s, d in stations.items()])]
+    if c.get("campaigns") and len(c["campaigns"]) > 1:
+        out += ["Per campaign (test split, mean 3D error mm):", "",
+                table(["campaign", "n", "nominal", "calibrated"],
+                      [[k, v["test"]["n"], v["test"]["nominal"]["mean_mm"], v["test"]["calibrated"]["mean_mm"]]
+                       for k, v in c["campaigns"].items() if "test" in v])]
     est = c.get("estimates") or {}
     if est:
         big = sorted(est.items(), key=lambda kv: -abs(kv[1]["delta"] / (kv[1]["se"] or 1e-12)))[:12]

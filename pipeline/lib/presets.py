@@ -3,8 +3,9 @@
     python -m pipeline.preset gtpn-ur5 [--params params.yaml]   # rewrite params.yaml, print changes
     merged_params("ipa-ur10", base)  -> dict                     # in-process, writes nothing
 
-A preset is data/presets/NAME.yaml (or any YAML path). Mappings merge key by
-key; anything else (scalars, lists) replaces the base value. Paths inside a
+A preset is data/presets/NAME.yaml (or any YAML path), optionally `extends:`
+another preset. Mappings merge key by key (a `campaigns` mapping is replaced
+whole); anything else (scalars, lists) replaces the base value. Paths inside a
 preset are relative to the project root, like the rest of params.yaml.
 params.yaml is rewritten with ruamel.yaml's round trip when it is installed
 (DVC depends on it), so comments and layout survive; otherwise with PyYAML
@@ -32,11 +33,14 @@ def preset_path(name_or_path) -> Path:
 
 
 def load_preset(name_or_path) -> dict:
+    """The preset's settings; `extends: OTHER` merges them over preset OTHER's."""
     with open(preset_path(name_or_path)) as f:
-        return yaml.safe_load(f) or {}
+        preset = yaml.safe_load(f) or {}
+    base = preset.pop("extends", None)
+    return preset if base is None else deep_merge(load_preset(base), preset)
 
 
-REPLACED = {"campaigns"}        # mappings a preset replaces whole: its own validation campaigns
+REPLACED = {"campaigns"}        # mappings a preset replaces whole: its own (validation or training) campaigns
 
 
 def deep_merge(base: dict, over: dict) -> dict:

@@ -25,9 +25,11 @@ API
     twin.campaign(n=724)                # (joints_df, tracker_df, misreads {id: offset mm}),
                                         # the tables in DATA_FORMAT.md format
     twin.validation_campaign()          # a second campaign: tracker moved, poses front and side
+    twin.validation_campaign(726, {"side": 300}, "B")   # the same from a second station, side only
 
-`python -m pipeline.twin` (generate) writes data/raw/{joints.csv, tracker.csv, twin.json}
-and data/raw/validation/{joints.csv, tracker.csv}: twin.json holds the seed, the true
+`python -m pipeline.twin` (generate) writes data/raw/{joints.csv, tracker.csv, twin.json},
+data/raw/validation/{joints.csv, tracker.csv} and data/raw/station_b/ (the second
+station's training campaign, preset twin-2stations): twin.json holds the seed, the true
 errors, the noise floor, the misread ids, the validation campaign's tracker pose and
 the measured difficulty (nominal DH after the frame fit; classical calibration).
 """
@@ -98,7 +100,11 @@ REGIONS = {"front": ((-60.0, 60.0), (-60.0, 60.0)), "side": ((70.0, 150.0), (-15
 # The validation campaign: the same arm another day, the tracker moved (its own tracker pose,
 # from this seed's streams), half the poses in the front (inside the default campaign's
 # coverage), half at the side (outside it). No misreads: a validation campaign is cleaned.
-VALIDATION = {"seed": 725, "n": {"front": 150, "side": 150}, "dir": "validation"}
+VALIDATION = {"seed": 725, "n": {"front": 150, "side": 150}, "dir": "validation", "prefix": "V"}
+# A second training campaign from a second tracker station (the twin-2stations preset): the
+# tracker placed to see the side, so this campaign covers joint space the default one never
+# visits, as Series_B does on the real UR10. Cleaned, like the validation campaign.
+STATION_B = {"seed": 726, "n": {"side": 300}, "dir": "station_b", "prefix": "B"}
 
 STREAMS = {"errors": 1, "tracker": 2, "poses": 3, "noise": 4, "misreads": 5, "floor": 6}
 
@@ -302,14 +308,15 @@ class Twin:
         return joints, tracker, misreads
 
 
-    def validation_campaign(self, seed: int = VALIDATION["seed"], n: dict = VALIDATION["n"]):
-        """A second campaign of this arm (joints_df, tracker_df, tracker pose (R, t)): the tracker at
-        another pose, n[region] poses per region, ids V0001..; measured without misreads."""
+    def validation_campaign(self, seed: int = VALIDATION["seed"], n: dict = VALIDATION["n"],
+                            prefix: str = VALIDATION["prefix"]):
+        """A further campaign of this arm (joints_df, tracker_df, tracker pose (R, t)): the tracker at
+        another pose (from `seed`), n[region] poses per region, ids V0001..; measured without misreads."""
         R, t = sample_tracker_pose(seed)
         moved = Twin(self.seed, self.errors, (R, t))
         rng = stream(seed, "poses")
         q = np.concatenate([sample_poses(k, rng, region=r) for r, k in n.items()])
-        ids = [f"V{i + 1:04d}" for i in range(len(q))]
+        ids = [f"{prefix}{i + 1:04d}" for i in range(len(q))]
         joints = pd.DataFrame(q, columns=JOINTS_DEG)
         joints.insert(0, "point_id", ids)
         tracker = pd.DataFrame(moved.drive(q, stream(seed, "noise")), columns=["X", "Y", "Z"])
@@ -404,14 +411,15 @@ def generate(out_dir: Path | str = RAW, seed: int = SEED, params: dict | None = 
     record["noise_floor_method"] = ("Monte Carlo: 64 drives of each campaign pose, stream "
                                     "'floor'; tracker-only analytic value 1.5958 * sigma")
     record["noise_floor_tracker_only_mm"] = MEAN_NORM_3D * TRACKER_SIGMA_MM
-    vdir = out_dir / VALIDATION["dir"]
-    vdir.mkdir(exist_ok=True)
-    vj, vt, (R, t) = twin.validation_campaign()
-    vj.to_csv(vdir / "joints.csv", index=False, float_format="%.6f", lineterminator="\n")
-    vt.to_csv(vdir / "tracker.csv", index=False, float_format="%.4f", lineterminator="\n")
-    record["validation"] = {"seed": VALIDATION["seed"], "n": VALIDATION["n"], "files": VALIDATION["dir"],
-                            "regions": {k: REGIONS[k] for k in VALIDATION["n"]},
-                            "tracker_pose": {"R": R.round(12).tolist(), "t": t.round(9).tolist()}}
+    for key, spec in (("validation", VALIDATION), ("station_b", STATION_B)):
+        sub = out_dir / spec["dir"]
+        sub.mkdir(exist_ok=True)
+        vj, vt, (R, t) = twin.validation_campaign(spec["seed"], spec["n"], spec["prefix"])
+        vj.to_csv(sub / "joints.csv", index=False, float_format="%.6f", lineterminator="\n")
+        vt.to_csv(sub / "tracker.csv", index=False, float_format="%.4f", lineterminator="\n")
+        record[key] = {"seed": spec["seed"], "n": spec["n"], "files": spec["dir"],
+                       "regions": {k: REGIONS[k] for k in spec["n"]},
+                       "tracker_pose": {"R": R.round(12).tolist(), "t": t.round(9).tolist()}}
     if params is not None:
         # measured from the files as written (rounded), as the pipeline will see them
         joints = pd.read_csv(out_dir / "joints.csv")

@@ -1,0 +1,48 @@
+"""The training campaigns (params.yaml `campaigns`): the ingest section's own, plus `more`.
+
+Each campaign is read by the ingest rules with its own overrides of the ingest
+section (as validate.campaigns are). Every table carries each point's
+`campaign` and `station`; campaigns measured from one tracker placement share
+a station, and so a base frame (the frame stage fits one per station). Points
+of a `more` campaign get ids "<campaign>:<id>", unique across campaigns. The
+first station (the ingest section's) is the one whose frame is reports/frame.json's
+top-level R, t: the base frame everything downstream works in.
+"""
+from .config import check_keys, section
+from .presets import deep_merge
+
+
+def campaign_entry(params: dict, name: str) -> dict:
+    """campaigns.more[name], its keys checked; its ingest overrides must name its files."""
+    more = section(params, "campaigns")["more"] or {}
+    if name not in more:
+        raise ValueError(f"params.yaml campaigns.more: no campaign {name!r}; have {sorted(more)}")
+    c = check_keys(more[name], "campaigns.campaign")
+    for key in ("joints", "tracker"):
+        if key not in (c["ingest"] or {}):
+            raise ValueError(f"params.yaml campaigns.more.{name}.ingest: needs {key} (the campaign's file)")
+    if not isinstance(c["station"], str) or not c["station"]:
+        raise ValueError(f"params.yaml campaigns.more.{name}.station: a name, got {c['station']!r}")
+    return c
+
+
+def campaign_params(params: dict, name: str) -> dict:
+    """params with the ingest section overridden by campaign `name`'s (campaigns.more)."""
+    return {**params, "ingest": deep_merge(params["ingest"], campaign_entry(params, name)["ingest"])}
+
+
+def campaign_stations(params: dict) -> dict[str, str]:
+    """{campaign: station}, the ingest section's campaign first."""
+    c = section(params, "campaigns")
+    out = {c["name"]: c["station"]}
+    for name in c["more"] or {}:
+        if name in out:
+            raise ValueError(f"params.yaml campaigns.more.{name}: the name of the ingest section's campaign "
+                             f"(campaigns.name); choose another")
+        out[name] = campaign_entry(params, name)["station"]
+    return out
+
+
+def point_id(campaign: str, pid: str) -> str:
+    """The id of a `more` campaign's point: unique across campaigns."""
+    return f"{campaign}:{pid}"

@@ -1,0 +1,188 @@
+"""Several campaigns from several tracker stations: one frame per station, the robot identified jointly."""
+import json
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+from scipy.spatial.transform import Rotation
+
+from pipeline import calibrate, frame, ingest, split, theory
+from pipeline.lib import identify as C
+from pipeline.lib import twin as T
+from pipeline.lib.columns import CAMPAIGN, JOINTS_DEG, MEAS, STATION
+from pipeline.lib.config import load_params, read_json
+from pipeline.lib.frames import fit_frames
+from pipeline.lib.geometry import aligned
+from pipeline.lib.kinematics import DTYPE, fk, load_geometry, nominal_geometry, rigid_xyz
+from pipeline.lib.presets import merged_params
+from pipeline.lib.robots import nominal_robot
+from pipeline.lib.splits import split_indices
+
+ROOT = Path(__file__).resolve().parents[1]
+PARAMS = load_params(ROOT / "params.yaml")
+CFG = PARAMS["calibrate"]
+STATION_B = T.sample_tracker_pose(T.STATION_B["seed"])
+
+
+def rigid(R, t, p):
+    return p @ np.asarray(R).T + np.asarray(t)
+
+
+def noiseless_twin(gear=False) -> dict:
+    e = T.sample_errors()
+    e.update(joint_sigma_deg=0.0, tracker_sigma_mm=0.0)
+    if not gear:
+        e["gear_amp_deg"] = np.zeros((6, 2))
+    return e
+
+
+def test_frames_of_two_stations_and_the_shared_tool_are_recovered_exactly():
+    """A perfect arm with a known marker offset, measured from two tracker poses, no noise:
+    both frames and the tool come back (the tool estimated from a zero start)."""
+    e = T.zero_errors()
+    e["tool_mm"] = np.array([3.0, -2.0, 40.0])
+    a, b = T.Twin(errors=e), T.Twin(errors=e, tracker_pose=STATION_B)
+    qa = T.sample_poses(200, np.random.default_rng(1))
+    qb = T.sample_poses(100, np.random.default_rng(2), region="side")
+    P = np.vstack([a.to_tracker(a.expected_position(qa)), b.to_tracker(b.expected_position(qb))])
+    P[5] += [0.0, 30.0, 0.0]                                  # a gross misread of station a
+    station = np.array(["a"] * 200 + ["b"] * 100)
+    fit = fit_frames(np.vstack([qa, qb]), P, station, nominal_robot("ur5"), PARAMS["frame"] | {"estimate_tool": True})
+    assert list(fit["stations"]) == ["a", "b"]
+    assert np.flatnonzero(~fit["inliers"]).tolist() == [5]
+    np.testing.assert_allclose(fit["tool_mm"], e["tool_mm"], atol=1e-6)
+    for twin, s in ((a, "a"), (b, "b")):
+        f = fit["stations"][s]
+        angle = np.degrees(Rotation.from_matrix(f["R"].T @ twin.R).magnitude())
+        assert angle < 1e-7 and np.abs(f["t"] - twin.t).max() < 1e-5, s
+    assert fit["residual_mm"][fit["inliers"]].max() < 1e-6
+
+
+@pytest.fixture(scope="module")
+def poses():
+    qa = T.sample_poses(200, np.random.default_rng(3))
+    qb = T.sample_poses(100, np.random.default_rng(4), region="side")
+    return torch.as_tensor(np.radians(np.vstack([qa, qb])), dtype=DTYPE)
+
+
+def test_identify_recovers_a_known_station_correction_with_the_robot(poses):
+    """Station b's points are off by a small rigid motion (what a frame fitted with nominal
+    kinematics leaves): identified jointly with the robot's errors, to 1e-8."""
+    g0 = nominal_geometry(T.ur5())
+    spec = C.parameter_spec(CFG)
+    S = C.selectors(spec)
+    x = np.zeros(len(spec))
+    for k, (name, key, i) in enumerate(spec):                 # known errors on some parameters
+        if name in ("a2", "a3", "d5", "alpha3", "offset2", "beta2", "tool_y", "base_tx"):
+            x[k] = np.radians(0.05) if C.is_angular(key, i) else 0.4
+    g_true = C.apply_deltas(torch.as_tensor(x), g0, S)
+    d_true = torch.tensor([np.radians(0.08), np.radians(-0.05), np.radians(0.02), 0.3, -0.6, 0.2], dtype=DTYPE)
+    with torch.no_grad():
+        p = fk(poses, g_true)
+        R, t = rigid_xyz(d_true)
+        p[200:] = p[200:] @ R.T + t
+    station = np.r_[np.zeros(200, int), np.ones(100, int)]
+    g, rep = C.identify(poses, p.numpy(), g0, {**CFG, "loss": "linear"}, station, ["a", "b"])
+    assert rep["after"]["max_mm"] < 1e-6
+    np.testing.assert_allclose(rep["stations"]["b"], d_true.numpy(), atol=1e-8)
+    assert rep["stations"]["a"] == [0.0] * 6
+    assert {"b_rx", "b_tz"} <= set(rep["identified"])
+    assert isinstance(rep["fixed_because_of_stations"], dict)
+    # lumped into one station, the same data cannot be explained
+    _, lumped = C.identify(poses, p.numpy(), g0, {**CFG, "loss": "linear"})
+    assert lumped["after"]["mean_mm"] > 0.05
+
+
+def test_two_twin_stations_recovered_through_frame_and_calibrate_stages(tmp_path, monkeypatch):
+    """Noiseless twin (no gear error) from two tracker poses, through ingest, frame, theory,
+    split and calibrate: each station's frame (frame stage ∘ its correction) maps the calibrated
+    model onto its tracker readings, and station b's pose relative to a is the true one, to
+    < 0.05 mm and 0.001° (in the calibrated base frame, which differs from the twin's base by
+    the gauge d1/offset1/base the calibration cannot see: measured on station a)."""
+    e = noiseless_twin()
+    a, b = T.Twin(errors=e), T.Twin(errors=e, tracker_pose=STATION_B)
+    qa = a.poses(300)
+    qb = T.sample_poses(150, np.random.default_rng(5), region="side")
+    monkeypatch.chdir(tmp_path)
+    for d, twin, q, pre in (("a", a, qa, "P"), ("b", b, qb, "B")):
+        Path(d).mkdir()
+        ids = [f"{pre}{i:04d}" for i in range(len(q))]
+        pd.DataFrame(q, columns=JOINTS_DEG).assign(point_id=ids).to_csv(f"{d}/joints.csv", index=False,
+                                                                        float_format="%.9f")
+        P = twin.to_tracker(twin.expected_position(q))
+        pd.DataFrame(P, columns=["X", "Y", "Z"]).assign(Name=ids).to_csv(f"{d}/tracker.csv", index=False,
+                                                                       float_format="%.9f")
+    params = json.loads(json.dumps(PARAMS))
+    params["ingest"].update(joints="a/joints.csv", tracker="a/tracker.csv")
+    params["campaigns"] = {"name": "front", "station": "a", "more": {
+        "side": {"ingest": {"joints": "b/joints.csv", "tracker": "b/tracker.csv"}, "station": "b"}}}
+    params["calibrate"]["loss"] = "linear"
+    ingest.run_campaign(params, "side")
+    ingest.run(params)
+    frame.run(params)
+    theory.run(params)
+    split.run(params)
+    calibrate.run(params)
+
+    rep = read_json("reports/calibration.json")
+    fr = read_json("reports/frame.json")
+    assert list(fr["stations"]) == ["a", "b"] and fr["R"] == fr["stations"]["a"]["R"]
+    g = load_geometry("models/calibration.json")
+    # each station's world map W_s = frame_s ∘ D_s, applied to the calibrated model at new poses
+    W = {}
+    for s in ("a", "b"):
+        R, t = (v.numpy() for v in rigid_xyz(torch.tensor(rep["stations"][s], dtype=DTYPE)))
+        Rf, tf = np.asarray(fr["stations"][s]["R"]), np.asarray(fr["stations"][s]["t"])
+        W[s] = (Rf @ R, Rf @ t + tf)
+    q_new = np.vstack([T.sample_poses(100, np.random.default_rng(6)),
+                       T.sample_poses(100, np.random.default_rng(7), region="side")])
+    with torch.no_grad():
+        p_cal = fk(torch.as_tensor(np.radians(q_new), dtype=DTYPE), g).numpy()
+    for s, twin in (("a", a), ("b", b)):
+        truth = twin.to_tracker(twin.expected_position(q_new))
+        assert np.linalg.norm(rigid(*W[s], p_cal) - truth, axis=1).max() < 0.05, s
+    # the gauge H (calibrated base -> twin base) from station a; station b must then be T_b ∘ H
+    H_R, H_t = a.R.T @ W["a"][0], a.R.T @ (W["a"][1] - a.t)
+    Rb, tb = b.R @ H_R, b.R @ H_t + b.t
+    assert np.degrees(Rotation.from_matrix(W["b"][0].T @ Rb).magnitude()) < 0.001
+    assert np.linalg.norm(rigid(*W["b"], p_cal) - rigid(Rb, tb, p_cal), axis=1).max() < 0.05
+    # the campaigns are split on their own (8:1:1, seed 7) and carried through every table
+    pts = aligned(pd.read_parquet("data/interim/points.parquet").merge(
+        pd.read_parquet("data/interim/split.parquet"), on="point_id"))
+    assert pts[CAMPAIGN].unique().tolist() == ["front", "side"] and pts[STATION].unique().tolist() == ["a", "b"]
+    assert pts.point_id.str.startswith("side:B").sum() == 150
+    counts = read_json("reports/split.json")["per_campaign"]
+    assert counts["side"] == {k: len(v) for k, v in split_indices(150, [0.8, 0.1, 0.1], 7).items()}
+    side = pts[pts[CAMPAIGN] == "side"]
+    expected = np.empty(150, object)
+    for name, rows in split_indices(150, [0.8, 0.1, 0.1], 7).items():
+        expected[rows] = name
+    assert side.split.tolist() == expected.tolist()
+    assert set(rep["campaigns"]) == {"front", "side"}
+    assert rep["campaigns"]["side"]["test"]["calibrated"]["mean_mm"] < 0.02
+    # aligned: station b's measured points in station a's base frame, where the model lives
+    with torch.no_grad():
+        model = fk(torch.as_tensor(np.radians(side[JOINTS_DEG].to_numpy()), dtype=DTYPE), g).numpy()
+    assert np.linalg.norm(side[MEAS].to_numpy() - model, axis=1).max() < 0.02
+
+
+def test_more_campaigns_are_checked_with_the_params_key(tmp_path, monkeypatch):
+    p = json.loads(json.dumps(PARAMS))
+    p["campaigns"]["more"] = {"b": {"ingest": {"joints": "x.csv"}, "station": "s2"}}
+    with pytest.raises(ValueError, match=r"campaigns.more.b.ingest: needs tracker"):
+        ingest.run_campaign(p, "b")
+    p["campaigns"]["more"] = {"main": {"ingest": {"joints": "x.csv", "tracker": "x.csv"}, "station": "s2"}}
+    with pytest.raises(ValueError, match=r"campaigns.more.main: the name of the ingest section's campaign"):
+        ingest.run(p)
+    p["campaigns"]["more"] = {"b": {"ingest": {"joints": "x.csv", "tracker": "x.csv"}, "station": "s2",
+                                    "frame": "same"}}
+    with pytest.raises(ValueError, match=r"campaigns.campaign: unknown key\(s\) \['frame'\]"):
+        ingest.run(p)
+    p["campaigns"]["more"] = {"b": {"ingest": {"joints": "x.csv", "tracker": "x.csv"}, "station": "s2"}}
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(FileNotFoundError, match=r"campaign 'b' .* is not ingested"):
+        ingest.run({**merged_params("twin-2stations", PARAMS), "campaigns": p["campaigns"],
+                    "ingest": {**PARAMS["ingest"], "joints": str(ROOT / "data/raw/joints.csv"),
+                               "tracker": str(ROOT / "data/raw/tracker.csv")}})
