@@ -21,8 +21,8 @@ import pandas as pd
 from .lib.artifacts import (COMPENSATION_CSV, COMPENSATION_JSON, COMPENSATION_PARQUET, CONVERGENCE_CSV,
                             DRIVE_CSV, FRAME_JSON, REPORTS, WORKSPACE_JSON, load_points)
 from .lib.columns import COMPENSATION, DJ_DEG, JCOMP_DEG, JOINTS_DEG, PRED, TARGET, THEORY
-from .lib.geometry import aligned
 from .lib.config import load_params, logger, read_json, sections, write_json
+from .lib.geometry import aligned
 from .lib.realtime import Realtime, check
 from .lib.robots import load_robot
 from .lib.solvers import SOLVERS, compensate

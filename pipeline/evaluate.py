@@ -20,8 +20,8 @@ import pandas as pd
 from .lib.artifacts import (BASELINES_MD, BASELINES_TABLE, METRICS_JSON, PREDICTIONS_TABLE, WORKSPACE_JSON,
                             load_points)
 from .lib.columns import CAMPAIGN, JOINTS_DEG, MEAS, PRED, SPLITS, STATION, THEORY
-from .lib.geometry import aligned
 from .lib.config import load_params, logger, sections, write_json
+from .lib.geometry import aligned
 from .lib.metrics import split_metrics
 from .lib.training import load_model, predict
 from .lib.workspace import Workspace

@@ -35,10 +35,8 @@ def deep_update(d, u):
     return d
 
 
-@pytest.fixture(scope="module")
-def repo(tmp_path_factory):
-    """A fresh git+DVC repo holding the committed project files and a small-model params.yaml."""
-    dst = tmp_path_factory.mktemp("repo")
+def project_copy(dst: Path) -> Path:
+    """A fresh git+DVC repo at dst holding the committed project files and a small-model params.yaml."""
     files = sh("git ls-files --cached --others --exclude-standard", ROOT).stdout.split()
     for f in files:
         if (ROOT / f).is_file() and not f.startswith("tests/"):
@@ -48,6 +46,11 @@ def repo(tmp_path_factory):
     (dst / "params.yaml").write_text(yaml.safe_dump(deep_update(params, SMALL), sort_keys=False))
     sh("git init -q && git add -A && git commit -qm init", dst)
     return dst
+
+
+@pytest.fixture(scope="module")
+def repo(tmp_path_factory):
+    return project_copy(tmp_path_factory.mktemp("repo"))
 
 
 @pytest.mark.slow
@@ -104,3 +107,32 @@ def test_exp_run_set_param_and_invalid_combination(repo):
     assert "SPI-BoTER:" not in out                                            # stopped before training
     shown = sh("dvc exp show --json", repo).stdout
     assert "d_model" in shown
+
+
+@pytest.mark.slow
+def test_repro_from_two_tracker_stations(tmp_path):
+    """The twin-2stations preset through dvc: the second campaign's own ingest stage, one frame
+    per station, per-campaign metrics and report, and an edit of its export re-runs its stages."""
+    repo = project_copy(tmp_path)
+    sh("python -m pipeline.preset twin-2stations && git commit -qam preset", repo)
+    out = sh("dvc repro", repo).stdout
+    assert "Running stage 'ingest_campaign@station_b'" in out
+    frame = json.loads((repo / "reports/frame.json").read_text())
+    assert list(frame["stations"]) == ["a", "b"] and frame["stations"]["b"]["n"] == 300
+    assert frame["R"] == frame["stations"]["a"]["R"]
+    metrics = json.loads((repo / "reports/metrics.json").read_text())
+    assert {c: v["station"] for c, v in metrics["campaigns"].items()} == {"main": "a", "station_b": "b"}
+    assert metrics["campaigns"]["station_b"]["n"] == {"train": 240, "val": 30, "test": 30}
+    for c in ("main", "station_b"):
+        m = metrics["campaigns"][c]
+        assert m["calibrated_dh"]["test"]["mae"] < 0.2 * m["nominal_dh"]["test"]["mae"], c
+    pred = pd.read_parquet(repo / "data/interim/predictions.parquet")
+    assert set(pred.campaign) == {"main", "station_b"} and pred.point_id.str.startswith("station_b:B").sum() == 300
+    index = (repo / "reports/index.md").read_text()
+    assert "Tracker stations" in index and "| station_b (b) | 30 |" in index
+    assert "up to date" in sh("dvc repro", repo).stdout
+    tracker = repo / "data/raw/station_b/tracker.csv"
+    tracker.write_text(tracker.read_text().replace("\n", "\r\n", 1))          # an edited export
+    status = json.loads(sh("dvc status --json", repo).stdout)
+    changed = [k for k in status if not k.startswith("ablation/")]      # the opt-in sweep never ran
+    assert changed == ["ingest_campaign@station_b"]             # and what follows it, once it re-runs
