@@ -170,16 +170,12 @@ def fk_numpy(q_deg: np.ndarray, robot: Robot, geometry: dict | None = None) -> n
 
 
 class DHChain(nn.Module):
-    """The physics branch: a geometry held as buffers (frozen) or parameters (trainable)."""
+    """The physics branch: a geometry held as buffers (frozen; saved with the model's state)."""
 
-    def __init__(self, geometry: dict, trainable: bool = False):
+    def __init__(self, geometry: dict):
         super().__init__()
         for k in GEOMETRY_KEYS:
-            v = torch.as_tensor(geometry[k], dtype=DTYPE).clone()
-            if trainable:
-                self.register_parameter(k, nn.Parameter(v))
-            else:
-                self.register_buffer(k, v)
+            self.register_buffer(k, torch.as_tensor(geometry[k], dtype=DTYPE).clone())
 
     def geometry(self) -> dict:
         return {k: getattr(self, k) for k in GEOMETRY_KEYS}
