@@ -107,8 +107,8 @@ def fit_frames(q_deg: np.ndarray, P: np.ndarray, station: np.ndarray, robot, cfg
 
     Each station: robust Kabsch on its points (outliers per station). With
     cfg["estimate_tool"], all frames and one tool are then refined jointly on the inliers.
-    Returns {"stations": {name: {"R", "t", "inliers" (n,) of all points, "residual_mm" (n,)}},
-    "tool_mm", "method", "condition"}.
+    Returns {"stations": {name: {"R", "t", "points": (n,) bool, its points}}, "inliers" (n,) bool,
+    "residual_mm" (n,), "tool_mm", "method", "condition"}.
     """
     station = np.asarray(station)
     names = list(dict.fromkeys(station))
