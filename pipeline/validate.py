@@ -18,6 +18,7 @@ from scipy.spatial.transform import Rotation
 
 from .lib.artifacts import (CALIBRATED_GEOMETRY, FRAME_JSON, VALIDATION_DIR, VALIDATION_JSON, VALIDATION_TABLE,
                             WORKSPACE_JSON)
+from .lib.campaigns import named_campaign
 from .lib.columns import JOINTS_DEG, MEAS
 from .lib.config import check_keys, load_params, logger, read_json, section, sections, write_json
 from .lib.geometry import theory_geometry
@@ -29,17 +30,6 @@ from .lib.validation import METHODS, judge, position_accuracy, summary
 from .lib.workspace import Workspace
 
 log = logger(__name__)
-
-
-def campaign_settings(params: dict, name: str) -> dict:
-    campaigns = section(params, "validate")["campaigns"] or {}
-    if name not in campaigns:
-        raise ValueError(f"params.yaml validate.campaigns: no campaign {name!r}; have {sorted(campaigns)}")
-    c = check_keys(campaigns[name], "validate.campaign")
-    for key in ("joints", "tracker"):
-        if key not in (c["ingest"] or {}):
-            raise ValueError(f"params.yaml validate.campaigns.{name}.ingest: needs {key} (the campaign's file)")
-    return c
 
 
 def commanded_positions(df: pd.DataFrame, spec: dict, tool_mm, name: str) -> np.ndarray:
@@ -66,7 +56,7 @@ def commanded_positions(df: pd.DataFrame, spec: dict, tool_mm, name: str) -> np.
 
 def run_campaign(params: dict, name: str) -> dict:
     *_, frame_cfg, cfg = sections(params, "robot", "model", "frame", "validate")
-    c = campaign_settings(params, name)
+    c = named_campaign(section(params, "validate")["campaigns"], name, "validate.campaigns", "validate.campaign")
     df, ingested = ingest(deep_merge(params, {"ingest": c["ingest"]}))
     q = df[JOINTS_DEG].to_numpy()
     robot, g_nominal = theory_geometry(params)

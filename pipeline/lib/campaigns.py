@@ -12,15 +12,22 @@ from .config import check_keys, section
 from .presets import deep_merge
 
 
-def campaign_entry(params: dict, name: str) -> dict:
-    """campaigns.more[name], its keys checked; its ingest overrides must name its files."""
-    more = section(params, "campaigns")["more"] or {}
-    if name not in more:
-        raise ValueError(f"params.yaml campaigns.more: no campaign {name!r}; have {sorted(more)}")
-    c = check_keys(more[name], "campaigns.campaign")
+def named_campaign(campaigns: dict | None, name: str, where: str, keys: str) -> dict:
+    """campaigns[name] (params.yaml `where`, e.g. validate.campaigns), its keys checked against the
+    config section `keys`; its ingest overrides must name its files."""
+    campaigns = campaigns or {}
+    if name not in campaigns:
+        raise ValueError(f"params.yaml {where}: no campaign {name!r}; have {sorted(campaigns)}")
+    c = check_keys(campaigns[name], keys)
     for key in ("joints", "tracker"):
         if key not in (c["ingest"] or {}):
-            raise ValueError(f"params.yaml campaigns.more.{name}.ingest: needs {key} (the campaign's file)")
+            raise ValueError(f"params.yaml {where}.{name}.ingest: needs {key} (the campaign's file)")
+    return c
+
+
+def campaign_entry(params: dict, name: str) -> dict:
+    """campaigns.more[name], checked (named_campaign) with a station name."""
+    c = named_campaign(section(params, "campaigns")["more"], name, "campaigns.more", "campaigns.campaign")
     if not isinstance(c["station"], str) or not c["station"]:
         raise ValueError(f"params.yaml campaigns.more.{name}.station: a name, got {c['station']!r}")
     return c
