@@ -58,7 +58,7 @@ def train_one(args) -> dict:
     params, group, seed, threads = args
     import torch
     torch.set_num_threads(threads)
-    df = aligned(load_points())
+    df = aligned(load_points(), params)
     p = group_params(params, group, seed)
     model, hist = train_boter(p, df, physics_geometry(p, p["model"]["physics"]), progress=False)
     test = split_metrics(df, predict(model.eval(), df))["test"]

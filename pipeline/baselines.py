@@ -27,7 +27,7 @@ log = logger(__name__)
 def run(params: dict) -> dict:
     sections(params, "robot", "model", "loss", "train", "workspace")
     cfg = section(params, "baselines")
-    df = aligned(load_points())
+    df = aligned(load_points(), params)
     out, summary = pd.DataFrame({"point_id": df["point_id"]}), {}
 
     def add(name, pred):

@@ -124,7 +124,7 @@ def run_set(name: str, seeds: list[int], epochs: int | None, other_physics: bool
             for name_ in ("ingest", "frame", "theory", "split", "calibrate"):
                 stage(name_, params)
             summary = {"ingest": read_json(INGEST_JSON)["n_kept"]}
-            df = aligned(load_points())
+            df = aligned(load_points(), params)
             test = df[df.split == "test"]
             raw = pd.read_parquet(INGEST_TABLE).set_index("point_id").loc[test.point_id]
             nominal = None
@@ -255,7 +255,7 @@ def bench_realtime(model, q0: np.ndarray, tgt: np.ndarray, limits: np.ndarray, t
 def bench_speed() -> dict:
     """Needs a finished `dvc repro` in the project (model, points, split)."""
     params = load_params()
-    df = aligned(load_points())
+    df = aligned(load_points(), params)
     train_t, val_t = tensors(df[df.split == "train"]), tensors(df[df.split == "val"])
     model = make_model(params["model"], physics_geometry(params, params["model"]["physics"]))
     cfg = {**params["train"], "max_epochs": 10, "patience": 10}

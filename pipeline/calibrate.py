@@ -3,19 +3,20 @@
 Starts from nominal DH with the frame stage's tool, identifies the groups in
 `calibrate.params` (DH errors, parallel-axis tilts, tool, base correction)
 by robust least squares, fixing what the data cannot tell apart. With several
-tracker stations, each further station's frame correction is identified
-jointly (the robot's parameters are shared). Writes models/calibration.json
-(the geometry, and the station corrections that map every station's points
-into the first station's base frame: lib/geometry.py aligned) and
+tracker stations, each further station's frame correction (and, with
+frame.tool_per_station, its tool offset) is identified jointly (the robot's
+parameters are shared). Writes models/calibration.json (the geometry, and the
+station corrections that map every station's points into the first station's
+base frame and tool: lib/geometry.py aligned) and
 reports/calibration.json (the identification report and the error per split
 and per campaign, nominal vs calibrated, on the aligned points).
 """
 import numpy as np
 import torch
 
-from .lib.artifacts import CALIBRATED_GEOMETRY, CALIBRATION_JSON, load_points
+from .lib.artifacts import CALIBRATED_GEOMETRY, CALIBRATION_JSON, FRAME_JSON, load_points
 from .lib.columns import CAMPAIGN, JOINTS_DEG, MEAS, SPLITS, STATION
-from .lib.config import load_params, logger, section, write_json
+from .lib.config import load_params, logger, read_json, section, write_json
 from .lib.geometry import aligned, theory_geometry
 from .lib.identify import errors_3d, identify
 from .lib.kinematics import DTYPE, fk, save_geometry
@@ -32,8 +33,14 @@ def run(params: dict) -> dict:
     train = (pts["split"] == "train").to_numpy()
     g0 = theory_geometry(params)[1]
     station = pts[STATION].map({s: k for k, s in enumerate(stations)}).to_numpy()
-    geometry, report = identify(q[train], pts[MEAS].to_numpy()[train], g0, cfg, station[train], stations)
-    p = aligned(pts, report["stations"])[MEAS].to_numpy()
+    tools0 = None                                     # frame.tool_per_station: each station's tool - the first's
+    if section(params, "frame")["tool_per_station"]:
+        fr = read_json(FRAME_JSON)["stations"]
+        tools0 = np.array([fr[s]["tool_mm"] for s in stations]) - np.asarray(fr[stations[0]]["tool_mm"])
+    geometry, report = identify(q[train], pts[MEAS].to_numpy()[train], g0, cfg, station[train], stations,
+                                tools0)
+    corrections = {k: report[k] for k in ("stations", "station_tools")}
+    p = aligned(pts, params, {**corrections, "geometry": geometry})[MEAS].to_numpy()
     qt = torch.as_tensor(q, dtype=DTYPE)
     with torch.no_grad():
         p_cal, p_nom = fk(qt, geometry).numpy(), fk(qt, g0).numpy()
@@ -46,7 +53,7 @@ def run(params: dict) -> dict:
     report["campaigns"] = {c: errors((pts[CAMPAIGN] == c).to_numpy()) for c in pts[CAMPAIGN].unique()}
     save_geometry(CALIBRATED_GEOMETRY, geometry, {"robot": params["robot"]["model"],
                                                 "identified": report["identified"],
-                                                "stations": report["stations"]})
+                                                **corrections})
     write_json(CALIBRATION_JSON, report)
     sp = report["splits"]
     last = sp.get("test", sp["train"])

@@ -33,9 +33,9 @@ from .lib.workspace import Workspace
 log = logger(__name__)
 
 
-def test_targets() -> pd.DataFrame:
+def test_targets(params: dict) -> pd.DataFrame:
     """point_id, j1_deg..j6_deg, target_x..z: every test point, target = its theory position."""
-    df = aligned(load_points())
+    df = aligned(load_points(), params)
     df = df[df.split == "test"].reset_index(drop=True)
     return df[["point_id"] + JOINTS_DEG].assign(**dict(zip(TARGET, df[THEORY].to_numpy().T)))
 
@@ -92,7 +92,7 @@ def convergence_table(histories: dict) -> pd.DataFrame:
 
 def run(params: dict) -> dict:
     *_, cfg = sections(params, "robot", "model", "compensate")
-    table, summary, histories = solve(params, test_targets())
+    table, summary, histories = solve(params, test_targets(params))
     table.to_csv(COMPENSATION_CSV, index=False, float_format="%.6f")
     table.to_parquet(COMPENSATION_PARQUET, index=False)
     convergence_table(histories).to_csv(CONVERGENCE_CSV, index=False)

@@ -65,7 +65,7 @@ def campaign_table(campaigns: dict, split: str = "test") -> str:
 
 def run(params: dict) -> dict:
     *_, cfg = sections(params, "robot", "model", "workspace")
-    df = aligned(load_points())
+    df = aligned(load_points(), params)
     pred = predict(load_model(params), df)
     err = np.linalg.norm(pred - df[MEAS].to_numpy(), axis=1)
     q = df[JOINTS_DEG].to_numpy()

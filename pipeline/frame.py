@@ -2,11 +2,12 @@
 
 Robust Kabsch on the nominal theory points (lib/frames.py), one frame per
 tracker station (the `station` column; campaigns.station / campaigns.more),
-optionally refined jointly with one shared tool offset (`frame.estimate_tool`).
+optionally refined jointly with the tool offset (`frame.estimate_tool`): one
+shared by every station, or one per station (`frame.tool_per_station`).
 Writes reports/frame.json (DATA_FORMAT.md): R, t, rms_mm, n_used of the first
 station (the base frame the later stages work in), outliers of every station,
-tool_mm (the tool offset every later stage uses), fit diagnostics, and under
-"stations" every station's frame and fit.
+tool_mm (the first station's tool offset: the one the model predicts), fit
+diagnostics, and under "stations" every station's frame, tool and fit.
 """
 import numpy as np
 import pandas as pd
@@ -35,7 +36,7 @@ def run(params: dict) -> dict:
     stations = {}
     for s, f in fit["stations"].items():
         m = f["points"]
-        stations[s] = {"R": f["R"], "t": f["t"], **fit_stats(r[m], inl[m]), "n": int(m.sum()),
+        stations[s] = {"R": f["R"], "t": f["t"], "tool_mm": f["tool_mm"], **fit_stats(r[m], inl[m]), "n": int(m.sum()),
                        "campaigns": sorted(df.loc[m, CAMPAIGN].unique()),
                        "outliers": df.loc[m & ~inl, "point_id"].tolist()}
     first = next(iter(stations.values()))
@@ -54,7 +55,8 @@ def run(params: dict) -> dict:
         log.info("station %s (%s): fitted base frame (%s) on %d of %d points: rms %.4f mm, mean %.4f mm; "
                  "%d outliers rejected %s", s, ", ".join(f["campaigns"]), fit["method"], f["n_used"], f["n"],
                  f["rms_mm"], f["mean_mm"], len(f["outliers"]), f["outliers"])
-    log.info("tool %s mm", np.round(fit["tool_mm"], 3).tolist())
+    for s, f in stations.items():
+        log.info("tool of station %s: %s mm", s, np.round(f["tool_mm"], 3).tolist())
     return summary
 
 

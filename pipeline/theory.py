@@ -1,6 +1,7 @@
 """Stage theory: nominal DH theory points (eq. 1) and measured points in the base frame.
 
-theory = nominal DH + tool (tool from reports/frame.json: fixed or estimated),
+theory = nominal DH + tool (tool from reports/frame.json: fixed or estimated; the point's
+         station's own with frame.tool_per_station),
 meas   = R^T (P_world - t) with the fitted frame of the point's station (inverse of eq. 20),
 err    = meas - theory, what the network learns.
 Points the frame fit rejected as gross outliers are dropped here and listed
@@ -8,13 +9,14 @@ in reports/theory.json with their residual.
 """
 import numpy as np
 import pandas as pd
+import torch
 
 from .lib.artifacts import FRAME_JSON, INGEST_TABLE, POINTS_TABLE, THEORY_JSON
 from .lib.geometry import theory_geometry
 from .lib.columns import CAMPAIGN, ERR, JOINTS_DEG, MEAS, STATION, THEORY
 from .lib.config import load_params, logger, read_json, section, write_json
 from .lib.frames import to_base
-from .lib.kinematics import fk_numpy
+from .lib.kinematics import DTYPE, fk_numpy
 
 log = logger(__name__)
 
@@ -25,12 +27,12 @@ def run(params: dict) -> dict:
     robot, g = theory_geometry(params)
     df = pd.read_parquet(INGEST_TABLE)
     out = df[["point_id", CAMPAIGN, STATION] + JOINTS_DEG].copy()
-    out[THEORY] = fk_numpy(df[JOINTS_DEG].to_numpy(), robot, g)
-    meas = np.full((len(df), 3), np.nan)
-    for s, f in frame["stations"].items():
+    theo, meas = np.full((len(df), 3), np.nan), np.full((len(df), 3), np.nan)
+    for s, f in frame["stations"].items():           # the station's frame and tool (frame.tool_per_station)
         m = (df[STATION] == s).to_numpy()
+        theo[m] = fk_numpy(df.loc[m, JOINTS_DEG].to_numpy(), robot, {**g, "tool": torch.tensor(f["tool_mm"], dtype=DTYPE)})
         meas[m] = to_base(df.loc[m, MEAS].to_numpy(), f)
-    out[MEAS] = meas
+    out[THEORY], out[MEAS] = theo, meas
     out[ERR] = out[MEAS].to_numpy() - out[THEORY].to_numpy()
     bad = out["point_id"].isin(frame["outliers"])
     dropped = [{"point_id": p, "reason": "frame outlier",

@@ -18,7 +18,7 @@ log = logger(__name__)
 
 def run(params: dict) -> dict:
     sections(params, "robot", "model", "loss", "train", "workspace")
-    df = aligned(load_points())
+    df = aligned(load_points(), params)
     geometry = physics_geometry(params, params["model"]["physics"])
     with Live(dir=str(LIVE), save_dvc_exp=False, dvcyaml=False) as live:
         model, summary = train_boter(params, df, geometry, live)   # dvclive needs a git repo with a commit

@@ -62,7 +62,7 @@ def test_frame_with_tool_estimation_recovers_tool():
     tool_true = np.array([1.5, -2.0, 108.0])
     true = load_robot({"model": "ur5", "tool_mm": tool_true, "dh": None, "joint_limits_deg": None})
     P = world(fk_numpy(q, true), rng, noise=0.02)
-    cfg = {"outlier_k": 5.0, "outlier_min_mm": 3.0, "estimate_tool": True,
+    cfg = {"outlier_k": 5.0, "outlier_min_mm": 3.0, "estimate_tool": True, "tool_per_station": False,
            "robust_loss": "soft_l1", "robust_scale_mm": 0.5}
     fit = fit_frame(q, P, robot, cfg)
     np.testing.assert_allclose(fit["tool_mm"], tool_true, atol=0.02)

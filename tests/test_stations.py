@@ -60,6 +60,30 @@ def test_frames_of_two_stations_and_the_shared_tool_are_recovered_exactly():
     assert fit["residual_mm"][fit["inliers"]].max() < 1e-6
 
 
+def test_a_tool_per_station_is_recovered_exactly_when_asked_for():
+    """Station b measured a second marker 30 mm away: frame.tool_per_station fits both tools
+    (and both frames) exactly; forced to share one tool, the fit cannot explain station b."""
+    e = T.zero_errors()
+    e["tool_mm"] = np.array([3.0, -2.0, 40.0])
+    tool_b = e["tool_mm"] + [10.0, 0.0, -28.0]
+    a, b = T.Twin(errors=e), T.Twin(errors={**e, "tool_mm": tool_b}, tracker_pose=STATION_B)
+    qa = T.sample_poses(200, np.random.default_rng(1))
+    qb = T.sample_poses(100, np.random.default_rng(2), region="side")
+    P = np.vstack([a.to_tracker(a.expected_position(qa)), b.to_tracker(b.expected_position(qb))])
+    station = np.array(["a"] * 200 + ["b"] * 100)
+    cfg = PARAMS["frame"] | {"estimate_tool": True, "tool_per_station": True}
+    fit = fit_frames(np.vstack([qa, qb]), P, station, nominal_robot("ur5"), cfg)
+    np.testing.assert_allclose(fit["stations"]["a"]["tool_mm"], e["tool_mm"], atol=1e-6)
+    np.testing.assert_allclose(fit["stations"]["b"]["tool_mm"], tool_b, atol=1e-6)
+    np.testing.assert_allclose(fit["tool_mm"], e["tool_mm"], atol=1e-6)
+    assert np.abs(fit["stations"]["b"]["t"] - b.t).max() < 1e-5
+    assert fit["residual_mm"].max() < 1e-6
+    shared = fit_frames(np.vstack([qa, qb]), P, station, nominal_robot("ur5"), cfg | {"tool_per_station": False})
+    assert shared["residual_mm"].mean() > 1.0
+    with pytest.raises(ValueError, match="frame.tool_per_station: true needs frame.estimate_tool: true"):
+        fit_frames(qa, P[:200], station[:200], nominal_robot("ur5"), cfg | {"estimate_tool": False})
+
+
 @pytest.fixture(scope="module")
 def poses():
     qa = T.sample_poses(200, np.random.default_rng(3))
@@ -95,14 +119,18 @@ def test_identify_recovers_a_known_station_correction_with_the_robot(poses):
     assert lumped["after"]["mean_mm"] > 0.05
 
 
-def test_two_twin_stations_recovered_through_frame_and_calibrate_stages(tmp_path, monkeypatch):
+@pytest.mark.parametrize("tool_b", [None, [0.0, 12.0, -25.0]], ids=["shared tool", "tool per station"])
+def test_two_twin_stations_recovered_through_frame_and_calibrate_stages(tmp_path, monkeypatch, tool_b):
     """Noiseless twin (no gear error) from two tracker poses, through ingest, frame, theory,
     split and calibrate: each station's frame (frame stage ∘ its correction) maps the calibrated
     model onto its tracker readings, and station b's pose relative to a is the true one, to
     < 0.05 mm and 0.001° (in the calibrated base frame, which differs from the twin's base by
-    the gauge d1/offset1/base the calibration cannot see: measured on station a)."""
+    the gauge d1/offset1/base the calibration cannot see: measured on station a). Told that
+    station b measured another marker (frame.tool_per_station), its tool offset comes back too."""
     e = noiseless_twin()
-    a, b = T.Twin(errors=e), T.Twin(errors=e, tracker_pose=STATION_B)
+    a = T.Twin(errors=e)
+    dtool = np.zeros(3) if tool_b is None else np.asarray(tool_b)
+    b = T.Twin(errors={**e, "tool_mm": e["tool_mm"] + dtool}, tracker_pose=STATION_B)
     qa = a.poses(300)
     qb = T.sample_poses(150, np.random.default_rng(5), region="side")
     monkeypatch.chdir(tmp_path)
@@ -119,6 +147,8 @@ def test_two_twin_stations_recovered_through_frame_and_calibrate_stages(tmp_path
     params["campaigns"] = {"name": "front", "station": "a", "more": {
         "side": {"ingest": {"joints": "b/joints.csv", "tracker": "b/tracker.csv"}, "station": "b"}}}
     params["calibrate"]["loss"] = "linear"
+    if tool_b is not None:
+        params["frame"].update(estimate_tool=True, tool_per_station=True)
     ingest.run_campaign(params, "side")
     ingest.run(params)
     frame.run(params)
@@ -138,11 +168,15 @@ def test_two_twin_stations_recovered_through_frame_and_calibrate_stages(tmp_path
         W[s] = (Rf @ R, Rf @ t + tf)
     q_new = np.vstack([T.sample_poses(100, np.random.default_rng(6)),
                        T.sample_poses(100, np.random.default_rng(7), region="side")])
+    qn = torch.as_tensor(np.radians(q_new), dtype=DTYPE)
     with torch.no_grad():
-        p_cal = fk(torch.as_tensor(np.radians(q_new), dtype=DTYPE), g).numpy()
+        p_cal = fk(qn, g).numpy()
+        p_tool = {s: fk(qn, {**g, "tool": g["tool"] + torch.tensor(rep["station_tools"][s], dtype=DTYPE)}).numpy()
+                  for s in ("a", "b")}                  # the model with each station's marker
+    assert np.linalg.norm(rep["station_tools"]["b"]) == pytest.approx(np.linalg.norm(dtool), abs=1e-3)
     for s, twin in (("a", a), ("b", b)):
         truth = twin.to_tracker(twin.expected_position(q_new))
-        assert np.linalg.norm(rigid(*W[s], p_cal) - truth, axis=1).max() < 0.05, s
+        assert np.linalg.norm(rigid(*W[s], p_tool[s]) - truth, axis=1).max() < 0.05, s
     # the gauge H (calibrated base -> twin base) from station a; station b must then be T_b ∘ H
     H_R, H_t = a.R.T @ W["a"][0], a.R.T @ (W["a"][1] - a.t)
     Rb, tb = b.R @ H_R, b.R @ H_t + b.t
@@ -150,7 +184,7 @@ def test_two_twin_stations_recovered_through_frame_and_calibrate_stages(tmp_path
     assert np.linalg.norm(rigid(*W["b"], p_cal) - rigid(Rb, tb, p_cal), axis=1).max() < 0.05
     # the campaigns are split on their own (8:1:1, seed 7) and carried through every table
     pts = aligned(pd.read_parquet("data/interim/points.parquet").merge(
-        pd.read_parquet("data/interim/split.parquet"), on="point_id"))
+        pd.read_parquet("data/interim/split.parquet"), on="point_id"), params)
     assert pts[CAMPAIGN].unique().tolist() == ["front", "side"] and pts[STATION].unique().tolist() == ["a", "b"]
     assert pts.point_id.str.startswith("side:B").sum() == 150
     counts = read_json("reports/split.json")["per_campaign"]

@@ -22,7 +22,7 @@ SECTIONS = {
     "ingest.columns": ("point_id", "joints", "position"),
     "campaigns": ("name", "station", "more"),
     "campaigns.campaign": ("ingest", "station"),
-    "frame": ("outlier_k", "outlier_min_mm", "estimate_tool", "robust_loss", "robust_scale_mm"),
+    "frame": ("outlier_k", "outlier_min_mm", "estimate_tool", "tool_per_station", "robust_loss", "robust_scale_mm"),
     "split": ("seed", "fractions"),
     "calibrate": ("loss", "loss_scale_mm", "params", "tilt_joints", "rank_tol", "tol", "max_nfev"),
     "model": ("d_model", "n_layer", "n_head", "d_hidden", "mask", "head", "encoder", "physics",

@@ -5,7 +5,8 @@ points P, made robust by iterated rejection of gross outliers (listed, not
 hidden). With `frame.estimate_tool`, base frame and tool offset are then
 refined jointly by robust least squares on the inliers. Several tracker
 stations (campaigns measured from different tracker placements): one frame
-each, the tool shared, all refined together (`fit_frames`).
+each, the tool shared (or, with `frame.tool_per_station`, one per station: a
+different marker on each placement), all refined together (`fit_frames`).
 
 `to_base` maps tracker points back into the base frame (inverse of eq. 20).
 """
@@ -69,46 +70,50 @@ def flange_poses(q_deg: np.ndarray, geometry: dict) -> tuple[np.ndarray, np.ndar
 
 
 def tool_points(Rf, pf, tool) -> np.ndarray:
-    """Marker positions (n, 3) in the base frame: Rf_i tool + pf_i."""
-    return np.einsum("nij,j->ni", Rf, tool) + pf
+    """Marker positions (n, 3) in the base frame: Rf_i tool_i + pf_i; tool (3,) or one per pose (n, 3)."""
+    return np.einsum("nij,nj->ni", Rf, np.broadcast_to(tool, pf.shape)) + pf
 
 
-def refine_with_tool(Rf, pf, P, frames, tool0, station=None, loss="soft_l1", f_scale=0.5):
-    """Jointly fit one base frame per station (rotation vector, t) and the shared tool offset by
-    robust least squares.
+def refine_with_tool(Rf, pf, P, frames, tool0, station=None, loss="soft_l1", f_scale=0.5,
+                     per_station=False):
+    """Jointly fit one base frame per station (rotation vector, t) and the tool offset (shared, or
+    with per_station one per station) by robust least squares.
 
-    Model: P_i = R_s (Rf_i tool + pf_i) + t_s, s = station[i] (index into frames; None: all 0).
-    frames: [(R0, t0)] starts. Returns [(R, t)], tool, diagnostics.
+    Model: P_i = R_s (Rf_i tool_s + pf_i) + t_s, s = station[i] (index into frames; None: all 0).
+    frames: [(R0, t0)] starts. Returns [(R, t)], tools (S, 3), diagnostics.
     """
     S = len(frames)
     station = np.zeros(len(P), int) if station is None else np.asarray(station)
+    n_tools = S if per_station else 1
 
     def unpack(x):
         Rs = Rotation.from_rotvec(x[:6 * S].reshape(S, 6)[:, :3]).as_matrix()      # (S, 3, 3)
-        return Rs, x[:6 * S].reshape(S, 6)[:, 3:], x[6 * S:]
+        tools = np.broadcast_to(x[6 * S:].reshape(n_tools, 3), (S, 3))              # (S, 3)
+        return Rs, x[:6 * S].reshape(S, 6)[:, 3:], tools
 
     def residuals(x):
-        Rs, ts, tool = unpack(x)
-        Q = tool_points(Rf, pf, tool)
+        Rs, ts, tools = unpack(x)
+        Q = tool_points(Rf, pf, tools[station])
         return (np.einsum("nij,nj->ni", Rs[station], Q) + ts[station] - P).ravel()
 
     x0 = np.concatenate([np.concatenate([Rotation.from_matrix(R).as_rotvec(), t]) for R, t in frames]
-                        + [tool0])
+                        + [tool0] * n_tools)
     sol = least_squares(residuals, x0, loss=loss, f_scale=f_scale, x_scale="jac")
-    Rs, ts, tool = unpack(sol.x)
+    Rs, ts, tools = unpack(sol.x)
     s = np.linalg.svd(sol.jac, compute_uv=False)
-    return list(zip(Rs, ts)), tool, {"condition": float(s[0] / s[-1]), "nfev": int(sol.nfev),
-                                     "status": sol.message}
+    return list(zip(Rs, ts)), tools.copy(), {"condition": float(s[0] / s[-1]), "nfev": int(sol.nfev),
+                                             "status": sol.message}
 
 
 def fit_frames(q_deg: np.ndarray, P: np.ndarray, station: np.ndarray, robot, cfg: dict) -> dict:
-    """One base-to-world frame per tracker station (and optionally the shared tool) for measured
+    """One base-to-world frame per tracker station (and optionally the tool) for measured
     points P (n, 3); station (n,) names, the first one's frame first.
 
     Each station: robust Kabsch on its points (outliers per station). With
-    cfg["estimate_tool"], all frames and one tool are then refined jointly on the inliers.
-    Returns {"stations": {name: {"R", "t", "points": (n,) bool, its points}}, "inliers" (n,) bool,
-    "residual_mm" (n,), "tool_mm", "method", "condition"}.
+    cfg["estimate_tool"], all frames and one tool (cfg["tool_per_station"]: one per station) are
+    then refined jointly on the inliers.
+    Returns {"stations": {name: {"R", "t", "tool_mm", "points": (n,) bool, its points}},
+    "inliers" (n,) bool, "residual_mm" (n,), "tool_mm" (the first station's), "method", "condition"}.
     """
     station = np.asarray(station)
     names = list(dict.fromkeys(station))
@@ -125,15 +130,21 @@ def fit_frames(q_deg: np.ndarray, P: np.ndarray, station: np.ndarray, robot, cfg
         sv = np.linalg.svd(Q[m][inl_k] - Q[m][inl_k].mean(0), compute_uv=False)
         conds.append(float(sv[0] / sv[-1]))
     diag = {"method": "kabsch", "condition": max(conds)}
+    tools = np.tile(tool, (len(names), 1))                       # (S, 3)
+    per_station = cfg["tool_per_station"]
+    if per_station and not cfg["estimate_tool"]:
+        raise ValueError("params.yaml frame.tool_per_station: true needs frame.estimate_tool: true")
     if cfg["estimate_tool"]:
-        frames, tool, diag = refine_with_tool(Rf[inl], pf[inl], P[inl], frames, tool, idx[inl],
-                                              cfg["robust_loss"], cfg["robust_scale_mm"])
-        diag["method"] = "kabsch + least-squares base frame" + ("s" if len(names) > 1 else "") + " and tool"
-        Q = tool_points(Rf, pf, tool)
+        frames, tools, diag = refine_with_tool(Rf[inl], pf[inl], P[inl], frames, tool, idx[inl],
+                                               cfg["robust_loss"], cfg["robust_scale_mm"], per_station)
+        diag["method"] = ("kabsch + least-squares base frame" + ("s" if len(names) > 1 else "")
+                          + (" and a tool per station" if per_station else " and tool"))
+        Q = tool_points(Rf, pf, tools[idx])
     Rs, ts = np.stack([R for R, _ in frames]), np.stack([t for _, t in frames])
     r = np.linalg.norm(np.einsum("nij,nj->ni", Rs[idx], Q) + ts[idx] - P, axis=1)
-    return {"stations": {s: {"R": Rs[k], "t": ts[k], "points": idx == k} for k, s in enumerate(names)},
-            "inliers": inl, "residual_mm": r, "tool_mm": tool, **diag}
+    return {"stations": {s: {"R": Rs[k], "t": ts[k], "tool_mm": tools[k], "points": idx == k}
+                         for k, s in enumerate(names)},
+            "inliers": inl, "residual_mm": r, "tool_mm": tools[0], **diag}
 
 
 def fit_frame(q_deg: np.ndarray, P: np.ndarray, robot, cfg: dict) -> dict:

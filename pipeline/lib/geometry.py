@@ -3,17 +3,17 @@
 theory_geometry    nominal DH with the frame stage's tool: the theory points and the paper's
                    (nominal) physics branch
 physics_geometry   `model.physics`: nominal (the above) or calibrated (the calibrate stage's)
-aligned            measured points of every tracker station in the first station's base frame,
-                   with the station corrections the calibrate stage identified
+aligned            measured points of every tracker station in the first station's base frame
+                   (and tool), with the station corrections the calibrate stage identified
 """
 import numpy as np
 import pandas as pd
 import torch
 
 from .artifacts import CALIBRATED_GEOMETRY, FRAME_JSON
-from .columns import ERR, MEAS, STATION, THEORY
+from .columns import ERR, JOINTS_DEG, MEAS, STATION, THEORY
 from .config import read_json
-from .kinematics import DTYPE, load_geometry, nominal_geometry, rigid_xyz
+from .kinematics import DTYPE, fk, load_geometry, nominal_geometry, rigid_xyz
 from .robots import load_robot
 
 
@@ -33,18 +33,33 @@ def physics_geometry(params: dict, physics: str) -> dict:
     raise ValueError(f"params.yaml model.physics: {physics!r}; use nominal or calibrated")
 
 
-def aligned(df: pd.DataFrame, corrections: dict | None = None) -> pd.DataFrame:
-    """df (points table) with meas (and err) of each station mapped into the first station's base
-    frame: p = R^T (p_station - t), (R, t) the station's correction (default: models/calibration.json's
-    "stations"; the first station's is zero). One station: df unchanged."""
-    if corrections is None:
-        corrections = read_json(CALIBRATED_GEOMETRY).get("stations", {})
+def aligned(df: pd.DataFrame, params: dict, cal: dict | None = None) -> pd.DataFrame:
+    """df (points table) with every station's points as if measured from the first station with
+    the first station's tool, where the model lives (one station, one tool: df unchanged).
+
+    meas = R^T (meas_station - t) - R_base R_flange(q) dtool, with the station's correction (R, t)
+    and tool offset dtool identified by calibrate (R_flange of the calibrated geometry);
+    theory = nominal DH with the first station's tool; err = meas - theory.
+    cal: {"stations", "station_tools", "geometry"}; default models/calibration.json.
+    """
+    if cal is None:
+        cal = {**read_json(CALIBRATED_GEOMETRY), "geometry": load_geometry(CALIBRATED_GEOMETRY)}
+    tools = cal.get("station_tools", {})
     out = df.copy()
-    for s, d in corrections.items():
+    for s, d in cal.get("stations", {}).items():
         m = (df[STATION] == s).to_numpy()
-        if not any(d) or not m.any():
+        dtool = np.asarray(tools.get(s, [0.0, 0.0, 0.0]), float)
+        if not m.any() or not (any(d) or dtool.any()):
             continue
         R, t = (v.numpy() for v in rigid_xyz(torch.tensor(d, dtype=DTYPE)))
-        out.loc[m, MEAS] = (df.loc[m, MEAS].to_numpy() - t) @ R
-        out.loc[m, ERR] = out.loc[m, MEAS].to_numpy() - df.loc[m, THEORY].to_numpy()
+        meas = (df.loc[m, MEAS].to_numpy() - t) @ R
+        if dtool.any():                                # the marker's offset from the first tool, moved by the arm
+            q = torch.as_tensor(np.radians(df.loc[m, JOINTS_DEG].to_numpy()), dtype=DTYPE)
+            g = cal["geometry"]
+            g_nom = theory_geometry(params)[1]
+            with torch.no_grad():
+                meas -= (fk(q, {**g, "tool": g["tool"] + torch.as_tensor(dtool, dtype=DTYPE)}) - fk(q, g)).numpy()
+                out.loc[m, THEORY] = fk(q, g_nom).numpy()
+        out.loc[m, MEAS] = meas
+        out.loc[m, ERR] = meas - out.loc[m, THEORY].to_numpy()
     return out

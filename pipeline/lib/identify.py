@@ -11,6 +11,8 @@ measured positions in the base frame:
     <station>_rx..tz      with several tracker stations: each further station's frame, relative to
                           the first's (its points are measured as D_s(base(chain(q)))); identified
                           jointly with the robot, so one geometry explains every station
+    <station>_tool_x..z   with a tool per station (frame.tool_per_station): each further station's
+                          tool minus the first's, started at the frame stage's estimate
 by robust trust-region least squares (scipy `least_squares`, Jacobian from
 torch autograd of `fk`). Before solving, parameters the data cannot tell
 apart are found by column-pivoted QR of the column-scaled Jacobian and kept
@@ -62,16 +64,20 @@ def is_angular(key: str, index: int) -> bool:
     return key in ("alpha", "offset", "beta", "compliance") or (key in ("base", "station") and index % 6 < 3)
 
 
-def station_spec(stations: list[str]) -> list[tuple[str, str, int]]:
-    """The frame correction of every station but the first: 6 parameters each, key "station"."""
-    return [(f"{s}_{c}", "station", 6 * k + i) for k, s in enumerate(stations) if k > 0
-            for i, c in enumerate(BASE_NAMES)]
+def station_spec(stations: list[str], tools: bool = False) -> list[tuple[str, str, int]]:
+    """The frame correction of every station but the first: 6 parameters each, key "station"
+    (tools: and its tool offset relative to the first's, 3 each, key "station_tool")."""
+    return ([(f"{s}_{c}", "station", 6 * k + i) for k, s in enumerate(stations) if k > 0
+             for i, c in enumerate(BASE_NAMES)]
+            + [(f"{s}_tool_{c}", "station_tool", 3 * k + i) for k, s in enumerate(stations) if tools and k > 0
+               for i, c in enumerate(TOOL_NAMES)])
 
 
 def selectors(spec, n_stations: int = 1) -> dict:
-    """Per geometry key (and "station"), a (size, P) 0/1 matrix placing the parameter vector's deltas."""
+    """Per geometry key (and "station", "station_tool"), a (size, P) 0/1 matrix placing the
+    parameter vector's deltas."""
     sizes = {"d": 6, "a": 6, "alpha": 6, "offset": 6, "beta": 6, "tool": 3, "base": 6, "compliance": 6,
-             "station": 6 * n_stations}
+             "station": 6 * n_stations, "station_tool": 3 * n_stations}
     S = {k: torch.zeros(n, len(spec), dtype=DTYPE) for k, n in sizes.items()}
     for p, (_, key, i) in enumerate(spec):
         S[key][i, p] = 1.0
@@ -83,18 +89,27 @@ def apply_deltas(x: torch.Tensor, g0: dict, S: dict) -> dict:
     return {k: g0[k] + S[k] @ x if k in S else g0[k] for k in GEOMETRY_KEYS}
 
 
-def positions(q: torch.Tensor, x: torch.Tensor, g0: dict, S: dict, station: torch.Tensor | None):
-    """Measured-position model (n, 3): fk of g0 + deltas, then each point's station correction."""
-    p = fk(q, apply_deltas(x, g0, S))
+def station_tools(x: torch.Tensor, S: dict, tools0: torch.Tensor | None) -> torch.Tensor:
+    """Each station's tool minus the first's, (S, 3) mm: the start tools0 (zeros if None) + deltas."""
+    d = (S["station_tool"] @ x).reshape(-1, 3)
+    return d if tools0 is None else d + tools0
+
+
+def positions(q: torch.Tensor, x: torch.Tensor, g0: dict, S: dict, station: torch.Tensor | None,
+              tools0: torch.Tensor | None = None):
+    """Measured-position model (n, 3): fk of g0 + deltas (with each point's station tool), then
+    each point's station correction."""
+    g = apply_deltas(x, g0, S)
     if station is None:
-        return p
+        return fk(q, g)
+    p = fk(q, {**g, "tool": g["tool"] + station_tools(x, S, tools0)[station]})   # tool (n, 3)
     R, t = rigid_xyz((S["station"] @ x).reshape(-1, 6))                   # (S, 3, 3), (S, 3)
     return torch.einsum("nij,nj->ni", R[station], p) + t[station]
 
 
-def jacobian(q: torch.Tensor, x: torch.Tensor, g0: dict, S: dict, station=None) -> torch.Tensor:
+def jacobian(q: torch.Tensor, x: torch.Tensor, g0: dict, S: dict, station=None, tools0=None) -> torch.Tensor:
     """d positions / d x, flattened: (3n, P), by forward-mode autograd (P << 3n)."""
-    return torch.func.jacfwd(lambda v: positions(q, v, g0, S, station).reshape(-1))(x)
+    return torch.func.jacfwd(lambda v: positions(q, v, g0, S, station, tools0).reshape(-1))(x)
 
 
 # ----------------------------------------------------------------------------- identifiability
@@ -145,12 +160,16 @@ def errors_3d(p: np.ndarray, p_meas: np.ndarray) -> dict:
 
 
 def identify(q: torch.Tensor | np.ndarray, p_meas: np.ndarray, geometry0: dict, cfg: dict,
-             station: np.ndarray | None = None, stations: list[str] | None = None):
+             station: np.ndarray | None = None, stations: list[str] | None = None,
+             station_tools0: np.ndarray | None = None):
     """Identify geometry corrections from joint angles q (n, 6) rad and positions p_meas (n, 3) mm.
 
     With several tracker stations, station (n,) indexes `stations` (the first is the base frame
-    the geometry lives in) and each further station's frame correction is identified jointly.
-    Returns (geometry dict of tensors, report dict); report["stations"] holds the corrections.
+    the geometry lives in) and each further station's frame correction is identified jointly;
+    with station_tools0 (S, 3) mm, each station's own tool minus the first's (a tool per
+    station), those offsets too, started there.
+    Returns (geometry dict of tensors, report dict); report["stations"] holds the corrections,
+    report["station_tools"] the tool offsets (zeros: the tool is shared).
     cfg: the `calibrate:` section (params, tilt_joints, loss, loss_scale_mm, rank_tol, tol, max_nfev).
     """
     t0 = time.perf_counter()
@@ -159,14 +178,15 @@ def identify(q: torch.Tensor | np.ndarray, p_meas: np.ndarray, geometry0: dict, 
     g0 = {k: torch.as_tensor(geometry0[k], dtype=DTYPE) for k in GEOMETRY_KEYS}
     stations = stations or ["main"]
     station = None if len(stations) == 1 else torch.as_tensor(np.asarray(station), dtype=torch.long)
+    tools0 = None if station_tools0 is None else torch.as_tensor(np.asarray(station_tools0, float), dtype=DTYPE)
     robot_spec = parameter_spec(cfg)
-    spec = robot_spec + station_spec(stations)
+    spec = robot_spec + station_spec(stations, tools0 is not None)
     names = [s[0] for s in spec]
     S = selectors(spec, len(stations))
     P = len(spec)
     x0 = torch.zeros(P, dtype=DTYPE)
 
-    J0 = jacobian(q, x0, g0, S, station).numpy()
+    J0 = jacobian(q, x0, g0, S, station, tools0).numpy()
     ident = identifiability(J0, names, cfg["rank_tol"])
     keep = ident["keep"]
     fixed_by_stations = {}
@@ -182,10 +202,10 @@ def identify(q: torch.Tensor | np.ndarray, p_meas: np.ndarray, geometry0: dict, 
 
     def residuals(xk):
         with torch.no_grad():
-            return (positions(q, full(xk), g0, S, station).numpy() - p_meas).ravel()
+            return (positions(q, full(xk), g0, S, station, tools0).numpy() - p_meas).ravel()
 
     def jac(xk):
-        return jacobian(q, full(xk), g0, S, station).numpy()[:, keep]
+        return jacobian(q, full(xk), g0, S, station, tools0).numpy()[:, keep]
 
     tol = cfg["tol"]
     sol = least_squares(residuals, np.zeros(keep.sum()), jac=jac, method="trf",
@@ -212,8 +232,8 @@ def identify(q: torch.Tensor | np.ndarray, p_meas: np.ndarray, geometry0: dict, 
     c = geometry["compliance"].numpy()
     stiffness = {f"k{j + 1}": float(1.0 / c[j]) for j in range(6) if f"c{j + 1}" in estimates and c[j] > 0}
     with torch.no_grad():
-        before = errors_3d(positions(q, x0, g0, S, station).numpy(), p_meas)
-        after = errors_3d(positions(q, x, g0, S, station).numpy(), p_meas)
+        before = errors_3d(positions(q, x0, g0, S, station, tools0).numpy(), p_meas)
+        after = errors_3d(positions(q, x, g0, S, station, tools0).numpy(), p_meas)
     report = {
         "n_points": len(p_meas),
         "identified": [n for n, k in zip(names, keep) if k],
@@ -221,6 +241,8 @@ def identify(q: torch.Tensor | np.ndarray, p_meas: np.ndarray, geometry0: dict, 
         "estimates": estimates,
         "stations": {st: (S["station"] @ x).reshape(-1, 6)[k].tolist() for k, st in enumerate(stations)},
         "stations_units": "[rx, ry, rz] rad, [tx, ty, tz] mm: p_station = R p_first + t (first: zeros)",
+        "station_tools": {st: v.tolist() for st, v in zip(stations, station_tools(x, S, tools0))},
+        "station_tools_units": "mm in the flange frame: the station's tool minus the first station's",
         "fixed_because_of_stations": fixed_by_stations,
         "stiffness_Nm_per_rad": stiffness,
         "condition_number": ident["condition"],

@@ -136,7 +136,7 @@ def fk(q: torch.Tensor, g: dict) -> torch.Tensor:
     p = R_base (R_flange tool + t_flange) + t_base
     """
     T = fk_poses(q, g)
-    p = T[:, :3, :3] @ g["tool"] + T[:, :3, 3]             # (B, 3)
+    p = (T[:, :3, :3] @ g["tool"][..., None])[..., 0] + T[:, :3, 3]   # (B, 3); tool (3,) or one per pose (B, 3)
     Rb = rotation_xyz(g["base"][:3])
     return p @ Rb.T + g["base"][3:]
 
