@@ -88,7 +88,7 @@ def dh_matrices(q: torch.Tensor, g: dict) -> torch.Tensor:
 def link_frames(q: torch.Tensor, g: dict) -> torch.Tensor:
     """Frames 0..6 of the rigid chain (no deflection) in the base frame: (B, 6) rad -> (B, 7, 4, 4)."""
     T = dh_matrices(q, g)
-    F = [torch.eye(4, dtype=T.dtype).expand(len(q), 4, 4)]
+    F = [torch.eye(4, dtype=T.dtype).expand_as(T[:, 0])]                  # (B, 4, 4)
     for i in range(6):
         F.append(F[-1] @ T[:, i])
     return torch.stack(F, 1)

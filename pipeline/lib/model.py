@@ -168,8 +168,26 @@ class Ensemble(nn.Module):
         for k, v in stacked.items():                        # (K, ...) per tensor
             self.register_buffer(_key(k), v.detach())
         self.skeleton = [Correction(copy.deepcopy(members[0])).to("meta").eval()]   # a list: no submodule
+        self.unstacked = None                              # for_export(): the members as plain modules
+
+    def for_export(self) -> "Ensemble":
+        """A copy that runs its members one by one (torch.export traces no vmap over a functional
+        skeleton); the same numbers."""
+        out = copy.deepcopy(self)
+        members = []
+        for k in range(self.n_members):
+            m = copy.deepcopy(self.skeleton[0]).to_empty(device="cpu")
+            tensors = dict(m.named_parameters()) | dict(m.named_buffers())    # incl. the non-persistent mask
+            with torch.no_grad():
+                for n in self.names:
+                    tensors[n].copy_(getattr(self, _key(n))[k])
+            members.append(m.eval())
+        out.unstacked = nn.ModuleList(members)
+        return out
 
     def correction(self, q):                               # (B, 6) rad -> mean_k α_k Δp_k (B, 3)
+        if self.unstacked is not None:
+            return torch.stack([m(q) for m in self.unstacked]).mean(0)
         stacked = {k: getattr(self, _key(k)) for k in self.names}
         one = lambda w, x: torch.func.functional_call(self.skeleton[0], w, (x,))
         fastpath = torch.backends.mha.get_fastpath_enabled()

@@ -17,7 +17,11 @@ PI2 = np.pi / 2
 # limits (±360° on every UR joint). Link masses (kg) and centres of mass (mm, in
 # each link's own DH frame) after Universal Robots' "Parameters for calculations
 # of kinematics and dynamics": the gravity torques of the elasto-geometric
-# calibration (kinematics.gravity_torques) are computed from them.
+# calibration (kinematics.gravity_torques) are computed from them. Joint torque
+# (N·m) and speed (rad/s) limits after the UR datasheets, for the exported URDF.
+UR_JOINTS = ["shoulder_pan_joint", "shoulder_lift_joint", "elbow_joint",
+             "wrist_1_joint", "wrist_2_joint", "wrist_3_joint"]     # as the UR controller names them
+UR_LINKS = ["shoulder_link", "upper_arm_link", "forearm_link", "wrist_1_link", "wrist_2_link", "wrist_3_link"]
 TABLES = {
     "ur5": dict(
         d=[89.159, 0.0, 0.0, 109.15, 94.65, 82.3],
@@ -27,6 +31,8 @@ TABLES = {
         mass=[3.7, 8.393, 2.33, 1.219, 1.219, 0.1879],
         com=[[0.0, -25.61, 1.93], [212.5, 0.0, 113.36], [150.0, 0.0, 26.5],
              [0.0, -1.8, 16.34], [0.0, 1.8, 16.34], [0.0, 0.0, -1.159]],
+        effort_nm=[150.0, 150.0, 150.0, 28.0, 28.0, 28.0],
+        velocity_rad_s=[3.15] * 6,
     ),
     "ur10": dict(
         d=[127.3, 0.0, 0.0, 163.941, 115.7, 92.2],
@@ -36,6 +42,8 @@ TABLES = {
         mass=[7.1, 12.7, 4.27, 2.0, 2.0, 0.365],
         com=[[21.0, 0.0, 27.0], [380.0, 0.0, 158.0], [240.0, 0.0, 68.0],
              [0.0, 7.0, 18.0], [0.0, 7.0, 18.0], [0.0, 0.0, -26.0]],
+        effort_nm=[330.0, 330.0, 150.0, 56.0, 56.0, 56.0],
+        velocity_rad_s=[2.09, 2.09, 3.14, 3.14, 3.14, 3.14],
     ),
 }
 
@@ -51,7 +59,17 @@ class Robot:
     limits_deg: np.ndarray        # (6, 2) min, max
     mass: np.ndarray              # (6,) kg per link (custom: 0, no gravity torques)
     com: np.ndarray               # (6, 3) mm, each link's centre of mass in its DH frame
+    effort_nm: np.ndarray         # (6,) joint torque limits (custom: 0, unknown)
+    velocity_rad_s: np.ndarray    # (6,) joint speed limits (custom: 0, unknown)
     tool: np.ndarray = field(default_factory=lambda: np.zeros(3))  # (3,) mm, in the flange frame
+
+    @property
+    def joint_names(self) -> list[str]:
+        return UR_JOINTS if self.name in TABLES else [f"joint_{i}" for i in range(1, 7)]
+
+    @property
+    def link_names(self) -> list[str]:
+        return UR_LINKS if self.name in TABLES else [f"link_{i}" for i in range(1, 7)]
 
     @property
     def reach(self) -> float:
@@ -82,7 +100,7 @@ def load_robot(cfg: dict) -> Robot:
                              f"(keys d, a, alpha_deg, offset_deg)")
         table = dict(d=dh["d"], a=dh["a"], alpha=np.radians(dh["alpha_deg"]),
                      offset=np.radians(dh["offset_deg"]), limits_deg=[[-360.0, 360.0]] * 6,
-                     mass=[0.0] * 6, com=[[0.0] * 3] * 6)
+                     mass=[0.0] * 6, com=[[0.0] * 3] * 6, effort_nm=[0.0] * 6, velocity_rad_s=[0.0] * 6)
     elif name in TABLES:
         table = dict(TABLES[name], offset=[0.0] * 6)
     else:

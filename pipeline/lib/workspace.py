@@ -38,6 +38,8 @@ def nearest_distance(q_deg, ref_deg, chunk: int = 1024, leave_one_out: bool = Fa
     as_numpy = not isinstance(q_deg, torch.Tensor)
     q = torch.as_tensor(np.array(q_deg, float) if as_numpy else q_deg)[:, JOINTS]
     ref = torch.as_tensor(np.array(ref_deg, float) if as_numpy else ref_deg)[:, JOINTS].to(q.dtype)
+    if torch.compiler.is_exporting():                       # ONNX export: one chunk, the batch size stays free
+        return wrapped(q[:, None] - ref[None]).norm(dim=-1).min(1).values
     out = []
     for s in range(0, len(q), chunk):
         d = wrapped(q[s:s + chunk, None] - ref[None]).norm(dim=-1)               # (c, m)

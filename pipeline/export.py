@@ -1,0 +1,134 @@
+"""Stage export: the calibration into the robot cell (DATA_FORMAT.md, "Exports for the robot cell").
+
+    models/calibrated.urdf       the calibrated rigid chain (lib/urdf.py), base_link .. flange, tool0
+    models/ur_calibration.yaml   UR robots: the UR ROS description's kinematics calibration
+    models/model.onnx            the trained model, q_rad -> p_mm (lib/onnx_model.py)
+
+and reports/export.json, what each file was checked against, by libraries the
+pipeline does not use for its own kinematics:
+    urdf   Pinocchio loads the URDF; its tool0 vs the pipeline's FK of the exported chain, every
+           pose of the campaign
+    yaml   the chain the UR description builds from the YAML (joint i's origin = entry i, axis z,
+           tool0 on joint 6's frame), built in Pinocchio, vs the exported chain up to joint 6;
+           the flange transform after joint 6 the format cannot hold is reported
+
+A URDF has no joint compliance. When the calibration identified the joints' gravity sag
+(`compliance`), its rigid part alone is millimetres off (the sag's mean is absorbed in the
+joint offsets), so the exported chain is the rigid one that best reproduces the calibrated
+model at the commanded angles (`rigid_equivalent`, least squares over the campaign's poses);
+how far it stays from the calibrated model is `rigid_fit` in export.json.
+    onnx   onnxruntime vs PyTorch on every test pose: on the same float32 angles, and on the
+           float64 angles PyTorch is fed otherwise (the float32 input's rounding)
+"""
+import numpy as np
+import pinocchio as pin
+import torch
+import yaml
+
+from .lib.artifacts import CALIBRATED_GEOMETRY, EXPORT_JSON, MODEL_ONNX, UR_YAML, URDF_FILE, load_points
+from .lib.columns import JOINTS_DEG
+from .lib.config import load_params, logger, section, sections, write_json
+from .lib.identify import identify
+from .lib.kinematics import DTYPE, fk, fk_frames, load_geometry
+from .lib.onnx_model import OnnxModel, export_onnx
+from .lib.robots import TABLES, load_robot
+from .lib.training import load_model
+from .lib.urdf import UR_YAML_NAMES, base_transform, flange_residual, joint_origins, to_urdf, ur_kinematics
+
+log = logger(__name__)
+
+
+def urdf_positions(urdf_text: str, q_rad: np.ndarray) -> np.ndarray:
+    """tool0 positions (n, 3) mm by Pinocchio from URDF text at joint angles q (n, 6) rad."""
+    m = pin.buildModelFromXML(urdf_text)
+    d, frame = m.createData(), m.getFrameId("tool0")
+    out = []
+    for q in q_rad:
+        pin.framesForwardKinematics(m, d, q)
+        out.append(d.oMf[frame].translation * 1000.0)
+    return np.array(out)
+
+
+def ur_yaml_poses(kinematics: dict, q_rad: np.ndarray) -> np.ndarray:
+    """Joint 6's frame (n, 4, 4), mm, by Pinocchio from the UR kinematics YAML: joint i's origin is
+    entry i (x y z m, roll pitch yaw rad), revolute about its z, as the UR description builds it."""
+    m, parent = pin.Model(), 0
+    for name in UR_YAML_NAMES:                                               # by name, as a YAML reader would
+        e = kinematics["kinematics"][name]
+        placement = pin.SE3(pin.rpy.rpyToMatrix(e["roll"], e["pitch"], e["yaw"]), np.array([e["x"], e["y"], e["z"]]))
+        parent = m.addJoint(parent, pin.JointModelRZ(), placement, name)
+    d, out = m.createData(), []
+    for q in q_rad:
+        pin.forwardKinematics(m, d, q)
+        T = d.oMi[parent].homogeneous.copy()
+        T[:3, 3] *= 1000.0
+        out.append(T)
+    return np.array(out)
+
+
+def rigid_equivalent(g: dict, q: torch.Tensor, cfg: dict) -> tuple[dict, dict]:
+    """The rigid chain (compliance 0) closest to geometry g's positions at poses q: g itself when
+    it is rigid, else identified (calibrate's groups but compliance) on g's own positions.
+    Returns (geometry, {"mean_mm", "max_mm"} of its distance to g's positions)."""
+    with torch.no_grad():
+        p = fk(q, g).numpy()
+    rigid = {**g, "compliance": torch.zeros(6, dtype=DTYPE)}
+    if g["compliance"].any():
+        cfg = {**cfg, "params": [k for k in cfg["params"] if k != "compliance"], "loss": "linear"}
+        rigid = identify(q, p, rigid, cfg)[0]
+    with torch.no_grad():
+        e = np.linalg.norm(fk(q, rigid).numpy() - p, axis=1)
+    return rigid, {"mean_mm": float(e.mean()), "max_mm": float(e.max())}
+
+
+def run(params: dict) -> dict:
+    sections(params, "model", "train")                 # load_model reads them
+    robot = load_robot(section(params, "robot"))
+    pts = load_points()
+    q = torch.as_tensor(np.radians(pts[JOINTS_DEG].to_numpy()), dtype=DTYPE)
+    g, fit = rigid_equivalent(load_geometry(CALIBRATED_GEOMETRY), q, section(params, "calibrate"))
+    with torch.no_grad():
+        p_rigid, flange6 = fk(q, g).numpy(), fk_frames(q, g)[-1].numpy()      # flange6 (n, 4, 4) before the base
+    summary = {"n_poses": len(pts), "rigid_fit": fit}
+    log.info("the calibrated model as a rigid chain: %.4f mm mean, %.4f mm max from it on %d poses",
+             fit["mean_mm"], fit["max_mm"], len(pts))
+
+    text = to_urdf(g, robot)
+    URDF_FILE.write_text(text)
+    dev = np.linalg.norm(urdf_positions(text, q.numpy()) - p_rigid, axis=1)
+    summary["urdf"] = {"file": str(URDF_FILE), "checked_with": f"pinocchio {pin.__version__}",
+                       "max_deviation_mm": float(dev.max())}
+    log.info("%s: Pinocchio's tool0 vs the exported chain's FK on %d poses: max %.2e mm", URDF_FILE, len(pts),
+             dev.max())
+
+    if robot.name in TABLES:
+        kin = ur_kinematics(g)
+        UR_YAML.write_text(yaml.safe_dump(kin, sort_keys=False))
+        truth = base_transform(g) @ flange6 @ np.linalg.inv(joint_origins(g)[1])   # joint 6's frame
+        poses = ur_yaml_poses(kin, q.numpy())
+        dev = np.linalg.norm(poses[:, :3, 3] - truth[:, :3, 3], axis=1)
+        summary["ur_yaml"] = {"file": str(UR_YAML), "checked_with": f"pinocchio {pin.__version__}",
+                              "max_deviation_mm": float(dev.max()),
+                              "not_held_after_joint_6": flange_residual(g)}
+        log.info("%s: joint 6's frame from the YAML vs the exported chain: max %.2e mm; the flange "
+                 "transform after joint 6 it cannot hold: %s", UR_YAML, dev.max(), flange_residual(g))
+
+    model = load_model(params)
+    export_onnx(model, MODEL_ONNX)
+    test = (pts["split"] == "test").to_numpy()
+    q32 = q[test].float().clone()
+    onnx_p = OnnxModel(MODEL_ONNX)(q32.numpy())
+    with torch.no_grad():
+        same, f64 = model(q32.double())[0].numpy(), model(q[test])[0].numpy()
+    summary["onnx"] = {"file": str(MODEL_ONNX), "checked_with": "onnxruntime", "n_test_poses": int(test.sum()),
+                       "max_deviation_mm": float(np.abs(onnx_p - same).max()),
+                       "max_deviation_from_float64_angles_mm": float(np.abs(onnx_p - f64).max())}
+    log.info("%s: onnxruntime vs PyTorch on %d test poses: max %.2e mm on the same float32 angles, %.2e mm "
+             "from the float64 angles", MODEL_ONNX, test.sum(), summary["onnx"]["max_deviation_mm"],
+             summary["onnx"]["max_deviation_from_float64_angles_mm"])
+    write_json(EXPORT_JSON, summary)
+    return summary
+
+
+if __name__ == "__main__":
+    run(load_params())

@@ -1,0 +1,141 @@
+"""Exports for the robot cell, read back by the libraries a cell uses: Pinocchio (URDF, UR
+kinematics YAML) and onnxruntime (the model)."""
+import json
+from pathlib import Path
+
+import numpy as np
+import pinocchio as pin
+import pytest
+import torch
+import yaml
+from scipy.spatial.transform import Rotation
+
+from pipeline.export import rigid_equivalent, ur_yaml_poses, urdf_positions
+from pipeline.lib.config import load_params
+from pipeline.lib.kinematics import DTYPE, fk, fk_frames, nominal_geometry
+from pipeline.lib.model import Ensemble
+from pipeline.lib.onnx_model import OnnxModel, export_onnx
+from pipeline.lib.robots import UR_JOINTS, nominal_robot
+from pipeline.lib.training import make_model
+from pipeline.lib.twin import sample_poses
+from pipeline.lib.urdf import base_transform, flange_residual, joint_origins, to_urdf, ur_kinematics
+
+ROOT = Path(__file__).resolve().parents[1]
+PARAMS = load_params(ROOT / "params.yaml")
+UR5 = nominal_robot("ur5")
+
+
+def calibrated_like() -> dict:
+    """Nominal UR5 with errors of a real calibration in every group the URDF must carry."""
+    g = nominal_geometry(UR5)
+    rng = np.random.default_rng(0)
+    t = lambda v: torch.as_tensor(v, dtype=DTYPE)
+    return {**g, "d": g["d"] + t(rng.normal(0, 0.3, 6)), "a": g["a"] + t(rng.normal(0, 0.3, 6)),
+            "alpha": g["alpha"] + t(rng.normal(0, 1e-3, 6)), "offset": t(rng.normal(0, 2e-3, 6)),
+            "beta": t([0.0, 8e-4, -3e-4, 0.0, 0.0, 0.0]), "tool": t([1.5, -2.0, 40.0]),
+            "base": t([2e-4, -1e-3, 5e-4, 0.3, -0.2, 0.1])}
+
+
+def poses(n=300, seed=1) -> torch.Tensor:
+    return torch.as_tensor(np.random.default_rng(seed).uniform(-np.pi, np.pi, (n, 6)), dtype=DTYPE)
+
+
+def test_urdf_read_by_pinocchio_matches_the_chain_to_1e6_mm():
+    g, q = calibrated_like(), poses()
+    text = to_urdf(g, UR5)
+    with torch.no_grad():
+        p = fk(q, g).numpy()
+    assert np.abs(urdf_positions(text, q.numpy()) - p).max() < 1e-6
+    m = pin.buildModelFromXML(text)
+    assert list(m.names)[1:] == UR_JOINTS
+    np.testing.assert_allclose(m.lowerPositionLimit, -2 * np.pi)
+    np.testing.assert_allclose(m.effortLimit, [150, 150, 150, 28, 28, 28])
+    assert {"base_link", "flange", "tool0"} <= {f.name for f in m.frames}
+
+
+def test_nominal_ur5_at_zero_is_where_the_datasheet_puts_it():
+    """Hand-checked: at q = 0 the UR5's flange is at x = a2 + a3, y = -(d4 + d6), z = d1 - d5 (m)."""
+    text = to_urdf(nominal_geometry(UR5), UR5)
+    np.testing.assert_allclose(urdf_positions(text, np.zeros((1, 6)))[0] / 1000,
+                               [-0.425 - 0.39225, -(0.10915 + 0.0823), 0.089159 - 0.09465], atol=1e-12)
+
+
+def test_ur_yaml_of_the_nominal_ur5_is_the_ur_descriptions_default():
+    """The UR ROS description's default_kinematics.yaml for the UR5 (published values), compared as
+    transforms (an rpy triple is not unique: wrist_3's (pi/2, pi, pi) is Rx(-pi/2))."""
+    published = {"shoulder": ([0, 0, 0.089159], [0, 0, 0]),
+                 "upper_arm": ([0, 0, 0], [np.pi / 2, 0, 0]),
+                 "forearm": ([-0.425, 0, 0], [0, 0, 0]),
+                 "wrist_1": ([-0.39225, 0, 0.10915], [0, 0, 0]),
+                 "wrist_2": ([0, -0.09465, 0], [np.pi / 2, 0, 0]),
+                 "wrist_3": ([0, 0.0823, 0], [np.pi / 2, np.pi, np.pi])}
+    kin = ur_kinematics(nominal_geometry(UR5))["kinematics"]
+    assert list(kin) == list(published)
+    for name, (xyz, rpy) in published.items():
+        e = kin[name]
+        np.testing.assert_allclose([e["x"], e["y"], e["z"]], xyz, atol=1e-12, err_msg=name)
+        R = Rotation.from_euler("xyz", [e["roll"], e["pitch"], e["yaw"]]).as_matrix()
+        np.testing.assert_allclose(R, Rotation.from_euler("xyz", rpy).as_matrix(), atol=1e-9, err_msg=name)
+
+
+def test_ur_yaml_chain_built_in_pinocchio_is_the_calibrated_chain_up_to_joint_6():
+    g, q = calibrated_like(), poses(100)
+    kin = yaml.safe_load(yaml.safe_dump(ur_kinematics(g)))           # through the file format
+    with torch.no_grad():
+        flange = fk_frames(q, g)[-1].numpy()
+    truth = base_transform(g) @ flange @ np.linalg.inv(joint_origins(g)[1])
+    got = ur_yaml_poses(kin, q.numpy())
+    assert np.abs(got[:, :3, 3] - truth[:, :3, 3]).max() < 1e-6
+    assert np.abs(got[:, :3, :3] - truth[:, :3, :3]).max() < 1e-12
+    # what it leaves out: the flange transform after joint 6 (a6 only here: alpha6 and beta6 rotate)
+    assert flange_residual(g)["translation_mm"] == pytest.approx(abs(float(g["a"][5])), abs=1e-12)
+
+
+def test_a_calibration_with_joint_compliance_exports_its_best_rigid_chain():
+    """A URDF cannot sag under gravity: the exported chain is fitted to the elastic model's positions,
+    much closer to it than the elastic calibration's rigid part alone."""
+    g = {**calibrated_like(), "compliance": torch.as_tensor([0, 1e-4, 2e-4, 8e-4, 8e-4, 0], dtype=DTYPE)}
+    q = torch.as_tensor(np.radians(sample_poses(400, np.random.default_rng(2))), dtype=DTYPE)   # a campaign's
+    rigid, fit = rigid_equivalent(g, q, PARAMS["calibrate"])
+    assert not rigid["compliance"].any()
+    with torch.no_grad():
+        part = (fk(q, {**g, "compliance": torch.zeros(6, dtype=DTYPE)}) - fk(q, g)).norm(dim=1).numpy()
+    assert fit["mean_mm"] < part.mean() / 5
+    _, none = rigid_equivalent(calibrated_like(), q, PARAMS["calibrate"])    # rigid already: itself
+    assert none == {"mean_mm": 0.0, "max_mm": 0.0}
+
+
+def small_boter(seed=0):
+    cfg = {**PARAMS["model"], "d_model": 12, "n_head": 3, "n_layer": 1, "d_hidden": 16, "init_seed": seed}
+    m = make_model(cfg, calibrated_like())
+    m.fade.fit(np.degrees(poses(50, seed=3).numpy()), 40.0)           # some poses fade, some do not
+    return m.eval()
+
+
+@pytest.mark.parametrize("ensemble", [False, True], ids=["boter", "ensemble"])
+def test_onnx_read_by_onnxruntime_matches_pytorch(tmp_path, ensemble):
+    model = Ensemble([small_boter(0), small_boter(1)]).eval() if ensemble else small_boter()
+    path = tmp_path / "model.onnx"
+    export_onnx(model, path)
+    import onnx
+    graph = onnx.load(str(path)).graph
+    assert [i.name for i in graph.input] == ["q_rad"] and [o.name for o in graph.output] == ["p_mm"]
+    ort = OnnxModel(path)
+    for n in (1, 7, 300):                                           # the batch size is free
+        q = poses(n, seed=n).float()
+        with torch.no_grad():
+            ref = model(q.double())[0].numpy()
+        out = ort(q.numpy())
+        assert out.shape == (n, 3)
+        assert np.abs(out - ref).max() < 1e-6, n
+
+
+def test_export_stage_outputs_after_repro():
+    """The committed pipeline's export stage: every file read back within its stated tolerance."""
+    rep = ROOT / "reports/export.json"
+    if not rep.exists():
+        pytest.skip("run `dvc repro` first")
+    r = json.loads(rep.read_text())
+    assert r["urdf"]["max_deviation_mm"] < 1e-6 and r["ur_yaml"]["max_deviation_mm"] < 1e-6
+    assert r["onnx"]["max_deviation_mm"] < 1e-6 and r["onnx"]["n_test_poses"] > 0
+    assert pin.buildModelFromUrdf(str(ROOT / "models/calibrated.urdf")).nq == 6
