@@ -17,7 +17,7 @@ import pandas as pd
 
 from .lib import figures, page
 from .lib.artifacts import (BASELINES_MD, CALIBRATION_JSON, COMPENSATION_JSON, CONVERGENCE_CSV, DRIVE_CSV,
-                            FRAME_JSON, INGEST_JSON, LIVE, METRICS_JSON, MODEL_WEIGHTS, PREDICTIONS_TABLE,
+                            EXPORT_JSON, FRAME_JSON, INGEST_JSON, LIVE, METRICS_JSON, MODEL_WEIGHTS, PREDICTIONS_TABLE,
                             REPORTS, SPLIT_JSON, THEORY_JSON, TRAIN_JSON, VALIDATION_JSON, VALIDATION_TABLE)
 from .lib.columns import MEAS, PRED, THEORY
 from .lib.config import load_params, logger, read_json, sections
@@ -31,7 +31,8 @@ PLY = REPORTS / "points_error.ply"
 CURVES = LIVE / "plots" / "metrics"          # dvclive's per-epoch curves
 SUMMARIES = {"ingest": INGEST_JSON, "frame": FRAME_JSON, "theory": THEORY_JSON,
              "split": SPLIT_JSON, "calibration": CALIBRATION_JSON,
-             "train": TRAIN_JSON, "compensation": COMPENSATION_JSON, "validation": VALIDATION_JSON}
+             "train": TRAIN_JSON, "compensation": COMPENSATION_JSON, "validation": VALIDATION_JSON,
+             "export": EXPORT_JSON}
 
 
 def optional_json(path: Path):

@@ -378,6 +378,27 @@ def section_validation(v: dict | None, uncertainty: dict | None) -> str:
     return "\n".join(out)
 
 
+def section_export(e: dict | None) -> str:
+    out = ["## Exports for the robot cell", ""]
+    if not e:
+        return "\n".join(out + ["_reports/export.json not found (stage export)._", ""])
+    rows = [[f"`{e['urdf']['file']}`", e["urdf"]["checked_with"], fmt(e["urdf"]["max_deviation_mm"], 2)]]
+    if "ur_yaml" in e:
+        rows.append([f"`{e['ur_yaml']['file']}`", e["ur_yaml"]["checked_with"],
+                     fmt(e["ur_yaml"]["max_deviation_mm"], 2)])
+    rows.append([f"`{e['onnx']['file']}`", e["onnx"]["checked_with"], fmt(e["onnx"]["max_deviation_mm"], 2)])
+    out += ["Each file read back by an independent library (max deviation, mm, from the pipeline; "
+            f"URDF and YAML on {e['n_poses']} poses, ONNX on {e['onnx']['n_test_poses']} test poses):", "",
+            table(["file", "read by", "max deviation mm"], rows).rstrip(), ""]
+    note = (f"The URDF is a rigid chain: fitted to the calibrated (elastic) model, it stays "
+            f"{fmt(e['rigid_fit']['mean_mm'])} mm mean, {fmt(e['rigid_fit']['max_mm'])} mm max from it.")
+    if "ur_yaml" in e:
+        r = e["ur_yaml"]["not_held_after_joint_6"]
+        note += (f" The UR YAML cannot hold the flange transform after joint 6 "
+                 f"({fmt(r['translation_mm'])} mm, {fmt(r['rotation_deg'])}°).")
+    return "\n".join(out + [note, ""])
+
+
 def write_index(ctx, figs: dict, ply: dict) -> str:
     """index.md's text. ctx: the report stage's Context; figs: render_figures' result;
     ply: write_ply's."""
@@ -395,13 +416,14 @@ def write_index(ctx, figs: dict, ply: dict) -> str:
                  + ".", ""]
     skipped = [n for n, (st, _) in figs.items() if st != "ok"]
     head += ["Contents: settings · model metrics · comparison methods · data · calibration · "
-             "training · compensation · validation · ablation · point cloud · figures"
+             "training · compensation · validation · exports · ablation · point cloud · figures"
              + (f" (skipped: {', '.join(skipped)})" if skipped else ""), ""]
     parts = ["\n".join(head), section_settings(ctx.params), section_metrics(m, counts),
              section_baselines(m, ctx.baselines_md),
              section_data(s["ingest"], s["frame"], s["theory"], s["split"], counts),
              section_calibration(s["calibration"]), section_training(s["train"]),
              section_compensation(s["compensation"], ctx.drive),
-             section_validation(s["validation"], m.get("uncertainty")), section_ablation(),
+             section_validation(s["validation"], m.get("uncertainty")), section_export(s["export"]),
+             section_ablation(),
              section_pointcloud(ply), section_figures(figs)]
     return "\n".join(p.rstrip() + "\n" for p in parts)
