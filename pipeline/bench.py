@@ -3,6 +3,7 @@
     python -m pipeline.bench real  [--seeds 139 140 ...]   the real sets in ../shared/datasets
     python -m pipeline.bench real --sets twin twin-2stations   the twin, from one and two stations
     python -m pipeline.bench speed                          training, prediction, compensation timings
+    python -m pipeline.bench serve [--clients 8 --calls 10000]   the compensation service under load
 
 `real` runs the pipeline's stages (`python -m pipeline.<stage>`, as dvc repro
 would) in a scratch directory per set (preset merged over params.yaml, split
@@ -21,10 +22,13 @@ import copy
 import os
 import platform
 import resource
+import socket
 import subprocess
 import sys
 import tempfile
+import threading
 import time
+import xmlrpc.client
 from pathlib import Path
 
 import numpy as np
@@ -32,12 +36,13 @@ import pandas as pd
 import torch
 import yaml
 
-from .lib.artifacts import INGEST_JSON, INGEST_TABLE, METRICS_JSON, PREDICTIONS_TABLE, VALIDATION_DIR, load_points
-from .lib.columns import JOINTS_DEG, MEAS, PRED, TARGET
+from .lib.artifacts import INGEST_JSON, INGEST_TABLE, METRICS_JSON, MODEL_ONNX, PREDICTIONS_TABLE, VALIDATION_DIR, load_points
+from .lib.columns import JOINTS_DEG, MEAS, PRED, TARGET, THEORY
 from .lib.config import load_params, logger, read_json, write_json
 from .lib.geometry import aligned, physics_geometry
 from .lib.kinematics import fk_numpy
 from .lib.loss import SPILoss
+from .lib.onnx_model import OnnxModel
 from .lib.presets import merged_params
 from .lib.realtime import Realtime, check
 from .lib.robots import load_robot
@@ -266,6 +271,9 @@ def bench_speed() -> dict:
     with torch.no_grad():
         batch_s = timed(lambda: model(q), 10)
         single_s = timed(lambda: model(q[:1]), 200)
+    onnx = OnnxModel(MODEL_ONNX)                                       # the export stage's file, one thread
+    q32 = q.float().numpy()
+    onnx_batch_s, onnx_single_s = timed(lambda: onnx(q32), 10), timed(lambda: onnx(q32[:1]), 200)
 
     targets = pd.read_csv("reports/compensation.csv")                 # the compensate stage's targets
     q0, tgt = targets[JOINTS_DEG].to_numpy(), targets[TARGET].to_numpy()
@@ -292,10 +300,13 @@ def bench_speed() -> dict:
     out = {"machine": machine(),
            "train": {"n_train": len(train_t[0]), "seconds_per_epoch": hist["seconds_per_epoch"],
                      "epochs_timed": hist["epochs_run"], "model": params["model"]},
-           "predict": {"batch": 4096, "poses_per_s": 4096 / batch_s, "single_pose_ms": 1000 * single_s},
+           "predict": {"batch": 4096, "poses_per_s": 4096 / batch_s, "single_pose_ms": 1000 * single_s,
+                       "onnxruntime": {"poses_per_s": 4096 / onnx_batch_s, "single_pose_ms": 1000 * onnx_single_s,
+                                       "single_pose_speedup_over_pytorch": single_s / onnx_single_s}},
            "compensate": comp,
            "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
     write_json(BENCH / "speed.json", out)
+    log.info("predict one pose: PyTorch %.3f ms, onnxruntime %.3f ms", 1000 * single_s, 1000 * onnx_single_s)
     log.info("speed: %.3f s/epoch, %.0f poses/s (batch 4096), %.2f ms single pose; lm %.1f it vs adam %.1f it "
              "(%.0fx), lm single pose %.2f ms; realtime single pose %.2f ms median, %.2f ms p99 "
              "(eager %.2f ms), true residual max %.1e mm; peak RSS %.0f MB", hist["seconds_per_epoch"],
@@ -306,10 +317,81 @@ def bench_speed() -> dict:
     return out
 
 
+def load_test(url: str, q0: list, tgt: list, clients: int, calls: int) -> dict:
+    """`clients` threads, each with its own ServerProxy, make calls/clients `compensate` calls on the
+    (q0, target) pairs (cycled); each call's wall latency."""
+    ms, failed, unconverged = [[] for _ in range(clients)], [0] * clients, [0] * clients
+
+    def client(k):
+        proxy = xmlrpc.client.ServerProxy(url)
+        for i in range(k, calls, clients):
+            j = i % len(q0)
+            t = time.perf_counter()
+            try:
+                unconverged[k] += not proxy.compensate(q0[j], tgt[j])["converged"]
+            except Exception:
+                failed[k] += 1
+            ms[k].append(1000 * (time.perf_counter() - t))
+    threads = [threading.Thread(target=client, args=(k,)) for k in range(clients)]
+    t0 = time.perf_counter()
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    seconds, lat = time.perf_counter() - t0, np.concatenate(ms)
+    return {"clients": clients, "calls": len(lat), "failed": sum(failed), "not_converged": sum(unconverged),
+            "ms_p50": float(np.percentile(lat, 50)), "ms_p90": float(np.percentile(lat, 90)),
+            "ms_p99": float(np.percentile(lat, 99)), "ms_max": float(lat.max()), "calls_per_s": len(lat) / seconds,
+            "seconds": seconds}
+
+
+def bench_serve(clients: int = 8, calls: int = 10000) -> dict:
+    """The compensation service under load: `python -m pipeline.serve` in a subprocess on a free loopback
+    port, eager and compiled (--compile); for each, one client (calls/10 calls: a call's own latency)
+    then `clients` concurrent clients (calls in all), on the test points (recorded angles -> theory
+    position, cycled). Needs a finished `dvc repro` in the project."""
+    params = load_params()
+    df = aligned(load_points(), params)
+    test = df[df.split == "test"]
+    q0, tgt = np.radians(test[JOINTS_DEG].to_numpy()).tolist(), test[THEORY].to_numpy().tolist()
+    out = {"machine": machine(), "server": "python -m pipeline.serve, a subprocess on 127.0.0.1 (the clients "
+                                           "on the same machine)", "n_test_points": len(q0)}
+    for name, flag in (("eager", "--no-compile"), ("compiled", "--compile")):
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            port = s.getsockname()[1]
+        url = f"http://127.0.0.1:{port}/RPC2"
+        t0 = time.perf_counter()
+        proc = subprocess.Popen([sys.executable, "-m", "pipeline.serve", "--port", str(port), flag])
+        try:
+            while True:                                   # until it answers
+                try:
+                    xmlrpc.client.ServerProxy(url).system.listMethods()
+                    break
+                except OSError:
+                    if proc.poll() is not None or time.perf_counter() - t0 > 120:
+                        raise RuntimeError(f"python -m pipeline.serve did not start (exit code {proc.poll()})")
+                    time.sleep(0.2)
+            out[name] = {"startup_s": time.perf_counter() - t0,
+                         "one_client": load_test(url, q0, tgt, 1, calls // 10),
+                         "concurrent": load_test(url, q0, tgt, clients, calls)}
+        finally:
+            proc.terminate()
+            proc.wait(timeout=30)
+        for k in ("one_client", "concurrent"):
+            r = out[name][k]
+            log.info("serve %s, %d client(s): %d calls in %.1f s (%.0f calls/s), %d failed, %d not converged; "
+                     "latency p50 %.1f ms, p90 %.1f ms, p99 %.1f ms, max %.1f ms", name, r["clients"], r["calls"],
+                     r["seconds"], r["calls_per_s"], r["failed"], r["not_converged"], r["ms_p50"], r["ms_p90"],
+                     r["ms_p99"], r["ms_max"])
+    write_json(BENCH / "serve.json", out)
+    return out
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(prog="python -m pipeline.bench", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("what", choices=["real", "speed"])
+    ap.add_argument("what", choices=["real", "speed", "serve"])
     ap.add_argument("--seeds", type=int, nargs="+", default=[139], help="training seeds (real)")
     ap.add_argument("--epochs", type=int, default=None, help="override train.max_epochs (real)")
     ap.add_argument("--sets", nargs="+", choices=list(REAL_SETS), default=None,
@@ -319,9 +401,13 @@ def main(argv=None):
     ap.add_argument("-S", "--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                     help="override a params.yaml value for the run (real), as dvc exp run -S: "
                          "train.ema=0.999; recorded in the output under the set's name + '@' + overrides")
+    ap.add_argument("--clients", type=int, default=8, help="concurrent clients (serve)")
+    ap.add_argument("--calls", type=int, default=10000, help="compensate calls in all (serve)")
     a = ap.parse_args(argv)
     if a.what == "real":
         bench_real(a.seeds, a.epochs, a.sets, a.other_physics, a.overrides)
+    elif a.what == "serve":
+        bench_serve(a.clients, a.calls)
     else:
         bench_speed()
 

@@ -87,6 +87,9 @@ def test_repro_produces_contract_outputs_and_is_idempotent(repo):
     table = pd.read_parquet(repo / "reports/validation.parquet")
     assert len(table) == 300 and table.registered.sum() == 30
     assert "## Validation on independent campaigns" in (repo / "reports/index.md").read_text()
+    export = json.loads((repo / "reports/export.json").read_text())          # the robot cell's files
+    assert max(export[k]["max_deviation_mm"] for k in ("urdf", "ur_yaml", "onnx")) < 1e-6
+    assert all((repo / "models" / f).exists() for f in ("calibrated.urdf", "ur_calibration.yaml", "model.onnx"))
 
     again = sh("dvc repro", repo).stdout
     assert "up to date" in again and "Running stage" not in again

@@ -1,7 +1,5 @@
 """The program compensator: a program's waypoints in, a compensated CSV and URScript out."""
-import os
 import re
-from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -11,20 +9,8 @@ import torch
 from pipeline import program
 from pipeline.lib.artifacts import load_points
 from pipeline.lib.columns import JCOMP_DEG, JOINTS_DEG, TARGET, THEORY
-from pipeline.lib.config import load_params
 from pipeline.lib.kinematics import DTYPE
 from pipeline.lib.training import load_model
-
-ROOT = Path(__file__).resolve().parents[1]
-pytestmark = pytest.mark.skipif(not (ROOT / "models/boter.pt").exists(), reason="run `dvc repro` first")
-
-
-@pytest.fixture
-def in_root():
-    cwd = os.getcwd()
-    os.chdir(ROOT)
-    yield load_params()
-    os.chdir(cwd)
 
 
 def model_at(params, q_deg):
@@ -32,10 +18,10 @@ def model_at(params, q_deg):
         return load_model(params)(torch.as_tensor(np.radians(q_deg), dtype=DTYPE))[0].numpy()
 
 
-def test_offline_waypoints_land_where_the_nominal_program_meant(in_root, tmp_path):
+def test_offline_waypoints_land_where_the_nominal_program_meant(in_trained_project, tmp_path):
     """Joint targets only: target = nominal position (for the test points, their theory column);
     the model at the compensated joints is there within tol_mm, and the URScript carries those joints."""
-    params = in_root
+    params = in_trained_project
     pts = load_points().query("split == 'test'").head(12)
     src = tmp_path / "prog.csv"
     pts[JOINTS_DEG].to_csv(src, index=False)
@@ -54,8 +40,8 @@ def test_offline_waypoints_land_where_the_nominal_program_meant(in_root, tmp_pat
     np.testing.assert_allclose(q_script, np.radians(table[JCOMP_DEG].to_numpy()), atol=1e-8)
 
 
-def test_positions_with_starting_joints(in_root, tmp_path):
-    params = in_root
+def test_positions_with_starting_joints(in_trained_project, tmp_path):
+    params = in_trained_project
     pts = load_points().query("split == 'test'").head(5)
     target = pts[THEORY].to_numpy() + [0.5, -0.3, 0.2]                  # half a millimetre elsewhere
     src = tmp_path / "pos.csv"
@@ -73,7 +59,7 @@ def test_positions_with_starting_joints(in_root, tmp_path):
     (lambda d: d.assign(j2_deg=[0.0, 0.0, 0.0, 400.0]), r"row 5, column j2_deg: 400.0° beyond the joint limits"),
     (lambda d: d.assign(target_x=1.0, target_y=2.0), r"target columns need all of"),
 ])
-def test_bad_waypoints_are_named_by_file_row_and_column(in_root, tmp_path, edit, message):
+def test_bad_waypoints_are_named_by_file_row_and_column(in_trained_project, tmp_path, edit, message):
     src = tmp_path / "bad.csv"
     edit(pd.DataFrame(np.zeros((4, 6)), columns=JOINTS_DEG)).to_csv(src, index=False)
     with pytest.raises(ValueError, match=message) as e:

@@ -38,6 +38,7 @@ SECTIONS = {
     "compensate": ("solver", "lr", "max_iter", "tol_mse", "tol_mm", "jacobian_of", "drive_check",
                    "twin", "drive_seed"),
     "ablation": ("seeds", "max_epochs"),
+    "serve": ("host", "port", "unreachable_mm", "compile"),
 }
 
 
