@@ -1,11 +1,14 @@
 """The paper's ablations (sec. 4.2.3-4.2.4) as opt-in DVC matrix stages, over several seeds.
 
-    python -m pipeline.ablation [-j 2]       run what changed (dvc repro ablation/dvc.yaml), then summarise
+    python -m pipeline.ablation [--engine ray]   run what changed (dvc repro ablation/dvc.yaml), then summarise
+    python -m pipeline.ablation sweep --engine ray [--address HOST:6379]
+                                                 every group x seed at once as Ray tasks, then summarise
 
 `ablation/dvc.yaml` holds one matrix stage per group (`python -m pipeline.ablation
-group NAME`), each training the group over `ablation.seeds` with `-j` worker
-processes, and a summary stage writing reports/ablation.json and
-reports/ablation.md. Plain `dvc repro` never runs it (it reads ./dvc.yaml only).
+group NAME`), each training the group over `ablation.seeds` (lib/sweep.py: in order,
+or one Ray task per seed), and a summary stage writing reports/ablation.json and
+reports/ablation.md. `sweep` runs every group's seeds as one pool of tasks (the
+most parallel, outside DVC) and writes the same files. Plain `dvc repro` never runs it (it reads ./dvc.yaml only).
 Each group is the main settings with the changes below; a seed sets both the
 weight init and the data order.
 """
@@ -16,11 +19,12 @@ import os
 import subprocess
 import sys
 import time
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
+import torch
 
+from .lib import sweep
 from .lib.artifacts import REPORTS, load_points
 from .lib.config import load_params, logger, read_json, section, write_json
 from .lib.figures import fig_ablation, save
@@ -68,22 +72,27 @@ def train_one(args) -> dict:
             "epochs_run": hist["epochs_run"], "seconds": hist["seconds"], "n_params": hist["n_params"]}
 
 
-def run_group(params: dict, group: str, jobs: int) -> dict:
-    if group not in GROUPS:
-        raise ValueError(f"unknown ablation group {group!r}; use one of {list(GROUPS)}")
+def run_groups(params: dict, groups: list[str], engine: str = "sequential", address: str | None = None,
+               threads: int | None = None) -> dict:
+    """Every (group, seed) of `ablation.seeds` as one job (lib/sweep.py: in order, or Ray tasks);
+    writes reports/ablation/<group>.json per group. threads: torch threads per job (default:
+    every core when sequential, 1 on Ray)."""
+    unknown = [g for g in groups if g not in GROUPS]
+    if unknown:
+        raise ValueError(f"unknown ablation group(s) {unknown}; use {list(GROUPS)}")
     seeds = section(params, "ablation")["seeds"]
-    threads = max(1, (os.cpu_count() or 1) // jobs)
-    t0 = time.perf_counter()
-    tasks = [(params, group, s, threads) for s in seeds]
-    if jobs > 1:
-        with ProcessPoolExecutor(jobs) as pool:
-            runs = list(pool.map(train_one, tasks))
-    else:
-        runs = [train_one(t) for t in tasks]
-    out = {"group": group, "changes": GROUPS[group], "runs": runs, "seconds": time.perf_counter() - t0,
-           "jobs": jobs}
-    write_json(OUT / f"{group}.json", out)
-    return out
+    threads = threads or (1 if engine == "ray" else torch.get_num_threads())
+    jobs = [(params, g, s, threads) for g in groups for s in seeds]
+    runs, timing = sweep.run(train_one, jobs, engine, address, threads, desc="ablation")
+    out = {}
+    for k, g in enumerate(groups):
+        mine = slice(k * len(seeds), (k + 1) * len(seeds))
+        out[g] = {"group": g, "changes": GROUPS[g], "runs": runs[mine], "seconds": sum(timing["job_seconds"][mine]),
+                  "engine": engine, "threads_per_job": threads}
+        write_json(OUT / f"{g}.json", out[g])
+    log.info("%d runs (%d groups x %d seeds) on %s in %.0f s (%.0f s of training)", len(jobs), len(groups),
+             len(seeds), engine, timing["seconds"], sum(timing["job_seconds"]))
+    return {"groups": out, "timing": timing}
 
 
 def summarise() -> dict:
@@ -123,17 +132,23 @@ def summarise() -> dict:
 def main(argv=None):
     ap = argparse.ArgumentParser(prog="python -m pipeline.ablation", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("what", nargs="?", default="all", choices=["all", "group", "summary"])
-    ap.add_argument("group", nargs="?", help="group name (with `group`)")
-    ap.add_argument("-j", "--jobs", type=int, default=int(os.environ.get("ABLATION_JOBS", 1)),
-                    help="worker processes per group (default 1; 2 on a 2-core machine)")
+    ap.add_argument("what", nargs="?", default="all", choices=["all", "group", "sweep", "summary"])
+    ap.add_argument("group", nargs="*", help="group name(s) (with `group`; `sweep`: default all)")
+    ap.add_argument("--engine", choices=sweep.ENGINES, default=os.environ.get("ABLATION_ENGINE", "sequential"),
+                    help="sequential, or ray: one Ray task per (group, seed)")
+    ap.add_argument("--address", default=None, help="a Ray cluster's address (default: RAY_ADDRESS, else a "
+                                                    "local Ray started here)")
+    ap.add_argument("--threads", type=int, default=None, help="torch threads per run (default: all cores "
+                                                              "sequential, 1 on Ray)")
     a = ap.parse_args(argv)
-    if a.what == "group":
-        run_group(load_params(), a.group, a.jobs)
+    if a.what in ("group", "sweep"):          # group: one DVC matrix stage; sweep: every group at once
+        run_groups(load_params(), a.group or list(GROUPS), a.engine, a.address, a.threads)
+        if a.what == "sweep":
+            summarise()
     elif a.what == "summary":
         summarise()
     else:                                    # the DVC way: only what changed reruns
-        env = {**os.environ, "ABLATION_JOBS": str(a.jobs)}
+        env = {**os.environ, "ABLATION_ENGINE": a.engine}
         t0 = time.perf_counter()
         r = subprocess.run(["dvc", "repro", str(Path("ablation") / "dvc.yaml")], env=env)
         log.info("ablation finished in %.0f s", time.perf_counter() - t0)

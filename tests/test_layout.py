@@ -178,4 +178,4 @@ def test_editing_library_code_makes_dvc_status_report_its_stages(tmp_path, edite
     assert stale == users and stale                    # every stage that runs it, and only those
     if edited.endswith("robots.py"):                   # the DH tables reach every stage but split
         assert stale == {"ingest", "frame", "theory", "calibrate", "train", "baselines", "evaluate",
-                         "compensate", "validate@twin_side", "validation", "report"}
+                         "compensate", "validate@twin_side", "validation", "export", "report"}

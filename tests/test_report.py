@@ -179,7 +179,7 @@ def test_missing_optional_inputs_are_skipped_with_a_note(tmp_path, monkeypatch):
     assert "encoder is false" in text and "No drive check" in text
     assert "calibration.json not found" in text and "train.json not found" in text
     assert not (tmp_path / "reports/ablation.json").exists()   # no ablation run, yet a full page
-    assert "`python -m pipeline.ablation -j 2`" in text
+    assert "`python -m pipeline.ablation` (`--engine ray` in parallel)" in text
     import open3d as o3d
     assert len(o3d.io.read_point_cloud(str(tmp_path / "reports/points_error.ply")).points) == len(df)
 

@@ -307,7 +307,7 @@ def section_ablation() -> str:
     """Static: the ablation is opt-in, and this page does not read its outputs."""
     md, js, png = (rel(REPORTS / f"ablation.{x}") for x in ("md", "json", "png"))
     return ("## Ablation\n\n"
-            "Opt-in, outside `dvc repro`: `python -m pipeline.ablation -j 2` retrains each variant "
+            "Opt-in, outside `dvc repro`: `python -m pipeline.ablation` (`--engine ray` in parallel) retrains each variant "
             "over `ablation.seeds` and writes "
             f"[{md}]({md}) (test 3D MAE per variant beside the paper's MAE and epochs), "
             f"[{js}]({js}) and the figure [{png}]({png}). This page does not read them.\n")
