@@ -13,7 +13,6 @@ Each group is the main settings with the changes below; a seed sets both the
 weight init and the data order.
 """
 import argparse
-import copy
 import json
 import os
 import subprocess
@@ -25,53 +24,14 @@ import numpy as np
 import torch
 
 from .lib import sweep
-from .lib.artifacts import REPORTS, load_points
+from .lib.artifacts import REPORTS
 from .lib.config import load_params, logger, read_json, section, write_json
 from .lib.figures import fig_ablation, save
-from .lib.geometry import aligned, physics_geometry
-from .lib.metrics import split_metrics
+from .lib.ablations import GROUPS, train_one
 from .lib.paper import PAPER_ABLATION, PAPER_ABLATION_EPOCHS
-from .lib.training import predict, train_boter
 
 log = logger(__name__)
 OUT = REPORTS / "ablation"
-GROUPS = {                                   # name -> params changes (one source of the groups)
-    "baseline": {},
-    "data_only": {"loss": {"physics": False}},
-    "no_mask": {"model": {"mask": "none"}},
-    "body_mask": {"model": {"mask": "body"}},
-    "no_resnet": {"model": {"head": "linear"}},
-    "no_transformer": {"model": {"encoder": False}},
-    # not in the paper: SPEC.md's loss-weighting choice, measured the same way
-    "paper_weights": {"loss": {"weighting": "paper"}},
-    "fixed_weights": {"loss": {"weighting": "fixed"}},
-}
-
-
-def group_params(params: dict, group: str, seed: int) -> dict:
-    p = copy.deepcopy(params)
-    for name, changes in GROUPS[group].items():
-        p[name].update(changes)
-    p["model"]["init_seed"], p["train"]["seed"] = seed, seed
-    p["train"]["max_epochs"] = params["ablation"]["max_epochs"] or p["train"]["max_epochs"]
-    return p
-
-
-def train_one(args) -> dict:
-    """One (group, seed) training run; returns its test metrics and epochs."""
-    params, group, seed, threads = args
-    import torch
-    torch.set_num_threads(threads)
-    df = aligned(load_points(), params)
-    p = group_params(params, group, seed)
-    model, hist = train_boter(p, df, physics_geometry(p, p["model"]["physics"]), progress=False)
-    test = split_metrics(df, predict(model.eval(), df))["test"]
-    log.info("%s seed %d: test 3D MAE %.4f mm, best epoch %d", group, seed, test["3d"]["mae"],
-             hist["best_epoch"])
-    return {"seed": seed, "test": test, "epochs_to_best": hist["best_epoch"],
-            "epochs_run": hist["epochs_run"], "seconds": hist["seconds"], "n_params": hist["n_params"]}
-
-
 def run_groups(params: dict, groups: list[str], engine: str = "sequential", address: str | None = None,
                threads: int | None = None) -> dict:
     """Every (group, seed) of `ablation.seeds` as one job (lib/sweep.py: in order, or Ray tasks);

@@ -22,6 +22,7 @@ import copy
 import os
 import platform
 import resource
+import shutil
 import socket
 import subprocess
 import sys
@@ -36,7 +37,10 @@ import pandas as pd
 import torch
 import yaml
 
-from .lib.artifacts import INGEST_JSON, INGEST_TABLE, METRICS_JSON, MODEL_ONNX, PREDICTIONS_TABLE, VALIDATION_DIR, load_points
+from .lib import sweep
+from .lib.ablations import train_one
+from .lib.artifacts import (CALIBRATED_GEOMETRY, FRAME_JSON, INGEST_JSON, INGEST_TABLE, METRICS_JSON, MODEL_ONNX,
+                            POINTS_TABLE, SPLIT_TABLE, PREDICTIONS_TABLE, VALIDATION_DIR, load_points)
 from .lib.columns import JOINTS_DEG, MEAS, PRED, TARGET, THEORY
 from .lib.config import load_params, logger, read_json, write_json
 from .lib.geometry import aligned, physics_geometry
@@ -388,10 +392,64 @@ def bench_serve(clients: int = 8, calls: int = 10000) -> dict:
     return out
 
 
+def noop(x):
+    return x
+
+
+def bench_sweep(groups=("baseline", "no_resnet"), seeds=(139, 140), epochs: int = 40) -> dict:
+    """A reduced ablation (groups x seeds, `epochs` each) run sequentially (torch on every core) and as
+    Ray tasks on a local Ray instance (one thread each, a task per core), on the project's trained
+    artifacts copied to a scratch directory; and the per-task overhead Ray adds (trivial tasks).
+    Needs a finished `dvc repro` in the project."""
+    params = load_params()
+    params["ablation"].update(seeds=list(seeds), max_epochs=epochs)
+    cores = os.cpu_count() or 1
+    jobs = [(params, g, s, 0) for g in groups for s in seeds]
+    files = [POINTS_TABLE, SPLIT_TABLE, FRAME_JSON, CALIBRATED_GEOMETRY]
+    out = {"machine": machine(), "what": f"ablation groups {list(groups)} x seeds {list(seeds)}, {epochs} epochs "
+                                         "each (the full ablation: 8 groups x 5 seeds, up to 400 epochs)"}
+    cwd = os.getcwd()
+    with tempfile.TemporaryDirectory() as tmp:
+        for f in files:
+            (Path(tmp) / f).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy(f, Path(tmp) / f)
+        os.chdir(tmp)
+        try:
+            for engine, threads in (("sequential", cores), ("ray", 1)):
+                runs, timing = sweep.run(train_one, [(p, g, s, threads) for p, g, s, _ in jobs], engine, None,
+                                         threads, desc=f"sweep {engine}")
+                out[engine] = {**timing, "test_3d_mae": [r["test"]["3d"]["mae"] for r in runs]}
+        finally:
+            os.chdir(cwd)
+    out["speedup_ray_over_sequential"] = out["sequential"]["seconds"] / out["ray"]["seconds"]
+    n = 64
+    _, seq = sweep.run(noop, list(range(n)), "sequential", desc="noop")
+    t0 = time.perf_counter()
+    _, ray_t = sweep.run(noop, list(range(n)), "ray", desc="noop")
+    out["overhead"] = {"tasks": n, "ray_seconds_with_startup": time.perf_counter() - t0,
+                       "sequential_seconds": seq["seconds"],
+                       "ms_per_task_after_startup": None}
+    import ray                                            # the same, Ray already up: the per-task cost alone
+    ray.init(include_dashboard=False, log_to_driver=False, configure_logging=False,
+             runtime_env={"env_vars": {"PYTHONPATH": str(sweep.PROJECT)}})
+    try:
+        sweep.run(noop, list(range(n)), "ray", desc="noop warm-up")
+        _, warm = sweep.run(noop, list(range(n)), "ray", desc="noop")
+        out["overhead"]["ms_per_task_after_startup"] = 1000 * warm["seconds"] / n
+    finally:
+        ray.shutdown()
+    out["overhead"]["startup_s"] = out["overhead"]["ray_seconds_with_startup"] - warm["seconds"]
+    write_json(BENCH / "sweep.json", out)
+    log.info("sweep: sequential %.0f s, ray %.0f s (%.2fx); ray per task %.1f ms, startup %.1f s",
+             out["sequential"]["seconds"], out["ray"]["seconds"], out["speedup_ray_over_sequential"],
+             out["overhead"]["ms_per_task_after_startup"], out["overhead"]["startup_s"])
+    return out
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(prog="python -m pipeline.bench", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("what", choices=["real", "speed", "serve"])
+    ap.add_argument("what", choices=["real", "speed", "serve", "sweep"])
     ap.add_argument("--seeds", type=int, nargs="+", default=[139], help="training seeds (real)")
     ap.add_argument("--epochs", type=int, default=None, help="override train.max_epochs (real)")
     ap.add_argument("--sets", nargs="+", choices=list(REAL_SETS), default=None,
@@ -408,6 +466,8 @@ def main(argv=None):
         bench_real(a.seeds, a.epochs, a.sets, a.other_physics, a.overrides)
     elif a.what == "serve":
         bench_serve(a.clients, a.calls)
+    elif a.what == "sweep":
+        bench_sweep()
     else:
         bench_speed()
 

@@ -1,0 +1,166 @@
+"""Calibrate a fleet: every robot's campaign through the pipeline, in parallel on Ray.
+
+    python -m pipeline.fleet demo [--robots 4] [--dir data/fleet]     a demo fleet of twins
+    python -m pipeline.fleet run data/fleet [--engine ray] [--address HOST:6379] [--out fleet/robots] [--bench]
+
+A fleet is a folder with one folder per robot, each holding its campaign (the
+tracker/controller exports) and a `params.yaml` override, like a preset: merged
+over the project's params.yaml, paths relative to the robot's folder. Each robot
+is one job (lib/sweep.py: in order, or a Ray task on a local instance or a cluster):
+the pipeline's stages (ingest .. evaluate, export, report), each `python -m
+pipeline.<stage>` as `dvc repro` runs them, in `<out>/<robot>/`, which then holds
+that robot's params.yaml, artifacts (models/, data/interim/) and report
+(reports/index.md). A robot that fails is reported with its stage and error
+message, and the others finish. reports/fleet.json and reports/fleet.md: per
+robot the test 3D MAE of nominal DH, the classical calibration and the model.
+
+DVC: `fleet/dvc.yaml` (opt-in, like ablation/) is one stage whose output is the
+per-robot folders: Ray runs the robots in parallel inside it, where a `foreach`
+stage per robot would be run by `dvc repro` one at a time. Its deps are the whole
+`pipeline/` package (it runs every stage), params.yaml and the fleet folder, so any
+change reruns the fleet.
+"""
+import argparse
+import math
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from .lib import sweep
+from .lib.config import load_params, logger, read_json, write_json
+from .lib.presets import deep_merge
+from .lib.twin import Twin
+
+log = logger(__name__)
+STAGES = ["ingest", "frame", "theory", "split", "calibrate", "train", "baselines", "evaluate", "export", "report"]
+FLEET_JSON, FLEET_MD = Path("reports/fleet.json"), Path("reports/fleet.md")
+BENCH_JSON = Path("reports/bench/fleet.json")
+DEMO_SEED = 2000
+
+
+def robot_params(base: dict, robot_dir: Path) -> dict:
+    """The project's params with the robot's params.yaml merged over it; its campaign paths made
+    absolute; no further campaigns, no validation campaigns, no twin drive check unless it says so."""
+    over = yaml.safe_load((robot_dir / "params.yaml").read_text()) if (robot_dir / "params.yaml").exists() else {}
+    p = deep_merge({**base, "campaigns": {**base["campaigns"], "more": {}},
+                    "validate": {**base["validate"], "campaigns": {}},
+                    "compensate": {**base["compensate"], "drive_check": False}}, over or {})
+    for k in ("joints", "tracker"):
+        p["ingest"][k] = str((robot_dir / p["ingest"][k]).resolve())
+    return p
+
+
+def calibrate_robot(job) -> dict:
+    """One robot: every stage in its output folder (threads: torch threads of each stage)."""
+    name, params, out, threads = job
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+    env = {**os.environ, "OMP_NUM_THREADS": str(threads),
+           "PYTHONPATH": os.pathsep.join([str(sweep.PROJECT), os.environ.get("PYTHONPATH", "")])}
+    t0 = time.perf_counter()
+    for stage in STAGES:
+        r = subprocess.run([sys.executable, "-m", f"pipeline.{stage}"], cwd=out, env=env, capture_output=True,
+                           text=True)
+        (out / "logs").mkdir(exist_ok=True)
+        (out / "logs" / f"{stage}.log").write_text(r.stdout + r.stderr)
+        if r.returncode:
+            lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+            return {"robot": name, "status": "failed", "stage": stage, "reason": lines[-1] if lines else
+                    f"exit code {r.returncode}", "seconds": time.perf_counter() - t0}
+    m = read_json(out / "reports/metrics.json")
+    test = lambda method: m["baselines"][method]["test"]["3d"]["mae"]
+    return {"robot": name, "status": "ok", "model": params["robot"]["model"],
+            "n_points": read_json(out / "reports/theory.json")["n_points"],
+            "test_3d_mae_mm": {"nominal": test("nominal_dh"), "calibrated": test("calibrated_dh"),
+                               "model": m["test"]["3d"]["mae"]},
+            "seconds": time.perf_counter() - t0}
+
+
+def fleet_estimate(summary: dict, threads: int, robots: int = 100, nodes=(1, 4, 10, 25)) -> dict:
+    """A paper estimate of a `robots`-robot fleet's wall time on N nodes like this machine, from the
+    measured per-robot time: ceil(robots / (N * slots)) * robot seconds, slots = cores / threads
+    (Ray's ~7 s start-up and ms per task left out)."""
+    slots = max(1, (os.cpu_count() or 1) // threads)
+    per = summary["robot_seconds_mean"]
+    return {"measured": {k: summary[k] for k in ("engine", "n_robots", "n_ok", "seconds", "robot_seconds_mean")},
+            "threads_per_robot": threads, "slots_per_node": slots,
+            "estimate": {f"{robots}_robots_on_{n}_nodes_h": math.ceil(robots / (n * slots)) * per / 3600
+                         for n in nodes},
+            "assumes": "nodes like this one (cores, speed); each robot's campaign like the demo's"}
+
+
+def run_fleet(fleet_dir, out="fleet/robots", engine: str = "sequential", address: str | None = None,
+              threads: int | None = None, base: dict | None = None, bench: bool = False) -> dict:
+    fleet_dir = Path(fleet_dir)
+    robots = sorted(d for d in fleet_dir.iterdir() if d.is_dir()) if fleet_dir.is_dir() else []
+    if not robots:
+        raise FileNotFoundError(f"{fleet_dir}: no robot folders (one per robot: its campaign and params.yaml)")
+    base = base or load_params()
+    threads = threads or (1 if engine == "ray" else os.cpu_count() or 1)
+    jobs = [(d.name, robot_params(base, d), str(Path(out) / d.name), threads) for d in robots]
+    results, timing = sweep.run(calibrate_robot, jobs, engine, address, threads, desc="fleet")
+    ok = [r for r in results if r["status"] == "ok"]
+    summary = {"fleet": str(fleet_dir), "out": str(out), "engine": engine, "n_robots": len(results),
+               "n_ok": len(ok), "failed": {r["robot"]: f"{r['stage']}: {r['reason']}" for r in results
+                                          if r["status"] != "ok"},
+               "robots": results, "seconds": timing["seconds"],
+               "robot_seconds_mean": float(np.mean([r["seconds"] for r in ok])) if ok else None}
+    write_json(FLEET_JSON, summary)
+    if bench and ok:
+        write_json(BENCH_JSON, fleet_estimate(summary, threads))
+    rows = ["| robot | status | nominal mm | calibrated mm | model mm | seconds |", "|---|---|---|---|---|---|"]
+    for r in results:
+        e = r.get("test_3d_mae_mm")
+        rows.append(f"| {r['robot']} | {r['status'] if e else 'failed in ' + r['stage'] + ': ' + r['reason']} | "
+                    + (" | ".join(f"{e[k]:.4f}" for k in ("nominal", "calibrated", "model")) if e else "– | – | –")
+                    + f" | {r['seconds']:.0f} |")
+    FLEET_MD.write_text("# Fleet calibration (test 3D MAE)\n\n" + "\n".join(rows) + "\n")
+    log.info("fleet of %d robots on %s in %.0f s: %d calibrated, %d failed %s\n%s", len(results), engine,
+             timing["seconds"], len(ok), len(results) - len(ok), summary["failed"], "\n".join(rows))
+    return summary
+
+
+def demo(fleet_dir="data/fleet", robots: int = 4, n: int = 300) -> list[Path]:
+    """A demo fleet of twins (UR5s, each its own error seed DEMO_SEED + k), n poses each."""
+    out = []
+    for k in range(robots):
+        d = Path(fleet_dir) / f"ur5_{k + 1:02d}"
+        d.mkdir(parents=True, exist_ok=True)
+        joints, tracker, _ = Twin(DEMO_SEED + k).campaign(n)
+        joints.to_csv(d / "joints.csv", index=False, float_format="%.6f", lineterminator="\n")
+        tracker.to_csv(d / "tracker.csv", index=False, float_format="%.4f", lineterminator="\n")
+        (d / "params.yaml").write_text(f"# twin seed {DEMO_SEED + k}: a demo robot of the fleet\n"
+                                       "ingest: {joints: joints.csv, tracker: tracker.csv}\n")
+        out.append(d)
+    log.info("demo fleet: %d twins (seeds %d..%d), %d poses each, in %s", robots, DEMO_SEED,
+             DEMO_SEED + robots - 1, n, fleet_dir)
+    return out
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(prog="python -m pipeline.fleet", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("what", choices=["run", "demo"])
+    ap.add_argument("fleet", nargs="?", default="data/fleet", help="the fleet folder (one folder per robot)")
+    ap.add_argument("--out", default="fleet/robots", help="where each robot's folder is written (run)")
+    ap.add_argument("--engine", choices=sweep.ENGINES, default="ray")
+    ap.add_argument("--address", default=None, help="a Ray cluster (default: RAY_ADDRESS, else local)")
+    ap.add_argument("--threads", type=int, default=None, help="torch threads per robot (default: 1 on Ray)")
+    ap.add_argument("--robots", type=int, default=4, help="demo: how many twins")
+    ap.add_argument("--bench", action="store_true", help="also write reports/bench/fleet.json: the measured "
+                                                         "per-robot time and a 100-robot estimate")
+    a = ap.parse_args(argv)
+    if a.what == "demo":
+        demo(a.fleet, a.robots)
+    else:
+        run_fleet(a.fleet, a.out, a.engine, a.address, a.threads, bench=a.bench)
+
+
+if __name__ == "__main__":
+    main()
