@@ -1,9 +1,10 @@
 """Benchmarks, written as JSON under reports/bench/.
 
-    python -m pipeline.bench real  [--seeds 139 140 ...]   the real sets in ../shared/datasets
+    python -m pipeline.bench real  [--seeds 139 140 ...] [--engine ray]   the real sets in ../shared/datasets
     python -m pipeline.bench real --sets twin twin-2stations   the twin, from one and two stations
     python -m pipeline.bench speed                          training, prediction, compensation timings
     python -m pipeline.bench serve [--clients 8 --calls 10000]   the compensation service under load
+    python -m pipeline.bench sweep                          a reduced ablation, in order vs on a local Ray
 
 `real` runs the pipeline's stages (`python -m pipeline.<stage>`, as dvc repro
 would) in a scratch directory per set (preset merged over params.yaml, split
@@ -22,6 +23,7 @@ import copy
 import os
 import platform
 import resource
+import runpy
 import shutil
 import socket
 import subprocess
@@ -84,12 +86,23 @@ def stage(name: str, params: dict, *args: str) -> None:
     subprocess.run([sys.executable, "-m", f"pipeline.{name}", *args], check=True)
 
 
+def stage_here(name: str, *args: str) -> None:
+    """Run one stage in this process as `python -m pipeline.<name> args` would (runpy: the module as
+    __main__, on ./params.yaml): a sweep's run is then a Ray task with no subprocess."""
+    argv = sys.argv
+    sys.argv = [f"pipeline/{name}.py", *args]
+    try:
+        runpy.run_module(f"pipeline.{name}", run_name="__main__", alter_sys=True)
+    finally:
+        sys.argv = argv
+
+
 def validation_runs(params: dict) -> dict:
     """Every validate campaign of params, judged with the current models: mean 3D error per method
     (all judged points, and inside / outside the trained workspace)."""
     out = {}
     for name in params["validate"]["campaigns"] or {}:
-        stage("validate", params, "campaign", name)
+        stage_here("validate", "campaign", name)
         v = read_json(VALIDATION_DIR / f"{name}.json")
         out[name] = {"n_judged": v["n_judged"], "frame": v["frame"], "in_workspace_share": v["in_workspace_share"],
                      "mean_3d_mm": v["mean_3d_mm"],
@@ -113,17 +126,44 @@ def overridden(params: dict, overrides: list[str]) -> dict:
     return p
 
 
-def run_set(name: str, seeds: list[int], epochs: int | None, other_physics: bool = True,
-            on_seed=None, overrides: list[str] = ()) -> dict:
-    """The full pipeline on one real set, once per training seed.
+def seed_run(job) -> dict:
+    """One training seed of a set (a sweep job): in a copy of the prepared directory (ingest ..
+    calibrate done), train, baselines, evaluate and every validate campaign, in this process."""
+    prepared, p, test_ids = job
+    cwd = os.getcwd()
+    with tempfile.TemporaryDirectory() as tmp:
+        shutil.copytree(prepared, tmp, dirs_exist_ok=True)
+        os.chdir(tmp)
+        try:
+            Path("params.yaml").write_text(yaml.safe_dump(p, sort_keys=False))
+            for name in ("train", "baselines", "evaluate"):
+                stage_here(name)
+            valid = validation_runs(p)
+            metrics = read_json(METRICS_JSON)
+            pred = pd.read_parquet(PREDICTIONS_TABLE).set_index("point_id").loc[test_ids][PRED].to_numpy()
+        finally:
+            os.chdir(cwd)
+    return {"runs": {k: v["test"]["3d"]["mae"] for k, v in metrics["baselines"].items()},
+            "per_campaign": {c: {k: v[k]["test"]["mae"] for k in v if k not in ("station", "n")}
+                             for c, v in metrics["campaigns"].items()},
+            "valid": valid, "pred": pred}
 
-    on_seed(partial summary) is called after every seed, so a long run that is
-    stopped keeps the seeds it finished.
+
+def run_set(name: str, seeds: list[int], epochs: int | None, other_physics: bool = True,
+            on_seed=None, overrides: list[str] = (), engine: str = "sequential", address: str | None = None,
+            threads: int | None = None) -> dict:
+    """The full pipeline on one real set, once per training seed: the stages up to calibrate once,
+    then every seed a sweep job (lib/sweep.py: in order, or Ray tasks; `threads` torch threads each,
+    default every core in order, 1 on Ray).
+
+    on_seed(partial summary of the seeds finished so far) is called as each seed finishes, so a long
+    run that is stopped keeps them.
     """
     base, preset = load_params(ROOT / "params.yaml"), REAL_SETS[name]["preset"]
     params = absolute_paths(overridden(base if preset is None else merged_params(preset, base), overrides))
     if epochs:
         params["train"]["max_epochs"] = epochs
+    threads = threads or (1 if engine == "ray" else torch.get_num_threads())
     t0, cwd = time.perf_counter(), os.getcwd()
     with tempfile.TemporaryDirectory() as tmp:
         os.chdir(tmp)
@@ -132,7 +172,7 @@ def run_set(name: str, seeds: list[int], epochs: int | None, other_physics: bool
                 stage("ingest", params, "campaign", campaign)
             for name_ in ("ingest", "frame", "theory", "split", "calibrate"):
                 stage(name_, params)
-            summary = {"ingest": read_json(INGEST_JSON)["n_kept"]}
+            n_kept = read_json(INGEST_JSON)["n_kept"]
             df = aligned(load_points(), params)
             test = df[df.split == "test"]
             raw = pd.read_parquet(INGEST_TABLE).set_index("point_id").loc[test.point_id]
@@ -141,29 +181,32 @@ def run_set(name: str, seeds: list[int], epochs: int | None, other_physics: bool
                 robot = load_robot(params["robot"])
                 e = fk_numpy(raw[JOINTS_DEG].to_numpy(), robot) - raw[MEAS].to_numpy()
                 nominal = float(np.linalg.norm(e, axis=1).mean())
-            runs, preds, valid, per_campaign = [], [], [], []
-            for i, seed in enumerate(seeds):
-                p = copy.deepcopy(params)
-                p["model"]["init_seed"], p["train"]["seed"] = seed, seed
-                p["baselines"]["dnn"] = True
-                p["baselines"]["other_physics"] = other_physics and i == 0   # first seed only
-                for name_ in ("train", "baselines", "evaluate"):
-                    stage(name_, p)
-                valid.append(validation_runs(p))
-                metrics = read_json(METRICS_JSON)
-                runs.append({k: v["test"]["3d"]["mae"] for k, v in metrics["baselines"].items()})
-                per_campaign.append({c: {k: v[k]["test"]["mae"] for k in v if k not in ("station", "n")}
-                                     for c, v in metrics["campaigns"].items()})
-                pred = pd.read_parquet(PREDICTIONS_TABLE).set_index("point_id").loc[test.point_id]
-                preds.append(pred[PRED].to_numpy())
-                # the seeds' models averaged: a deep ensemble (n times the cost of one model)
-                ensemble = float(np.linalg.norm(np.mean(preds, 0) - test[MEAS].to_numpy(), axis=1).mean())
-                if on_seed:
-                    on_seed(set_summary(runs, valid, per_campaign, ensemble, seeds[:i + 1], summary["ingest"],
-                                        nominal, params, t0))
         finally:
             os.chdir(cwd)
-    return set_summary(runs, valid, per_campaign, ensemble, seeds, summary["ingest"], nominal, params, t0)
+        jobs = []
+        for i, seed in enumerate(seeds):
+            p = copy.deepcopy(params)
+            p["model"]["init_seed"], p["train"]["seed"] = seed, seed
+            p["baselines"]["dnn"] = True
+            p["baselines"]["other_physics"] = other_physics and i == 0   # first seed only
+            jobs.append((tmp, p, list(test.point_id)))
+        done = {}
+
+        def summary(finished: dict) -> dict:
+            order = sorted(finished)
+            r = [finished[i] for i in order]
+            # the seeds' models averaged: a deep ensemble (n times the cost of one model)
+            ensemble = float(np.linalg.norm(np.mean([x["pred"] for x in r], 0) - test[MEAS].to_numpy(),
+                                            axis=1).mean())
+            return set_summary([x["runs"] for x in r], [x["valid"] for x in r], [x["per_campaign"] for x in r],
+                               ensemble, [seeds[i] for i in order], n_kept, nominal, params, t0)
+
+        def finished(i, r):
+            done[i] = r
+            if on_seed:
+                on_seed({**summary(done), "engine": engine, "threads_per_seed": threads})
+        sweep.run(seed_run, jobs, engine, address, threads, desc=f"{name} seeds", on_result=finished)
+    return {**summary(done), "engine": engine, "threads_per_seed": threads}
 
 
 def set_summary(runs: list[dict], valid: list[dict], per_campaign: list[dict], ensemble: float, seeds: list[int],
@@ -205,7 +248,8 @@ def seed_summary(per: dict, nominal: float | None, physics: str) -> dict:
 
 
 def bench_real(seeds: list[int], epochs: int | None, only: list[str] | None, other_physics=True,
-               overrides: list[str] = ()) -> dict:
+               overrides: list[str] = (), engine: str = "sequential", address: str | None = None,
+               threads: int | None = None) -> dict:
     out_path = BENCH / "real_data.json"
     out = read_json(out_path) if out_path.exists() else {}
     for name in only or [k for k, v in REAL_SETS.items() if v["dataset"]]:
@@ -219,7 +263,8 @@ def bench_real(seeds: list[int], epochs: int | None, only: list[str] | None, oth
         def save(partial, key=key):
             out[key] = partial
             write_json(out_path, out)
-        out[key] = run_set(name, seeds, epochs, other_physics, on_seed=save, overrides=overrides)
+        out[key] = run_set(name, seeds, epochs, other_physics, on_seed=save, overrides=overrides, engine=engine,
+                           address=address, threads=threads)
         log.info("%s: %s", key, out[key]["test_3d_mae"])
         write_json(out_path, out)
     write_json(out_path, out)
@@ -459,11 +504,16 @@ def main(argv=None):
     ap.add_argument("-S", "--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                     help="override a params.yaml value for the run (real), as dvc exp run -S: "
                          "train.ema=0.999; recorded in the output under the set's name + '@' + overrides")
+    ap.add_argument("--engine", choices=sweep.ENGINES, default="sequential",
+                    help="real: the seeds in order, or as Ray tasks (lib/sweep.py)")
+    ap.add_argument("--address", default=None, help="real: a Ray cluster (default: RAY_ADDRESS, else local)")
+    ap.add_argument("--threads", type=int, default=None, help="real: torch threads per seed (default: every "
+                                                              "core in order, 1 on Ray)")
     ap.add_argument("--clients", type=int, default=8, help="concurrent clients (serve)")
     ap.add_argument("--calls", type=int, default=10000, help="compensate calls in all (serve)")
     a = ap.parse_args(argv)
     if a.what == "real":
-        bench_real(a.seeds, a.epochs, a.sets, a.other_physics, a.overrides)
+        bench_real(a.seeds, a.epochs, a.sets, a.other_physics, a.overrides, a.engine, a.address, a.threads)
     elif a.what == "serve":
         bench_serve(a.clients, a.calls)
     elif a.what == "sweep":

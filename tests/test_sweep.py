@@ -45,3 +45,19 @@ def test_two_run_sweep_on_ray_equals_sequential(trained_project, tmp_path, monke
     for a, b in zip(seq, ray):
         assert a["test"] == b["test"] and a["epochs_run"] == b["epochs_run"] == 4
     assert seq[0]["test"] != seq[1]["test"]                        # two seeds, two different models
+
+
+@pytest.mark.slow
+def test_bench_real_seeds_on_ray_equal_sequential():
+    """`bench real`'s seed sweep (twin, two seeds, a small model, 3 epochs): each seed a job run in
+    process, in order or as a Ray task, the same numbers either way, validation included."""
+    from pipeline import bench
+    over = ["model.d_model=12", "model.n_head=2", "model.n_layer=1", "model.d_hidden=32", "train.patience=3"]
+    out = {e: bench.run_set("twin", [5, 6], 3, False, overrides=over, engine=e, threads=1)
+           for e in ("sequential", "ray")}
+    seq, ray = out["sequential"], out["ray"]
+    assert seq["seeds"] == ray["seeds"] == [5, 6] and ray["engine"] == "ray"
+    assert seq["test_3d_mae_runs"] == ray["test_3d_mae_runs"]
+    assert seq["test_3d_mae_ensemble"] == ray["test_3d_mae_ensemble"]
+    assert seq["validation"]["twin_side"]["mean_3d_mm_runs"] == ray["validation"]["twin_side"]["mean_3d_mm_runs"]
+    assert len(set(seq["test_3d_mae_runs"]["spi_boter"])) == 2           # two seeds, two models

@@ -29,24 +29,29 @@ def _call(fn, job, threads: int):
 
 
 def run(fn, jobs: list, engine: str = "sequential", address: str | None = None, cpus_per_job: int = 1,
-        desc: str = "jobs") -> tuple[list, dict]:
-    """Results of fn over jobs (in order) and timing: {"engine", "seconds", "job_seconds": [...]}."""
+        desc: str = "jobs", on_result=None) -> tuple[list, dict]:
+    """Results of fn over jobs (in order) and timing: {"engine", "seconds", "job_seconds": [...]}.
+    on_result(i, result), if given, is called as each job finishes (so a long sweep can save as it goes)."""
     if engine not in ENGINES:
         raise ValueError(f"unknown engine {engine!r}; use one of {ENGINES}")
     t0 = time.perf_counter()
+    on_result = on_result or (lambda i, r: None)
     if engine == "sequential":
         threads = torch.get_num_threads()
+        out = []
         try:
-            out = [_call(fn, j, cpus_per_job) for j in tqdm(jobs, desc=desc)]
+            for i, j in enumerate(tqdm(jobs, desc=desc)):
+                out.append(_call(fn, j, cpus_per_job))
+                on_result(i, out[-1][0])
         finally:
             torch.set_num_threads(threads)
     else:
-        out = _ray(fn, jobs, address or os.environ.get("RAY_ADDRESS"), cpus_per_job, desc)
+        out = _ray(fn, jobs, address or os.environ.get("RAY_ADDRESS"), cpus_per_job, desc, on_result)
     return [r for r, _ in out], {"engine": engine, "seconds": time.perf_counter() - t0,
                                  "job_seconds": [s for _, s in out], "cpus_per_job": cpus_per_job}
 
 
-def _ray(fn, jobs, address, cpus_per_job, desc):
+def _ray(fn, jobs, address, cpus_per_job, desc, on_result):
     import ray
     started = not ray.is_initialized()
     if started:   # local: every core a task slot; the workers import the project from this tree
@@ -57,10 +62,11 @@ def _ray(fn, jobs, address, cpus_per_job, desc):
         task = ray.remote(num_cpus=cpus_per_job)(_call)
         fn_ref = ray.put(fn)
         refs = [task.remote(fn_ref, j, cpus_per_job) for j in jobs]
-        pending = list(refs)
+        index, pending = {r: i for i, r in enumerate(refs)}, list(refs)
         with tqdm(total=len(refs), desc=f"{desc} (ray)") as bar:
             while pending:
                 done, pending = ray.wait(pending, num_returns=1)
+                on_result(index[done[0]], ray.get(done[0])[0])
                 bar.update(len(done))
         return ray.get(refs)
     finally:
