@@ -126,20 +126,23 @@ def run_fleet(fleet_dir, out="fleet/robots", engine: str = "sequential", address
     return summary
 
 
-def demo(fleet_dir="data/fleet", robots: int = 4, n: int = 300) -> list[Path]:
-    """A demo fleet of twins (UR5s, each its own error seed DEMO_SEED + k), n poses each."""
+def demo(fleet_dir="data/fleet", robots: int = 4, n: int = 300, models=("ur5", "ur10")) -> list[Path]:
+    """A demo fleet of twins, each its own error seed DEMO_SEED + k, the arm models taken in turn,
+    n poses each."""
     out = []
     for k in range(robots):
-        d = Path(fleet_dir) / f"ur5_{k + 1:02d}"
+        model = models[k % len(models)]
+        d = Path(fleet_dir) / f"{model}_{k + 1:02d}"
         d.mkdir(parents=True, exist_ok=True)
-        joints, tracker, _ = Twin(DEMO_SEED + k).campaign(n)
+        joints, tracker, _ = Twin(DEMO_SEED + k, robot=model).campaign(n)
         joints.to_csv(d / "joints.csv", index=False, float_format="%.6f", lineterminator="\n")
         tracker.to_csv(d / "tracker.csv", index=False, float_format="%.4f", lineterminator="\n")
-        (d / "params.yaml").write_text(f"# twin seed {DEMO_SEED + k}: a demo robot of the fleet\n"
+        (d / "params.yaml").write_text(f"# twin seed {DEMO_SEED + k}: a demo {model.upper()} of the fleet\n"
+                                       f"robot: {{model: {model}}}\n"
                                        "ingest: {joints: joints.csv, tracker: tracker.csv}\n")
         out.append(d)
-    log.info("demo fleet: %d twins (seeds %d..%d), %d poses each, in %s", robots, DEMO_SEED,
-             DEMO_SEED + robots - 1, n, fleet_dir)
+    log.info("demo fleet: %d twins (%s, seeds %d..%d), %d poses each, in %s", robots, "/".join(models),
+             DEMO_SEED, DEMO_SEED + robots - 1, n, fleet_dir)
     return out
 
 

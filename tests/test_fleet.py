@@ -34,14 +34,17 @@ def test_empty_fleet_folder_is_named(tmp_path):
 @pytest.mark.slow
 def test_fleet_on_ray_reports_a_broken_campaign_and_finishes_the_others(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
-    robots = fleet.demo("fleet_in", robots=3, n=150)
-    broken = robots[1] / "tracker.csv"
+    robots = fleet.demo("fleet_in", robots=3, n=150)                     # ur5_01, ur10_02, ur5_03
+    assert [r.name for r in robots] == ["ur5_01", "ur10_02", "ur5_03"]
+    broken = robots[2] / "tracker.csv"
     broken.write_text(broken.read_text().replace("X,Y,Z", "X,Y,Q", 1))    # a column the reader needs
     s = fleet.run_fleet("fleet_in", "out", engine="ray", base=small(load_params(ROOT / "params.yaml")))
     assert s["n_robots"] == 3 and s["n_ok"] == 2
-    assert list(s["failed"]) == ["ur5_02"]
-    reason = s["failed"]["ur5_02"]
-    assert reason.startswith("ingest:") and "ur5_02/tracker.csv" in reason and "column(s) z" in reason
+    assert list(s["failed"]) == ["ur5_03"]
+    reason = s["failed"]["ur5_03"]
+    assert reason.startswith("ingest:") and "ur5_03/tracker.csv" in reason and "column(s) z" in reason
+    assert {r["robot"]: r.get("model") for r in s["robots"] if r["status"] == "ok"} == \
+        {"ur5_01": "ur5", "ur10_02": "ur10"}
     for r in s["robots"]:
         if r["status"] == "ok":
             e = r["test_3d_mae_mm"]

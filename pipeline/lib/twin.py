@@ -150,16 +150,19 @@ def zero_errors() -> dict:
 
 
 def true_geometry(errors: dict, robot=None) -> dict:
-    """Nominal UR5 geometry plus the geometric errors (kinematics geometry dict), the true
-    link masses; rigid (the twin applies its joint compliance itself, relative to its zero pose)."""
-    g = nominal_geometry(robot or ur5())
+    """Nominal geometry (default UR5) plus the geometric errors (kinematics geometry dict), the true
+    link masses (the UR5's: LINK_MASS, LINK_COM; another arm's: its robots.py table); rigid (the twin
+    applies its joint compliance itself, relative to its zero pose)."""
+    robot = robot or ur5()
+    g = nominal_geometry(robot)
     t = lambda v: torch.as_tensor(np.asarray(v, float), dtype=DTYPE)
+    mass, com = (LINK_MASS, LINK_COM) if robot.name == "ur5" else (robot.mass, robot.com)
     return {**g,
             "d": g["d"] + t(errors["d_mm"]), "a": g["a"] + t(errors["a_mm"]),
             "alpha": g["alpha"] + t(np.radians(errors["alpha_deg"])),
             "offset": g["offset"] + t(np.radians(errors["offset_deg"])),
             "beta": g["beta"] + t(np.radians(errors["beta_deg"])),
-            "tool": g["tool"] + t(errors["tool_mm"]), "mass": t(LINK_MASS), "com": t(LINK_COM)}
+            "tool": g["tool"] + t(errors["tool_mm"]), "mass": t(mass), "com": t(com)}
 
 
 def sample_tracker_pose(seed: int = SEED) -> tuple[np.ndarray, np.ndarray]:
@@ -219,14 +222,16 @@ def _acceptable(q_deg: np.ndarray, g: dict, azimuth_deg: tuple) -> np.ndarray:
 # ----------------------------------------------------------------------------- twin
 
 class Twin:
-    """A virtual UR5 with true geometric and non-geometric errors and a tracker."""
+    """A virtual UR5 (or `robot`: another catalogue arm) with true geometric and non-geometric errors
+    and a tracker."""
 
     def __init__(self, seed: int = SEED, errors: dict | None = None,
-                 tracker_pose: tuple | None = None):
+                 tracker_pose: tuple | None = None, robot: str = "ur5"):
         self.seed = seed
+        self.robot = nominal_robot(robot)               # the arm's nominal table (the demo fleet: ur10 too)
         self.errors = sample_errors(seed) if errors is None else errors
         self.R, self.t = sample_tracker_pose(seed) if tracker_pose is None else tracker_pose
-        self.geometry = true_geometry(self.errors)
+        self.geometry = true_geometry(self.errors, self.robot)
         self.compliance = 1.0 / np.asarray(self.errors["stiffness_Nm_per_rad"], float)  # rad/(N·m)
         q_ref = torch.as_tensor(np.radians([ZERO_POSE_DEG]), dtype=DTYPE)
         with torch.no_grad():      # the joint zeros were set under gravity, in this pose
@@ -273,7 +278,7 @@ class Twin:
 
     def poses(self, n: int = N_POINTS, seed: int | None = None, region: str = "front") -> np.ndarray:
         """The campaign's commanded poses (deg)."""
-        return sample_poses(n, stream(self.seed if seed is None else seed, "poses"), region=region)
+        return sample_poses(n, stream(self.seed if seed is None else seed, "poses"), self.robot, region=region)
 
     def noise_floor(self, q_deg, repeats: int = 64, seed: int | None = None) -> float:
         """Monte Carlo mean |measured - expected| (mm) over poses q_deg and repeated drives."""
