@@ -21,7 +21,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from .lib import sweep
 from .lib.artifacts import REPORTS
@@ -41,8 +40,8 @@ def run_groups(params: dict, groups: list[str], engine: str = "sequential", addr
     if unknown:
         raise ValueError(f"unknown ablation group(s) {unknown}; use {list(GROUPS)}")
     seeds = section(params, "ablation")["seeds"]
-    threads = threads or (1 if engine == "ray" else torch.get_num_threads())
-    jobs = [(params, g, s, threads) for g in groups for s in seeds]
+    threads = sweep.threads_per_job(engine, threads)
+    jobs = [(params, g, s) for g in groups for s in seeds]
     runs, timing = sweep.run(train_one, jobs, engine, address, threads, desc="ablation")
     out = {}
     for k, g in enumerate(groups):

@@ -163,7 +163,7 @@ def run_set(name: str, seeds: list[int], epochs: int | None, other_physics: bool
     params = absolute_paths(overridden(base if preset is None else merged_params(preset, base), overrides))
     if epochs:
         params["train"]["max_epochs"] = epochs
-    threads = threads or (1 if engine == "ray" else torch.get_num_threads())
+    threads = sweep.threads_per_job(engine, threads)
     t0, cwd = time.perf_counter(), os.getcwd()
     with tempfile.TemporaryDirectory() as tmp:
         os.chdir(tmp)
@@ -449,7 +449,7 @@ def bench_sweep(groups=("baseline", "no_resnet"), seeds=(139, 140), epochs: int 
     params = load_params()
     params["ablation"].update(seeds=list(seeds), max_epochs=epochs)
     cores = os.cpu_count() or 1
-    jobs = [(params, g, s, 0) for g in groups for s in seeds]
+    jobs = [(params, g, s) for g in groups for s in seeds]
     files = [POINTS_TABLE, SPLIT_TABLE, FRAME_JSON, CALIBRATED_GEOMETRY]
     out = {"machine": machine(), "what": f"ablation groups {list(groups)} x seeds {list(seeds)}, {epochs} epochs "
                                          "each (the full ablation: 8 groups x 5 seeds, up to 400 epochs)"}
@@ -461,8 +461,7 @@ def bench_sweep(groups=("baseline", "no_resnet"), seeds=(139, 140), epochs: int 
         os.chdir(tmp)
         try:
             for engine, threads in (("sequential", cores), ("ray", 1)):
-                runs, timing = sweep.run(train_one, [(p, g, s, threads) for p, g, s, _ in jobs], engine, None,
-                                         threads, desc=f"sweep {engine}")
+                runs, timing = sweep.run(train_one, jobs, engine, None, threads, desc=f"sweep {engine}")
                 out[engine] = {**timing, "test_3d_mae": [r["test"]["3d"]["mae"] for r in runs]}
         finally:
             os.chdir(cwd)
@@ -470,20 +469,19 @@ def bench_sweep(groups=("baseline", "no_resnet"), seeds=(139, 140), epochs: int 
     n = 64
     _, seq = sweep.run(noop, list(range(n)), "sequential", desc="noop")
     t0 = time.perf_counter()
-    _, ray_t = sweep.run(noop, list(range(n)), "ray", desc="noop")
-    out["overhead"] = {"tasks": n, "ray_seconds_with_startup": time.perf_counter() - t0,
-                       "sequential_seconds": seq["seconds"],
-                       "ms_per_task_after_startup": None}
+    sweep.run(noop, list(range(n)), "ray", desc="noop")
+    with_startup = time.perf_counter() - t0
     import ray                                            # the same, Ray already up: the per-task cost alone
     ray.init(include_dashboard=False, log_to_driver=False, configure_logging=False,
              runtime_env={"env_vars": {"PYTHONPATH": str(sweep.PROJECT)}})
     try:
         sweep.run(noop, list(range(n)), "ray", desc="noop warm-up")
         _, warm = sweep.run(noop, list(range(n)), "ray", desc="noop")
-        out["overhead"]["ms_per_task_after_startup"] = 1000 * warm["seconds"] / n
     finally:
         ray.shutdown()
-    out["overhead"]["startup_s"] = out["overhead"]["ray_seconds_with_startup"] - warm["seconds"]
+    out["overhead"] = {"tasks": n, "ray_seconds_with_startup": with_startup, "sequential_seconds": seq["seconds"],
+                       "ms_per_task_after_startup": 1000 * warm["seconds"] / n,
+                       "startup_s": with_startup - warm["seconds"]}
     write_json(BENCH / "sweep.json", out)
     log.info("sweep: sequential %.0f s, ray %.0f s (%.2fx); ray per task %.1f ms, startup %.1f s",
              out["sequential"]["seconds"], out["ray"]["seconds"], out["speedup_ray_over_sequential"],

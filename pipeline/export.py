@@ -111,7 +111,8 @@ def run(params: dict) -> dict:
                               "max_deviation_mm": float(dev.max()),
                               "not_held_after_joint_6": flange_residual(g)}
         log.info("%s: joint 6's frame from the YAML vs the exported chain: max %.2e mm; the flange "
-                 "transform after joint 6 it cannot hold: %s", UR_YAML, dev.max(), flange_residual(g))
+                 "transform after joint 6 it cannot hold: %s", UR_YAML, dev.max(),
+                 summary["ur_yaml"]["not_held_after_joint_6"])
 
     model = load_model(params)
     export_onnx(model, MODEL_ONNX)

@@ -102,7 +102,7 @@ def run_fleet(fleet_dir, out="fleet/robots", engine: str = "sequential", address
     if not robots:
         raise FileNotFoundError(f"{fleet_dir}: no robot folders (one per robot: its campaign and params.yaml)")
     base = base or load_params()
-    threads = threads or (1 if engine == "ray" else os.cpu_count() or 1)
+    threads = sweep.threads_per_job(engine, threads)
     jobs = [(d.name, robot_params(base, d), str(Path(out) / d.name), threads) for d in robots]
     results, timing = sweep.run(calibrate_robot, jobs, engine, address, threads, desc="fleet")
     ok = [r for r in results if r["status"] == "ok"]

@@ -149,10 +149,12 @@ class Compensator:
 
     def check(self, q_rad, target_mm, where: str = "") -> tuple[np.ndarray, np.ndarray]:
         q, target = numbers(q_rad, where + "q_rad", 6), numbers(target_mm, where + "target_mm", 3)
-        for i, (a, (lo, hi)) in enumerate(zip(np.degrees(q), self.limits_deg)):
-            if not lo <= a <= hi:
-                raise BadRequest(f"{where}q_rad[{i}]: {a:.1f}° ({q[i]:.3f} rad) beyond the joint limits "
-                                 f"[{lo:g}, {hi:g}]° ([{np.radians(lo):.3f}, {np.radians(hi):.3f}] rad)")
+        beyond = np.flatnonzero(self.robot.check_joints(np.degrees(q)[None])[0])
+        if len(beyond):
+            i = int(beyond[0])
+            a, (lo, hi) = np.degrees(q[i]), self.limits_deg[i]
+            raise BadRequest(f"{where}q_rad[{i}]: {a:.1f}° ({q[i]:.3f} rad) beyond the joint limits "
+                             f"[{lo:g}, {hi:g}]° ([{np.radians(lo):.3f}, {np.radians(hi):.3f}] rad)")
         dist = float(np.linalg.norm(target))
         if dist > self.reach:
             raise BadRequest(f"{where}target_mm: unreachable ({dist:.1f} mm from the base, beyond the arm's "

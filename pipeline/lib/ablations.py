@@ -2,8 +2,6 @@
 of a group at a seed: what `python -m pipeline.ablation` and `bench sweep` run as jobs (lib/sweep.py)."""
 import copy
 
-import torch
-
 from .artifacts import load_points
 from .config import logger
 from .geometry import aligned, physics_geometry
@@ -34,9 +32,8 @@ def group_params(params: dict, group: str, seed: int) -> dict:
 
 
 def train_one(args) -> dict:
-    """One (group, seed) training run; returns its test metrics and epochs."""
-    params, group, seed, threads = args
-    torch.set_num_threads(threads)
+    """One (group, seed) training run (torch threads set by its sweep); returns its test metrics and epochs."""
+    params, group, seed = args
     df = aligned(load_points(), params)
     p = group_params(params, group, seed)
     model, hist = train_boter(p, df, physics_geometry(p, p["model"]["physics"]), progress=False)

@@ -45,6 +45,7 @@ def aligned(df: pd.DataFrame, params: dict, cal: dict | None = None) -> pd.DataF
     if cal is None:
         cal = {**read_json(CALIBRATED_GEOMETRY), "geometry": load_geometry(CALIBRATED_GEOMETRY)}
     tools = cal.get("station_tools", {})
+    g, g_nom = cal.get("geometry"), None
     out = df.copy()
     for s, d in cal.get("stations", {}).items():
         m = (df[STATION] == s).to_numpy()
@@ -55,8 +56,7 @@ def aligned(df: pd.DataFrame, params: dict, cal: dict | None = None) -> pd.DataF
         meas = (df.loc[m, MEAS].to_numpy() - t) @ R
         if dtool.any():                                # the marker's offset from the first tool, moved by the arm
             q = torch.as_tensor(np.radians(df.loc[m, JOINTS_DEG].to_numpy()), dtype=DTYPE)
-            g = cal["geometry"]
-            g_nom = theory_geometry(params)[1]
+            g_nom = g_nom or theory_geometry(params)[1]
             with torch.no_grad():
                 meas -= (fk(q, {**g, "tool": g["tool"] + torch.as_tensor(dtool, dtype=DTYPE)}) - fk(q, g)).numpy()
                 out.loc[m, THEORY] = fk(q, g_nom).numpy()

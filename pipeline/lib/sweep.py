@@ -22,6 +22,11 @@ ENGINES = ("sequential", "ray")
 PROJECT = Path(__file__).resolve().parents[2]          # where a local Ray's workers import the package from
 
 
+def threads_per_job(engine: str, threads: int | None = None) -> int:
+    """torch threads per job: `threads` if given, else 1 on Ray (a task per core), every core in order."""
+    return threads or (1 if engine == "ray" else torch.get_num_threads())
+
+
 def _call(fn, job, threads: int):
     torch.set_num_threads(threads)
     t0 = time.perf_counter()

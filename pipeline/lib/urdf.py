@@ -19,7 +19,7 @@ import numpy as np
 import torch
 from scipy.spatial.transform import Rotation
 
-from .kinematics import DTYPE, rotation_xyz
+from .kinematics import DTYPE, rigid_xyz
 from .robots import Robot
 
 UR_YAML_NAMES = ["shoulder", "upper_arm", "forearm", "wrist_1", "wrist_2", "wrist_3"]
@@ -40,8 +40,8 @@ def rot(axis: str, angle: float) -> np.ndarray:
 
 def base_transform(g: dict) -> np.ndarray:
     """The base correction B (4, 4), mm: p_base = B p_chain (kinematics.fk)."""
-    b = torch.as_tensor(g["base"], dtype=DTYPE)
-    return transform(rotation_xyz(b[:3]).numpy(), b[3:].numpy())
+    R, t = rigid_xyz(torch.as_tensor(g["base"], dtype=DTYPE))
+    return transform(R.numpy(), t.numpy())
 
 
 def joint_origins(g: dict) -> tuple[list[np.ndarray], np.ndarray]:
