@@ -23,32 +23,50 @@ from pathlib import Path
 import numpy as np
 
 from .lib import sweep
-from .lib.artifacts import REPORTS
-from .lib.config import load_params, logger, read_json, section, write_json
+from .lib.ablations import GROUPS, Job, train_one
+from .lib.artifacts import CALIBRATED_GEOMETRY, FRAME_JSON, REPORTS, TIMINGS, load_points
+from .lib.config import for_stage, load_params, logger, read_json, split_timings, write_json
 from .lib.figures import fig_ablation, save
-from .lib.ablations import GROUPS, train_one
+from .lib.geometry import Calibration, aligned, theory_geometry
 from .lib.paper import PAPER_ABLATION, PAPER_ABLATION_EPOCHS
+from .lib.robots import load_robot
 
 log = logger(__name__)
 OUT = REPORTS / "ablation"
+PARAMS = {"group": ("robot", "model", "loss", "train", "ablation", "workspace"),   # ablation/dvc.yaml
+          "summary": ()}
+
+
+def jobs_for(params: dict, groups: list[str]) -> list[Job]:
+    """A Job per (group, seed of `ablation.seeds`) on the pipeline's aligned points and geometries."""
+    unknown = [g for g in groups if g not in GROUPS]
+    if unknown:
+        raise ValueError(f"unknown ablation group(s) {unknown}; use {list(GROUPS)}")
+    p = for_stage(params, PARAMS["group"])
+    calibration = Calibration.from_dict(read_json(CALIBRATED_GEOMETRY))
+    nominal = theory_geometry(load_robot(p["robot"]), read_json(FRAME_JSON)["tool_mm"])
+    points = aligned(load_points(), calibration, nominal)
+    geometries = {"calibrated": calibration.geometry, "nominal": nominal}
+    return [Job(points, geometries, p, g, s) for g in groups for s in p["ablation"]["seeds"]]
+
+
 def run_groups(params: dict, groups: list[str], engine: str = "sequential", address: str | None = None,
                threads: int | None = None) -> dict:
     """Every (group, seed) of `ablation.seeds` as one job (lib/sweep.py: in order, or Ray tasks);
     writes reports/ablation/<group>.json per group. threads: torch threads per job (default:
     every core when sequential, 1 on Ray)."""
-    unknown = [g for g in groups if g not in GROUPS]
-    if unknown:
-        raise ValueError(f"unknown ablation group(s) {unknown}; use {list(GROUPS)}")
-    seeds = section(params, "ablation")["seeds"]
+    jobs = jobs_for(params, groups)
+    seeds = params["ablation"]["seeds"]
     threads = sweep.threads_per_job(engine, threads)
-    jobs = [(params, g, s) for g in groups for s in seeds]
     runs, timing = sweep.run(train_one, jobs, engine, address, threads, desc="ablation")
     out = {}
     for k, g in enumerate(groups):
         mine = slice(k * len(seeds), (k + 1) * len(seeds))
-        out[g] = {"group": g, "changes": GROUPS[g], "runs": runs[mine], "seconds": sum(timing["job_seconds"][mine]),
-                  "engine": engine, "threads_per_job": threads}
+        out[g], times = split_timings({"group": g, "changes": GROUPS[g], "runs": runs[mine],
+                                       "seconds": sum(timing["job_seconds"][mine]), "engine": engine,
+                                       "threads_per_job": threads})
         write_json(OUT / f"{g}.json", out[g])
+        write_json(TIMINGS / f"ablation_{g}.json", times)
     log.info("%d runs (%d groups x %d seeds) on %s in %.0f s (%.0f s of training)", len(jobs), len(groups),
              len(seeds), engine, timing["seconds"], sum(timing["job_seconds"]))
     return {"groups": out, "timing": timing}
@@ -70,7 +88,7 @@ def summarise() -> dict:
                      "test_3d_r2_mean": float(np.mean([run["test"]["3d"]["r2"] for run in r["runs"]])),
                      "epochs_to_best": [run["epochs_to_best"] for run in r["runs"]],
                      "params": r["runs"][0]["n_params"], "changes": r["changes"],
-                     "seconds": r["seconds"], "paper_test_3d_mae": PAPER_ABLATION.get(g)}
+                     "paper_test_3d_mae": PAPER_ABLATION.get(g)}
     summary = {"groups": groups}
     write_json(REPORTS / "ablation.json", summary)
     rows = ["| group | changes | test 3D MAE mm (mean ± std) | paper | epochs to best | paper epochs "

@@ -10,41 +10,45 @@ The opt-in ones are the paper's comparison, one `-S` away; `bench real` trains t
 Writes data/interim/baselines.parquet (point_id, <name>_x, <name>_y, <name>_z)
 for evaluate, and reports/baselines_train.json.
 """
-import copy
-
 import pandas as pd
 
-from .lib.artifacts import BASELINES_JSON, BASELINES_TABLE, load_points
+from .lib.artifacts import BASELINES_JSON, BASELINES_TABLE, CALIBRATED_GEOMETRY, FRAME_JSON, TIMINGS, load_points
 from .lib.columns import JOINTS_DEG
-from .lib.config import load_params, logger, section, sections, write_json
-from .lib.geometry import aligned, physics_geometry
+from .lib.config import for_stage, load_params, logger, read_json, split_timings, write_json
+from .lib.geometry import Calibration, aligned, physics_geometry, theory_geometry
 from .lib.kinematics import fk_numpy
+from .lib.robots import load_robot
 from .lib.training import predict, train_boter, train_dnn
 
 log = logger(__name__)
+PARAMS = ("robot", "model", "loss", "train", "baselines", "workspace")
 
 
 def run(params: dict) -> dict:
-    sections(params, "robot", "model", "loss", "train", "workspace")
-    cfg = section(params, "baselines")
-    df = aligned(load_points(), params)
+    p = for_stage(params, PARAMS)
+    cfg = p["baselines"]
+    calibration = Calibration.from_dict(read_json(CALIBRATED_GEOMETRY))
+    nominal = theory_geometry(load_robot(p["robot"]), read_json(FRAME_JSON)["tool_mm"])
+    df = aligned(load_points(), calibration, nominal)
     out, summary = pd.DataFrame({"point_id": df["point_id"]}), {}
 
     def add(name, pred):
         out[[f"{name}_{a}" for a in "xyz"]] = pred
 
-    add("calibrated_dh", fk_numpy(df[JOINTS_DEG].to_numpy(), None, physics_geometry(params, "calibrated")))
+    add("calibrated_dh", fk_numpy(df[JOINTS_DEG].to_numpy(), None, calibration.geometry))
     if cfg["dnn"]:
-        dnn, summary["dnn"] = train_dnn(params, df, physics_geometry(params, "nominal"))
+        dnn, summary["dnn"] = train_dnn(df, nominal, p["model"], p["train"])
         add("dnn", predict(dnn.eval(), df))
     if cfg["other_physics"]:
-        other = "calibrated" if params["model"]["physics"] == "nominal" else "nominal"
-        alt = copy.deepcopy(params)
-        alt["model"]["physics"] = other
-        model, summary[f"spi_boter_{other}"] = train_boter(alt, df, physics_geometry(params, other))
+        other = "calibrated" if p["model"]["physics"] == "nominal" else "nominal"
+        model, summary[f"spi_boter_{other}"] = train_boter(
+            df, physics_geometry(other, calibration, nominal), {**p["model"], "physics": other}, p["loss"],
+            p["train"], p["workspace"]["radius_quantile"])
         add(f"spi_boter_{other}", predict(model.eval(), df))
     out.to_parquet(BASELINES_TABLE, index=False)
+    summary, timings = split_timings(summary)
     write_json(BASELINES_JSON, summary)
+    write_json(TIMINGS / "baselines.json", timings)
     log.info("baselines on %d points: calibrated_dh%s", len(df),
              "".join(f", {k} (best val 3D MAE {v['best_val_mae_3d_mm']:.4f} mm at epoch {v['best_epoch']})"
                      for k, v in summary.items()))

@@ -40,12 +40,12 @@ import torch
 import yaml
 
 from .lib import sweep
-from .lib.ablations import train_one
+from .lib.ablations import Job, train_one
 from .lib.artifacts import (CALIBRATED_GEOMETRY, FRAME_JSON, INGEST_JSON, INGEST_TABLE, METRICS_JSON, MODEL_ONNX,
-                            POINTS_TABLE, SPLIT_TABLE, PREDICTIONS_TABLE, VALIDATION_DIR, load_points)
+                            MODEL_WEIGHTS, POINTS_TABLE, SPLIT_TABLE, PREDICTIONS_TABLE, VALIDATION_DIR, load_points)
 from .lib.columns import JOINTS_DEG, MEAS, PRED, TARGET, THEORY
 from .lib.config import load_params, logger, read_json, write_json
-from .lib.geometry import aligned, physics_geometry
+from .lib.geometry import Calibration, aligned, physics_geometry, theory_geometry
 from .lib.kinematics import fk_numpy
 from .lib.loss import SPILoss
 from .lib.onnx_model import OnnxModel
@@ -67,6 +67,13 @@ REAL_SETS = {"gtpn-ur5": {"preset": "gtpn-ur5", "dataset": "gtpn-ur5", "base_fra
              "ipa-ur10-cb": {"preset": "ipa-ur10-cb", "dataset": "ipa-ur10", "base_frame": False},
              "twin": {"preset": None, "dataset": None, "base_frame": False},
              "twin-2stations": {"preset": "twin-2stations", "dataset": None, "base_frame": False}}
+
+
+def prepared(params: dict) -> tuple:
+    """The pipeline's aligned points, calibration and nominal geometry, from the stage outputs here."""
+    calibration = Calibration.from_dict(read_json(CALIBRATED_GEOMETRY))
+    nominal = theory_geometry(load_robot(params["robot"]), read_json(FRAME_JSON)["tool_mm"])
+    return aligned(load_points(), calibration, nominal), calibration, nominal
 
 
 def absolute_paths(params: dict) -> dict:
@@ -173,7 +180,7 @@ def run_set(name: str, seeds: list[int], epochs: int | None, other_physics: bool
             for name_ in ("ingest", "frame", "theory", "split", "calibrate"):
                 stage(name_, params)
             n_kept = read_json(INGEST_JSON)["n_kept"]
-            df = aligned(load_points(), params)
+            df = prepared(params)[0]
             test = df[df.split == "test"]
             raw = pd.read_parquet(INGEST_TABLE).set_index("point_id").loc[test.point_id]
             nominal = None
@@ -309,13 +316,13 @@ def bench_realtime(model, q0: np.ndarray, tgt: np.ndarray, limits: np.ndarray, t
 def bench_speed() -> dict:
     """Needs a finished `dvc repro` in the project (model, points, split)."""
     params = load_params()
-    df = aligned(load_points(), params)
+    df, calibration, nominal = prepared(params)
     train_t, val_t = tensors(df[df.split == "train"]), tensors(df[df.split == "val"])
-    model = make_model(params["model"], physics_geometry(params, params["model"]["physics"]))
+    model = make_model(params["model"], physics_geometry(params["model"]["physics"], calibration, nominal))
     cfg = {**params["train"], "max_epochs": 10, "patience": 10}
     hist = fit(model, SPILoss(**params["loss"]), train_t, val_t, cfg, progress=False)
 
-    model = load_model(params)
+    model = load_model(MODEL_WEIGHTS)
     q = torch.as_tensor(np.radians(np.random.default_rng(0).uniform(-3, 3, (4096, 6))), dtype=torch.float64)
     with torch.no_grad():
         batch_s = timed(lambda: model(q), 10)
@@ -399,8 +406,7 @@ def bench_serve(clients: int = 8, calls: int = 10000) -> dict:
     port, eager and compiled (--compile); for each, one client (calls/10 calls: a call's own latency)
     then `clients` concurrent clients (calls in all), on the test points (recorded angles -> theory
     position, cycled). Needs a finished `dvc repro` in the project."""
-    params = load_params()
-    df = aligned(load_points(), params)
+    df = prepared(load_params())[0]
     test = df[df.split == "test"]
     q0, tgt = np.radians(test[JOINTS_DEG].to_numpy()).tolist(), test[THEORY].to_numpy().tolist()
     out = {"machine": machine(), "server": "python -m pipeline.serve, a subprocess on 127.0.0.1 (the clients "
@@ -449,7 +455,9 @@ def bench_sweep(groups=("baseline", "no_resnet"), seeds=(139, 140), epochs: int 
     params = load_params()
     params["ablation"].update(seeds=list(seeds), max_epochs=epochs)
     cores = os.cpu_count() or 1
-    jobs = [(params, g, s) for g in groups for s in seeds]
+    df, calibration, nominal = prepared(params)
+    p = {k: params[k] for k in ("model", "loss", "train", "workspace", "ablation")}
+    jobs = [Job(df, {"calibrated": calibration.geometry, "nominal": nominal}, p, g, s) for g in groups for s in seeds]
     files = [POINTS_TABLE, SPLIT_TABLE, FRAME_JSON, CALIBRATED_GEOMETRY]
     out = {"machine": machine(), "what": f"ablation groups {list(groups)} x seeds {list(seeds)}, {epochs} epochs "
                                          "each (the full ablation: 8 groups x 5 seeds, up to 400 epochs)"}

@@ -14,33 +14,36 @@ and per campaign, nominal vs calibrated, on the aligned points).
 import numpy as np
 import torch
 
-from .lib.artifacts import CALIBRATED_GEOMETRY, CALIBRATION_JSON, FRAME_JSON, load_points
+from .lib.artifacts import CALIBRATED_GEOMETRY, CALIBRATION_JSON, FRAME_JSON, TIMINGS, load_points
 from .lib.columns import CAMPAIGN, JOINTS_DEG, MEAS, SPLITS, STATION
-from .lib.config import load_params, logger, read_json, section, write_json
-from .lib.geometry import aligned, theory_geometry
+from .lib.config import for_stage, load_params, logger, read_json, split_timings, write_json
+from .lib.geometry import Calibration, aligned, theory_geometry
 from .lib.identify import errors_3d, identify
 from .lib.kinematics import DTYPE, fk, save_geometry
+from .lib.robots import load_robot
 
 log = logger(__name__)
+PARAMS = ("robot", "frame", "calibrate")
 
 
 def run(params: dict) -> dict:
-    section(params, "robot")
-    cfg = section(params, "calibrate")
+    params = for_stage(params, PARAMS)
+    cfg = params["calibrate"]
+    frame = read_json(FRAME_JSON)
     pts = load_points()
     q = np.radians(pts[JOINTS_DEG].to_numpy())
     stations = list(pts[STATION].unique())            # theory keeps the ingest order: the first station first
     train = (pts["split"] == "train").to_numpy()
-    g0 = theory_geometry(params)[1]
+    g0 = theory_geometry(load_robot(params["robot"]), frame["tool_mm"])
     station = pts[STATION].map({s: k for k, s in enumerate(stations)}).to_numpy()
     tools0 = None                                     # frame.tool_per_station: each station's tool - the first's
-    if section(params, "frame")["tool_per_station"]:
-        fr = read_json(FRAME_JSON)["stations"]
+    if params["frame"]["tool_per_station"]:
+        fr = frame["stations"]
         tools0 = np.array([fr[s]["tool_mm"] for s in stations]) - np.asarray(fr[stations[0]]["tool_mm"])
     geometry, report = identify(q[train], pts[MEAS].to_numpy()[train], g0, cfg, station[train], stations,
                                 tools0)
     corrections = {k: report[k] for k in ("stations", "station_tools")}
-    p = aligned(pts, params, {**corrections, "geometry": geometry})[MEAS].to_numpy()
+    p = aligned(pts, Calibration(geometry, **corrections), g0)[MEAS].to_numpy()
     qt = torch.as_tensor(q, dtype=DTYPE)
     with torch.no_grad():
         p_cal, p_nom = fk(qt, geometry).numpy(), fk(qt, g0).numpy()
@@ -54,13 +57,15 @@ def run(params: dict) -> dict:
     save_geometry(CALIBRATED_GEOMETRY, geometry, {"robot": params["robot"]["model"],
                                                 "identified": report["identified"],
                                                 **corrections})
+    report, timings = split_timings(report)
     write_json(CALIBRATION_JSON, report)
+    write_json(TIMINGS / "calibrate.json", timings)
     sp = report["splits"]
     last = sp.get("test", sp["train"])
     log.info("identified %d of %d parameters (fixed %s) in %.1f s, %d evaluations; cond %.3g; "
              "mean 3D error train %.4f -> %.4f mm, test %.4f -> %.4f mm",
              len(report["identified"]), report["n_candidates"], sorted(report["fixed"]),
-             report["seconds"], report["nfev"], report["condition_number"],
+             timings["seconds"], report["nfev"], report["condition_number"],
              sp["train"]["nominal"]["mean_mm"], sp["train"]["calibrated"]["mean_mm"],
              last["nominal"]["mean_mm"], last["calibrated"]["mean_mm"])
     return report

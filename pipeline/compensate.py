@@ -18,24 +18,28 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from .lib.artifacts import (COMPENSATION_CSV, COMPENSATION_JSON, COMPENSATION_PARQUET, CONVERGENCE_CSV,
-                            DRIVE_CSV, FRAME_JSON, REPORTS, WORKSPACE_JSON, load_points)
-from .lib.columns import COMPENSATION, DJ_DEG, JCOMP_DEG, JOINTS_DEG, PRED, TARGET, THEORY
-from .lib.config import load_params, logger, read_json, sections, write_json
-from .lib.geometry import aligned
+from .lib.artifacts import (CALIBRATED_GEOMETRY, COMPENSATION_CSV, COMPENSATION_JSON, COMPENSATION_PARQUET,
+                            CONVERGENCE_CSV, DRIVE_CSV, FRAME_JSON, MODEL_WEIGHTS, REPORTS, TIMINGS,
+                            WORKSPACE_JSON, load_points)
+from .lib.columns import JCOMP_DEG, JOINTS_DEG, TARGET, THEORY
+from .lib.compensation import delta_table, solve
+from .lib.config import for_stage, load_params, logger, read_json, split_timings, write_json
+from .lib.geometry import Calibration, aligned, theory_geometry
 from .lib.realtime import Realtime, check
 from .lib.robots import load_robot
-from .lib.solvers import SOLVERS, compensate
+from .lib.solvers import SOLVERS
 from .lib.training import load_model
 from .lib.twin import Twin, drive_check
 from .lib.workspace import Workspace
 
 log = logger(__name__)
+PARAMS = ("robot", "compensate")
 
 
-def test_targets(params: dict) -> pd.DataFrame:
+def test_targets(robot, frame: dict) -> pd.DataFrame:
     """point_id, j1_deg..j6_deg, target_x..z: every test point, target = its theory position."""
-    df = aligned(load_points(), params)
+    df = aligned(load_points(), Calibration.from_dict(read_json(CALIBRATED_GEOMETRY)),
+                 theory_geometry(robot, frame["tool_mm"]))
     df = df[df.split == "test"].reset_index(drop=True)
     return df[["point_id"] + JOINTS_DEG].assign(**dict(zip(TARGET, df[THEORY].to_numpy().T)))
 
@@ -48,30 +52,25 @@ def read_targets(path: str) -> pd.DataFrame:
     return df
 
 
-def solve(params: dict, df: pd.DataFrame):
+def solve_all(cfg: dict, robot, df: pd.DataFrame):
     """Both solvers on df's targets -> (the Δθ table of compensate.solver, summary, histories)."""
-    cfg, robot = params["compensate"], load_robot(params["robot"])
-    model, workspace = load_model(params), Workspace.from_dict(read_json(WORKSPACE_JSON))
+    model, workspace = load_model(MODEL_WEIGHTS), Workspace.from_dict(read_json(WORKSPACE_JSON))
     q0, target = df[JOINTS_DEG].to_numpy(), df[TARGET].to_numpy()
     summary, histories = {"solver": cfg["solver"], "n_points": len(df)}, {}
     for solver in SOLVERS:                                  # both, for the comparison; table from cfg
-        q, pred, iters, ok, hist, sec = compensate(model, q0, target, cfg, robot, solver)
-        res = np.linalg.norm(pred - target, axis=1)
-        histories[solver] = hist
-        summary[solver] = {"converged_share": float(ok.mean()), "iterations_mean": float(iters.mean()),
-                           "iterations_max": int(iters.max()), "residual_mm_mean": float(res.mean()),
-                           "residual_mm_max": float(res.max()), "seconds": sec,
-                           "ms_per_point": 1000 * sec / len(df)}
+        s = solve(model, q0, target, cfg, robot, solver)
+        res = np.linalg.norm(s.pred - target, axis=1)
+        histories[solver] = s.history
+        summary[solver] = {"converged_share": float(s.converged.mean()),
+                           "iterations_mean": float(s.iterations.mean()),
+                           "iterations_max": int(s.iterations.max()), "residual_mm_mean": float(res.mean()),
+                           "residual_mm_max": float(res.max()), "seconds": s.seconds,
+                           "ms_per_point": 1000 * s.seconds / len(df)}
         log.info("%s: %d points, %.0f%% converged, %.1f iterations on average (max %d), "
-                 "residual mean %.2e mm max %.2e mm, %.3f s", solver, len(df), 100 * ok.mean(),
-                 iters.mean(), iters.max(), res.mean(), res.max(), sec)
+                 "residual mean %.2e mm max %.2e mm, %.3f s", solver, len(df), 100 * s.converged.mean(),
+                 s.iterations.mean(), s.iterations.max(), res.mean(), res.max(), s.seconds)
         if solver == cfg["solver"]:
-            table = df[["point_id"] + JOINTS_DEG].copy()
-            table[DJ_DEG] = q - q0                          # eq. 19, degrees
-            table[JCOMP_DEG] = q
-            table[TARGET], table[PRED] = target, pred
-            table["residual_mm"], table["iterations"], table["converged"] = res, iters, ok
-            table["uncertainty_mm"], table["in_workspace"] = workspace(q)   # at the compensated angles
+            table = delta_table(df["point_id"], q0, target, s, workspace)
             summary["outside_workspace"] = int((~table["in_workspace"]).sum())
     rt = Realtime(model, np.radians(robot.limits_deg), cfg["tol_mm"], workspace=workspace)   # same targets
     summary["realtime"] = check(rt, np.radians(q0), target)
@@ -80,7 +79,7 @@ def solve(params: dict, df: pd.DataFrame):
              100 * summary["realtime"]["verified_share"], 100 * summary["realtime"]["converged_share"],
              summary["realtime"]["true_residual_mm_max"], summary["realtime"]["outside_workspace"], len(df),
              cfg["solver"], summary["outside_workspace"])
-    return table[COMPENSATION], summary, histories
+    return table, summary, histories
 
 
 def convergence_table(histories: dict) -> pd.DataFrame:
@@ -91,15 +90,16 @@ def convergence_table(histories: dict) -> pd.DataFrame:
 
 
 def run(params: dict) -> dict:
-    *_, cfg = sections(params, "robot", "model", "compensate")
-    table, summary, histories = solve(params, test_targets(params))
+    p = for_stage(params, PARAMS)
+    cfg, robot, frame = p["compensate"], load_robot(p["robot"]), read_json(FRAME_JSON)
+    table, summary, histories = solve_all(cfg, robot, test_targets(robot, frame))
     table.to_csv(COMPENSATION_CSV, index=False, float_format="%.6f")
     table.to_parquet(COMPENSATION_PARQUET, index=False)
     convergence_table(histories).to_csv(CONVERGENCE_CSV, index=False)
     errors = pd.DataFrame(columns=["point_id"] + [f"{w}_{a}" for w in ("before", "after") for a in "xyz"])
     if cfg["drive_check"]:
         rng = np.random.default_rng(cfg["drive_seed"])
-        summary["drive_check"], e = drive_check(Twin.from_json(cfg["twin"]), read_json(FRAME_JSON), rng,
+        summary["drive_check"], e = drive_check(Twin.from_json(cfg["twin"]), frame, rng,
                                                 table[JOINTS_DEG].to_numpy(), table[JCOMP_DEG].to_numpy(),
                                                 table[TARGET].to_numpy())
         errors = pd.DataFrame(e, columns=errors.columns[1:])
@@ -110,7 +110,9 @@ def run(params: dict) -> dict:
                  b["3d"]["max"], a["3d"]["max"], a["tol_mm"], 100 * b["within_tol_share"],
                  100 * a["within_tol_share"])
     errors.to_csv(DRIVE_CSV, index=False, float_format="%.6f")   # empty: no drive check
+    summary, timings = split_timings(summary)
     write_json(COMPENSATION_JSON, summary)
+    write_json(TIMINGS / "compensate.json", timings)
     return summary
 
 
@@ -122,8 +124,8 @@ def main(argv=None):
     params = load_params()
     if a.targets is None:
         return run(params)
-    sections(params, "robot", "model", "compensate")
-    table, summary, _ = solve(params, read_targets(a.targets))
+    p = for_stage(params, PARAMS)
+    table, summary, _ = solve_all(p["compensate"], load_robot(p["robot"]), read_targets(a.targets))
     out = REPORTS / f"compensation_{Path(a.targets).stem}.csv"
     table.to_csv(out, index=False, float_format="%.6f")
     log.info("wrote %s (%d targets)", out, len(table))

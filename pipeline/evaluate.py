@@ -17,16 +17,18 @@ metrics.json["uncertainty"] says how often the actual error stayed within it).
 import numpy as np
 import pandas as pd
 
-from .lib.artifacts import (BASELINES_MD, BASELINES_TABLE, METRICS_JSON, PREDICTIONS_TABLE, WORKSPACE_JSON,
-                            load_points)
+from .lib.artifacts import (BASELINES_MD, BASELINES_TABLE, CALIBRATED_GEOMETRY, FRAME_JSON, METRICS_JSON,
+                            MODEL_WEIGHTS, PREDICTIONS_TABLE, WORKSPACE_JSON, load_points)
 from .lib.columns import CAMPAIGN, JOINTS_DEG, MEAS, PRED, SPLITS, STATION, THEORY
-from .lib.config import load_params, logger, sections, write_json
-from .lib.geometry import aligned
+from .lib.config import for_stage, load_params, logger, read_json, write_json
+from .lib.geometry import Calibration, aligned, theory_geometry
 from .lib.metrics import split_metrics
+from .lib.robots import load_robot
 from .lib.training import load_model, predict
 from .lib.workspace import Workspace
 
 log = logger(__name__)
+PARAMS = ("robot", "workspace")
 
 
 def markdown_table(baselines: dict, split: str = "test") -> str:
@@ -64,9 +66,12 @@ def campaign_table(campaigns: dict, split: str = "test") -> str:
 
 
 def run(params: dict) -> dict:
-    *_, cfg = sections(params, "robot", "model", "workspace")
-    df = aligned(load_points(), params)
-    pred = predict(load_model(params), df)
+    p = for_stage(params, PARAMS)
+    cfg = p["workspace"]
+    nominal = theory_geometry(load_robot(p["robot"]), read_json(FRAME_JSON)["tool_mm"])
+    df = aligned(load_points(), Calibration.from_dict(read_json(CALIBRATED_GEOMETRY)), nominal)
+    model = load_model(MODEL_WEIGHTS)
+    pred = predict(model, df)
     err = np.linalg.norm(pred - df[MEAS].to_numpy(), axis=1)
     q = df[JOINTS_DEG].to_numpy()
     val = (df.split == "val").to_numpy()
@@ -79,7 +84,7 @@ def run(params: dict) -> dict:
     out.to_parquet(PREDICTIONS_TABLE, index=False)
 
     metrics = split_metrics(df, pred)
-    name = f"spi_boter_{params['model']['physics']}"
+    name = f"spi_boter_{model.config['physics']}"
     methods = {"nominal_dh": df[THEORY].to_numpy(), name: pred}
     base = df[["point_id"]].merge(pd.read_parquet(BASELINES_TABLE), on="point_id", how="left")
     for col in base.columns[1::3]:

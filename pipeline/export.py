@@ -25,17 +25,20 @@ import pinocchio as pin
 import torch
 import yaml
 
-from .lib.artifacts import CALIBRATED_GEOMETRY, EXPORT_JSON, MODEL_ONNX, UR_YAML, URDF_FILE, load_points
+from .lib.artifacts import (CALIBRATED_GEOMETRY, EXPORT_JSON, MODEL_ONNX, MODEL_WEIGHTS, UR_YAML, URDF_FILE,
+                            load_points)
 from .lib.columns import JOINTS_DEG
-from .lib.config import load_params, logger, section, sections, write_json
+from .lib.config import for_stage, load_params, logger, read_json, write_json
+from .lib.geometry import Calibration
 from .lib.identify import identify
-from .lib.kinematics import DTYPE, fk, fk_frames, load_geometry
+from .lib.kinematics import DTYPE, fk, fk_frames
 from .lib.onnx_model import OnnxModel, export_onnx
 from .lib.robots import TABLES, load_robot
 from .lib.training import load_model
 from .lib.urdf import UR_YAML_NAMES, base_transform, flange_residual, joint_origins, to_urdf, ur_kinematics
 
 log = logger(__name__)
+PARAMS = ("robot", "calibrate")
 
 
 def urdf_positions(urdf_text: str, q_rad: np.ndarray) -> np.ndarray:
@@ -82,11 +85,11 @@ def rigid_equivalent(g: dict, q: torch.Tensor, cfg: dict) -> tuple[dict, dict]:
 
 
 def run(params: dict) -> dict:
-    sections(params, "model", "train")                 # load_model reads them
-    robot = load_robot(section(params, "robot"))
+    p = for_stage(params, PARAMS)
+    robot = load_robot(p["robot"])
     pts = load_points()
     q = torch.as_tensor(np.radians(pts[JOINTS_DEG].to_numpy()), dtype=DTYPE)
-    g, fit = rigid_equivalent(load_geometry(CALIBRATED_GEOMETRY), q, section(params, "calibrate"))
+    g, fit = rigid_equivalent(Calibration.from_dict(read_json(CALIBRATED_GEOMETRY)).geometry, q, p["calibrate"])
     with torch.no_grad():
         p_rigid, flange6 = fk(q, g).numpy(), fk_frames(q, g)[-1].numpy()      # flange6 (n, 4, 4) before the base
     summary = {"n_poses": len(pts), "rigid_fit": fit}
@@ -114,7 +117,7 @@ def run(params: dict) -> dict:
                  "transform after joint 6 it cannot hold: %s", UR_YAML, dev.max(),
                  summary["ur_yaml"]["not_held_after_joint_6"])
 
-    model = load_model(params)
+    model = load_model(MODEL_WEIGHTS)
     export_onnx(model, MODEL_ONNX)
     test = (pts["split"] == "test").to_numpy()
     q32 = q[test].float().clone()

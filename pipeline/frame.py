@@ -14,11 +14,12 @@ import pandas as pd
 
 from .lib.artifacts import FRAME_JSON, INGEST_TABLE
 from .lib.columns import CAMPAIGN, JOINTS_DEG, MEAS, STATION
-from .lib.config import load_params, logger, section, write_json
+from .lib.config import for_stage, load_params, logger, write_json
 from .lib.frames import fit_frames
 from .lib.robots import load_robot
 
 log = logger(__name__)
+PARAMS = ("robot", "frame")
 
 
 def fit_stats(r: np.ndarray, inl: np.ndarray) -> dict:
@@ -27,10 +28,10 @@ def fit_stats(r: np.ndarray, inl: np.ndarray) -> dict:
 
 
 def run(params: dict) -> dict:
-    robot = load_robot(section(params, "robot"))
+    p = for_stage(params, PARAMS)
+    robot = load_robot(p["robot"])
     df = pd.read_parquet(INGEST_TABLE)
-    fit = fit_frames(df[JOINTS_DEG].to_numpy(), df[MEAS].to_numpy(), df[STATION].to_numpy(), robot,
-                     section(params, "frame"))
+    fit = fit_frames(df[JOINTS_DEG].to_numpy(), df[MEAS].to_numpy(), df[STATION].to_numpy(), robot, p["frame"])
     inl, r = fit["inliers"], fit["residual_mm"]
     outliers = df.loc[~inl, "point_id"].tolist()
     stations = {}

@@ -17,12 +17,14 @@ from collections import Counter
 import pandas as pd
 
 from .lib.artifacts import CAMPAIGNS_DIR, CAMPAIGNS_REPORTS, INGEST_JSON, INGEST_TABLE
-from .lib.campaigns import campaign_entry, campaign_params, campaign_stations, point_id
+from .lib.campaigns import campaign_entry, campaign_ingest, campaign_stations, point_id
 from .lib.columns import CAMPAIGN, STATION
-from .lib.config import load_params, logger, read_json, sections, write_json
+from .lib.config import for_stage, load_params, logger, read_json, write_json
 from .lib.readers import ingest
+from .lib.robots import load_robot
 
 log = logger(__name__)
+PARAMS = ("robot", "ingest", "campaigns")
 
 
 def labelled(df: pd.DataFrame, campaign: str, station: str) -> pd.DataFrame:
@@ -32,9 +34,9 @@ def labelled(df: pd.DataFrame, campaign: str, station: str) -> pd.DataFrame:
 
 def run_campaign(params: dict, name: str) -> dict:
     """Ingest one campaigns.more campaign; ids become NAME:id."""
-    sections(params, "robot", "ingest")
-    station = campaign_entry(params, name)["station"]
-    df, summary = ingest(campaign_params(params, name))
+    p = for_stage(params, PARAMS)
+    station = campaign_entry(p["campaigns"], name)["station"]
+    df, summary = ingest(campaign_ingest(p["ingest"], p["campaigns"], name), load_robot(p["robot"]))
     df["point_id"] = [point_id(name, p) for p in df["point_id"]]
     CAMPAIGNS_DIR.mkdir(parents=True, exist_ok=True)
     labelled(df, name, station).to_parquet(CAMPAIGNS_DIR / f"{name}.parquet", index=False)
@@ -44,10 +46,10 @@ def run_campaign(params: dict, name: str) -> dict:
 
 
 def run(params: dict) -> dict:
-    sections(params, "robot", "ingest")
-    stations = campaign_stations(params)
+    p = for_stage(params, PARAMS)
+    stations = campaign_stations(p["campaigns"])
     first, *more = stations
-    df, summary = ingest(params)
+    df, summary = ingest(p["ingest"], load_robot(p["robot"]))
     parts = [labelled(df, first, stations[first])]
     summary["campaigns"] = {first: {"station": stations[first], "n_kept": len(df),
                                     "n_dropped": len(summary["dropped"])}}

@@ -1,116 +1,203 @@
-"""Compensate a robot program: its waypoints in, the compensated program out (CSV and URScript).
+"""Command: compensate a robot program: its waypoints in, the compensated program out (CSV and URScript).
 
     python -m pipeline.program waypoints.csv [--out program_comp.csv] [--urscript program_comp.script]
+                                             [--comment-out-unreached]
 
-waypoints.csv, one row per waypoint:
+waypoints.csv, one row per waypoint (`,` `;` or tab separated, decimal point or comma, as ingest reads):
     point_id (optional; default W001, W002, ...), j1_deg..j6_deg   the program's joint targets
     target_x..z (optional, base frame mm)                            the position to reach, the joints
                                                                      being where to start from
 Without target columns, a waypoint's target is where the nominal kinematics puts it
 (nominal DH + the frame stage's tool: an offline-programmed point), and the
 compensated joints make the trained model (the real arm) reach it. Every waypoint
-is solved by `compensate.solver` (lib/solvers.py) with joint limits; the output CSV
-has the Δθ table's columns (DATA_FORMAT.md), so residual_mm, converged and
-in_workspace flag each waypoint, and the URScript has one `movej` per waypoint,
-flagged in a comment where it did not converge or leaves the trained workspace.
-Needs a finished `dvc repro` (model, workspace, frame).
+is solved by `compensate.solver` (lib/solvers.py) within the joint limits; the output CSV
+is the Δθ table (docs/data-format.md), the URScript one `movej` per waypoint.
+
+Safe by construction (docs/robot-cell.md):
+  - nothing from the file reaches the URScript but numbers formatted here and point ids that
+    match ID_PATTERN (others are refused with file, row and column);
+  - a waypoint that did not converge, or whose answer lies outside the joint limits, never becomes
+    a move: the program is refused (exit 1, those waypoints listed, nothing written), or, with
+    --comment-out-unreached, written with each such waypoint as a comment and no move;
+  - angles that look like radians in the *_deg columns are refused, as ingest refuses them;
+  - waypoints outside the trained workspace are listed in the summary printed at the end.
+Bad input exits 2 with the file, row (the header is row 1) and column. Needs a finished
+`dvc repro` (model, workspace, frame).
 """
 import argparse
+import re
+import sys
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
-from .lib.artifacts import WORKSPACE_JSON
-from .lib.columns import COMPENSATION, DJ_DEG, JCOMP_DEG, JOINTS_DEG, PRED, TARGET
-from .lib.config import load_params, logger, read_json, section, sections
+from .lib.artifacts import FRAME_JSON, MODEL_WEIGHTS, WORKSPACE_JSON
+from .lib.columns import JCOMP_DEG, JOINTS_DEG, TARGET
+from .lib.compensation import delta_table, reach_mm, solve
+from .lib.config import for_stage, load_params, logger, read_json
 from .lib.geometry import theory_geometry
 from .lib.kinematics import fk_numpy
+from .lib.readers import IngestError, find_column, looks_like_radians, parse_number, read_table
 from .lib.robots import load_robot
-from .lib.solvers import compensate
 from .lib.training import load_model
 from .lib.workspace import Workspace
 
 log = logger(__name__)
+PARAMS = ("robot", "compensate")
+ID_PATTERN = re.compile(r"[A-Za-z0-9_.:-]{1,64}")          # what a point id may be, to reach a URScript comment
+
+
+class Refused(Exception):
+    """The program has waypoints that must not become moves; the message lists them."""
 
 
 def read_waypoints(path, robot) -> pd.DataFrame:
-    """The waypoints CSV, checked: every bad cell named by file, row (as a spreadsheet numbers it:
-    the header is row 1) and column."""
-    df = pd.read_csv(path)
-    missing = [c for c in JOINTS_DEG if c not in df.columns]
-    if missing:
-        raise ValueError(f"{path}: missing column(s) {missing}; found {list(df.columns)}")
-    cols = JOINTS_DEG + [c for c in TARGET if c in df.columns]
-    if 0 < len(cols) - 6 < 3:
-        raise ValueError(f"{path}: target columns need all of {TARGET}; found {cols[6:]}")
-    for c in cols:
-        num = pd.to_numeric(df[c], errors="coerce")
-        bad = ~np.isfinite(num.to_numpy(float))
-        if bad.any():
-            i = int(np.flatnonzero(bad)[0])
-            raise ValueError(f"{path}: row {i + 2}, column {c}: not a finite number ({df[c].iloc[i]!r})")
-        df[c] = num
+    """The waypoints file, checked: point_id, j1_deg..j6_deg and, if given, target_x..z; every bad
+    cell is an IngestError naming file, row (the header is row 1) and column."""
+    header, cells, lines, _, decimal = read_table(str(path), "auto", "auto")
+    lower = {h.lower() for h in header}
+    targets = [c for c in TARGET if c in lower]
+    if 0 < len(targets) < 3:
+        raise IngestError(f"target columns need all of {TARGET}; found {targets}", file=path)
+    names = JOINTS_DEG + (TARGET if targets else [])
+    cols = [find_column(header, c, "waypoint", str(path)) for c in names]
+    values = np.empty((len(cells), len(cols)))
+    for r, row in enumerate(cells):
+        for k, c in enumerate(cols):
+            values[r, k], err = parse_number(row[c] if c < len(row) else "", decimal)
+            if err or not np.isfinite(values[r, k]):
+                raise IngestError(f"not a finite number ({err[1] if err else row[c]})", file=path, row=lines[r],
+                                  column=names[k])
+    df = pd.DataFrame(values, columns=names)
+    if "point_id" in lower:
+        c = find_column(header, "point_id", "point id", str(path))
+        ids = [row[c].strip() if c < len(row) else "" for row in cells]
+        for r, pid in enumerate(ids):
+            if not ID_PATTERN.fullmatch(pid):
+                raise IngestError(f"point id {pid[:40]!r} is not 1-64 of the characters A-Z a-z 0-9 _ . : - "
+                                  "(ids reach the robot program's comments)", file=path, row=lines[r],
+                                  column=header[c])
+    else:
+        ids = [f"W{i + 1:03d}" for i in range(len(df))]
+    df.insert(0, "point_id", ids)
     out = robot.check_joints(df[JOINTS_DEG].to_numpy())
     if out.any():
         i, j = map(int, np.argwhere(out)[0])
         lo, hi = robot.limits_deg[j]
-        raise ValueError(f"{path}: row {i + 2}, column {JOINTS_DEG[j]}: {df[JOINTS_DEG[j]].iloc[i]}° "
-                         f"beyond the joint limits [{lo:g}, {hi:g}]°")
-    if "point_id" not in df.columns:
-        df.insert(0, "point_id", [f"W{i + 1:03d}" for i in range(len(df))])
+        raise IngestError(f"{df[JOINTS_DEG[j]].iloc[i]}° beyond the joint limits [{lo:g}, {hi:g}]°", file=path,
+                          row=lines[i], column=JOINTS_DEG[j])
+    if looks_like_radians(df[JOINTS_DEG].to_numpy()):
+        raise IngestError("every joint angle lies within ±6.29: these look like radians in *_deg columns; "
+                          "convert them to degrees", file=path)
     return df
 
 
-def compensate_program(params: dict, df: pd.DataFrame) -> pd.DataFrame:
-    """The Δθ table (columns COMPENSATION) of the waypoints df."""
-    cfg, robot = section(params, "compensate"), load_robot(section(params, "robot"))
+def compensate_program(df: pd.DataFrame, model, workspace, robot, nominal: dict, cfg: dict) -> pd.DataFrame:
+    """The Δθ table of the waypoints df (targets: df's, else the nominal positions of its joints)."""
     q0 = df[JOINTS_DEG].to_numpy()
-    if all(c in df.columns for c in TARGET):
-        target = df[TARGET].to_numpy()
-    else:
-        target = fk_numpy(q0, *theory_geometry(params))                    # where the program meant to go
-    q, pred, iters, ok, _, sec = compensate(load_model(params), q0, target, cfg, robot)
-    out = df[["point_id"] + JOINTS_DEG].copy()
-    out[DJ_DEG], out[JCOMP_DEG] = q - q0, q
-    out[TARGET], out[PRED] = target, pred
-    out["residual_mm"], out["iterations"], out["converged"] = np.linalg.norm(pred - target, axis=1), iters, ok
-    out["uncertainty_mm"], out["in_workspace"] = Workspace.from_dict(read_json(WORKSPACE_JSON))(q)
+    target = df[TARGET].to_numpy() if TARGET[0] in df else fk_numpy(q0, robot, nominal)
+    reach = reach_mm(model.physics.geometry())
+    far = np.linalg.norm(target, axis=1) > reach
+    if far.any():
+        raise Refused("unreachable: " + "; ".join(
+            f"{p}: target {np.linalg.norm(t):.1f} mm from the base, beyond the arm's reach of {reach:.1f} mm"
+            for p, t in zip(df.point_id[far], target[far])))
+    solved = solve(model, q0, target, cfg, robot)
+    table = delta_table(df["point_id"], q0, target, solved, workspace)
     log.info("%d waypoints compensated in %.2f s: %d converged (residual max %.2e mm), %d outside the "
-             "trained workspace", len(out), sec, ok.sum(), out["residual_mm"].max(), (~out["in_workspace"]).sum())
-    return out[COMPENSATION]
+             "trained workspace", len(table), solved.seconds, table.converged.sum(), table.residual_mm.max(),
+             (~table.in_workspace).sum())
+    return table
 
 
-def urscript(table: pd.DataFrame, source: str, acc: float = 1.4, vel: float = 1.05) -> str:
-    """A URScript program: one movej per waypoint to its compensated joints (rad)."""
-    lines = [f"# compensated by `python -m pipeline.program {source}`: {len(table)} waypoints",
-             "def compensated_program():",
-             f"  acc = {acc}", f"  vel = {vel}"]
-    for _, r in table.iterrows():
-        q = ", ".join(f"{v:.9f}" for v in np.radians(r[JCOMP_DEG].to_numpy(float)))
-        flags = [f"residual {r['residual_mm']:.4f} mm"] + (["NOT CONVERGED"] if not r["converged"] else []) \
-            + (["outside the trained workspace"] if not r["in_workspace"] else [])
-        lines += [f"  # {r['point_id']}: {', '.join(flags)}", f"  movej([{q}], a=acc, v=vel)"]
+def unreached(table: pd.DataFrame, robot) -> dict:
+    """{point_id: why} for every waypoint that must not become a move."""
+    beyond = robot.check_joints(table[JCOMP_DEG].to_numpy()).any(1)
+    return {r.point_id: (f"residual {r.residual_mm:.4f} mm" + (", not converged" if not r.converged else "")
+                         + (", beyond the joint limits" if b else ""))
+            for r, b in zip(table.itertuples(), beyond) if not r.converged or b}
+
+
+def urscript(table: pd.DataFrame, skipped: dict, acc: float = 1.4, vel: float = 1.05) -> str:
+    """A URScript program: one movej per reached waypoint to its compensated joints (rad). Only numbers
+    formatted here and validated ids reach it; a `skipped` waypoint is a comment, never a move."""
+    lines = [f"# compensated by `python -m pipeline.program`: {len(table)} waypoints, {len(skipped)} not reached "
+             "(commented out, no move)",
+             "def compensated_program():", f"  acc = {acc:.6f}", f"  vel = {vel:.6f}"]
+    for r in table.itertuples():
+        pid = r.point_id if ID_PATTERN.fullmatch(str(r.point_id)) else "?"     # read_waypoints refused others
+        if pid in skipped or pid == "?":
+            lines.append(f"  # {pid}: NOT REACHED ({skipped.get(pid, 'invalid id')}): no move")
+            continue
+        q = ", ".join(f"{v:.9f}" for v in np.radians(np.array([getattr(r, c) for c in JCOMP_DEG], float)))
+        flag = "" if r.in_workspace else f", outside the trained workspace (uncertainty {r.uncertainty_mm:.3f} mm)"
+        lines += [f"  # {pid}: residual {r.residual_mm:.4f} mm{flag}", f"  movej([{q}], a=acc, v=vel)"]
     return "\n".join(lines + ["end", ""])
 
 
-def main(argv=None):
+def summary_text(table: pd.DataFrame, skipped: dict, workspace) -> str:
+    """What a person reads at the end: counts, the waypoints not reached, those outside the workspace."""
+    out = [f"{len(table)} waypoints: {len(table) - len(skipped)} reached (residual max "
+           f"{table.residual_mm[~table.point_id.isin(list(skipped))].max():.2e} mm), {len(skipped)} not reached"]
+    out += [f"  NOT REACHED {p}: {why}" for p, why in skipped.items()]
+    outside = table[~table.in_workspace]
+    if len(outside):
+        d = workspace.distance(outside[JCOMP_DEG].to_numpy()) / workspace.radius
+        out.append(f"{len(outside)} waypoint(s) outside the trained workspace (the correction fades there; "
+                   "measure poses near them to cover them):")
+        out += [f"  {p}: {x:.1f} workspace radii from the nearest training pose, uncertainty {u:.3f} mm"
+                for p, x, u in zip(outside.point_id, d, outside.uncertainty_mm)]
+    return "\n".join(out)
+
+
+def run(argv=None) -> pd.DataFrame:
     ap = argparse.ArgumentParser(prog="python -m pipeline.program", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("waypoints", help="CSV: point_id (optional), j1_deg..j6_deg, target_x..z (optional)")
     ap.add_argument("--out", help="compensated CSV (default <waypoints>_comp.csv)")
     ap.add_argument("--urscript", help="URScript file (default <waypoints>_comp.script)")
+    ap.add_argument("--comment-out-unreached", action="store_true",
+                    help="write the program with every waypoint not reached as a comment (no move) "
+                         "instead of refusing it")
     a = ap.parse_args(argv)
-    params = load_params()
-    sections(params, "model", "train")                                    # load_model reads them
     src = Path(a.waypoints)
-    table = compensate_program(params, read_waypoints(src, load_robot(section(params, "robot"))))
     out = Path(a.out or src.with_name(src.stem + "_comp.csv"))
     script = Path(a.urscript or src.with_name(src.stem + "_comp.script"))
+    paths = [p.resolve() for p in (src, out, script)]
+    if len(set(paths)) < 3:
+        raise ValueError(f"--out {out} and --urscript {script} must differ from each other and from the input {src}")
+    p = for_stage(load_params(), PARAMS)
+    robot = load_robot(p["robot"])
+    missing = [str(f) for f in (MODEL_WEIGHTS, WORKSPACE_JSON, FRAME_JSON) if not f.exists()]
+    if missing:
+        raise ValueError(f"missing trained artifact(s) {', '.join(missing)} in {Path.cwd()}; run `dvc repro` first")
+    df = read_waypoints(src, robot)
+    workspace = Workspace.from_dict(read_json(WORKSPACE_JSON))
+    table = compensate_program(df, load_model(MODEL_WEIGHTS), workspace, robot,
+                               theory_geometry(robot, read_json(FRAME_JSON)["tool_mm"]), p["compensate"])
+    skipped = unreached(table, robot)
+    text = summary_text(table, skipped, workspace)
+    if skipped and not a.comment_out_unreached:
+        raise Refused(f"{src}: {len(skipped)} waypoint(s) not reached; nothing written (or rerun with "
+                      f"--comment-out-unreached to write them as comments, no move)\n{text}")
     table.to_csv(out, index=False, float_format="%.6f")
-    script.write_text(urscript(table, src.name))
+    script.write_text(urscript(table, skipped))
+    print(text)
     log.info("wrote %s and %s", out, script)
     return table
+
+
+def main(argv=None):
+    """run(), with bad input (exit 2) and a refused program (exit 1) said in one message, no traceback."""
+    try:
+        return run(argv)
+    except Refused as e:
+        print(f"pipeline.program: refused: {e}", file=sys.stderr)
+        raise SystemExit(1) from None
+    except (ValueError, OSError) as e:                   # IngestError is a ValueError
+        print(f"pipeline.program: error: {e}", file=sys.stderr)
+        raise SystemExit(2) from None
 
 
 if __name__ == "__main__":

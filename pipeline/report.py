@@ -20,10 +20,12 @@ from .lib.artifacts import (BASELINES_MD, CALIBRATION_JSON, COMPENSATION_JSON, C
                             EXPORT_JSON, FRAME_JSON, INGEST_JSON, LIVE, METRICS_JSON, MODEL_WEIGHTS, PREDICTIONS_TABLE,
                             REPORTS, SPLIT_JSON, THEORY_JSON, TRAIN_JSON, VALIDATION_JSON, VALIDATION_TABLE)
 from .lib.columns import MEAS, PRED, THEORY
-from .lib.config import load_params, logger, read_json, sections
+from .lib.config import for_stage, load_params, logger, read_json
 from .lib.training import load_model
 
 log = logger(__name__)
+PARAMS = ("robot", "ingest", "campaigns", "frame", "split", "calibrate", "model", "loss", "train", "baselines",
+          "workspace", "compensate", "validate", "ablation")      # the settings the page shows, and compensate's
 
 PLOTS = REPORTS / "plots"
 INDEX = REPORTS / "index.md"
@@ -83,7 +85,7 @@ class Context:
 
     @cached_property
     def model(self):
-        return load_model(self.params) if MODEL_WEIGHTS.exists() else None
+        return load_model(MODEL_WEIGHTS) if MODEL_WEIGHTS.exists() else None
 
     def live(self, name: str) -> pd.DataFrame | None:
         """A dvclive curve: columns step, <name>."""
@@ -95,8 +97,7 @@ class Context:
 
 
 def run(params: dict) -> dict:
-    sections(params, "robot", "model", "compensate")
-    ctx = Context(params)
+    ctx = Context(for_stage(params, PARAMS))
     figs = figures.render_figures(ctx, PLOTS)
     ply = figures.write_ply(ctx, PLY)
     INDEX.write_text(page.write_index(ctx, figs, ply))

@@ -75,8 +75,9 @@ from xmlrpc.server import SimpleXMLRPCRequestHandler, SimpleXMLRPCServer
 import numpy as np
 import torch
 
-from .lib.artifacts import CALIBRATED_GEOMETRY, FRAME_JSON, MODEL_WEIGHTS, WORKSPACE_JSON
-from .lib.config import load_params, logger, read_json, section, sections
+from .lib.artifacts import MODEL_WEIGHTS, WORKSPACE_JSON
+from .lib.compensation import reach_mm
+from .lib.config import for_stage, load_params, logger, read_json
 from .lib.realtime import Realtime
 from .lib.robots import load_robot
 from .lib.solvers import compensate
@@ -88,14 +89,13 @@ PATH = "/RPC2"
 INVALID_PARAMS, NO_METHOD, INTERNAL = -32602, -32601, -32603       # the XML-RPC fault code convention
 
 
-def required_files(params: dict) -> list[Path]:
-    """The trained artifacts the service reads: weights, workspace, and the physics branch's geometry."""
-    geometry = CALIBRATED_GEOMETRY if params["model"]["physics"] == "calibrated" else FRAME_JSON
-    return [MODEL_WEIGHTS, geometry, WORKSPACE_JSON]
+PARAMS = ("robot", "compensate", "serve")
+REQUIRED = [MODEL_WEIGHTS, WORKSPACE_JSON]                # the trained artifacts it reads (the checkpoint
+                                                          # carries its config and physics geometry)
 
 
-def check_artifacts(params: dict) -> None:
-    missing = [str(p) for p in required_files(params) if not p.exists()]
+def check_artifacts() -> None:
+    missing = [str(p) for p in REQUIRED if not p.exists()]
     if missing:
         raise SystemExit(f"pipeline.serve: missing trained artifact(s) {', '.join(missing)} "
                          f"(in {Path.cwd()}); run `dvc repro` first")
@@ -135,16 +135,15 @@ class Compensator:
     """The model, its workspace and limits; its methods are the service's (`compensate`, ...)."""
 
     def __init__(self, params: dict):
-        robot_cfg, _, _, self.cfg, serve = sections(params, "robot", "model", "train", "compensate", "serve")
-        self.robot = load_robot(robot_cfg)
-        self.model = load_model(params)
+        self.cfg, serve = params["compensate"], params["serve"]
+        self.robot = load_robot(params["robot"])
+        self.model = load_model(MODEL_WEIGHTS)
         self.limits_deg = np.asarray(self.robot.limits_deg, float)
         self.tol, self.unreachable = float(self.cfg["tol_mm"]), float(serve["unreachable_mm"])
         workspace = Workspace.from_dict(read_json(WORKSPACE_JSON))
         self.realtime = Realtime(self.model, np.radians(self.limits_deg), self.tol, workspace=workspace,
                                  compile=bool(serve["compile"]))
-        g = self.model.physics.geometry()
-        self.reach = float(g["a"].abs().sum() + g["d"].abs().sum() + g["tool"].norm() + g["base"][3:].norm())
+        self.reach = reach_mm(self.model.physics.geometry())
         self.lock = threading.Lock()                      # one model evaluation at a time
 
     def check(self, q_rad, target_mm, where: str = "") -> tuple[np.ndarray, np.ndarray]:
@@ -234,12 +233,12 @@ def make_server(params: dict, host: str | None = None, port: int | None = None,
                 compile: bool | None = None) -> Server:
     """The service on host:port (None: the `serve:` section; port 0: a free port, in server.server_address),
     not yet serving: call serve_forever()."""
-    cfg = section(params, "serve")
+    params = for_stage(params, PARAMS)
+    cfg = params["serve"]
     if compile is not None:
         params = {**params, "serve": {**cfg, "compile": compile}}
     host, port = cfg["host"] if host is None else host, cfg["port"] if port is None else port
-    sections(params, "robot", "model", "train", "compensate")
-    check_artifacts(params)
+    check_artifacts()
     comp = Compensator(params)
     try:
         server = Server((host, port), requestHandler=Handler, allow_none=False, logRequests=False)

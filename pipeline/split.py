@@ -11,14 +11,15 @@ import pandas as pd
 
 from .lib.artifacts import POINTS_TABLE, SPLIT_JSON, SPLIT_TABLE
 from .lib.columns import CAMPAIGN, SPLITS
-from .lib.config import load_params, logger, section, write_json
+from .lib.config import for_stage, load_params, logger, write_json
 from .lib.splits import split_indices
 
 log = logger(__name__)
+PARAMS = ("split",)
 
 
 def run(params: dict) -> dict:
-    cfg = section(params, "split")
+    cfg = for_stage(params, PARAMS)["split"]
     pts = pd.read_parquet(POINTS_TABLE, columns=["point_id", CAMPAIGN])
     split = pd.Series("", index=pts.index)
     per = {}

@@ -9,28 +9,28 @@ in reports/theory.json with their residual.
 """
 import numpy as np
 import pandas as pd
-import torch
 
 from .lib.artifacts import FRAME_JSON, INGEST_TABLE, POINTS_TABLE, THEORY_JSON
-from .lib.geometry import theory_geometry
 from .lib.columns import CAMPAIGN, ERR, JOINTS_DEG, MEAS, STATION, THEORY
-from .lib.config import load_params, logger, read_json, section, write_json
+from .lib.config import for_stage, load_params, logger, read_json, write_json
 from .lib.frames import to_base
-from .lib.kinematics import DTYPE, fk_numpy
+from .lib.geometry import theory_geometry
+from .lib.kinematics import fk_numpy
+from .lib.robots import load_robot
 
 log = logger(__name__)
+PARAMS = ("robot",)
 
 
 def run(params: dict) -> dict:
-    section(params, "robot")
+    robot = load_robot(for_stage(params, PARAMS)["robot"])
     frame = read_json(FRAME_JSON)
-    robot, g = theory_geometry(params)
     df = pd.read_parquet(INGEST_TABLE)
     out = df[["point_id", CAMPAIGN, STATION] + JOINTS_DEG].copy()
     theo, meas = np.full((len(df), 3), np.nan), np.full((len(df), 3), np.nan)
     for s, f in frame["stations"].items():           # the station's frame and tool (frame.tool_per_station)
         m = (df[STATION] == s).to_numpy()
-        theo[m] = fk_numpy(df.loc[m, JOINTS_DEG].to_numpy(), robot, {**g, "tool": torch.tensor(f["tool_mm"], dtype=DTYPE)})
+        theo[m] = fk_numpy(df.loc[m, JOINTS_DEG].to_numpy(), robot, theory_geometry(robot, f["tool_mm"]))
         meas[m] = to_base(df.loc[m, MEAS].to_numpy(), f)
     out[THEORY], out[MEAS] = theo, meas
     out[ERR] = out[MEAS].to_numpy() - out[THEORY].to_numpy()

@@ -2,33 +2,40 @@
 
 The physics branch is `model.physics` (calibrated: the calibrate stage's
 geometry; nominal: the paper's). Per-epoch curves go to dvclive
-(reports/live); weights to models/boter.pt as a state_dict; the summary to
-reports/train.json.
+(reports/live); the checkpoint (weights and the `model:` section it was built
+from) to models/boter.pt; the summary to reports/train.json, its wall-clock
+times to reports/timings/train.json.
 """
-import torch
 from dvclive import Live
 
-from .lib.artifacts import LIVE, MODEL_WEIGHTS, TRAIN_JSON, load_points
-from .lib.config import load_params, logger, sections, write_json
-from .lib.geometry import aligned, physics_geometry
-from .lib.training import train_boter
+from .lib.artifacts import CALIBRATED_GEOMETRY, FRAME_JSON, LIVE, MODEL_WEIGHTS, TIMINGS, TRAIN_JSON, load_points
+from .lib.config import for_stage, load_params, logger, read_json, split_timings, write_json
+from .lib.geometry import Calibration, aligned, physics_geometry, theory_geometry
+from .lib.robots import load_robot
+from .lib.training import save_model, train_boter
 
 log = logger(__name__)
+PARAMS = ("robot", "model", "loss", "train", "workspace")
 
 
 def run(params: dict) -> dict:
-    sections(params, "robot", "model", "loss", "train", "workspace")
-    df = aligned(load_points(), params)
-    geometry = physics_geometry(params, params["model"]["physics"])
-    with Live(dir=str(LIVE), save_dvc_exp=False, dvcyaml=False) as live:
-        model, summary = train_boter(params, df, geometry, live)   # dvclive needs a git repo with a commit
+    p = for_stage(params, PARAMS)
+    calibration = Calibration.from_dict(read_json(CALIBRATED_GEOMETRY))
+    nominal = theory_geometry(load_robot(p["robot"]), read_json(FRAME_JSON)["tool_mm"])
+    df = aligned(load_points(), calibration, nominal)
+    geometry = physics_geometry(p["model"]["physics"], calibration, nominal)
+    with Live(dir=str(LIVE), save_dvc_exp=False, dvcyaml=False) as live:   # dvclive needs a git repo with a commit
+        model, summary = train_boter(df, geometry, p["model"], p["loss"], p["train"],
+                                     p["workspace"]["radius_quantile"], live)
     MODEL_WEIGHTS.parent.mkdir(parents=True, exist_ok=True)
-    torch.save(model.state_dict(), MODEL_WEIGHTS)
+    save_model(model, MODEL_WEIGHTS, p["model"])
+    summary, timings = split_timings(summary)
     write_json(TRAIN_JSON, summary)
+    write_json(TIMINGS / "train.json", timings)
     log.info("trained SPI-BoTER (%d parameters) on %d points: best val 3D MAE %.4f mm at epoch "
              "%s of %d, %.1f s (%.3f s/epoch); alpha %s", summary["n_params"], summary["n_train"],
              summary["best_val_mae_3d_mm"], summary["best_epoch"], summary["epochs_run"],
-             summary["seconds"], summary["seconds_per_epoch"], summary["alpha"])
+             timings["seconds"], timings["seconds_per_epoch"], summary["alpha"])
     return summary
 
 

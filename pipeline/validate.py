@@ -16,20 +16,23 @@ import numpy as np
 import pandas as pd
 from scipy.spatial.transform import Rotation
 
-from .lib.artifacts import (CALIBRATED_GEOMETRY, FRAME_JSON, VALIDATION_DIR, VALIDATION_JSON, VALIDATION_TABLE,
-                            WORKSPACE_JSON)
+from .lib.artifacts import (CALIBRATED_GEOMETRY, FRAME_JSON, MODEL_WEIGHTS, VALIDATION_DIR, VALIDATION_JSON,
+                            VALIDATION_TABLE, WORKSPACE_JSON)
 from .lib.campaigns import named_campaign
 from .lib.columns import JOINTS_DEG, MEAS
-from .lib.config import check_keys, load_params, logger, read_json, section, sections, write_json
-from .lib.geometry import theory_geometry
-from .lib.kinematics import fk_numpy, load_geometry
+from .lib.config import check_keys, for_stage, load_params, logger, read_json, write_json
+from .lib.geometry import Calibration, theory_geometry
+from .lib.kinematics import fk_numpy
 from .lib.presets import deep_merge
 from .lib.readers import ingest
+from .lib.robots import load_robot
 from .lib.training import load_model, predict
 from .lib.validation import METHODS, judge, position_accuracy, summary
 from .lib.workspace import Workspace
 
 log = logger(__name__)
+PARAMS = {"campaign": ("robot", "ingest", "frame", "validate"),      # validate@NAME
+          "summary": ("validate",)}                                # validation
 
 
 def commanded_positions(df: pd.DataFrame, spec: dict, tool_mm, name: str) -> np.ndarray:
@@ -55,16 +58,16 @@ def commanded_positions(df: pd.DataFrame, spec: dict, tool_mm, name: str) -> np.
 
 
 def run_campaign(params: dict, name: str) -> dict:
-    *_, frame_cfg, cfg = sections(params, "robot", "model", "frame", "validate")
-    c = named_campaign(section(params, "validate")["campaigns"], name, "validate.campaigns", "validate.campaign")
-    df, ingested = ingest(deep_merge(params, {"ingest": c["ingest"]}))
+    p = for_stage(params, PARAMS["campaign"])
+    frame_cfg, cfg = p["frame"], p["validate"]
+    c = named_campaign(cfg["campaigns"], name, "validate.campaigns", "validate.campaign")
+    robot, frame = load_robot(p["robot"]), read_json(FRAME_JSON)
+    df, ingested = ingest(deep_merge(p["ingest"], c["ingest"]), robot)
     q = df[JOINTS_DEG].to_numpy()
-    robot, g_nominal = theory_geometry(params)
-    pred = {"nominal": fk_numpy(q, robot, g_nominal),
-            "calibrated": fk_numpy(q, robot, load_geometry(CALIBRATED_GEOMETRY)),
-            "model": predict(load_model(params), df)}
+    pred = {"nominal": fk_numpy(q, robot, theory_geometry(robot, frame["tool_mm"])),
+            "calibrated": fk_numpy(q, robot, Calibration.from_dict(read_json(CALIBRATED_GEOMETRY)).geometry),
+            "model": predict(load_model(MODEL_WEIGHTS), df)}
     P = df[MEAS].to_numpy()
-    frame = read_json(FRAME_JSON)
     errors, registered, frames = judge(pred, P, c["frame"], frame, cfg["register_points"], frame_cfg)
     u, inside = Workspace.from_dict(read_json(WORKSPACE_JSON))(q)
     table = pd.DataFrame({"point_id": df.point_id, "campaign": name, "registered": registered,
@@ -90,7 +93,7 @@ def run_campaign(params: dict, name: str) -> dict:
 
 def run_summary(params: dict) -> dict:
     """reports/validation.json and .parquet from the campaigns params.yaml lists now."""
-    names = sorted(section(params, "validate")["campaigns"] or {})
+    names = sorted(for_stage(params, PARAMS["summary"])["validate"]["campaigns"] or {})
     out = {"campaigns": {n: read_json(VALIDATION_DIR / f"{n}.json") for n in names}}
     tables = [pd.read_parquet(VALIDATION_DIR / f"{n}.parquet") for n in names]
     empty = pd.DataFrame({"point_id": pd.Series(dtype=str), "campaign": pd.Series(dtype=str),

@@ -10,11 +10,15 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pandas as pd
 import pytest
 import yaml
 
 import pipeline  # noqa: F401
-from pipeline.lib.config import load_params
+from pipeline.lib.artifacts import load_points
+from pipeline.lib.config import load_params, read_json
+from pipeline.lib.geometry import Calibration, aligned, theory_geometry
+from pipeline.lib.robots import load_robot
 
 ROOT = Path(__file__).resolve().parents[1]
 ENV = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
@@ -37,6 +41,13 @@ def small_project(root: Path) -> Path:
         subprocess.run([sys.executable, "-m", f"pipeline.{stage}"], cwd=root, env=ENV, check=True,
                        capture_output=True)
     return root
+
+
+def project_points(params: dict) -> pd.DataFrame:
+    """The points of the project in the working directory, aligned as the stages see them, with their split."""
+    calibration = Calibration.from_dict(read_json("models/calibration.json"))
+    nominal = theory_geometry(load_robot(params["robot"]), read_json("reports/frame.json")["tool_mm"])
+    return aligned(load_points(), calibration, nominal)
 
 
 @pytest.fixture(scope="session")

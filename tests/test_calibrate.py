@@ -12,7 +12,9 @@ from pipeline.lib import twin as T
 from pipeline.lib.columns import ERR, JOINTS_DEG, MEAS, THEORY
 from pipeline.lib.config import load_params, read_json
 from pipeline.lib.config import write_json
-from pipeline.lib.kinematics import DTYPE, fk, fk_numpy, load_geometry, nominal_geometry
+from pipeline.lib.config import read_json
+from pipeline.lib.geometry import Calibration
+from pipeline.lib.kinematics import DTYPE, fk, fk_numpy, nominal_geometry
 
 ROOT = Path(__file__).resolve().parents[1]
 CFG = load_params(ROOT / "params.yaml")["calibrate"]
@@ -151,7 +153,7 @@ def test_stage_writes_model_and_report(tmp_path, monkeypatch):
     rep = calibrate.run(params)
     saved = read_json("reports/calibration.json")
     assert saved["identified"] == rep["identified"] and saved["splits"]["train"]["n"] == 120
-    g = load_geometry("models/calibration.json")
+    g = Calibration.from_dict(read_json("models/calibration.json")).geometry
     assert set(g) == {"d", "a", "alpha", "offset", "beta", "tool", "base", "compliance", "mass", "com"}
     assert all(v.dtype == DTYPE for v in g.values())
     e = np.linalg.norm(positions(torch.as_tensor(np.radians(q), dtype=DTYPE), g) - meas, axis=1)

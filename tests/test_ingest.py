@@ -13,10 +13,16 @@ from hypothesis import strategies as st
 from pipeline.lib.columns import JOINTS_DEG, MEAS
 from pipeline.lib.config import load_params
 from pipeline.ingest import run
-from pipeline.lib.readers import IngestError, ingest
+from pipeline.lib import readers
+from pipeline.lib.readers import IngestError
 from pipeline.lib.kinematics import fk_numpy
 from pipeline.lib.presets import merged_params
 from pipeline.lib.robots import load_robot
+
+
+def ingest(params: dict):
+    """The library's ingest of a params dict's ingest section, for its robot section."""
+    return readers.ingest(params["ingest"], load_robot(params["robot"]))
 
 ROOT = Path(__file__).resolve().parents[1]
 DATASETS = Path(__file__).resolve().parents[2] / "shared" / "datasets"

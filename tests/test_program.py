@@ -1,5 +1,6 @@
 """The program compensator: a program's waypoints in, a compensated CSV and URScript out."""
 import re
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -15,7 +16,7 @@ from pipeline.lib.training import load_model
 
 def model_at(params, q_deg):
     with torch.no_grad():
-        return load_model(params)(torch.as_tensor(np.radians(q_deg), dtype=DTYPE))[0].numpy()
+        return load_model("models/boter.pt")(torch.as_tensor(np.radians(q_deg), dtype=DTYPE))[0].numpy()
 
 
 def test_offline_waypoints_land_where_the_nominal_program_meant(in_trained_project, tmp_path):
@@ -25,7 +26,7 @@ def test_offline_waypoints_land_where_the_nominal_program_meant(in_trained_proje
     pts = load_points().query("split == 'test'").head(12)
     src = tmp_path / "prog.csv"
     pts[JOINTS_DEG].to_csv(src, index=False)
-    table = program.main([str(src)])
+    table = program.run([str(src)])
     np.testing.assert_allclose(table[TARGET].to_numpy(), pts[THEORY].to_numpy(), atol=1e-9)
     assert table["converged"].all() and table.point_id.tolist()[:2] == ["W001", "W002"]
     tol = params["compensate"]["tol_mm"]
@@ -46,7 +47,7 @@ def test_positions_with_starting_joints(in_trained_project, tmp_path):
     target = pts[THEORY].to_numpy() + [0.5, -0.3, 0.2]                  # half a millimetre elsewhere
     src = tmp_path / "pos.csv"
     pts[JOINTS_DEG].assign(point_id=pts.point_id.to_numpy(), **dict(zip(TARGET, target.T))).to_csv(src, index=False)
-    table = program.main([str(src), "--out", str(tmp_path / "o.csv"), "--urscript", str(tmp_path / "o.script")])
+    table = program.run([str(src), "--out", str(tmp_path / "o.csv"), "--urscript", str(tmp_path / "o.script")])
     assert table.point_id.tolist() == pts.point_id.tolist()
     assert np.linalg.norm(model_at(params, table[JCOMP_DEG].to_numpy()) - target, axis=1).max() < \
         params["compensate"]["tol_mm"]
@@ -54,14 +55,118 @@ def test_positions_with_starting_joints(in_trained_project, tmp_path):
 
 
 @pytest.mark.parametrize("edit, message", [
-    (lambda d: d.drop(columns="j4_deg"), r"missing column\(s\) \['j4_deg'\]"),
-    (lambda d: d.assign(j3_deg=["1.0", "x", "2", "3"]), r"row 3, column j3_deg: not a finite number \('x'\)"),
-    (lambda d: d.assign(j2_deg=[0.0, 0.0, 0.0, 400.0]), r"row 5, column j2_deg: 400.0° beyond the joint limits"),
+    (lambda d: d.drop(columns="j4_deg"), r"column 'j4_deg': missing waypoint column 'j4_deg'"),
+    (lambda d: d.assign(j3_deg=["1.0", "x", "2", "3"]), r"row 3, column 'j3_deg': not a finite number"),
+    (lambda d: d.assign(j2_deg=[0.0, 0.0, 0.0, 400.0]), r"row 5, column 'j2_deg': 400.0° beyond the joint limits"),
     (lambda d: d.assign(target_x=1.0, target_y=2.0), r"target columns need all of"),
+    (lambda d: d.assign(j5_deg=["1e999", "1", "2", "3"]), r"row 2, column 'j5_deg': not a finite number"),
 ])
 def test_bad_waypoints_are_named_by_file_row_and_column(in_trained_project, tmp_path, edit, message):
     src = tmp_path / "bad.csv"
     edit(pd.DataFrame(np.zeros((4, 6)), columns=JOINTS_DEG)).to_csv(src, index=False)
     with pytest.raises(ValueError, match=message) as e:
-        program.main([str(src)])
+        program.run([str(src)])
     assert str(src) in str(e.value)
+
+
+def program_file(tmp_path, n=6, **columns) -> Path:
+    """n test-split waypoints (their recorded joints) as a CSV, with extra or replaced columns."""
+    pts = load_points().query("split == 'test'").head(n)
+    df = pts[JOINTS_DEG].reset_index(drop=True).assign(**columns)
+    src = tmp_path / "prog.csv"
+    df.to_csv(src, index=False)
+    return src
+
+
+def exit_code(argv, capsys) -> tuple[int, str]:
+    """pipeline.program's exit code (0 when it returns) and what it said on stderr and stdout."""
+    try:
+        program.main(argv)
+        code = 0
+    except SystemExit as e:
+        code = e.code
+    out = capsys.readouterr()
+    return code, out.err + out.out
+
+
+def test_an_id_cannot_inject_urscript(in_trained_project, tmp_path, capsys):
+    """Issue 21, defect 1: a point id with a newline put live lines into the URScript comment. Now every
+    id must match ID_PATTERN; the file is refused with its row and column, nothing is written."""
+    for bad in ['W2\n  set_digital_out(0, True)\n  popup("x")', 'W2 set_digital_out(0,True)', "W2\tpopup(1)", "x" * 65]:
+        ids = [f"W{i}" for i in range(6)]
+        ids[2] = bad
+        src = program_file(tmp_path, point_id=ids)
+        code, said = exit_code([str(src)], capsys)
+        assert code == 2 and "row 4" in said and "Traceback" not in said, said
+        assert not (tmp_path / "prog_comp.script").exists() and not (tmp_path / "prog_comp.csv").exists()
+    ok = program_file(tmp_path, point_id=["a:1", "b_2", "c-3", "d.4", "E5", "f6"])   # campaign ids pass
+    assert exit_code([str(ok)], capsys)[0] == 0
+    script = (tmp_path / "prog_comp.script").read_text()
+    for line in script.splitlines():                   # every line is ours: a comment, def/end, a number
+        assert re.fullmatch(r"(# .*|def compensated_program\(\):|end|  (acc|vel) = [0-9.]+|  # [A-Za-z0-9_.:-]+: "
+                            r"[^\n]*|  movej\(\[[-0-9., ]+\], a=acc, v=vel\))", line), line
+
+
+def test_an_unreached_waypoint_never_becomes_a_move(in_trained_project, tmp_path, capsys):
+    """Defect 2: a target 5 m away wrote a movej (residual 4050 mm) and exit 0. Now the program is refused
+    (exit 1, the waypoint named, nothing written); with --comment-out-unreached it is a comment, no move."""
+    pts = load_points().query("split == 'test'").head(4)
+    target = pts[THEORY].to_numpy().copy()
+    target[1] = [5000.0, 0.0, 0.0]                                          # beyond the reach: refused at once
+    target[2] = [0.0, 0.0, 1.0]                                             # inside the reach, unreachable
+    src = tmp_path / "prog.csv"
+    pts[JOINTS_DEG].assign(point_id=["A", "B", "C", "D"], **dict(zip(TARGET, target.T))).to_csv(src, index=False)
+    code, said = exit_code([str(src)], capsys)
+    assert code == 1 and "B: target 5000.0 mm from the base, beyond the arm's reach" in said
+    assert not (tmp_path / "prog_comp.script").exists()
+    target[1] = pts[THEORY].to_numpy()[1]
+    pts[JOINTS_DEG].assign(point_id=["A", "B", "C", "D"], **dict(zip(TARGET, target.T))).to_csv(src, index=False)
+    code, said = exit_code([str(src)], capsys)
+    assert code == 1 and "NOT REACHED C: residual" in said and "nothing written" in said
+    assert not (tmp_path / "prog_comp.script").exists() and not (tmp_path / "prog_comp.csv").exists()
+    code, said = exit_code([str(src), "--comment-out-unreached"], capsys)
+    assert code == 0 and "1 not reached" in said
+    script = (tmp_path / "prog_comp.script").read_text()
+    assert script.count("movej(") == 3 and "  # C: NOT REACHED (residual" in script
+    assert not re.search(r"# C:.*\n  movej", script)                         # no move follows it
+    table = pd.read_csv(tmp_path / "prog_comp.csv")
+    assert not table.set_index("point_id").loc["C", "converged"]
+
+
+def test_radians_in_degree_columns_are_refused(in_trained_project, tmp_path, capsys):
+    pts = load_points().query("split == 'test'").head(5)
+    src = tmp_path / "rad.csv"
+    np.radians(pts[JOINTS_DEG]).to_csv(src, index=False)
+    code, said = exit_code([str(src)], capsys)
+    assert code == 2 and "look like radians" in said and not (tmp_path / "rad_comp.script").exists()
+
+
+def test_empty_files_separators_and_outputs_over_the_input(in_trained_project, tmp_path, capsys):
+    """Defect 7: an empty or header-only file was a pandas traceback, `;` and decimal commas were refused,
+    and --out could overwrite the input."""
+    empty, header = tmp_path / "empty.csv", tmp_path / "header.csv"
+    empty.write_text("")
+    header.write_text(",".join(JOINTS_DEG) + "\n")
+    for f, why in ((empty, "the file is empty"), (header, "no data rows below the header")):
+        code, said = exit_code([str(f)], capsys)
+        assert code == 2 and why in said and "Traceback" not in said
+    pts = load_points().query("split == 'test'").head(3)
+    semi = tmp_path / "semi.csv"
+    semi.write_text(";".join(JOINTS_DEG) + "\n" + "\n".join(
+        ";".join(f"{v:.6f}".replace(".", ",") for v in row) for row in pts[JOINTS_DEG].to_numpy()) + "\n")
+    table = program.run([str(semi)])
+    np.testing.assert_allclose(table[JOINTS_DEG].to_numpy(), pts[JOINTS_DEG].to_numpy(), atol=1e-6)
+    code, said = exit_code([str(semi), "--out", str(semi)], capsys)
+    assert code == 2 and "must differ" in said
+
+
+def test_waypoints_outside_the_workspace_are_in_the_summary(in_trained_project, tmp_path, capsys):
+    """A waypoint far from every training pose is listed in the printed summary, not only the log."""
+    pts = load_points().query("split == 'test'").head(3)
+    q = pts[JOINTS_DEG].to_numpy().copy()
+    q[1] = [150.0, -30.0, 40.0, 10.0, -120.0, 0.0]                    # far from the twin's campaign
+    src = tmp_path / "far.csv"
+    pd.DataFrame(q, columns=JOINTS_DEG).assign(point_id=["P", "FAR", "Q"]).to_csv(src, index=False)
+    code, said = exit_code([str(src)], capsys)
+    assert code == 0 and "outside the trained workspace" in said
+    assert re.search(r"  FAR: [0-9.]+ workspace radii from the nearest training pose", said)

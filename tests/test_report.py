@@ -16,7 +16,7 @@ from pipeline.lib.config import load_params, write_json
 from pipeline.lib.kinematics import nominal_geometry
 from pipeline.lib.metrics import drive_table, regression_metrics
 from pipeline.lib.robots import nominal_robot
-from pipeline.lib.training import make_model
+from pipeline.lib.training import make_model, save_model
 from pipeline.lib.validation import summary
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -63,7 +63,7 @@ def write_inputs(root: Path, params: dict, optional: bool = True) -> pd.DataFram
 
     (root / "models").mkdir()                              # physics "nominal": geometry from frame.json's tool
     model = make_model(params["model"], nominal_geometry(nominal_robot("ur5")))
-    torch.save(model.state_dict(), root / "models/boter.pt")
+    save_model(model, root / "models/boter.pt", params["model"])
     live = root / "reports/live/plots/metrics"
     live.mkdir(parents=True)
     for name, v0 in [("train_mae_3d_mm", 1.5), ("val_mae_3d_mm", 1.6), ("loss", 2.0),
@@ -176,7 +176,7 @@ def test_missing_optional_inputs_are_skipped_with_a_note(tmp_path, monkeypatch):
         assert (index.parent / t).exists(), t
     text = index.read_text()
     assert text.count("_Skipped:") == len(skipped)
-    assert "encoder is false" in text and "No drive check" in text
+    assert "no trained model" in text and "No drive check" in text      # the checkpoint says encoder or not
     assert "calibration.json not found" in text and "train.json not found" in text
     assert not (tmp_path / "reports/ablation.json").exists()   # no ablation run, yet a full page
     assert "`python -m pipeline.ablation` (`--engine ray` in parallel)" in text

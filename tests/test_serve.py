@@ -19,9 +19,8 @@ import torch
 from pipeline.lib.artifacts import load_points
 from pipeline.lib.columns import JOINTS_DEG, THEORY
 from pipeline.lib.config import load_params
-from pipeline.lib.geometry import aligned
 from pipeline.lib.training import load_model
-from conftest import ENV
+from conftest import ENV, project_points
 from pipeline.serve import make_server, url
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -41,7 +40,7 @@ def params(project):
 @pytest.fixture(scope="module")
 def poses(project, params):
     """Test-split points: recorded angles (rad) and their theory positions (mm), as compensate uses them."""
-    df = aligned(load_points(), params)
+    df = project_points(params)
     df = df[df.split == "test"]
     return np.radians(df[JOINTS_DEG].to_numpy()), df[THEORY].to_numpy()
 
@@ -80,7 +79,7 @@ def test_compensate_lands_on_a_test_target(client, params, poses):
     assert r["converged"] is True and r["residual_mm"] < tol
     assert isinstance(r["in_workspace"], bool)
     with torch.no_grad():                                  # the model, evaluated on its own, agrees
-        p = load_model(params)(torch.tensor([r["q_rad"]], dtype=torch.float64))[0][0].numpy()
+        p = load_model("models/boter.pt")(torch.tensor([r["q_rad"]], dtype=torch.float64))[0][0].numpy()
     assert np.linalg.norm(p - target) < tol
     assert not np.allclose(r["q_rad"], q0)                 # it had something to correct
     flat = client.compensate_list(q0, target)              # the URScript form: the same answer, flat
@@ -157,7 +156,7 @@ def test_close_but_not_converged_is_an_answer_far_is_a_fault(params, poses):
     try:
         c = xmlrpc.client.ServerProxy(url(server))
         with torch.no_grad():
-            at_q0 = load_model(p)(torch.tensor(q0[None]))[0][0].numpy()
+            at_q0 = load_model("models/boter.pt")(torch.tensor(q0[None]))[0][0].numpy()
         r = c.compensate(q0.tolist(), (at_q0 + [0.3, 0.0, 0.0]).tolist())
         assert r["converged"] is False and 0.2 < r["residual_mm"] < p["serve"]["unreachable_mm"]
         assert np.abs(np.degrees(r["q_rad"]) - np.degrees(q0)).max() <= 1e-3 + 1e-9
@@ -174,7 +173,7 @@ def test_refuses_to_start_without_trained_artifacts(params, tmp_path, monkeypatc
         make_server(params, "127.0.0.1", 0)
     msg = str(e.value.code)
     assert "models/boter.pt" in msg and "models/workspace.json" in msg and "dvc repro" in msg
-    assert ("models/calibration.json" if params["model"]["physics"] == "calibrated" else "reports/frame.json") in msg
+    assert "calibration.json" not in msg and "frame.json" not in msg      # the checkpoint carries its geometry
 
 
 def test_serve_only_on_rpc2(server):

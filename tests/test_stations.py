@@ -14,8 +14,9 @@ from pipeline.lib import twin as T
 from pipeline.lib.columns import CAMPAIGN, JOINTS_DEG, MEAS, STATION
 from pipeline.lib.config import load_params, read_json
 from pipeline.lib.frames import fit_frames
-from pipeline.lib.geometry import aligned
-from pipeline.lib.kinematics import DTYPE, fk, load_geometry, nominal_geometry, rigid_xyz
+from pipeline.lib.geometry import Calibration, aligned, theory_geometry
+from pipeline.lib.kinematics import DTYPE, fk, nominal_geometry, rigid_xyz
+from pipeline.lib.robots import load_robot
 from pipeline.lib.presets import merged_params
 from pipeline.lib.robots import nominal_robot
 from pipeline.lib.splits import split_indices
@@ -159,7 +160,8 @@ def test_two_twin_stations_recovered_through_frame_and_calibrate_stages(tmp_path
     rep = read_json("reports/calibration.json")
     fr = read_json("reports/frame.json")
     assert list(fr["stations"]) == ["a", "b"] and fr["R"] == fr["stations"]["a"]["R"]
-    g = load_geometry("models/calibration.json")
+    cal = Calibration.from_dict(read_json("models/calibration.json"))
+    g = cal.geometry
     # each station's world map W_s = frame_s ∘ D_s, applied to the calibrated model at new poses
     W = {}
     for s in ("a", "b"):
@@ -184,7 +186,8 @@ def test_two_twin_stations_recovered_through_frame_and_calibrate_stages(tmp_path
     assert np.linalg.norm(rigid(*W["b"], p_cal) - rigid(Rb, tb, p_cal), axis=1).max() < 0.05
     # the campaigns are split on their own (8:1:1, seed 7) and carried through every table
     pts = aligned(pd.read_parquet("data/interim/points.parquet").merge(
-        pd.read_parquet("data/interim/split.parquet"), on="point_id"), params)
+        pd.read_parquet("data/interim/split.parquet"), on="point_id"), cal,
+        theory_geometry(load_robot(params["robot"]), fr["tool_mm"]))
     assert pts[CAMPAIGN].unique().tolist() == ["front", "side"] and pts[STATION].unique().tolist() == ["a", "b"]
     assert pts.point_id.str.startswith("side:B").sum() == 150
     counts = read_json("reports/split.json")["per_campaign"]

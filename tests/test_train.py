@@ -24,6 +24,11 @@ PARAMS = {
 G = nominal_geometry(load_robot(PARAMS["robot"]))
 
 
+def train(p: dict, points):
+    """train_boter on the nominal geometry G with p's sections."""
+    return train_boter(points, G, p["model"], p["loss"], p["train"], p["workspace"]["radius_quantile"], progress=False)
+
+
 @pytest.fixture()
 def points(tmp_path, monkeypatch):
     """120 poses whose measured positions carry a smooth 1 mm error."""
@@ -39,8 +44,8 @@ def points(tmp_path, monkeypatch):
 
 
 def test_same_seed_same_model_and_best_checkpoint_kept(points):
-    m1, h1 = train_boter(PARAMS, points, G, progress=False)
-    m2, h2 = train_boter(PARAMS, points, G, progress=False)
+    m1, h1 = train(PARAMS, points)
+    m2, h2 = train(PARAMS, points)
     for (k, a), (_, b) in zip(m1.state_dict().items(), m2.state_dict().items()):
         assert torch.equal(a, b), k
     assert h1["best_val_mae_3d_mm"] == h2["best_val_mae_3d_mm"] and h1["best_epoch"] == h2["best_epoch"]
@@ -54,12 +59,12 @@ def test_same_seed_same_model_and_best_checkpoint_kept(points):
 def test_early_stopping_and_a_different_seed_differs(points):
     p = json.loads(json.dumps(PARAMS))
     p["train"].update(max_epochs=200, patience=3, lr=3e-2)        # a rate that stops improving fast
-    _, h = train_boter(p, points, G, progress=False)
+    _, h = train(p, points)
     assert h["epochs_run"] < 200 and h["epochs_run"] - h["best_epoch"] == 3
     q = json.loads(json.dumps(PARAMS))
     q["model"]["init_seed"] = 4
-    m1, _ = train_boter(PARAMS, points, G, progress=False)
-    m2, _ = train_boter(q, points, G, progress=False)
+    m1, _ = train(PARAMS, points)
+    m2, _ = train(q, points)
     assert not torch.equal(m1.head.out.weight, m2.head.out.weight)
 
 
@@ -68,13 +73,13 @@ def test_early_stopping_and_a_different_seed_differs(points):
 def test_ema_ensemble_and_lr_drop_training_are_deterministic_and_keep_their_best(points, change):
     p = json.loads(json.dumps(PARAMS))
     p["train"].update(change)
-    m1, h1 = train_boter(p, points, G, progress=False)
-    m2, h2 = train_boter(p, points, G, progress=False)
+    m1, h1 = train(p, points)
+    m2, h2 = train(p, points)
     for (k, a), (_, b) in zip(m1.state_dict().items(), m2.state_dict().items()):
         assert torch.equal(a, b), k
     val = tensors(points[points.split == "val"])
     assert mae_3d(m1, *val) == pytest.approx(h1["best_val_mae_3d_mm"], rel=1e-12)
-    plain, _ = train_boter(PARAMS, points, G, progress=False)
+    plain, _ = train(PARAMS, points)
     if "lr_drop" in change:                                   # the rate dropped, so the path differs
         assert h1["final_lr"] < p["train"]["lr"]
     if change.get("members", 1) == 1:                         # EMA weights are not the last step's
@@ -89,4 +94,4 @@ def test_members_must_be_a_positive_integer(points):
     p = json.loads(json.dumps(PARAMS))
     p["train"]["members"] = 0
     with pytest.raises(ValueError, match=r"params.yaml train.members: a positive integer, got 0"):
-        train_boter(p, points, G, progress=False)
+        train(p, points)

@@ -13,7 +13,7 @@ from pipeline.lib import twin as T
 from pipeline.lib.config import load_params, write_json
 from pipeline.lib.kinematics import fk_numpy, nominal_geometry, save_geometry
 from pipeline.lib.robots import nominal_robot
-from pipeline.lib.training import make_model
+from pipeline.lib.training import make_model, save_model
 from pipeline.lib.validation import judge, position_accuracy, registration_subset, summary
 from pipeline.lib.workspace import Workspace
 
@@ -72,7 +72,7 @@ def project(tmp_path, monkeypatch):
     params["model"].update(d_model=12, n_head=2, n_layer=1, d_hidden=16)
     write_json("reports/frame.json", {"R": np.eye(3), "t": np.zeros(3), "tool_mm": [0.0, 0.0, 0.0]})
     save_geometry("models/calibration.json", nominal_geometry(UR5))
-    torch.save(make_model(params["model"], nominal_geometry(UR5)).state_dict(), "models/boter.pt")
+    save_model(make_model(params["model"], nominal_geometry(UR5)), "models/boter.pt", params["model"])
     rng = np.random.default_rng(2)
     write_json("models/workspace.json", Workspace.fit(T.sample_poses(300, rng), np.full(10, 0.1),
                                                       params["workspace"]).to_dict())

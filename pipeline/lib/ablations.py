@@ -1,10 +1,11 @@
 """The ablation groups (the paper's sec. 4.2.3-4.2.4, and the loss weighting) and one training run
 of a group at a seed: what `python -m pipeline.ablation` and `bench sweep` run as jobs (lib/sweep.py)."""
 import copy
+from dataclasses import dataclass
 
-from .artifacts import load_points
+import pandas as pd
+
 from .config import logger
-from .geometry import aligned, physics_geometry
 from .metrics import split_metrics
 from .training import predict, train_boter
 
@@ -22,6 +23,17 @@ GROUPS = {                                   # name -> params changes (one sourc
 }
 
 
+@dataclass
+class Job:
+    """One training run: the aligned points (with their split), the physics geometries by
+    `model.physics`, the sections model, loss, train, workspace and ablation, a group and a seed."""
+    points: pd.DataFrame
+    geometries: dict
+    params: dict
+    group: str
+    seed: int
+
+
 def group_params(params: dict, group: str, seed: int) -> dict:
     p = copy.deepcopy(params)
     for name, changes in GROUPS[group].items():
@@ -31,14 +43,13 @@ def group_params(params: dict, group: str, seed: int) -> dict:
     return p
 
 
-def train_one(args) -> dict:
+def train_one(job: Job) -> dict:
     """One (group, seed) training run (torch threads set by its sweep); returns its test metrics and epochs."""
-    params, group, seed = args
-    df = aligned(load_points(), params)
-    p = group_params(params, group, seed)
-    model, hist = train_boter(p, df, physics_geometry(p, p["model"]["physics"]), progress=False)
+    df, p = job.points, group_params(job.params, job.group, job.seed)
+    model, hist = train_boter(df, job.geometries[p["model"]["physics"]], p["model"], p["loss"], p["train"],
+                              p["workspace"]["radius_quantile"], progress=False)
     test = split_metrics(df, predict(model.eval(), df))["test"]
-    log.info("%s seed %d: test 3D MAE %.4f mm, best epoch %d", group, seed, test["3d"]["mae"],
+    log.info("%s seed %d: test 3D MAE %.4f mm, best epoch %d", job.group, job.seed, test["3d"]["mae"],
              hist["best_epoch"])
-    return {"seed": seed, "test": test, "epochs_to_best": hist["best_epoch"],
+    return {"seed": job.seed, "test": test, "epochs_to_best": hist["best_epoch"],
             "epochs_run": hist["epochs_run"], "seconds": hist["seconds"], "n_params": hist["n_params"]}

@@ -41,6 +41,8 @@ EXPORT_JSON = REPORTS / "export.json"
 VALIDATION_DIR = REPORTS / "validation"               # validate@<campaign>: <campaign>.json/.parquet
 VALIDATION_JSON = REPORTS / "validation.json"         # validation (all campaigns)
 VALIDATION_TABLE = REPORTS / "validation.parquet"
+TIMINGS = REPORTS / "timings"                         # every stage: <stage>.json, wall-clock times; not a
+                                                      #   DVC output (git-ignored), so outputs hash the same
 
 
 def load_points() -> pd.DataFrame:

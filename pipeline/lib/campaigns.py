@@ -8,7 +8,7 @@ of a `more` campaign get ids "<campaign>:<id>", unique across campaigns. The
 first station (the ingest section's) is the one whose frame is reports/frame.json's
 top-level R, t: the base frame everything downstream works in.
 """
-from .config import check_keys, section
+from .config import check_keys
 from .presets import deep_merge
 
 
@@ -25,28 +25,27 @@ def named_campaign(campaigns: dict | None, name: str, where: str, keys: str) -> 
     return c
 
 
-def campaign_entry(params: dict, name: str) -> dict:
-    """campaigns.more[name], checked (named_campaign) with a station name."""
-    c = named_campaign(section(params, "campaigns")["more"], name, "campaigns.more", "campaigns.campaign")
+def campaign_entry(campaigns: dict, name: str) -> dict:
+    """campaigns.more[name] of the `campaigns:` section, checked (named_campaign) with a station name."""
+    c = named_campaign(campaigns["more"], name, "campaigns.more", "campaigns.campaign")
     if not isinstance(c["station"], str) or not c["station"]:
         raise ValueError(f"params.yaml campaigns.more.{name}.station: a name, got {c['station']!r}")
     return c
 
 
-def campaign_params(params: dict, name: str) -> dict:
-    """params with the ingest section overridden by campaign `name`'s (campaigns.more)."""
-    return {**params, "ingest": deep_merge(params["ingest"], campaign_entry(params, name)["ingest"])}
+def campaign_ingest(ingest: dict, campaigns: dict, name: str) -> dict:
+    """The `ingest:` section overridden by campaign `name`'s (campaigns.more)."""
+    return deep_merge(ingest, campaign_entry(campaigns, name)["ingest"])
 
 
-def campaign_stations(params: dict) -> dict[str, str]:
-    """{campaign: station}, the ingest section's campaign first."""
-    c = section(params, "campaigns")
-    out = {c["name"]: c["station"]}
-    for name in c["more"] or {}:
+def campaign_stations(campaigns: dict) -> dict[str, str]:
+    """{campaign: station} of the `campaigns:` section, the ingest section's campaign first."""
+    out = {campaigns["name"]: campaigns["station"]}
+    for name in campaigns["more"] or {}:
         if name in out:
             raise ValueError(f"params.yaml campaigns.more.{name}: the name of the ingest section's campaign "
                              f"(campaigns.name); choose another")
-        out[name] = campaign_entry(params, name)["station"]
+        out[name] = campaign_entry(campaigns, name)["station"]
     return out
 
 

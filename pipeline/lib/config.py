@@ -76,6 +76,13 @@ def sections(params: dict, *names: str) -> list[dict]:
     return [section(params, n) for n in names]
 
 
+def for_stage(params: dict, names) -> dict:
+    """Only the sections `names` of params (each checked): what a stage may read. A stage declares
+    them in its module's PARAMS, and tests/test_layout.py holds dvc.yaml's `params:` to the same list,
+    so a setting a stage reads is always one that re-runs it."""
+    return {n: section(params, n) for n in names}
+
+
 def load_params(path: Path | str = PARAMS) -> dict:
     with open(path) as f:
         return yaml.safe_load(f)
@@ -95,6 +102,29 @@ def write_json(path: Path | str, obj) -> None:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(obj, indent=2, default=_jsonable) + "\n")
+
+
+TIMING_KEYS = ("seconds", "seconds_per_epoch", "ms_per_point")   # wall-clock: never in a hashed output
+
+
+def split_timings(obj):
+    """(obj without its TIMING_KEYS, those values in the same nesting): a stage writes the first to
+    its DVC-hashed summary and the second to reports/timings/, so the same params and seed give the
+    same bytes however busy the machine was."""
+    if not isinstance(obj, dict):
+        if isinstance(obj, list):
+            pairs = [split_timings(v) for v in obj]
+            return [a for a, _ in pairs], [b for _, b in pairs]
+        return obj, None
+    kept, times = {}, {}
+    for k, v in obj.items():
+        if k in TIMING_KEYS:
+            times[k] = v
+            continue
+        kept[k], t = split_timings(v)
+        if t not in (None, {}, []) and not (isinstance(t, list) and not any(t)):
+            times[k] = t
+    return kept, times
 
 
 def read_json(path: Path | str):

@@ -203,11 +203,11 @@ def fig_training_curves(ctx):
 def fig_attention_maps(ctx):
     """Attention weights per layer (rows) and head (columns), mean over the test set: query
     joint (row) attends to key joint (column); softmax weights, dimensionless; grey = masked."""
-    if not ctx.params["model"]["encoder"]:
-        return "model.encoder is false (the No-Transformer variant): no attention to show"
     model = ctx.model
     if model is None:
         return "no trained model (models/boter.pt not found)"
+    if not model.config["encoder"]:
+        return "model.encoder is false (the No-Transformer variant): no attention to show"
     plt = _plt()
     t, label = split_test(ctx.pred)
     q = torch.as_tensor(np.radians(t[JOINTS_DEG].to_numpy()))
@@ -239,7 +239,7 @@ def fig_attention_maps(ctx):
                 ax.set_ylabel("query joint", fontsize=8)
     fig.colorbar(im, ax=axs, shrink=0.8, label="attention weight (dimensionless)")
     fig.suptitle(f"Attention weights per layer and head, mean over {len(t)} points ({label})\n"
-                 f"rows = query joint, columns = key joint; mask = {ctx.params['model']['mask']} "
+                 f"rows = query joint, columns = key joint; mask = {model.config['mask']} "
                  "(grey = masked); dimensionless")
     return fig
 

@@ -1,65 +1,77 @@
-"""Which geometry each branch runs on, read from the stage outputs.
+"""Which geometry each branch runs on; every input is a value the stage read and passed.
 
 theory_geometry    nominal DH with the frame stage's tool: the theory points and the paper's
                    (nominal) physics branch
-physics_geometry   `model.physics`: nominal (the above) or calibrated (the calibrate stage's)
+Calibration        the calibrate stage's result: the calibrated geometry, and each tracker
+                   station's frame correction and tool offset
+physics_geometry   `model.physics`: nominal (the above) or calibrated
 aligned            measured points of every tracker station in the first station's base frame
                    (and tool), with the station corrections the calibrate stage identified
 """
+from dataclasses import dataclass, field
+
 import numpy as np
 import pandas as pd
 import torch
 
-from .artifacts import CALIBRATED_GEOMETRY, FRAME_JSON
 from .columns import ERR, JOINTS_DEG, MEAS, STATION, THEORY
-from .config import read_json
-from .kinematics import DTYPE, fk, load_geometry, nominal_geometry, rigid_xyz
-from .robots import load_robot
+from .kinematics import DTYPE, GEOMETRY_KEYS, fk, nominal_geometry, rigid_xyz
+from .robots import Robot
+
+PHYSICS = ("calibrated", "nominal")
 
 
-def theory_geometry(params: dict) -> tuple:
-    """(robot, nominal DH geometry) with the tool offset the frame stage settled on."""
-    robot = load_robot(params["robot"])
-    robot.tool = np.asarray(read_json(FRAME_JSON)["tool_mm"], float)
-    return robot, nominal_geometry(robot)
+def theory_geometry(robot: Robot, tool_mm) -> dict:
+    """Nominal DH geometry of `robot` with the tool offset the frame stage settled on (tool_mm)."""
+    return {**nominal_geometry(robot), "tool": torch.as_tensor(np.asarray(tool_mm, float), dtype=DTYPE)}
 
 
-def physics_geometry(params: dict, physics: str) -> dict:
-    """The physics branch's geometry: `nominal` (theory_geometry) or `calibrated` (calibrate stage)."""
+@dataclass
+class Calibration:
+    """models/calibration.json as values: the geometry, and per further station its frame correction
+    [rx, ry, rz rad, tx, ty, tz mm] and tool offset minus the first station's (mm)."""
+    geometry: dict
+    stations: dict = field(default_factory=dict)
+    station_tools: dict = field(default_factory=dict)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "Calibration":
+        """From the saved JSON (kinematics.save_geometry's layout)."""
+        g = {k: torch.tensor(d["geometry"][k], dtype=DTYPE) for k in GEOMETRY_KEYS}
+        return cls(g, d.get("stations", {}), d.get("station_tools", {}))
+
+
+def physics_geometry(physics: str, calibration: Calibration, nominal: dict) -> dict:
+    """The physics branch's geometry for `model.physics`: the calibrated one or the nominal one."""
     if physics == "calibrated":
-        return load_geometry(CALIBRATED_GEOMETRY)
+        return calibration.geometry
     if physics == "nominal":
-        return theory_geometry(params)[1]
-    raise ValueError(f"params.yaml model.physics: {physics!r}; use nominal or calibrated")
+        return nominal
+    raise ValueError(f"params.yaml model.physics: {physics!r}; use one of {PHYSICS}")
 
 
-def aligned(df: pd.DataFrame, params: dict, cal: dict | None = None) -> pd.DataFrame:
+def aligned(df: pd.DataFrame, calibration: Calibration, nominal: dict) -> pd.DataFrame:
     """df (points table) with every station's points as if measured from the first station with
     the first station's tool, where the model lives (one station, one tool: df unchanged).
 
     meas = R^T (meas_station - t) - R_base R_flange(q) dtool, with the station's correction (R, t)
     and tool offset dtool identified by calibrate (R_flange of the calibrated geometry);
-    theory = nominal DH with the first station's tool; err = meas - theory.
-    cal: {"stations", "station_tools", "geometry"}; default models/calibration.json.
+    theory = nominal DH (`nominal`: theory_geometry) with the first station's tool; err = meas - theory.
     """
-    if cal is None:
-        cal = {**read_json(CALIBRATED_GEOMETRY), "geometry": load_geometry(CALIBRATED_GEOMETRY)}
-    tools = cal.get("station_tools", {})
-    g, g_nom = cal.get("geometry"), None
+    g = calibration.geometry
     out = df.copy()
-    for s, d in cal.get("stations", {}).items():
+    for s, d in calibration.stations.items():
         m = (df[STATION] == s).to_numpy()
-        dtool = np.asarray(tools.get(s, [0.0, 0.0, 0.0]), float)
+        dtool = np.asarray(calibration.station_tools.get(s, [0.0, 0.0, 0.0]), float)
         if not m.any() or not (any(d) or dtool.any()):
             continue
         R, t = (v.numpy() for v in rigid_xyz(torch.tensor(d, dtype=DTYPE)))
         meas = (df.loc[m, MEAS].to_numpy() - t) @ R
         if dtool.any():                                # the marker's offset from the first tool, moved by the arm
             q = torch.as_tensor(np.radians(df.loc[m, JOINTS_DEG].to_numpy()), dtype=DTYPE)
-            g_nom = g_nom or theory_geometry(params)[1]
             with torch.no_grad():
                 meas -= (fk(q, {**g, "tool": g["tool"] + torch.as_tensor(dtool, dtype=DTYPE)}) - fk(q, g)).numpy()
-                out.loc[m, THEORY] = fk(q, g_nom).numpy()
+                out.loc[m, THEORY] = fk(q, nominal).numpy()
         out.loc[m, MEAS] = meas
         out.loc[m, ERR] = meas - out.loc[m, THEORY].to_numpy()
     return out

@@ -1,7 +1,7 @@
 """Reading tracker/controller exports -> one table of points (DATA_FORMAT.md).
 
-`ingest(params)` does it all and writes nothing (the ingest stage writes).
-Inputs, chosen by settings alone (`ingest:` and `robot:`):
+`ingest(cfg, robot)` does it all and writes nothing (the ingest stage writes).
+Inputs, chosen by settings alone (the `ingest:` section, and the robot of `robot:`):
 - paired files: `ingest.joints` (point_id, j1_deg..j6_deg) and `ingest.tracker`
   (Name, X, Y, Z), paired by point id; or a tracker point cloud
   (.ply/.pcd/.xyz/.pts, read with open3d), paired with the joint rows by order
@@ -67,7 +67,6 @@ import pandas as pd
 from .columns import JOINTS_DEG, MEAS
 from .config import check_keys, logger
 from .kinematics import fk_numpy
-from .robots import load_robot
 
 log = logger(__name__)
 
@@ -475,10 +474,15 @@ def check_scale(pts: Points, robot, length_unit: str, headers: list, path: str) 
     return extent
 
 
+def looks_like_radians(q_deg: np.ndarray) -> bool:
+    """Every angle, read as degrees, within +-2*pi: they are radians (no real pose set is that small)."""
+    return len(q_deg) > 0 and np.abs(q_deg).max() <= 2 * np.pi + 1e-9
+
+
 def check_angle_scale(pts: Points, units: list, headers: list, path: str) -> None:
     """Stop if every degree-read angle lies within +-2*pi: they are radians."""
     deg = [i for i, u in enumerate(units) if u == "deg"]
-    if len(deg) == 6 and len(pts) >= MIN_POINTS and np.abs(pts.q).max() <= 2 * np.pi + 1e-9:
+    if len(deg) == 6 and len(pts) >= MIN_POINTS and looks_like_radians(pts.q):
         raise IngestError(f"every joint angle ({', '.join(headers)}), read as degrees, lies within "
                           "+-6.29: these look like radians; set ingest.angle_unit: rad", file=path)
 
@@ -574,9 +578,9 @@ def file_info(rows: Rows) -> dict:
 
 # -------------------------------------------------------------------- settings and the whole read
 
-def settings(params: dict) -> dict:
+def settings(ingest_cfg: dict) -> dict:
     """The `ingest:` section, checked (keys, separators, units), `table` set when both inputs are one file."""
-    cfg = dict(check_keys(params["ingest"], "ingest"))
+    cfg = dict(check_keys(ingest_cfg, "ingest"))
     check_keys(cfg["columns"], "ingest.columns")
     cfg["table"] = cfg["joints"] if str(cfg["joints"]) == str(cfg["tracker"]) else None
     if cfg["sep"] != "auto":
@@ -648,10 +652,10 @@ def unit_of(header: str, setting: str) -> str:
     return setting
 
 
-def ingest(params: dict):
-    """Read, pair, check and convert the inputs -> (table, summary). Writes nothing."""
-    cfg = settings(params)
-    robot = load_robot(params["robot"])
+def ingest(ingest_cfg: dict, robot):
+    """Read, pair, check and convert the inputs of the `ingest:` section for `robot` (robots.Robot)
+    -> (table, summary). Writes nothing."""
+    cfg = settings(ingest_cfg)
     dropped = []
     pts, files, path = read_inputs(cfg, dropped)
     joints, positions = files[0], files[-1]

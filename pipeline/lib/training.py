@@ -18,10 +18,8 @@ import pandas as pd
 import torch
 from tqdm import tqdm
 
-from .artifacts import MODEL_WEIGHTS
 from .columns import JOINTS_DEG, MEAS
-from .geometry import physics_geometry
-from .kinematics import DTYPE
+from .kinematics import DTYPE, GEOMETRY_KEYS
 from .loss import SPILoss, data_loss
 from .model import DNN, BoTER, Ensemble, check_config, n_params
 from .workspace import workspace_radius
@@ -44,13 +42,23 @@ def make_model(cfg: dict, geometry: dict, kind: str = "boter"):
                  alpha0=cfg["alpha0"], dropout=cfg["dropout"], fade_to=cfg["fade_to"])
 
 
-def load_model(params: dict) -> BoTER | Ensemble:
-    """The trained BoTER or Ensemble (`train.members`; models/boter.pt, weights_only=True) on its
-    physics branch, in eval mode."""
-    geometry = physics_geometry(params, params["model"]["physics"])
-    members = [make_model(params["model"], geometry) for _ in range(params["train"]["members"])]
+def save_model(model, path, cfg: dict) -> None:
+    """A checkpoint that carries its own config: {"config": the `model:` section, "members": K,
+    "state_dict"} (the physics branch's geometry and the training poses are buffers of the state)."""
+    members = getattr(model, "n_members", 1)
+    torch.save({"config": dict(cfg), "members": members, "state_dict": model.state_dict()}, path)
+
+
+def load_model(path) -> BoTER | Ensemble:
+    """The trained BoTER or Ensemble of a checkpoint (save_model; weights_only=True), in eval mode.
+    Needs no params: the checkpoint says how to build it, its state holds the geometry."""
+    ckpt = torch.load(path, weights_only=True)
+    state = ckpt["state_dict"]
+    geometry = {k: state[f"physics.{k}"] for k in GEOMETRY_KEYS}
+    members = [make_model(ckpt["config"], geometry) for _ in range(ckpt["members"])]
     model = members[0] if len(members) == 1 else Ensemble(members)
-    model.load_state_dict(torch.load(MODEL_WEIGHTS, weights_only=True))
+    model.load_state_dict(state)
+    model.config = ckpt["config"]
     return model.eval()
 
 
@@ -122,21 +130,23 @@ def fit(model, loss_fn, train, val, cfg: dict, live=None, desc="train", progress
             "seconds_per_epoch": (time.perf_counter() - t0) / (epoch + 1)}
 
 
-def train_boter(params: dict, df: pd.DataFrame, geometry: dict, live=None, progress=True):
+def train_boter(df: pd.DataFrame, geometry: dict, model_cfg: dict, loss_cfg: dict, train_cfg: dict,
+                radius_quantile: float, live=None, progress=True):
     """Build and train BoTER (or `train.members` of them, an Ensemble) with the SPI loss on df's
-    train split; returns (model, summary)."""
-    n_members = params["train"]["members"]
+    train split, on the physics `geometry`, from the `model:`, `loss:` and `train:` sections and the
+    workspace radius quantile; returns (model, summary)."""
+    n_members = train_cfg["members"]
     if not (isinstance(n_members, int) and n_members >= 1):
         raise ValueError(f"params.yaml train.members: a positive integer, got {n_members!r}")
     train_q = df.loc[df.split == "train", JOINTS_DEG].to_numpy()
-    radius = workspace_radius(train_q, params["workspace"]["radius_quantile"])
+    radius = workspace_radius(train_q, radius_quantile)
     train, val = tensors(df[df.split == "train"]), tensors(df[df.split == "val"])
     members, runs = [], []
     for k in range(n_members):
-        model = make_model({**params["model"], "init_seed": params["model"]["init_seed"] + k}, geometry)
+        model = make_model({**model_cfg, "init_seed": model_cfg["init_seed"] + k}, geometry)
         model.fade.fit(train_q, radius)
-        loss_fn = SPILoss(**params["loss"])
-        cfg = {**params["train"], "seed": params["train"]["seed"] + k}
+        loss_fn = SPILoss(**loss_cfg)
+        cfg = {**train_cfg, "seed": train_cfg["seed"] + k}
         desc = "SPI-BoTER" + (f" {k + 1}/{n_members}" if n_members > 1 else "")
         hist = fit(model, loss_fn, train, val, cfg, live if k == 0 else None, desc, progress)
         hist.update(alpha=model.alpha.item(), loss_weights=loss_fn.weights().tolist())
@@ -152,10 +162,10 @@ def train_boter(params: dict, df: pd.DataFrame, geometry: dict, live=None, progr
     return model, summary
 
 
-def train_dnn(params: dict, df: pd.DataFrame, geometry: dict, progress=True):
+def train_dnn(df: pd.DataFrame, geometry: dict, model_cfg: dict, train_cfg: dict, progress=True):
     """The paper's DNN baseline: same splits and optimiser, data loss only."""
-    model = make_model(params["model"], geometry, kind="dnn")
+    model = make_model(model_cfg, geometry, kind="dnn")
     loss_fn = lambda pp, pg, pt: (data_loss(pp, pg), {"data": 0.0, "physics": 0.0})
     train, val = tensors(df[df.split == "train"]), tensors(df[df.split == "val"])
-    hist = fit(model, loss_fn, train, val, params["train"], None, "DNN", progress)
+    hist = fit(model, loss_fn, train, val, train_cfg, None, "DNN", progress)
     return model, hist
