@@ -1,11 +1,24 @@
-"""Kabsch (eqs. 20-26): recovering a known transform, robust to misreads, refusing degenerate input."""
+"""Kabsch (eqs. 20-26): recovering a known transform, robust to misreads, refusing degenerate input
+and fits no real campaign gives (mirrored tracker axes, a wrong scale)."""
+import copy
+from pathlib import Path
+
 import numpy as np
+import pandas as pd
 import pytest
 from scipy.spatial.transform import Rotation
 
-from pipeline.lib.frames import DegenerateFit, fit_frame, kabsch, robust_kabsch
+from pipeline import frame as frame_stage
+from pipeline import ingest as ingest_stage
+from pipeline.lib.columns import JOINTS_DEG
+from pipeline.lib.config import load_params, read_json
+from pipeline.lib.frames import DegenerateFit, FrameFitError, fit_frame, fit_frames, kabsch, robust_kabsch
 from pipeline.lib.kinematics import fk_numpy
 from pipeline.lib.robots import load_robot, nominal_robot
+from pipeline.lib.validation import judge
+
+ROOT = Path(__file__).resolve().parents[1]
+PARAMS = load_params(ROOT / "params.yaml")
 
 R_TRUE = Rotation.from_euler("zyx", [123.0, -17.0, 41.0], degrees=True).as_matrix()
 T_TRUE = np.array([1200.0, -3050.0, 410.0])
@@ -34,6 +47,8 @@ def test_kabsch_exact_without_noise_and_proper_rotation_for_reflection():
     # a mirrored cloud has no proper rotation onto it: det(R) is still +1 (eq. 25)
     R, _ = kabsch(Q, Q * [1, 1, -1])
     assert np.linalg.det(R) == pytest.approx(1.0)
+    R, _ = kabsch(Q, Q * [1, 1, -1], proper=False)                # unless a reflection is allowed
+    np.testing.assert_allclose(R, np.diag([1.0, 1.0, -1.0]), atol=1e-12)
 
 
 def test_kabsch_refuses_collinear_and_too_few_points():
@@ -63,8 +78,87 @@ def test_frame_with_tool_estimation_recovers_tool():
     true = load_robot({"model": "ur5", "tool_mm": tool_true, "dh": None, "joint_limits_deg": None})
     P = world(fk_numpy(q, true), rng, noise=0.02)
     cfg = {"outlier_k": 5.0, "outlier_min_mm": 3.0, "estimate_tool": True, "tool_per_station": False,
-           "robust_loss": "soft_l1", "robust_scale_mm": 0.5}
+           "robust_loss": "soft_l1", "robust_scale_mm": 0.5, "max_rms_mm": 50.0}
     fit = fit_frame(q, P, robot, cfg)
     np.testing.assert_allclose(fit["tool_mm"], tool_true, atol=0.02)
     np.testing.assert_allclose(fit["t"], T_TRUE, atol=0.05)
     assert fit["residual_mm"].mean() < 0.05
+
+
+# ---------------------------------------------------------------- fits no real campaign gives
+
+def twin():
+    """The bundled twin campaign: joint angles (deg), tracker points (mm), robot."""
+    q = pd.read_csv(ROOT / "data" / "raw" / "joints.csv")[JOINTS_DEG].to_numpy()
+    P = pd.read_csv(ROOT / "data" / "raw" / "tracker.csv")[["X", "Y", "Z"]].to_numpy()
+    return q, P, load_robot(PARAMS["robot"])
+
+
+def run_stages(tmp_path, monkeypatch, header="Name,X,Y,Z", scale=1.0, **ingest_cfg):
+    """The ingest and frame stages on the twin campaign, its tracker file with another header or
+    scaled; returns ingest's summary (frame's exception propagates)."""
+    t = pd.read_csv(ROOT / "data" / "raw" / "tracker.csv")
+    t[["X", "Y", "Z"]] *= scale
+    t.columns = header.split(",")
+    t.to_csv(tmp_path / "tracker.csv", index=False, float_format="%.4f")
+    p = copy.deepcopy(PARAMS)
+    p["ingest"].update(joints=str(ROOT / "data" / "raw" / "joints.csv"), tracker=str(tmp_path / "tracker.csv"),
+                       **ingest_cfg)
+    monkeypatch.chdir(tmp_path)
+    summary = ingest_stage.run(p)
+    frame_stage.run(p)
+    return summary
+
+
+def test_the_twin_campaign_passes_the_fit_checks(tmp_path, monkeypatch):
+    run_stages(tmp_path, monkeypatch)
+    f = read_json(tmp_path / "reports" / "frame.json")
+    assert 1.0 < f["rms_mm"] < 1.4 and f["det_R"] == pytest.approx(1.0)      # 1.19 mm, nominal DH
+
+
+def test_swapped_tracker_axes_stop_the_frame_stage(tmp_path, monkeypatch):
+    """X and Y swapped in the header: ingest accepts it (its distance check cannot see a
+    reflection); the best rotation leaves 247.6 mm, a reflection 2.5 mm: the frame stage stops."""
+    with pytest.raises(FrameFitError) as info:
+        run_stages(tmp_path, monkeypatch, header="Name,Y,X,Z")
+    msg = str(info.value)
+    for s in ("station 'main'", "axes look mirrored or swapped", "rms 247.6 mm", "reflection (det -1) only 2.5 mm",
+              "frame.max_rms_mm", "ingest.columns.position", "ingest.length_unit", "robot.model", "robot.tool_mm"):
+        assert s in msg, f"{s!r} not in {msg!r}"
+    assert read_json(tmp_path / "reports" / "ingest.json")["n_kept"] == 724
+    assert not (tmp_path / "reports" / "frame.json").exists()
+
+
+def test_wrong_scale_stops_on_the_rms_threshold(tmp_path, monkeypatch):
+    """Positions x1.5 (inside ingest's scale window; its distance check off): rms ~167 mm."""
+    with pytest.raises(FrameFitError) as info:
+        run_stages(tmp_path, monkeypatch, scale=1.5, gross_outlier_mm=None)
+    msg = str(info.value)
+    for s in ("station 'main'", "rms 167.3 mm", "frame.max_rms_mm = 50 mm", "ingest.length_unit",
+              "robot.model", "robot.tool_mm"):
+        assert s in msg, f"{s!r} not in {msg!r}"
+    assert "mirrored" not in msg.split("Likely causes")[0]
+
+
+@pytest.mark.parametrize("estimate_tool", [False, True])
+def test_a_mirrored_station_is_named(estimate_tool):
+    """Two stations, the second's Y axis flipped: the fit names station 'b' (with or without the
+    tool refinement); a threshold above the rms found does not hide the reflection."""
+    q, P, robot = twin()
+    P = P.copy()
+    P[400:, 1] *= -1
+    station = np.array(["a"] * 400 + ["b"] * (len(P) - 400))
+    cfg = PARAMS["frame"] | {"estimate_tool": estimate_tool, "max_rms_mm": 1e6}
+    with pytest.raises(FrameFitError, match=r"station 'b': the tracker axes look mirrored"):
+        fit_frames(q, P, station, robot, cfg)
+    fit = fit_frames(q[:400], P[:400], station[:400], robot, cfg)             # station a alone passes
+    assert np.sqrt(np.mean(fit["residual_mm"][fit["inliers"]] ** 2)) < 1.4
+
+
+def test_refit_registration_of_a_mirrored_validation_campaign_stops():
+    rng = np.random.default_rng(4)
+    q = rng.uniform(-170.0, 170.0, (200, 6))
+    p = fk_numpy(q, nominal_robot("ur5"))
+    P = (p @ R_TRUE.T + T_TRUE + rng.normal(0, 0.5, p.shape)) * [1, 1, -1]    # Z mirrored
+    with pytest.raises(FrameFitError, match=r"refit registration \(nominal\): the tracker axes look mirrored"):
+        judge({"nominal": p}, P, "refit", {}, 30, PARAMS["frame"])

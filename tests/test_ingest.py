@@ -236,6 +236,88 @@ def test_dropped_rows_are_listed_with_reasons(tmp_path):
     assert {d["point_id"] for d in s["dropped"] if d["reason"] == "gross_outlier"} == {"P0010"}
 
 
+def twin_copy(d, edits=(), m_scale=1.0):
+    """The bundled twin campaign (data/raw) copied to d, positions times m_scale, with cells
+    replaced: edits [(role, line, column, cell)], line 1-based with the header."""
+    paths, cells = {}, {}
+    for role, name in (("joints", "joints.csv"), ("tracker", "tracker.csv")):
+        lines = (ROOT / "data" / "raw" / name).read_text().splitlines()
+        cells[role] = [ln.split(",") for ln in lines]
+        if role == "tracker" and m_scale != 1.0:
+            cells[role][1:] = [[r[0]] + [f"{float(v) * m_scale:.7f}" for v in r[1:]] for r in cells[role][1:]]
+    for role, line, column, cell in edits:
+        cells[role][line - 1][cells[role][0].index(column)] = cell
+    for role, rows in cells.items():
+        paths[role] = str(Path(d) / f"{role}.csv")
+        Path(paths[role]).write_text("\n".join(",".join(r) for r in rows) + "\n")
+    return paths, cells
+
+
+def twin_params(**ingest_cfg):
+    """params() for the twin campaign: its marker is the flange centre (params.yaml robot.tool_mm)."""
+    p = params(**ingest_cfg)
+    p["robot"]["tool_mm"] = [0.0, 0.0, 0.0]
+    return p
+
+
+def test_typo_cells_in_positions_drop_their_rows_not_the_campaign(tmp_path):
+    """One X cell without its decimal point (-1659.1260 -> -16591260) and one Z cell 1e999 (inf):
+    their two rows are listed (file, row, column) and every other point of the twin is kept."""
+    edits = [("tracker", 2, "X", "-16591260"), ("tracker", 11, "Z", "1e999")]
+    paths, cells = twin_copy(tmp_path, edits)
+    assert cells["tracker"][1][:2] == ["P0001", "-16591260"]
+    df, s = ingest(twin_params(**paths))
+    n = len(cells["tracker"]) - 1
+    assert n == 724 and s["n_read"] == {"joints": n, "tracker": n} and s["n_kept"] == len(df) == n - 2
+    got = {(d["file"], d["row"], d["reason"], d["point_id"]) for d in s["dropped"]}
+    assert got == {(paths["joints"], 2, "position_outlier", "P0001"),
+                   (paths["tracker"], 2, "position_outlier", "P0001"),
+                   (paths["joints"], 11, "partner_dropped", "P0010"),
+                   (paths["tracker"], 11, "non_finite", "P0010")}
+    detail = {(d["file"], d["row"]): d["detail"] for d in s["dropped"]}
+    outlier = detail[(paths["tracker"], 2)]
+    assert outlier.startswith("column 'X' = -1.65913e+07 mm") and "median position" in outlier
+    assert "'Y'" not in outlier and "'Z'" not in outlier                  # only the column that is off
+    assert detail[(paths["tracker"], 11)].startswith("column 'Z': '1e999'")
+    assert s["dropped_counts"] == {"position_outlier": 2, "non_finite": 1, "partner_dropped": 1}
+    for role in ("joints", "tracker"):
+        assert s["n_kept"] + len(by_file(s, paths[role])) == s["n_read"][role]
+    keep = [r for r in cells["tracker"][1:] if r[0] not in ("P0001", "P0010")]
+    assert list(df.point_id) == [r[0] for r in keep]
+    np.testing.assert_allclose(df[MEAS].to_numpy(), [[float(v) for v in r[1:]] for r in keep], rtol=0, atol=1e-9)
+    assert 1000.0 < s["geometry"]["extent_mm"] < 3000.0                # judged without the typo
+
+
+def test_typo_cells_in_joints_drop_their_rows(tmp_path):
+    """A joint cell without its decimal point is out of the limits (joint_limit); -1e999 and
+    inf are non_finite; the column is named, the rest kept."""
+    edits = [("joints", 4, "j2_deg", "-63005212"), ("joints", 6, "j5_deg", "-1e999"),
+             ("joints", 8, "j1_deg", "inf")]
+    paths, cells = twin_copy(tmp_path, edits)
+    df, s = ingest(twin_params(**paths))
+    got = {(d["file"] == paths["joints"], d["row"], d["reason"]) for d in s["dropped"]}
+    assert got == {(True, 4, "joint_limit"), (False, 4, "joint_limit"),
+                   (True, 6, "non_finite"), (False, 6, "partner_dropped"),
+                   (True, 8, "non_finite"), (False, 8, "partner_dropped")}
+    detail = {(d["file"] == paths["joints"], d["row"]): d["detail"] for d in s["dropped"]}
+    assert detail[(True, 4)] == "column 'j2_deg' = -6.30052e+07 deg outside [-360, 360]"
+    assert detail[(True, 6)].startswith("column 'j5_deg': '-1e999'")
+    assert detail[(True, 8)].startswith("column 'j1_deg': 'inf'")
+    assert s["n_kept"] == len(df) == 724 - 3
+    assert {"P0003", "P0005", "P0007"}.isdisjoint(df.point_id)
+
+
+def test_a_typo_does_not_hide_a_wrong_length_unit(tmp_path):
+    """Positions in metres read as mm, one cell without its decimal point: the typo is dropped and
+    the rest still stops ingest as metres (not 'implausibly large')."""
+    paths, cells = twin_copy(tmp_path, [("tracker", 6, "X", "-16278867")], m_scale=1e-3)   # -1.6278867 m
+    assert cells["tracker"][6][1:] == ["-1.5775106", "1.4860104", "2.4274781"]      # the others: metres
+    raises([paths["tracker"], "read as mm", "look like metres", "length_unit: m"], ingest, params(**paths))
+    paths, _ = twin_copy(tmp_path, [("tracker", 6, "X", "-16278867")])     # the other way round:
+    raises([paths["tracker"], "read as m", "look like millimetres", "length_unit: mm"], ingest,
+           twin_params(**paths, length_unit="m"))                                     # every point far off
+
+
 # ---------------------------------------------------------------- fatal errors
 
 def test_error_message_names_file_row_column():

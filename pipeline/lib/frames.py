@@ -8,6 +8,12 @@ stations (campaigns measured from different tracker placements): one frame
 each, the tool shared (or, with `frame.tool_per_station`, one per station: a
 different marker on each placement), all refined together (`fit_frames`).
 
+`check_fit` stops (FrameFitError) on a fit no real campaign gives: a reflection
+(det -1) that fits the points MIRROR_RATIO times better than the best rotation,
+which leaves more than `frame.outlier_min_mm` (swapped or mirrored tracker axes:
+no rotation undoes them), or an rms above `frame.max_rms_mm` (a wrong unit,
+robot model or tool). `fit_frames` checks every station.
+
 `to_base` maps tracker points back into the base frame (inverse of eq. 20).
 """
 import numpy as np
@@ -17,13 +23,25 @@ from scipy.spatial.transform import Rotation
 
 from .kinematics import DTYPE, fk_poses, nominal_geometry
 
+MIRROR_RATIO = 3.0          # a reflection this many times better than the best rotation: mirrored axes
+CAUSES = ("Likely causes: swapped or mirrored tracker axes (ingest.columns.position, or the tracker's "
+          "export), a wrong length unit (ingest.length_unit), a wrong robot model (robot.model) or "
+          "tool (robot.tool_mm)")
+
 
 class DegenerateFit(ValueError):
     """The points cannot fix a rigid transform (too few, or collinear)."""
 
 
-def kabsch(Q: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Rigid transform with P ≈ R Q + t (eqs. 21-26). Q, P: (n, 3) -> R (3, 3), t (3,)."""
+class FrameFitError(ValueError):
+    """A frame fit no real campaign gives: mirrored tracker axes, or an rms above frame.max_rms_mm."""
+
+
+def kabsch(Q: np.ndarray, P: np.ndarray, proper: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """Rigid transform with P ≈ R Q + t (eqs. 21-26). Q, P: (n, 3) -> R (3, 3), t (3,).
+
+    proper=False: the best orthogonal R, a reflection (det -1) if that fits better.
+    """
     Q, P = np.asarray(Q, float), np.asarray(P, float)
     if len(Q) < 3:
         raise DegenerateFit(f"need at least 3 points for a rigid fit, got {len(Q)}")
@@ -36,8 +54,8 @@ def kabsch(Q: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     H = Qc.T @ Pc / len(Q)                                 # eq. 23
     U, _, Vt = np.linalg.svd(H)                            # eq. 24
     V = Vt.T
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(V @ U.T))])
-    R = V @ D @ U.T                                        # eq. 25, det(R) = +1
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(V @ U.T)) if proper else 1.0])
+    R = V @ D @ U.T                                        # eq. 25, det(R) = +1 if proper
     t = p_bar - R @ q_bar                                  # eq. 26
     return R, t
 
@@ -59,6 +77,30 @@ def robust_kabsch(Q, P, k: float = 5.0, min_mm: float = 3.0, max_iter: int = 20)
             break
         inl = new
     return R, t, inl, r
+
+
+def rms(Q, P, R, t) -> float:
+    """Root mean square of |R Q + t - P| (mm)."""
+    return float(np.sqrt(np.mean(np.sum((Q @ R.T + t - P) ** 2, axis=1))))
+
+
+def check_fit(Q, P, R, t, where: str, cfg: dict) -> float:
+    """The rms of the fit P ≈ R Q + t (the inliers); FrameFitError if a reflection fits MIRROR_RATIO
+    times better and the rms is above cfg["outlier_min_mm"] (mirrored axes), or the rms is above
+    cfg["max_rms_mm"]. `where` names the fit in the message."""
+    found, limit = rms(Q, P, R, t), cfg["max_rms_mm"]
+    Rm, tm = kabsch(Q, P, proper=False)
+    mirrored = rms(Q, P, Rm, tm)
+    if np.linalg.det(Rm) < 0 and found > max(MIRROR_RATIO * mirrored, cfg["outlier_min_mm"]):
+        raise FrameFitError(f"{where}: the tracker axes look mirrored or swapped: the best rotation leaves "
+                            f"rms {found:.1f} mm on {len(P)} points (frame.max_rms_mm = {limit:g} mm), a "
+                            f"reflection (det -1) only {mirrored:.1f} mm; no rotation undoes a swap of two "
+                            f"axes or a flipped sign. {CAUSES}")
+    if found > limit:
+        raise FrameFitError(f"{where}: the frame fit leaves rms {found:.1f} mm on {len(P)} points, above "
+                            f"frame.max_rms_mm = {limit:g} mm (nominal kinematics with a real tracker: a few "
+                            f"mm). {CAUSES}")
+    return found
 
 
 def flange_poses(q_deg: np.ndarray, geometry: dict) -> tuple[np.ndarray, np.ndarray]:
@@ -111,7 +153,7 @@ def fit_frames(q_deg: np.ndarray, P: np.ndarray, station: np.ndarray, robot, cfg
 
     Each station: robust Kabsch on its points (outliers per station). With
     cfg["estimate_tool"], all frames and one tool (cfg["tool_per_station"]: one per station) are
-    then refined jointly on the inliers.
+    then refined jointly on the inliers. Every station's fit is then checked (check_fit).
     Returns {"stations": {name: {"R", "t", "tool_mm", "points": (n,) bool, its points}},
     "inliers" (n,) bool, "residual_mm" (n,), "tool_mm" (the first station's), "method", "condition"}.
     """
@@ -142,6 +184,9 @@ def fit_frames(q_deg: np.ndarray, P: np.ndarray, station: np.ndarray, robot, cfg
         Q = tool_points(Rf, pf, tools[idx])
     Rs, ts = np.stack([R for R, _ in frames]), np.stack([t for _, t in frames])
     r = np.linalg.norm(np.einsum("nij,nj->ni", Rs[idx], Q) + ts[idx] - P, axis=1)
+    for k, s in enumerate(names):
+        m = (idx == k) & inl
+        check_fit(Q[m], P[m], Rs[k], ts[k], f"station '{s}'", cfg)
     return {"stations": {s: {"R": Rs[k], "t": ts[k], "tool_mm": tools[k], "points": idx == k}
                          for k, s in enumerate(names)},
             "inliers": inl, "residual_mm": r, "tool_mm": tools[0], **diag}

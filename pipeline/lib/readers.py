@@ -34,9 +34,16 @@ A per-row problem drops the row and lists it; `reason` is one of
     duplicate        id already used by an earlier row of the same file (the first row
                      keeps the id, even if that row is itself dropped for another reason)
     empty, nan, non_numeric   a joint/position cell (the detail names the column)
+    non_finite       a joint/position cell reads as +-inf ('inf', or 1e999: a mistyped exponent?)
     unpaired         id in one file only
     partner_dropped  the point's row in the other file was dropped
-    joint_limit      an angle outside the robot's limits
+    joint_limit      an angle outside the robot's limits (also a joint cell that lost its decimal point)
+    position_outlier a position farther than POSITION_FAR = 5 x (robot reach + |tool|) from the
+                     median position (per axis, of the points left), where no real point can be: a
+                     cell that lost its decimal point; the detail names the column(s) off. Judged
+                     before the scale check, which then judges the rest; when more than half the
+                     points are that far (a wrong length_unit), none is dropped: the scale check
+                     judges them all and stops, as it did before this rule
     gross_outlier    for point i, median_j | |m_i-m_j| - |t_i-t_j| | > gross_outlier_mm,
                      t = nominal FK with tool (frame-free: rigid-motion invariant)
 A dropped point lists its row in every file it has one in, so for each file
@@ -48,8 +55,9 @@ Fatal problems raise IngestError, whose message names file, row and column:
     more than half of a file's rows with bad cells (wrong sep/decimal setting?)
     or out of joint limits (degrees read as radians?);
     point cloud and joint rows of different counts; no ids in common;
-    a position scale that does not fit the robot (extent outside reach/50 ..
-    50*reach after length_unit) or degree angles all within +-2*pi (radians?);
+    a position scale that does not fit the robot (extent of the points left
+    outside reach/50 .. 50*reach after length_unit) or degree angles all
+    within +-2*pi (radians?);
     the gross-outlier check flagging more than half the points (wrong robot,
     tool or units); fewer than 10 points left; measured points (nearly)
     collinear or coincident. Nearly coplanar points only warn (geometry.coplanar).
@@ -81,6 +89,9 @@ AUTO_JOINTS = [JOINTS_DEG, [f"j{i}_rad" for i in range(1, 7)],
 AUTO_POSITION = [["x", "y", "z"], MEAS]
 CELL_REASONS = ("field_count", "missing_id", "empty", "nan", "non_numeric")
 NAN_WORDS = {"nan", "-nan", "na", "n/a", "null", "none"}
+INF_WORDS = {"inf", "+inf", "-inf", "infinity", "+infinity", "-infinity"}
+POSITION_FAR = 5.0          # x (reach + |tool|): real points lie within (1 + sqrt 3) x that of their
+                            # per-axis median; a lost decimal point puts a cell 10..10^4 x off
 NUMBER = re.compile(r"[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?")
 COMMA_DECIMAL = re.compile(r"[+-]?\d*,\d+([eE][+-]?\d+)?")
 DOT_DECIMAL = re.compile(r"[+-]?\d*\.\d+([eE][+-]?\d+)?")
@@ -196,10 +207,20 @@ def parse_number(cell: str, decimal: str):
         return np.nan, ("empty", "empty cell")
     if s.lower() in NAN_WORDS:
         return np.nan, ("nan", f"{s!r} (missing value)")
+    if s.lower() in INF_WORDS:
+        return float(s), None
     t = s.replace(",", ".") if decimal == "," else s
     if NUMBER.fullmatch(t) and not (decimal == "," and "." in s):
         return float(t), None
     return np.nan, ("non_numeric", f"{s!r} is not a number")
+
+
+def parse_finite(cell: str, decimal: str):
+    """parse_number, and a non-finite value (inf, 1e999) is the `non_finite` problem."""
+    v, err = parse_number(cell, decimal)
+    if err is None and not np.isfinite(v):
+        return np.nan, ("non_finite", f"{cell.strip()!r} reads as {v} (a mistyped number?)")
+    return v, err
 
 
 def headers_found(header: list) -> str:
@@ -284,7 +305,7 @@ def read_rows(path: str, role: str, cfg: dict, id_setting, groups: list) -> Rows
                 problem[r] = ("missing_id", "empty id cell", header[id_col])
                 continue
         for k, c in enumerate(cols):
-            values[r, k], err = parse_number(row[c], decimal)
+            values[r, k], err = parse_finite(row[c], decimal)
             if err:
                 problem[r] = (err[0], f"column '{header[c]}': {err[1]}", header[c])
                 break
@@ -452,6 +473,27 @@ def check_count(pts: Points, dropped: list, path: str) -> None:
         raise IngestError(f"only {len(pts)} points left after dropping {len(dropped)} rows "
                           f"(need at least {MIN_POINTS}); see the reasons above or in "
                           f"reports/ingest.json: {dict(Counter(d['reason'] for d in dropped))}", file=path)
+
+
+def drop_position_outliers(pts: Points, robot, headers: list, dropped: list) -> Points:
+    """Drop points farther than POSITION_FAR x (reach + |tool|) from the median position (a typo);
+    none if more than half are (a unit error: check_scale judges it)."""
+    dev = pts.m - np.median(pts.m, axis=0)
+    dist = np.linalg.norm(dev, axis=1)
+    limit = POSITION_FAR * (robot.reach + float(np.linalg.norm(robot.tool)))
+    bad = dist > limit
+    if 2 * bad.sum() > len(pts):
+        return pts
+    details = [position_detail(pts.m[k], dev[k], limit, headers) if b else "" for k, b in enumerate(bad)]
+    return pts.drop(bad, "position_outlier", details, dropped)
+
+
+def position_detail(m: np.ndarray, dev: np.ndarray, limit: float, headers: list) -> str:
+    """The columns that put a point far off (those at least half as far off as the farthest)."""
+    off = np.flatnonzero(np.abs(dev) >= np.abs(dev).max() / 2)
+    cells = ", ".join(f"column '{headers[i]}' = {m[i]:.6g} mm" for i in off)
+    return (f"{cells}: {np.linalg.norm(dev):.4g} mm from the median position, limit {limit:.4g} mm "
+            f"({POSITION_FAR:g} x the robot's reach + tool; a lost decimal point?)")
 
 
 def check_scale(pts: Points, robot, length_unit: str, headers: list, path: str) -> float:
@@ -667,6 +709,8 @@ def ingest(ingest_cfg: dict, robot):
     check_count(pts, dropped, path)
     check_angle_scale(pts, units, jh, joints.path)
     pts = drop_joint_limits(pts, robot, jh, dropped)
+    check_count(pts, dropped, path)
+    pts = drop_position_outliers(pts, robot, ph, dropped)
     check_count(pts, dropped, path)
     extent = check_scale(pts, robot, cfg["length_unit"], ph, positions.path)
     pts, outliers = drop_gross_outliers(pts, robot, cfg["gross_outlier_mm"], dropped, path)

@@ -12,7 +12,8 @@ measured it in its tracker's frame. Two ways to compare them:
             point nearest the centroid), so the frame is well conditioned and most of the
             campaign is left to judge. Only the frame is refitted, not the tool: the
             model predicts positions, not flange poses, so the three methods are
-            registered alike.
+            registered alike. The nominal method's registration is checked like the
+            frame stage's fit (frames.check_fit): a mirrored or far-off campaign stops.
 
 ISO 9283 position accuracy where the campaign commands one position several
 times (a `commanded` column group): per commanded position, with the
@@ -26,7 +27,7 @@ really goes for that command.
 import numpy as np
 import pandas as pd
 
-from .frames import robust_kabsch, to_base
+from .frames import check_fit, robust_kabsch, to_base
 
 METHODS = ("nominal", "calibrated", "model")
 
@@ -60,7 +61,9 @@ def judge(pred: dict, P_world: np.ndarray, mode: str, frame: dict, n_register: i
     reg = registration_subset(P_world, n_register)
     errors, frames = {}, {}
     for m, p in pred.items():
-        R, t, _, _ = robust_kabsch(p[reg], P_world[reg], frame_cfg["outlier_k"], frame_cfg["outlier_min_mm"])
+        R, t, inl, _ = robust_kabsch(p[reg], P_world[reg], frame_cfg["outlier_k"], frame_cfg["outlier_min_mm"])
+        if m == "nominal":
+            check_fit(p[reg][inl], P_world[reg][inl], R, t, "the refit registration (nominal)", frame_cfg)
         errors[m] = np.linalg.norm(p @ R.T + t - P_world, axis=1)
         frames[m] = {"R": R, "t": t}
     return errors, reg, frames
