@@ -134,7 +134,7 @@ def test_wrong_scale_stops_on_the_rms_threshold(tmp_path, monkeypatch):
     with pytest.raises(FrameFitError) as info:
         run_stages(tmp_path, monkeypatch, scale=1.5, gross_outlier_mm=None)
     msg = str(info.value)
-    for s in ("station 'main'", "rms 167.3 mm", "frame.max_rms_mm = 50 mm", "ingest.length_unit",
+    for s in ("station 'main'", "rms 167.3 mm", "frame.max_rms_mm = 20 mm", "ingest.length_unit",
               "robot.model", "robot.tool_mm"):
         assert s in msg, f"{s!r} not in {msg!r}"
     assert "mirrored" not in msg.split("Likely causes")[0]

@@ -13,7 +13,7 @@ from pipeline.lib import identify as C
 from pipeline.lib import twin as T
 from pipeline.lib.columns import CAMPAIGN, JOINTS_DEG, MEAS, STATION
 from pipeline.lib.config import load_params, read_json
-from pipeline.lib.frames import fit_frames
+from pipeline.lib.frames import FrameFitError, fit_frames
 from pipeline.lib.geometry import Calibration, aligned, theory_geometry
 from pipeline.lib.kinematics import DTYPE, fk, nominal_geometry, rigid_xyz
 from pipeline.lib.robots import load_robot
@@ -79,8 +79,8 @@ def test_a_tool_per_station_is_recovered_exactly_when_asked_for():
     np.testing.assert_allclose(fit["tool_mm"], e["tool_mm"], atol=1e-6)
     assert np.abs(fit["stations"]["b"]["t"] - b.t).max() < 1e-5
     assert fit["residual_mm"].max() < 1e-6
-    shared = fit_frames(np.vstack([qa, qb]), P, station, nominal_robot("ur5"), cfg | {"tool_per_station": False})
-    assert shared["residual_mm"].mean() > 1.0
+    with pytest.raises(FrameFitError, match=r"station 'b'.*rms 2\d\.\d mm.*frame.tool_per_station"):
+        fit_frames(np.vstack([qa, qb]), P, station, nominal_robot("ur5"), cfg | {"tool_per_station": False})
     with pytest.raises(ValueError, match="frame.tool_per_station: true needs frame.estimate_tool: true"):
         fit_frames(qa, P[:200], station[:200], nominal_robot("ur5"), cfg | {"estimate_tool": False})
 

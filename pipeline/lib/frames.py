@@ -26,7 +26,7 @@ from .kinematics import DTYPE, fk_poses, nominal_geometry
 MIRROR_RATIO = 3.0          # a reflection this many times better than the best rotation: mirrored axes
 CAUSES = ("Likely causes: swapped or mirrored tracker axes (ingest.columns.position, or the tracker's "
           "export), a wrong length unit (ingest.length_unit), a wrong robot model (robot.model) or "
-          "tool (robot.tool_mm)")
+          "tool (robot.tool_mm; a station measured with another marker: frame.tool_per_station)")
 
 
 class DegenerateFit(ValueError):
