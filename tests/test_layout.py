@@ -1,6 +1,7 @@
 """The architecture, checked: the library never imports a stage, no stage imports another,
 and every stage's dvc.yaml deps cover exactly the project code it runs."""
 import ast
+import importlib
 import json
 import os
 import shutil
@@ -9,6 +10,8 @@ from pathlib import Path
 
 import pytest
 import yaml
+
+from pipeline.lib.config import for_stage, load_params
 
 ROOT = Path(__file__).resolve().parents[1]
 PKG = ROOT / "pipeline"
@@ -114,6 +117,32 @@ def test_stage_deps_are_exactly_the_code_it_runs(name):
     deps = {d for d in stage.get("do", stage)["deps"] if d.endswith(".py")}
     assert not code - deps, f"stage {name}: code it runs but does not depend on: {sorted(code - deps)}"
     assert not deps - code, f"stage {name}: depends on code it does not run: {sorted(deps - code)}"
+
+
+def declared_params(stage: dict) -> set[str]:
+    """The sections the stage's module says it reads (its PARAMS; a dict per subcommand, e.g. validate's)."""
+    cmd = stage.get("do", stage)["cmd"].split()
+    declared = importlib.import_module(cmd[2]).PARAMS
+    return set(declared[cmd[3]] if isinstance(declared, dict) else declared)
+
+
+@pytest.mark.parametrize("name", sorted(STAGES))
+def test_stage_params_are_exactly_the_sections_it_reads(name):
+    """dvc.yaml `params:` (by section: `validate.register_points` is the validate section) == the
+    module's PARAMS, which config.for_stage hands the stage and nothing else: a setting the stage
+    reads re-runs it, and no other setting does."""
+    stage = dvc_stages()[name]
+    listed = {p.split(".")[0] for p in stage.get("do", stage).get("params", [])}
+    declared = declared_params(stage)
+    assert declared == listed, (f"stage {name}: reads {sorted(declared)} but dvc.yaml lists {sorted(listed)}")
+
+
+def test_a_stage_sees_only_its_declared_sections():
+    from pipeline import split
+    params = load_params(ROOT / "params.yaml")
+    with pytest.raises(KeyError):
+        for_stage(params, split.PARAMS)["model"]
+    assert set(for_stage(params, split.PARAMS)) == {"split"}
 
 
 def test_closure_sees_function_local_and_transitive_imports(tmp_path):
