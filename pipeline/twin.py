@@ -4,6 +4,8 @@
 
 Byte for byte the committed files (a test checks it); the twin itself is lib/twin.py.
 """
+import argparse
+
 from .lib.config import for_stage, load_params, logger
 from .lib.twin import RAW, SEED, generate
 
@@ -21,5 +23,11 @@ def run(params: dict) -> dict:
     return rec
 
 
-if __name__ == "__main__":
+def main(argv=None):
+    argparse.ArgumentParser(prog="python -m pipeline.twin", description=__doc__,
+                            formatter_class=argparse.RawDescriptionHelpFormatter).parse_args(argv)
     run(load_params())
+
+
+if __name__ == "__main__":
+    main()

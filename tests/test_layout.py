@@ -1,16 +1,23 @@
-"""The architecture, checked: the library never imports a stage, no stage imports another,
-and every stage's dvc.yaml deps cover exactly the project code it runs."""
+"""The architecture, checked. Everything under pipeline/ but the library (pipeline/lib/) is a stage
+that ./dvc.yaml runs or a declared command (pipeline.COMMANDS), never both. The library imports only
+itself; a stage imports only the library; a command (a module, or a package such as pipeline/bench/)
+only the library and its own modules: no stage or command imports another. Every stage's dvc.yaml deps
+cover exactly the project code it runs and its params exactly the sections it reads (the opt-in
+ablation/dvc.yaml's too, whose stages run a command); every command has a [project.scripts] entry."""
 import ast
 import importlib
+import inspect
 import json
 import os
 import shutil
 import subprocess
+import tomllib
 from pathlib import Path
 
 import pytest
 import yaml
 
+from pipeline import COMMANDS
 from pipeline.lib.config import for_stage, load_params
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -86,9 +93,31 @@ def foreach_keys(stage: dict, params: dict) -> list:
     return list(node or {})
 
 
-STAGES = {name: stage_module(s) for name, s in dvc_stages().items()}
-LIB = sorted(f"pipeline.lib.{p.stem}" for p in (PKG / "lib").glob("*.py") if p.stem != "__init__")
-TOP = sorted(f"pipeline.{p.stem}" for p in PKG.glob("*.py") if p.stem != "__init__")
+def package_modules(folder: Path) -> list[str]:
+    """Every module of the package in `folder` (its __init__ as the package's own name)."""
+    out = []
+    for p in sorted(folder.rglob("*.py")):
+        parts = p.relative_to(ROOT).with_suffix("").parts
+        out.append(".".join(parts[:-1] if parts[-1] == "__init__" else parts))
+    return out
+
+
+def top_level() -> dict[str, list[str]]:
+    """{pipeline.<name>: its modules} for every module pipeline/<name>.py and package pipeline/<name>/
+    but the library: the stages and commands."""
+    out = {f"pipeline.{p.stem}": [f"pipeline.{p.stem}"] for p in PKG.glob("*.py") if p.stem != "__init__"}
+    for d in PKG.iterdir():
+        if d.is_dir() and d.name != "lib" and (d / "__init__.py").exists():
+            out[f"pipeline.{d.name}"] = package_modules(d)
+    return out
+
+
+STAGES = {name: stage_module(s) for name, s in dvc_stages().items()}           # ablation's too
+PIPELINE = {stage_module(s) for s in yaml.safe_load((ROOT / "dvc.yaml").read_text())["stages"].values()}
+CMDS = {f"pipeline.{c}" for c in COMMANDS}
+LIB = package_modules(PKG / "lib")
+TOP = top_level()
+MODULES = sorted((top, m) for top, mods in TOP.items() for m in mods)            # (its stage or command, module)
 
 
 def test_every_stage_is_a_pipeline_module():
@@ -97,16 +126,71 @@ def test_every_stage_is_a_pipeline_module():
     assert {"pipeline.ingest", "pipeline.train", "pipeline.report"} <= set(STAGES.values())
 
 
+def test_everything_but_the_library_is_a_stage_or_a_command_never_both():
+    assert not PIPELINE & CMDS, f"{sorted(PIPELINE & CMDS)}: run by dvc.yaml and declared a command"
+    assert set(TOP) == PIPELINE | CMDS, (f"neither a stage of dvc.yaml nor in pipeline.COMMANDS: "
+                                         f"{sorted(set(TOP) - PIPELINE - CMDS)}; declared but absent: "
+                                         f"{sorted((PIPELINE | CMDS) - set(TOP))}")
+    assert {"pipeline.bench", "pipeline.bench.__main__", "pipeline.bench.real"} <= {m for _, m in MODULES}
+    strays = [d.name for d in PKG.iterdir() if d.is_dir() and d.name != "lib" and not (d / "__init__.py").exists()
+              and any(d.rglob("*.py"))]
+    assert not strays, f"pipeline/{strays}: a folder of code that is not a package"
+
+
+def test_opt_in_dvc_files_run_only_commands():
+    """ablation/dvc.yaml and fleet/dvc.yaml run a command (dvc repro of ./dvc.yaml never does)."""
+    for f in ["ablation/dvc.yaml", "fleet/dvc.yaml"]:
+        mods = {stage_module(s) for s in yaml.safe_load((ROOT / f).read_text())["stages"].values()}
+        assert mods and mods <= CMDS, f"{f} runs {sorted(mods - CMDS)}, not a command"
+
+
 @pytest.mark.parametrize("lib", LIB)
 def test_library_imports_only_the_library(lib):
     outside = {m for m in imports(lib) if not m.startswith("pipeline.lib")}
     assert not outside, f"{lib} imports {outside}: the library must not import a stage or command"
 
 
-@pytest.mark.parametrize("mod", TOP)
-def test_no_stage_imports_a_stage_or_command(mod):
-    top = {m for m in imports(mod) if not m.startswith("pipeline.lib") and m != "pipeline"}
-    assert not top, f"{mod} imports {top}: stages and commands import only pipeline.lib"
+@pytest.mark.parametrize("top,mod", MODULES, ids=[m for _, m in MODULES])
+def test_stages_and_commands_import_only_the_library_and_their_own_modules(top, mod):
+    """A stage imports only pipeline.lib; a command also its own package's modules (bench's each other):
+    no stage or command imports another."""
+    own = (lambda m: m == top or m.startswith(top + ".")) if top in CMDS else (lambda m: False)
+    outside = {m for m in imports(mod) if not (m.startswith("pipeline.lib") or m == "pipeline" or own(m))}
+    kind = "a command imports only pipeline.lib and its own package" if top in CMDS else \
+        "a stage imports only pipeline.lib"
+    assert not outside, f"{mod} imports {sorted(outside)}: {kind}"
+
+
+def scripts() -> dict:
+    return tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["scripts"]
+
+
+@pytest.mark.parametrize("script", sorted(scripts()))
+def test_every_script_is_a_command_main(script):
+    """[project.scripts] spi-boter-<command> = the module `python -m pipeline.<command>` runs, :main, a
+    callable taking argv=None (the module calls it under __name__ == "__main__")."""
+    target = scripts()[script]
+    mod, _, attr = target.partition(":")
+    command = script.removeprefix("spi-boter-")
+    runs = f"pipeline.{command}" + (".__main__" if (PKG / command).is_dir() else "")
+    assert command in COMMANDS and mod == runs and attr == "main", f"{script} = {target!r}: want {runs}:main"
+    fn = getattr(importlib.import_module(mod), attr)
+    argv = inspect.signature(fn).parameters.get("argv")
+    assert callable(fn) and argv is not None and argv.default is None, f"{target}: not main(argv=None)"
+    guard = [n for n in ast.parse(module_path(mod).read_text()).body if isinstance(n, ast.If)
+             and ast.unparse(n.test) in ("__name__ == '__main__'", "'__main__' == __name__")]
+    assert guard and "main()" in ast.unparse(guard[-1]), f"python -m {runs.removesuffix('.__main__')} does not call main()"
+
+
+def test_every_command_has_a_script():
+    assert {s.removeprefix("spi-boter-") for s in scripts()} == set(COMMANDS)
+
+
+def test_pyproject_packages_are_every_package():
+    """A non-editable install ships every package under pipeline/ (pipeline.bench included)."""
+    listed = set(tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
+    found = {".".join(p.parent.relative_to(ROOT).parts) for p in PKG.rglob("__init__.py")}
+    assert listed == found
 
 
 @pytest.mark.parametrize("name", sorted(STAGES))

@@ -51,9 +51,9 @@ def test_two_run_sweep_on_ray_equals_sequential(trained_project, tmp_path, monke
 def test_bench_real_seeds_on_ray_equal_sequential():
     """`bench real`'s seed sweep (twin, two seeds, a small model, 3 epochs): each seed a job run in
     process, in order or as a Ray task, the same numbers either way, validation included."""
-    from pipeline import bench
+    from pipeline.bench.real import run_set
     over = ["model.d_model=12", "model.n_head=2", "model.n_layer=1", "model.d_hidden=32", "train.patience=3"]
-    out = {e: bench.run_set("twin", [5, 6], 3, False, overrides=over, engine=e, threads=1)
+    out = {e: run_set("twin", [5, 6], 3, False, overrides=over, engine=e, threads=1)
            for e in ("sequential", "ray")}
     seq, ray = out["sequential"], out["ray"]
     assert seq["seeds"] == ray["seeds"] == [5, 6] and ray["engine"] == "ray"

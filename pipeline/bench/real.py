@@ -1,0 +1,253 @@
+"""`bench real`: the pipeline on one real set or the twin, per training seed; writes (and merges into)
+reports/bench/real_data.json, a record per set (keyed `<set>@<overrides>` with -S), saved as each seed
+finishes.
+
+    python -m pipeline.bench real  [--seeds 139 140 ...] [--engine ray]   the real sets in ../shared/datasets
+    python -m pipeline.bench real --sets twin twin-2stations   the twin, from one and two stations
+
+It runs the pipeline's stages (`python -m pipeline.<stage>`, as dvc repro
+would) in a scratch directory per set (preset merged over params.yaml, split
+seed 7) and reports test 3D MAE for
+nominal DH (no frame fit; only where the data are in the base frame), nominal
+after the frame fit, classical calibration, the DNN baseline and SPI-BoTER
+(on nominal and on calibrated physics), mean ± std over the training seeds,
+and the seeds' SPI-BoTER models averaged (an ensemble); and, per seed, every
+`validate.campaigns` entry of the preset (e.g. ipa-ur10's Series_B): mean 3D
+error per method on the judged points, inside and outside the trained workspace;
+and each training campaign's test 3D MAE per method (ipa-ur10-cb: Series_C and
+Series_B trained together).
+"""
+import copy
+import os
+import runpy
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import yaml
+
+from ..lib import sweep
+from ..lib.artifacts import INGEST_JSON, INGEST_TABLE, METRICS_JSON, PREDICTIONS_TABLE, VALIDATION_DIR
+from ..lib.columns import JOINTS_DEG, MEAS, PRED
+from ..lib.config import load_params, logger, read_json, write_json
+from ..lib.kinematics import fk_numpy
+from ..lib.presets import merged_params
+from ..lib.robots import load_robot
+from .common import BENCH, DATASETS, ROOT, prepared
+
+log = logger(__name__)
+# name: the preset merged over params.yaml (None: params.yaml, the twin), the dataset it needs under
+# ../shared/datasets (None: the committed twin campaigns), and whether its positions are already
+# in the robot's base frame (then nominal DH is also judged without a frame fit)
+REAL_SETS = {"gtpn-ur5": {"preset": "gtpn-ur5", "dataset": "gtpn-ur5", "base_frame": True},
+             "ipa-ur10": {"preset": "ipa-ur10", "dataset": "ipa-ur10", "base_frame": False},
+             "ipa-ur10-cb": {"preset": "ipa-ur10-cb", "dataset": "ipa-ur10", "base_frame": False},
+             "twin": {"preset": None, "dataset": None, "base_frame": False},
+             "twin-2stations": {"preset": "twin-2stations", "dataset": None, "base_frame": False}}
+
+
+def absolute_paths(params: dict) -> dict:
+    """Input paths of the ingest section made absolute (from the project root)."""
+    p = copy.deepcopy(params)
+    for ingest in ([p["ingest"]] + [c["ingest"] for c in (p["validate"]["campaigns"] or {}).values()]
+                   + [c["ingest"] for c in (p["campaigns"]["more"] or {}).values()]):
+        for k in ("joints", "tracker"):
+            ingest[k] = str((ROOT / ingest[k]).resolve())
+    p["compensate"]["drive_check"] = False
+    return p
+
+
+def stage(name: str, params: dict, *args: str) -> None:
+    """Run one stage as dvc repro would, on params written to ./params.yaml."""
+    Path("params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+    subprocess.run([sys.executable, "-m", f"pipeline.{name}", *args], check=True)
+
+
+def stage_here(name: str, *args: str) -> None:
+    """Run one stage in this process as `python -m pipeline.<name> args` would (runpy: the module as
+    __main__, on ./params.yaml): a sweep's run is then a Ray task with no subprocess."""
+    argv = sys.argv
+    sys.argv = [f"pipeline/{name}.py", *args]
+    try:
+        runpy.run_module(f"pipeline.{name}", run_name="__main__", alter_sys=True)
+    finally:
+        sys.argv = argv
+
+
+def validation_runs(params: dict) -> dict:
+    """Every validate campaign of params, judged with the current models: mean 3D error per method
+    (all judged points, and inside / outside the trained workspace)."""
+    out = {}
+    for name in params["validate"]["campaigns"] or {}:
+        stage_here("validate", "campaign", name)
+        v = read_json(VALIDATION_DIR / f"{name}.json")
+        out[name] = {"n_judged": v["n_judged"], "frame": v["frame"], "in_workspace_share": v["in_workspace_share"],
+                     "mean_3d_mm": v["mean_3d_mm"],
+                     **{f"mean_3d_mm_{w}": {m: s["mean"] for m, s in v["by_workspace"][w].items()}
+                        for w in ("in", "out")}}
+    return out
+
+
+def overridden(params: dict, overrides: list[str]) -> dict:
+    """params with KEY=VALUE overrides applied (dotted keys, YAML values), as `dvc exp run -S`."""
+    p = copy.deepcopy(params)
+    for o in overrides:
+        key, sep, value = o.partition("=")
+        *path, last = key.split(".")
+        node = p
+        for k in path:
+            node = node.get(k) if isinstance(node, dict) else None
+        if not sep or not isinstance(node, dict) or last not in node:
+            raise ValueError(f"bench -S {o!r}: not KEY=VALUE with KEY an existing params.yaml key")
+        node[last] = yaml.safe_load(value)
+    return p
+
+
+def seed_run(job) -> dict:
+    """One training seed of a set (a sweep job): in a copy of the prepared directory (ingest ..
+    calibrate done), train, baselines, evaluate and every validate campaign, in this process."""
+    prepared, p, test_ids = job
+    cwd = os.getcwd()
+    with tempfile.TemporaryDirectory() as tmp:
+        shutil.copytree(prepared, tmp, dirs_exist_ok=True)
+        os.chdir(tmp)
+        try:
+            Path("params.yaml").write_text(yaml.safe_dump(p, sort_keys=False))
+            for name in ("train", "baselines", "evaluate"):
+                stage_here(name)
+            valid = validation_runs(p)
+            metrics = read_json(METRICS_JSON)
+            pred = pd.read_parquet(PREDICTIONS_TABLE).set_index("point_id").loc[test_ids][PRED].to_numpy()
+        finally:
+            os.chdir(cwd)
+    return {"runs": {k: v["test"]["3d"]["mae"] for k, v in metrics["baselines"].items()},
+            "per_campaign": {c: {k: v[k]["test"]["mae"] for k in v if k not in ("station", "n")}
+                             for c, v in metrics["campaigns"].items()},
+            "valid": valid, "pred": pred}
+
+
+def run_set(name: str, seeds: list[int], epochs: int | None, other_physics: bool = True,
+            on_seed=None, overrides: list[str] = (), engine: str = "sequential", address: str | None = None,
+            threads: int | None = None) -> dict:
+    """The full pipeline on one real set, once per training seed: the stages up to calibrate once,
+    then every seed a sweep job (lib/sweep.py: in order, or Ray tasks; `threads` torch threads each,
+    default every core in order, 1 on Ray).
+
+    on_seed(partial summary of the seeds finished so far) is called as each seed finishes, so a long
+    run that is stopped keeps them.
+    """
+    base, preset = load_params(ROOT / "params.yaml"), REAL_SETS[name]["preset"]
+    params = absolute_paths(overridden(base if preset is None else merged_params(preset, base), overrides))
+    if epochs:
+        params["train"]["max_epochs"] = epochs
+    threads = sweep.threads_per_job(engine, threads)
+    t0, cwd = time.perf_counter(), os.getcwd()
+    with tempfile.TemporaryDirectory() as tmp:
+        os.chdir(tmp)
+        try:
+            for campaign in params["campaigns"]["more"] or {}:
+                stage("ingest", params, "campaign", campaign)
+            for name_ in ("ingest", "frame", "theory", "split", "calibrate"):
+                stage(name_, params)
+            n_kept = read_json(INGEST_JSON)["n_kept"]
+            df = prepared(params)[0]
+            test = df[df.split == "test"]
+            raw = pd.read_parquet(INGEST_TABLE).set_index("point_id").loc[test.point_id]
+            nominal = None
+            if REAL_SETS[name]["base_frame"]:             # no frame fit: measured as recorded
+                robot = load_robot(params["robot"])
+                e = fk_numpy(raw[JOINTS_DEG].to_numpy(), robot) - raw[MEAS].to_numpy()
+                nominal = float(np.linalg.norm(e, axis=1).mean())
+        finally:
+            os.chdir(cwd)
+        jobs = []
+        for i, seed in enumerate(seeds):
+            p = copy.deepcopy(params)
+            p["model"]["init_seed"], p["train"]["seed"] = seed, seed
+            p["baselines"]["dnn"] = True
+            p["baselines"]["other_physics"] = other_physics and i == 0   # first seed only
+            jobs.append((tmp, p, list(test.point_id)))
+        done = {}
+
+        def summary(finished: dict) -> dict:
+            order = sorted(finished)
+            r = [finished[i] for i in order]
+            # the seeds' models averaged: a deep ensemble (n times the cost of one model)
+            ensemble = float(np.linalg.norm(np.mean([x["pred"] for x in r], 0) - test[MEAS].to_numpy(),
+                                            axis=1).mean())
+            return set_summary([x["runs"] for x in r], [x["valid"] for x in r], [x["per_campaign"] for x in r],
+                               ensemble, [seeds[i] for i in order], n_kept, nominal, params, t0)
+
+        def finished(i, r):
+            done[i] = r
+            if on_seed:
+                on_seed({**summary(done), "engine": engine, "threads_per_seed": threads})
+        sweep.run(seed_run, jobs, engine, address, threads, desc=f"{name} seeds", on_result=finished)
+    return {**summary(done), "engine": engine, "threads_per_seed": threads}
+
+
+def set_summary(runs: list[dict], valid: list[dict], per_campaign: list[dict], ensemble: float, seeds: list[int],
+                n: int, nominal, params: dict, t0: float) -> dict:
+    per = {k: [r[k] for r in runs if k in r] for k in runs[0]}
+    out = {"n": n, "seeds": seeds, "physics": params["model"]["physics"], "seconds": time.perf_counter() - t0,
+           "max_epochs": params["train"]["max_epochs"], "train": params["train"],
+           "fade_to": params["model"]["fade_to"]}
+    validation = {}
+    stat = lambda f, r: None if None in r else float(f(r))            # None: no point in that part
+    for c in valid[0]:                      # per campaign and method: mean, std and every seed
+        validation[c] = {k: valid[0][c][k] for k in ("n_judged", "frame", "in_workspace_share")}
+        for key in ("mean_3d_mm", "mean_3d_mm_in", "mean_3d_mm_out"):
+            runs_ = {m: [v[c][key][m] for v in valid] for m in valid[0][c][key]}
+            validation[c][key] = {m: stat(np.mean, r) for m, r in runs_.items()}
+            validation[c][key + "_std"] = {m: stat(np.std, r) for m, r in runs_.items()}
+            validation[c][key + "_runs"] = runs_
+    campaigns = {}                          # per training campaign and method: mean, std, every seed
+    for c, methods in per_campaign[0].items():
+        runs_ = {m: [p[c][m] for p in per_campaign] for m in methods}
+        campaigns[c] = {m: {"mean": float(np.mean(r)), "std": float(np.std(r)), "runs": r} for m, r in runs_.items()}
+    return {**out, **seed_summary(per, nominal, params["model"]["physics"]),
+            "test_3d_mae_ensemble": {"spi_boter": ensemble, "models": len(runs)}, "validation": validation,
+            "test_3d_mae_per_campaign": campaigns}
+
+
+def seed_summary(per: dict, nominal: float | None, physics: str) -> dict:
+    """test_3d_mae: one number per method (mean over seeds); its std and every seed's value beside it.
+
+    per = {method: [test 3D MAE per seed]} with evaluate's method names.
+    """
+    names = {"frame": "nominal_dh", "calibrated": "calibrated_dh", "dnn": "dnn",
+             "spi_boter": f"spi_boter_{physics}", "spi_boter_nominal": "spi_boter_nominal",
+             "spi_boter_calibrated": "spi_boter_calibrated"}
+    mae = {"nominal": nominal, **{k: float(np.mean(per[v])) for k, v in names.items() if per.get(v)}}
+    return {"test_3d_mae": mae,
+            "test_3d_mae_std": {k: float(np.std(per[v])) for k, v in names.items() if per.get(v)},
+            "test_3d_mae_runs": {k: per[v] for k, v in names.items() if per.get(v)}}
+
+
+def bench_real(seeds: list[int], epochs: int | None, only: list[str] | None, other_physics=True,
+               overrides: list[str] = (), engine: str = "sequential", address: str | None = None,
+               threads: int | None = None) -> dict:
+    out_path = BENCH / "real_data.json"
+    out = read_json(out_path) if out_path.exists() else {}
+    for name in only or [k for k, v in REAL_SETS.items() if v["dataset"]]:
+        dataset = REAL_SETS[name]["dataset"]
+        if dataset and not (DATASETS / dataset).is_dir():
+            log.info("skipping %s: %s not found", name, DATASETS / dataset)
+            out[name] = {"skipped": f"{DATASETS / dataset} not found"}
+            continue
+        key = name + ("@" + ",".join(overrides) if overrides else "")
+        log.info("running the pipeline on %s with seeds %s", key, seeds)
+        def save(partial, key=key):
+            out[key] = partial
+            write_json(out_path, out)
+        out[key] = run_set(name, seeds, epochs, other_physics, on_seed=save, overrides=overrides, engine=engine,
+                           address=address, threads=threads)
+        log.info("%s: %s", key, out[key]["test_3d_mae"])
+        write_json(out_path, out)
+    write_json(out_path, out)
+    return out
