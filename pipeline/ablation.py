@@ -24,10 +24,10 @@ import numpy as np
 
 from .lib import sweep
 from .lib.ablations import GROUPS, Job, train_one
-from .lib.artifacts import CALIBRATED_GEOMETRY, FRAME_JSON, REPORTS, TIMINGS, load_points
+from .lib.artifacts import CALIBRATED_GEOMETRY, FRAME_JSON, PARTS_JSON, REPORTS, TIMINGS, load_points
 from .lib.config import for_stage, load_params, logger, read_json, split_timings, write_json
 from .lib.figures import fig_ablation, save
-from .lib.geometry import Calibration, aligned, theory_geometry
+from .lib.geometry import Calibration, aligned, theory_geometry, with_parts
 from .lib.paper import PAPER_ABLATION, PAPER_ABLATION_EPOCHS
 from .lib.robots import load_robot
 
@@ -46,7 +46,7 @@ def jobs_for(params: dict, groups: list[str]) -> list[Job]:
     calibration = Calibration.from_dict(read_json(CALIBRATED_GEOMETRY))
     nominal = theory_geometry(load_robot(p["robot"]), read_json(FRAME_JSON)["tool_mm"])
     points = aligned(load_points(), calibration, nominal)
-    geometries = {"calibrated": calibration.geometry, "nominal": nominal}
+    geometries = {"calibrated": with_parts(calibration.geometry, read_json(PARTS_JSON)), "nominal": nominal}
     return [Job(points, geometries, p, g, s) for g in groups for s in p["ablation"]["seeds"]]
 
 

@@ -1,6 +1,8 @@
 """Stage baselines: the comparison methods, on the same splits as the model.
 
     calibrated_dh        classical kinematic calibration alone (calibrate stage's geometry)
+    calibrated_parts     that calibration with the per-joint error maps (parts stage), no network
+                         (when the parts hold)
     dnn                  the paper's DNN baseline: an MLP from joint angles to the error
                          (opt-in: baselines.dnn)
     spi_boter_<other>    SPI-BoTER on the physics branch the main model does not use
@@ -12,10 +14,11 @@ for evaluate, and reports/baselines_train.json.
 """
 import pandas as pd
 
-from .lib.artifacts import BASELINES_JSON, BASELINES_TABLE, CALIBRATED_GEOMETRY, FRAME_JSON, TIMINGS, load_points
+from .lib.artifacts import (BASELINES_JSON, BASELINES_TABLE, CALIBRATED_GEOMETRY, FRAME_JSON, PARTS_JSON, TIMINGS,
+                            load_points)
 from .lib.columns import JOINTS_DEG
 from .lib.config import for_stage, load_params, logger, read_json, split_timings, write_json
-from .lib.geometry import Calibration, aligned, physics_geometry, theory_geometry
+from .lib.geometry import Calibration, aligned, physics_geometry, theory_geometry, with_parts
 from .lib.kinematics import fk_numpy
 from .lib.robots import load_robot
 from .lib.training import predict, train_boter, train_dnn
@@ -36,13 +39,17 @@ def run(params: dict) -> dict:
         out[[f"{name}_{a}" for a in "xyz"]] = pred
 
     add("calibrated_dh", fk_numpy(df[JOINTS_DEG].to_numpy(), None, calibration.geometry))
+    parts = read_json(PARTS_JSON)
+    calibrated = with_parts(calibration.geometry, parts)
+    if parts["enabled"]:                              # the calibration with the per-joint error maps, no network
+        add("calibrated_parts", fk_numpy(df[JOINTS_DEG].to_numpy(), None, calibrated))
     if cfg["dnn"]:
         dnn, summary["dnn"] = train_dnn(df, nominal, p["model"], p["train"])
         add("dnn", predict(dnn.eval(), df))
     if cfg["other_physics"]:
         other = "calibrated" if p["model"]["physics"] == "nominal" else "nominal"
         model, summary[f"spi_boter_{other}"] = train_boter(
-            df, physics_geometry(other, calibration, nominal), {**p["model"], "physics": other}, p["loss"],
+            df, physics_geometry(other, calibrated, nominal), {**p["model"], "physics": other}, p["loss"],
             p["train"], p["workspace"]["radius_quantile"])
         add(f"spi_boter_{other}", predict(model.eval(), df))
     out.to_parquet(BASELINES_TABLE, index=False)

@@ -37,7 +37,7 @@ from .lib.presets import deep_merge
 from .lib.twin import Twin
 
 log = logger(__name__)
-STAGES = ["ingest", "frame", "theory", "split", "calibrate", "train", "baselines", "evaluate", "export", "report"]
+STAGES = ["ingest", "frame", "theory", "split", "calibrate", "parts", "train", "baselines", "evaluate", "export", "report"]
 FLEET_JSON, FLEET_MD = Path("reports/fleet.json"), Path("reports/fleet.md")
 BENCH_JSON = Path("reports/bench/fleet.json")
 DEMO_SEED = 2000

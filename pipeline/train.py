@@ -8,9 +8,10 @@ times to reports/timings/train.json.
 """
 from dvclive import Live
 
-from .lib.artifacts import CALIBRATED_GEOMETRY, FRAME_JSON, LIVE, MODEL_WEIGHTS, TIMINGS, TRAIN_JSON, load_points
+from .lib.artifacts import (CALIBRATED_GEOMETRY, FRAME_JSON, LIVE, MODEL_WEIGHTS, PARTS_JSON, TIMINGS, TRAIN_JSON,
+                            load_points)
 from .lib.config import for_stage, load_params, logger, read_json, split_timings, write_json
-from .lib.geometry import Calibration, aligned, physics_geometry, theory_geometry
+from .lib.geometry import Calibration, aligned, physics_geometry, theory_geometry, with_parts
 from .lib.robots import load_robot
 from .lib.training import save_model, train_boter
 
@@ -23,7 +24,7 @@ def run(params: dict) -> dict:
     calibration = Calibration.from_dict(read_json(CALIBRATED_GEOMETRY))
     nominal = theory_geometry(load_robot(p["robot"]), read_json(FRAME_JSON)["tool_mm"])
     df = aligned(load_points(), calibration, nominal)
-    geometry = physics_geometry(p["model"]["physics"], calibration, nominal)
+    geometry = physics_geometry(p["model"]["physics"], with_parts(calibration.geometry, read_json(PARTS_JSON)), nominal)
     with Live(dir=str(LIVE), save_dvc_exp=False, dvcyaml=False) as live:   # dvclive needs a git repo with a commit
         model, summary = train_boter(df, geometry, p["model"], p["loss"], p["train"],
                                      p["workspace"]["radius_quantile"], live)

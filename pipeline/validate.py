@@ -14,15 +14,16 @@ import argparse
 
 import numpy as np
 import pandas as pd
+import torch
 from scipy.spatial.transform import Rotation
 
-from .lib.artifacts import (CALIBRATED_GEOMETRY, FRAME_JSON, MODEL_WEIGHTS, VALIDATION_DIR, VALIDATION_JSON,
-                            VALIDATION_TABLE, WORKSPACE_JSON)
+from .lib.artifacts import (CALIBRATED_GEOMETRY, FRAME_JSON, MODEL_WEIGHTS, PARTS_JSON, VALIDATION_DIR,
+                            VALIDATION_JSON, VALIDATION_TABLE, WORKSPACE_JSON)
 from .lib.campaigns import named_campaign
 from .lib.columns import JOINTS_DEG, MEAS
 from .lib.config import check_keys, for_stage, load_params, logger, read_json, write_json
-from .lib.geometry import Calibration, theory_geometry
-from .lib.kinematics import fk_numpy
+from .lib.geometry import Calibration, at_temperature, theory_geometry, with_parts
+from .lib.kinematics import DTYPE, fk_numpy, flange_rotations
 from .lib.presets import deep_merge
 from .lib.readers import ingest
 from .lib.robots import load_robot
@@ -57,26 +58,54 @@ def commanded_positions(df: pd.DataFrame, spec: dict, tool_mm, name: str) -> np.
     return c @ Rotation.from_euler("z", spec["rz_deg"], degrees=True).as_matrix().T
 
 
+def thermal_change(df: pd.DataFrame, parts: dict) -> dict | None:
+    """The campaign's mean temperature against the training campaigns' (the parts stage's thermal
+    reference), where both were recorded: {"column", "temperature_c", "temperature_ref_c", "dT_k",
+    "cte_per_k"}; None otherwise."""
+    th = parts.get("thermal")
+    if not th or th["column"] not in df:
+        return None
+    T = float(df[th["column"]].mean())
+    return {**th, "temperature_c": T, "dT_k": T - th["temperature_ref_c"]}
+
+
 def run_campaign(params: dict, name: str) -> dict:
     p = for_stage(params, PARAMS["campaign"])
     frame_cfg, cfg = p["frame"], p["validate"]
     c = named_campaign(cfg["campaigns"], name, "validate.campaigns", "validate.campaign")
     robot, frame = load_robot(p["robot"]), read_json(FRAME_JSON)
+    cal, parts = Calibration.from_dict(read_json(CALIBRATED_GEOMETRY)), read_json(PARTS_JSON)
     df, ingested = ingest(deep_merge(p["ingest"], c["ingest"]), robot)
     q = df[JOINTS_DEG].to_numpy()
-    pred = {"nominal": fk_numpy(q, robot, theory_geometry(robot, frame["tool_mm"])),
-            "calibrated": fk_numpy(q, robot, Calibration.from_dict(read_json(CALIBRATED_GEOMETRY)).geometry),
-            "model": predict(load_model(MODEL_WEIGHTS), df)}
+    model = load_model(MODEL_WEIGHTS)
+    thermal = thermal_change(df, parts)
+    geometries = {"nominal": theory_geometry(robot, frame["tool_mm"]), "calibrated": cal.geometry,
+                  "calibrated_parts": with_parts(cal.geometry, parts), "model": model.physics.geometry()}
+    if thermal:                                      # the arm at the campaign's temperature (not the nominal table)
+        geometries = {m: g if m == "nominal" else at_temperature(g, thermal["dT_k"], thermal["cte_per_k"])
+                      for m, g in geometries.items()}
+        model.physics.load_state_dict(geometries["model"])
+    pred = {m: fk_numpy(q, robot, g) for m, g in geometries.items() if m != "model"}
+    pred["model"] = predict(model, df)
+    qt = torch.as_tensor(np.radians(q), dtype=DTYPE)
+    with torch.no_grad():
+        flange = {m: flange_rotations(qt, g).numpy() for m, g in geometries.items()}
     P = df[MEAS].to_numpy()
-    errors, registered, frames = judge(pred, P, c["frame"], frame, cfg["register_points"], frame_cfg)
+    errors, registered, frames = judge(pred, P, c["frame"], frame, cfg["register_points"], frame_cfg, flange,
+                                       cfg["tool_rank_tol"])
     u, inside = Workspace.from_dict(read_json(WORKSPACE_JSON))(q)
     table = pd.DataFrame({"point_id": df.point_id, "campaign": name, "registered": registered,
                           **{f"error_{m}_mm": errors[m] for m in METHODS},
                           "uncertainty_mm": u, "in_workspace": inside})
     out = summary(table, c["frame"])
     out["ingest"] = {k: ingested[k] for k in ("n_read", "n_kept", "dropped", "dropped_counts")}
-    if c["commanded"]:
-        measured = {m: (P - frames[m]["t"]) @ frames[m]["R"] for m in METHODS}   # each method's base frame
+    out["registration"] = {m: {"tool_offset_mm": f["tool_offset_mm"], "tool_held": f.get("tool_held")}
+                           for m, f in frames.items()}
+    out["thermal"] = thermal
+    if c["commanded"]:                               # each method's base frame, the marker back on the training tool
+        measured = {m: (P - frames[m]["t"]) @ frames[m]["R"] - np.einsum("mij,j->mi", flange[m],
+                                                                          frames[m]["tool_offset_mm"])
+                    for m in METHODS}
         commanded = commanded_positions(df, c["commanded"], frame["tool_mm"], name)
         out["position_accuracy"] = position_accuracy(commanded, df[c["commanded"]["columns"]].to_numpy(float),
                                                      measured, pred, ~registered)

@@ -24,7 +24,7 @@ ROOT = Path(__file__).resolve().parents[1]
 ENV = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
 SMALL = {"model": {"d_model": 12, "n_head": 2, "n_layer": 1, "d_hidden": 32},
          "train": {"max_epochs": 12, "patience": 12}}
-STAGES = ["ingest", "frame", "theory", "split", "calibrate", "train", "baselines", "evaluate", "export"]
+STAGES = ["ingest", "frame", "theory", "split", "calibrate", "parts", "train", "baselines", "evaluate", "export"]
 NEEDED = ["models/boter.pt", "models/calibration.json", "models/workspace.json", "reports/frame.json",
           "data/interim/points.parquet", "data/interim/split.parquet", "reports/export.json"]
 

@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..lib.artifacts import CALIBRATED_GEOMETRY, FRAME_JSON, load_points
+from ..lib.artifacts import CALIBRATED_GEOMETRY, FRAME_JSON, PARTS_JSON, load_points
 from ..lib.config import read_json
-from ..lib.geometry import Calibration, aligned, theory_geometry
+from ..lib.geometry import Calibration, aligned, theory_geometry, with_parts
 from ..lib.robots import load_robot
 
 ROOT = Path(__file__).resolve().parents[2]              # the project: pipeline/bench/common.py -> ./
@@ -19,10 +19,12 @@ BENCH = ROOT / "reports" / "bench"
 
 
 def prepared(params: dict) -> tuple:
-    """The pipeline's aligned points, calibration and nominal geometry, from the stage outputs here."""
+    """The pipeline's aligned points and the physics geometries {"calibrated" (with the error maps),
+    "nominal"}, from the stage outputs here."""
     calibration = Calibration.from_dict(read_json(CALIBRATED_GEOMETRY))
     nominal = theory_geometry(load_robot(params["robot"]), read_json(FRAME_JSON)["tool_mm"])
-    return aligned(load_points(), calibration, nominal), calibration, nominal
+    geometries = {"calibrated": with_parts(calibration.geometry, read_json(PARTS_JSON)), "nominal": nominal}
+    return aligned(load_points(), calibration, nominal), geometries
 
 
 def machine() -> dict:

@@ -152,7 +152,7 @@ def run_set(name: str, seeds: list[int], epochs: int | None, other_physics: bool
         try:
             for campaign in params["campaigns"]["more"] or {}:
                 stage("ingest", params, "campaign", campaign)
-            for name_ in ("ingest", "frame", "theory", "split", "calibrate"):
+            for name_ in ("ingest", "frame", "theory", "split", "calibrate", "parts"):
                 stage(name_, params)
             n_kept = read_json(INGEST_JSON)["n_kept"]
             df = prepared(params)[0]
@@ -220,7 +220,7 @@ def seed_summary(per: dict, nominal: float | None, physics: str) -> dict:
 
     per = {method: [test 3D MAE per seed]} with evaluate's method names.
     """
-    names = {"frame": "nominal_dh", "calibrated": "calibrated_dh", "dnn": "dnn",
+    names = {"frame": "nominal_dh", "calibrated": "calibrated_dh", "parts": "calibrated_parts", "dnn": "dnn",
              "spi_boter": f"spi_boter_{physics}", "spi_boter_nominal": "spi_boter_nominal",
              "spi_boter_calibrated": "spi_boter_calibrated"}
     mae = {"nominal": nominal, **{k: float(np.mean(per[v])) for k, v in names.items() if per.get(v)}}

@@ -11,7 +11,6 @@ import torch
 from ..lib.artifacts import MODEL_ONNX, MODEL_WEIGHTS
 from ..lib.columns import JOINTS_DEG, TARGET
 from ..lib.config import load_params, logger, write_json
-from ..lib.geometry import physics_geometry
 from ..lib.loss import SPILoss
 from ..lib.onnx_model import OnnxModel
 from ..lib.realtime import Realtime, check
@@ -42,9 +41,9 @@ def bench_realtime(model, q0: np.ndarray, tgt: np.ndarray, limits: np.ndarray, t
 def bench_speed() -> dict:
     """Needs a finished `dvc repro` in the project (model, points, split)."""
     params = load_params()
-    df, calibration, nominal = prepared(params)
+    df, geometries = prepared(params)
     train_t, val_t = tensors(df[df.split == "train"]), tensors(df[df.split == "val"])
-    model = make_model(params["model"], physics_geometry(params["model"]["physics"], calibration, nominal))
+    model = make_model(params["model"], geometries[params["model"]["physics"]])
     cfg = {**params["train"], "max_epochs": 10, "patience": 10}
     hist = fit(model, SPILoss(**params["loss"]), train_t, val_t, cfg, progress=False)
 

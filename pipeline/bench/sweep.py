@@ -9,7 +9,7 @@ from pathlib import Path
 
 from ..lib import sweep                                   # lib/sweep.py: jobs in order or as Ray tasks
 from ..lib.ablations import Job, train_one
-from ..lib.artifacts import CALIBRATED_GEOMETRY, FRAME_JSON, POINTS_TABLE, SPLIT_TABLE
+from ..lib.artifacts import CALIBRATED_GEOMETRY, FRAME_JSON, PARTS_JSON, POINTS_TABLE, SPLIT_TABLE
 from ..lib.config import load_params, logger, write_json
 from .common import BENCH, machine, prepared
 
@@ -28,10 +28,10 @@ def bench_sweep(groups=("baseline", "no_resnet"), seeds=(139, 140), epochs: int 
     params = load_params()
     params["ablation"].update(seeds=list(seeds), max_epochs=epochs)
     cores = os.cpu_count() or 1
-    df, calibration, nominal = prepared(params)
+    df, geometries = prepared(params)
     p = {k: params[k] for k in ("model", "loss", "train", "workspace", "ablation")}
-    jobs = [Job(df, {"calibrated": calibration.geometry, "nominal": nominal}, p, g, s) for g in groups for s in seeds]
-    files = [POINTS_TABLE, SPLIT_TABLE, FRAME_JSON, CALIBRATED_GEOMETRY]
+    jobs = [Job(df, geometries, p, g, s) for g in groups for s in seeds]
+    files = [POINTS_TABLE, SPLIT_TABLE, FRAME_JSON, CALIBRATED_GEOMETRY, PARTS_JSON]
     out = {"machine": machine(), "what": f"ablation groups {list(groups)} x seeds {list(seeds)}, {epochs} epochs "
                                          "each (the full ablation: 8 groups x 5 seeds, up to 400 epochs)"}
     cwd = os.getcwd()

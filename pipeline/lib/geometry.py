@@ -4,7 +4,8 @@ theory_geometry    nominal DH with the frame stage's tool: the theory points and
                    (nominal) physics branch
 Calibration        the calibrate stage's result: the calibrated geometry, and each tracker
                    station's frame correction and tool offset
-physics_geometry   `model.physics`: nominal (the above) or calibrated
+with_parts         the calibrated geometry with the parts stage's per-joint error maps
+physics_geometry   `model.physics`: nominal (the above) or calibrated (with the maps)
 aligned            measured points of every tracker station in the first station's base frame
                    (and tool), with the station corrections the calibrate stage identified
 """
@@ -15,6 +16,7 @@ import pandas as pd
 import torch
 
 from .columns import ERR, JOINTS_DEG, MEAS, STATION, THEORY
+from .errormaps import MAP_KEYS
 from .kinematics import DTYPE, GEOMETRY_KEYS, fk, nominal_geometry, rigid_xyz
 from .robots import Robot
 
@@ -37,14 +39,28 @@ class Calibration:
     @classmethod
     def from_dict(cls, d: dict) -> "Calibration":
         """From the saved JSON (kinematics.save_geometry's layout)."""
-        g = {k: torch.tensor(d["geometry"][k], dtype=DTYPE) for k in GEOMETRY_KEYS}
+        g = {k: torch.tensor(d["geometry"][k], dtype=DTYPE) for k in GEOMETRY_KEYS + MAP_KEYS if k in d["geometry"]}
         return cls(g, d.get("stations", {}), d.get("station_tools", {}))
 
 
-def physics_geometry(physics: str, calibration: Calibration, nominal: dict) -> dict:
-    """The physics branch's geometry for `model.physics`: the calibrated one or the nominal one."""
+def with_parts(geometry: dict, parts: dict) -> dict:
+    """The parts stage's geometry (models/parts.json: the calibration re-estimated with the per-joint error
+    maps in its chain) when the maps hold, else `geometry` (the calibration's)."""
+    return Calibration.from_dict(parts).geometry if parts["enabled"] else geometry
+
+
+def at_temperature(geometry: dict, dT: float, cte_per_k: float) -> dict:
+    """geometry with its link lengths (a, d) expanded by cte_per_k·dT: the arm dT kelvin warmer than
+    when it was calibrated (a linear expansion coefficient, e.g. 23e-6/K for aluminium links)."""
+    s = 1.0 + cte_per_k * dT
+    return {**geometry, "a": geometry["a"] * s, "d": geometry["d"] * s}
+
+
+def physics_geometry(physics: str, calibrated: dict, nominal: dict) -> dict:
+    """The physics branch's geometry for `model.physics`: the calibrated one (with the error maps:
+    with_parts) or the nominal one."""
     if physics == "calibrated":
-        return calibration.geometry
+        return calibrated
     if physics == "nominal":
         return nominal
     raise ValueError(f"params.yaml model.physics: {physics!r}; use one of {PHYSICS}")

@@ -112,6 +112,31 @@ def jacobian(q: torch.Tensor, x: torch.Tensor, g0: dict, S: dict, station=None, 
     return torch.func.jacfwd(lambda v: positions(q, v, g0, S, station, tools0).reshape(-1))(x)
 
 
+def geometry_jacobian(q: torch.Tensor, geometry: dict, cfg: dict, names: list[str] | None = None):
+    """d positions / d the candidate parameters of the `calibrate:` section's groups (those in `names`,
+    default all), at `geometry` (its error maps, if any, kept in the chain): (3n, P) by the jacobian
+    identification uses, and the parameters' spec."""
+    spec = [s for s in parameter_spec(cfg) if names is None or s[0] in names]
+    maps = {k: v for k, v in geometry.items() if k not in GEOMETRY_KEYS}
+    g0 = {k: torch.as_tensor(geometry[k], dtype=DTYPE) for k in GEOMETRY_KEYS}
+    S = selectors(spec)
+    J = torch.func.jacfwd(lambda v: fk(q, {**apply_deltas(v, g0, S), **maps}).reshape(-1))(
+        torch.zeros(len(spec), dtype=DTYPE))
+    return J.numpy(), spec
+
+
+def corrected(geometry: dict, spec: list, dx: np.ndarray) -> dict:
+    """geometry with the parameter corrections dx (in `spec`'s units: mm, rad) added."""
+    maps = {k: v for k, v in geometry.items() if k not in GEOMETRY_KEYS}
+    g0 = {k: torch.as_tensor(geometry[k], dtype=DTYPE) for k in GEOMETRY_KEYS}
+    return {**apply_deltas(torch.as_tensor(dx, dtype=DTYPE), g0, selectors(spec)), **maps}
+
+
+def in_units(spec: list, dx: np.ndarray) -> dict:
+    """{name: value} of parameter corrections in report units: deg (angles; compliance deg/(N·m)) or mm."""
+    return {name: float(v * (np.degrees(1.0) if is_angular(key, i) else 1.0)) for (name, key, i), v in zip(spec, dx)}
+
+
 # ----------------------------------------------------------------------------- identifiability
 
 def identifiability(J: np.ndarray, names: list[str], rank_tol: float) -> dict:

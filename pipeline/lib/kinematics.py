@@ -25,7 +25,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from .config import read_json, write_json
+from .config import write_json
+from .errormaps import MAP_KEYS, joint_errors
 from .robots import Robot
 
 DTYPE = torch.float64
@@ -111,8 +112,11 @@ def gravity_torques(q: torch.Tensor, g: dict) -> torch.Tensor:
 
 
 def deflected(q: torch.Tensor, g: dict) -> torch.Tensor:
-    """Joint angles the arm takes under its own weight: q + compliance * tau(q), (B, 6) rad."""
-    return q + g["compliance"] * gravity_torques(q, g)
+    """Joint angles the arm takes: q + compliance * tau(q) under its own weight, plus the joint error
+    maps' δθ(q, tau) where the geometry has them (errormaps.py), (B, 6) rad."""
+    tau = gravity_torques(q, g)
+    out = q + g["compliance"] * tau
+    return out + joint_errors(q, tau, g) if any(k in g for k in MAP_KEYS) else out
 
 
 def fk_frames(q: torch.Tensor, g: dict) -> list[torch.Tensor]:
@@ -128,6 +132,11 @@ def fk_frames(q: torch.Tensor, g: dict) -> list[torch.Tensor]:
 def fk_poses(q: torch.Tensor, g: dict) -> torch.Tensor:
     """Flange poses in the base frame, (B, 6) rad -> (B, 4, 4) (no tool, no base correction)."""
     return fk_frames(q, g)[-1]
+
+
+def flange_rotations(q: torch.Tensor, g: dict) -> torch.Tensor:
+    """The flange's orientation in the (corrected) base frame: (B, 6) rad -> (B, 3, 3)."""
+    return rotation_xyz(g["base"][:3]) @ fk_poses(q, g)[:, :3, :3]
 
 
 def fk(q: torch.Tensor, g: dict) -> torch.Tensor:
@@ -169,28 +178,28 @@ def fk_numpy(q_deg: np.ndarray, robot: Robot, geometry: dict | None = None) -> n
         return fk(q, g).numpy()
 
 
+def geometry_keys(g: dict) -> tuple:
+    """The keys of geometry g: GEOMETRY_KEYS, then the error maps' it has (errormaps.MAP_KEYS)."""
+    return GEOMETRY_KEYS + tuple(k for k in MAP_KEYS if k in g)
+
+
 class DHChain(nn.Module):
     """The physics branch: a geometry held as buffers (frozen; saved with the model's state)."""
 
     def __init__(self, geometry: dict):
         super().__init__()
-        for k in GEOMETRY_KEYS:
+        self.keys = geometry_keys(geometry)
+        for k in self.keys:
             self.register_buffer(k, torch.as_tensor(geometry[k], dtype=DTYPE).clone())
 
     def geometry(self) -> dict:
-        return {k: getattr(self, k) for k in GEOMETRY_KEYS}
+        return {k: getattr(self, k) for k in self.keys}
 
     def forward(self, q: torch.Tensor) -> torch.Tensor:   # (B, 6) rad -> (B, 3) mm
         return fk(q, self.geometry())
 
 
 def save_geometry(path, geometry: dict, meta: dict | None = None) -> None:
-    """Write a geometry dict (mm / rad) as JSON lists."""
-    write_json(path, {"geometry": {k: torch.as_tensor(geometry[k]).tolist() for k in GEOMETRY_KEYS},
+    """Write a geometry dict (mm / rad) as JSON lists (read back by geometry.Calibration.from_dict)."""
+    write_json(path, {"geometry": {k: torch.as_tensor(geometry[k]).tolist() for k in geometry_keys(geometry)},
                       "units": "mm and rad; pipeline.lib.kinematics geometry keys", **(meta or {})})
-
-
-def load_geometry(path) -> dict:
-    """Read a saved geometry (models/calibration.json) back into a geometry of float64 tensors."""
-    g = read_json(path)["geometry"]
-    return {k: torch.tensor(g[k], dtype=DTYPE) for k in GEOMETRY_KEYS}

@@ -7,8 +7,11 @@ way real arms do:
                  offset on the flange (the pipeline's nominal tool is 0);
   non-geometric  gravity-driven joint compliance (torque of the link masses at
                  their centres of mass about each joint axis, computed on the
-                 true chain, divided by a joint stiffness) and periodic gear
-                 error (1 and 2 cycles per revolution of each joint);
+                 true chain, divided by a joint stiffness), periodic gear
+                 error (1 and 2 cycles per revolution of each joint) and a fine
+                 angular structure per joint (FINE: a few components of 18-72
+                 cycles per revolution, features of 5-20°, tens of arcseconds,
+                 as the IPA UR10 shows; issue 22);
   measurement    joint repeatability noise, tracker noise, a few gross tracker
                  misreads, and an unknown tracker pose ≈3 m from the robot.
 Everything derives from one seed (SEED), through named random streams, so a
@@ -106,7 +109,14 @@ VALIDATION = {"seed": 725, "n": {"front": 150, "side": 150}, "dir": "validation"
 # visits, as Series_B does on the real UR10. Cleaned, like the validation campaign.
 STATION_B = {"seed": 726, "n": {"side": 300}, "dir": "station_b", "prefix": "B"}
 
-STREAMS = {"errors": 1, "tracker": 2, "poses": 3, "noise": 4, "misreads": 5, "floor": 6}
+# The fine angular structure of each joint (issue 22: the IPA UR10 carries per-joint errors with
+# features of 5-20° and single components of 40-60″; the gtpn UR5 shows none). Per joint,
+# `components` sinusoids in the joint's angle with an integer number of cycles per revolution
+# (a transmission's errors repeat every turn) and amplitudes in arcsec, from their own stream
+# ("fine"), so the other errors, poses and noise are the same draws as without it.
+FINE = {"components": 3, "cycles": (18, 72), "amp_arcsec": (10.0, 40.0)}
+
+STREAMS = {"errors": 1, "tracker": 2, "poses": 3, "noise": 4, "misreads": 5, "floor": 6, "fine": 7}
 
 
 def stream(seed: int, name: str) -> np.random.Generator:
@@ -138,7 +148,17 @@ def sample_errors(seed: int = SEED) -> dict:
         "gear_phase_rad": rng.uniform(0.0, 2 * np.pi, (6, 2)),
         "joint_sigma_deg": JOINT_SIGMA_DEG,
         "tracker_sigma_mm": TRACKER_SIGMA_MM,
+        **sample_fine(seed),
     }
+
+
+def sample_fine(seed: int = SEED) -> dict:
+    """The joints' fine angular structure (FINE), from the "fine" stream."""
+    rng = stream(seed, "fine")
+    shape = (6, FINE["components"])
+    return {"fine_cycles": rng.integers(FINE["cycles"][0], FINE["cycles"][1] + 1, shape).astype(float),
+            "fine_amp_arcsec": rng.uniform(*FINE["amp_arcsec"], shape),
+            "fine_phase_rad": rng.uniform(0.0, 2 * np.pi, shape)}
 
 
 def zero_errors() -> dict:
@@ -176,10 +196,10 @@ def sample_tracker_pose(seed: int = SEED) -> tuple[np.ndarray, np.ndarray]:
 
 # ----------------------------------------------------------------------------- physics
 
-def gear_error_rad(q: np.ndarray, amp_deg: np.ndarray, phase: np.ndarray) -> np.ndarray:
-    """Periodic transmission error: sum over h = 1, 2 of A_h sin(h q + phi_h), rad."""
-    h = np.array([1.0, 2.0])
-    return np.radians((amp_deg * np.sin(q[..., None] * h + phase)).sum(-1))
+def gear_error_rad(q: np.ndarray, amp_deg: np.ndarray, phase: np.ndarray, cycles=(1.0, 2.0)) -> np.ndarray:
+    """Periodic transmission error of each joint: sum over its components of A sin(h q + phi), rad;
+    q (..., 6) rad, amp_deg and phase (6, k), cycles per revolution h (k,) or (6, k)."""
+    return np.radians((amp_deg * np.sin(q[..., None] * np.asarray(cycles, float) + phase)).sum(-1))
 
 
 # ----------------------------------------------------------------------------- poses
@@ -253,6 +273,9 @@ class Twin:
         """Joint angles (deg) the arm really takes when commanded q_deg: gear error + compliance."""
         q = np.radians(np.asarray(q_deg, float))
         q = q + gear_error_rad(q, self.errors["gear_amp_deg"], self.errors["gear_phase_rad"])
+        if "fine_amp_arcsec" in self.errors:         # a twin.json from before issue 22 has none
+            q = q + gear_error_rad(q, np.asarray(self.errors["fine_amp_arcsec"]) / 3600.0,
+                                   self.errors["fine_phase_rad"], self.errors["fine_cycles"])
         with torch.no_grad():
             tau = gravity_torques(torch.as_tensor(q, dtype=DTYPE), self.geometry).numpy()
         return np.degrees(q + (tau - self.tau_ref) * self.compliance)  # joint gives way to torque

@@ -10,10 +10,14 @@ measured it in its tracker's frame. Two ways to compare them:
             points, and is judged on the others. Registration rule: `register_points`
             points spread over the measured cloud by farthest-point sampling (from the
             point nearest the centroid), so the frame is well conditioned and most of the
-            campaign is left to judge. Only the frame is refitted, not the tool: the
-            model predicts positions, not flange poses, so the three methods are
-            registered alike. The nominal method's registration is checked like the
-            frame stage's fit (frames.check_fit): a mirrored or far-off campaign stops.
+            campaign is left to judge. Only the frame is refitted, not the tool. The
+            nominal method's registration is checked like the frame stage's fit
+            (frames.check_fit): a mirrored or far-off campaign stops.
+    refit_tool  the tracker moved and the probe may have been re-mounted: as refit, and a tool
+            offset dt (flange frame) fitted with each method's frame on the same points, every
+            method's marker moved by R_flange(q) dt (its own chain's flange). Only where the
+            campaign's orientations fix dt (several tool orientations: the fit's condition
+            number is reported); the methods are registered alike.
 
 ISO 9283 position accuracy where the campaign commands one position several
 times (a `commanded` column group): per commanded position, with the
@@ -26,10 +30,13 @@ really goes for that command.
 """
 import numpy as np
 import pandas as pd
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
 
 from .frames import check_fit, robust_kabsch, to_base
+from .identify import identifiability
 
-METHODS = ("nominal", "calibrated", "model")
+METHODS = ("nominal", "calibrated", "calibrated_parts", "model")
 
 
 def registration_subset(P: np.ndarray, n: int) -> np.ndarray:
@@ -45,27 +52,67 @@ def registration_subset(P: np.ndarray, n: int) -> np.ndarray:
     return mask
 
 
-def judge(pred: dict, P_world: np.ndarray, mode: str, frame: dict, n_register: int, frame_cfg: dict):
+MODES = ("same", "refit", "refit_tool")
+
+
+FRAME_TOOL = ["rx", "ry", "rz", "tx", "ty", "tz", "tool_x", "tool_y", "tool_z"]
+
+
+def refit_tool(p: np.ndarray, Rf: np.ndarray, P: np.ndarray, R0: np.ndarray, t0: np.ndarray, rank_tol: float):
+    """Frame and tool offset jointly, P ≈ R (p + Rf dt) + t, from the start (R0, t0): p (k, 3) predicted
+    markers, Rf (k, 3, 3) the flange rotations (base frame). Only the offset components the poses'
+    orientations determine are fitted (identify.identifiability at rank_tol: an offset along an axis
+    the flange never turns away from is a translation of the frame); the others stay 0.
+    Returns R, t, dt (3,) mm and the names of the components held at 0."""
+    def residuals(x):
+        R = Rotation.from_rotvec(x[:3]).as_matrix()
+        return ((p + np.einsum("kij,j->ki", Rf, x[6:])) @ R.T + x[3:6] - P).ravel()
+    x0 = np.r_[Rotation.from_matrix(R0).as_rotvec(), t0, np.zeros(3)]
+    r0 = residuals(x0)
+    J = np.stack([(residuals(x0 + h * e) - r0) / h for e, h in zip(np.eye(9), [1e-6] * 3 + [1e-3] * 6)], 1)
+    keep = identifiability(J, FRAME_TOOL, rank_tol)["keep"]
+    keep[:6] = True                                       # the frame is always fitted
+    def sub(xk):
+        x = x0.copy()
+        x[keep] = xk
+        return residuals(x)
+    sol = least_squares(sub, x0[keep], x_scale="jac")
+    x = x0.copy()
+    x[keep] = sol.x
+    return (Rotation.from_rotvec(x[:3]).as_matrix(), x[3:6], x[6:],
+            [n for n, k in zip(FRAME_TOOL, keep) if not k])
+
+
+def judge(pred: dict, P_world: np.ndarray, mode: str, frame: dict, n_register: int, frame_cfg: dict,
+          flange_R: dict | None = None, tool_rank_tol: float | None = None):
     """Each method's 3D error per point and the frame it was judged in.
 
-    pred: {method: (m, 3) base frame}; P_world: (m, 3) tracker frame. Returns
-    (errors {method: (m,)}, registered (m,) bool, frames {method: {"R", "t"}}); registered
-    points are not judged (their errors are the registration residuals).
+    pred: {method: (m, 3) base frame}; P_world: (m, 3) tracker frame; flange_R {method: (m, 3, 3)}: the
+    flange rotations each method's chain gives (refit_tool). Returns (errors {method: (m,)}, registered
+    (m,) bool, frames {method: {"R", "t", "tool_offset_mm"}}); registered points are not judged (their
+    errors are the registration residuals). refit_tool: the frame and a tool offset dt (the probe
+    re-mounted) on the registration points, every method's prediction moved by R_flange dt.
     """
     if mode == "same":
         P = to_base(P_world, frame)
         return ({m: np.linalg.norm(p - P, axis=1) for m, p in pred.items()}, np.zeros(len(P), bool),
-                {m: {"R": np.asarray(frame["R"]), "t": np.asarray(frame["t"])} for m in pred})
-    if mode != "refit":
-        raise ValueError(f"params.yaml validate.campaigns.*.frame: {mode!r}; use same or refit")
+                {m: {"R": np.asarray(frame["R"]), "t": np.asarray(frame["t"]), "tool_offset_mm": np.zeros(3)}
+                 for m in pred})
+    if mode not in MODES:
+        raise ValueError(f"params.yaml validate.campaigns.*.frame: {mode!r}; use one of {MODES}")
     reg = registration_subset(P_world, n_register)
     errors, frames = {}, {}
     for m, p in pred.items():
         R, t, inl, _ = robust_kabsch(p[reg], P_world[reg], frame_cfg["outlier_k"], frame_cfg["outlier_min_mm"])
         if m == "nominal":
             check_fit(p[reg][inl], P_world[reg][inl], R, t, "the refit registration (nominal)", frame_cfg)
+        frames[m] = {"R": R, "t": t, "tool_offset_mm": np.zeros(3)}
+        if mode == "refit_tool":
+            k = np.flatnonzero(reg)[inl]
+            R, t, dt, held = refit_tool(p[k], flange_R[m][k], P_world[k], R, t, tool_rank_tol)
+            p = p + np.einsum("mij,j->mi", flange_R[m], dt)
+            frames[m] = {"R": R, "t": t, "tool_offset_mm": dt, "tool_held": held}
         errors[m] = np.linalg.norm(p @ R.T + t - P_world, axis=1)
-        frames[m] = {"R": R, "t": t}
     return errors, reg, frames
 
 
@@ -102,8 +149,9 @@ def position_accuracy(commanded: np.ndarray, group: np.ndarray, measured: dict, 
     was commanded (points with equal rows reached the same commanded position, maybe in another
     joint configuration and orientation); measured {method: (m, 3) in that method's base frame};
     pred {method: (m, 3)}. Per position, with deviations d_i = x_i - c_i: AP_P = |mean d_i|,
-    RP = mean |d_i - mean d|, bar_error = |mean(pred) - mean(measured)|. Judged points only,
-    positions reached at least twice.
+    bar_error = |mean(pred) - mean(measured)| over every judged position; RP = mean |d_i - mean d|
+    over the positions reached at least twice (a campaign that visits each position once, as
+    Series_D's cubes, has an AP per position and no RP).
     """
     _, g = np.unique(np.round(group[judged], 6), axis=0, return_inverse=True)
     g = g.ravel()
@@ -113,15 +161,15 @@ def position_accuracy(commanded: np.ndarray, group: np.ndarray, measured: dict, 
         rows = {"ap_measured": [], "ap_predicted": [], "rp_measured": [], "rp_predicted": [], "bar_error": []}
         for k in np.unique(g):
             idx = np.flatnonzero(g == k)
-            if len(idx) < 2:
-                continue
             bars = {}
             for kind, x in (("measured", measured[m][judged][idx]), ("predicted", pred[m][judged][idx])):
                 d = x - c[idx]
                 bars[kind] = d.mean(0)
                 rows[f"ap_{kind}"].append(np.linalg.norm(bars[kind]))
-                rows[f"rp_{kind}"].append(np.linalg.norm(d - bars[kind], axis=1).mean())
+                if len(idx) > 1:
+                    rows[f"rp_{kind}"].append(np.linalg.norm(d - bars[kind], axis=1).mean())
             rows["bar_error"].append(np.linalg.norm(bars["predicted"] - bars["measured"]))
-        out[m] = {"positions": len(rows["ap_measured"]),        # means over the commanded positions
-                  **{f"{k}_mm": (float(np.mean(v)) if v else None) for k, v in rows.items()}}
+        out[m] = {"positions": len(rows["ap_measured"]), "positions_repeated": len(rows["rp_measured"]),
+                  **{f"{k}_mm": (float(np.mean(v)) if v else None) for k, v in rows.items()},   # means over positions
+                  "ap_measured_max_mm": float(np.max(rows["ap_measured"])) if rows["ap_measured"] else None}
     return out
