@@ -1,5 +1,5 @@
 """The trained model as ONNX (physics branch + network + fade, eq. 9): `q_rad` (batch, 6) float32 in,
-`p_mm` (batch, 3) float64 out, base frame (DATA_FORMAT.md, "Exports for the robot cell").
+`p_mm` (batch, 3) float64 out, base frame (docs/data-format.md, "Exports for the robot cell").
 
 Exported with torch.onnx's dynamo exporter (torch.export, batch size left free); the physics branch
 stays float64 inside the graph, as in PyTorch. Read back with onnxruntime (`OnnxModel`).
