@@ -1,7 +1,7 @@
 """Stage compensate: Δθ tables by inverting the frozen model (sec. 2.3, eq. 19).
 
 Targets are the test points' theory positions, started from their recorded
-angles (as in the paper). The Δθ table (DATA_FORMAT.md) comes from
+angles (as in the paper). The Δθ table (docs/data-format.md) comes from
 `compensate.solver`; both solvers (lib/solvers.py) run and their convergence is
 recorded, and so is the controller path (lib/realtime.py: one pose per call,
 two model evaluations) on the same targets. With `compensate.drive_check` the

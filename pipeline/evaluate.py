@@ -1,7 +1,7 @@
 """Stage evaluate: MAE/MSE/RMSE/R² per split and axis (eqs. 27-42) for the model and baselines.
 
 reports/metrics.json holds the model's metrics at the top level per split
-(DATA_FORMAT.md), under "campaigns" every training campaign's 3D MAE/RMSE
+(docs/data-format.md), under "campaigns" every training campaign's 3D MAE/RMSE
 per method and split, and, under "baselines", the same metrics for every
 comparison method on the same splits:
     nominal_dh      nominal DH after the frame fit (what the robot does uncompensated)

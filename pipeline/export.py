@@ -1,4 +1,4 @@
-"""Stage export: the calibration into the robot cell (DATA_FORMAT.md, "Exports for the robot cell").
+"""Stage export: the calibration into the robot cell (docs/data-format.md, "Exports for the robot cell").
 
     models/calibrated.urdf       the calibrated rigid chain (lib/urdf.py), base_link .. flange, tool0
     models/ur_calibration.yaml   UR robots: the UR ROS description's kinematics calibration

@@ -4,7 +4,7 @@ Robust Kabsch on the nominal theory points (lib/frames.py), one frame per
 tracker station (the `station` column; campaigns.station / campaigns.more),
 optionally refined jointly with the tool offset (`frame.estimate_tool`): one
 shared by every station, or one per station (`frame.tool_per_station`).
-Writes reports/frame.json (DATA_FORMAT.md): R, t, rms_mm, n_used of the first
+Writes reports/frame.json (docs/data-format.md): R, t, rms_mm, n_used of the first
 station (the base frame the later stages work in), outliers of every station,
 tool_mm (the first station's tool offset: the one the model predicts), fit
 diagnostics, and under "stations" every station's frame, tool and fit.

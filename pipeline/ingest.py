@@ -1,4 +1,4 @@
-"""Stage ingest: the tracker/controller exports -> data/interim/ingest.parquet (DATA_FORMAT.md).
+"""Stage ingest: the tracker/controller exports -> data/interim/ingest.parquet (docs/data-format.md).
 
     python -m pipeline.ingest                  dvc stage ingest: the ingest section's campaign,
                                                joined with every campaigns.more campaign

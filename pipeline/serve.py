@@ -1,97 +1,59 @@
 """The compensation service: the trained model over XML-RPC, for a robot program to call.
 
-    python -m pipeline.serve [--port N] [--host H]     (defaults: the `serve:` section of params.yaml)
+    python -m pipeline.serve [--port N] [--host H] [--compile]     (defaults: the `serve:` section)
 
-XML-RPC at http://HOST:PORT/RPC2 (only that path; default 127.0.0.1:50000):
+XML-RPC at http://HOST:PORT/RPC2 (only that path, only POST; default 127.0.0.1:50000):
 
-    compensate(q_rad, target_mm)           6 joint angles (rad) to start from, 3 target coordinates (mm,
-                                           the model's base frame: that of reports/frame.json) ->
-                                           {"q_rad": [6 floats], "residual_mm": float,
-                                            "converged": bool, "in_workspace": bool}
-    compensate_many([[q_rad, target_mm], ...])   a list of those structs, in order
-    compensate_list(q_rad, target_mm)      the same answer as one flat list of 9 floats (for URScript,
-                                           see below): [q1..q6 rad, residual_mm, converged 1.0/0.0,
-                                           in_workspace 1.0/0.0]
+    compensate(q_rad, target_mm)         6 joint angles (rad) to start from, 3 target coordinates (mm, the
+                                         model's base frame: that of reports/frame.json) ->
+                                         {"q_rad": [6 floats], "residual_mm": float, "converged": bool,
+                                          "in_workspace": bool}
+    compensate_list(q_rad, target_mm)    the same answer as 9 floats, for URScript: [q1..q6 rad,
+                                         residual_mm, converged 1.0/0.0, in_workspace 1.0/0.0]
+    compensate_many([[q_rad, target_mm], ...])   at most serve.max_items; each item answered in its
+                                         place: compensate's struct, or {"error": "requests[3].q_rad: ..."}
     system.listMethods, system.methodHelp, system.methodSignature
 
-Each pose goes through the controller path (lib/realtime.py: two model
-evaluations, ~7 ms here eager, ~2.5 ms with `serve.compile` / `--compile`). When that does not converge within
-`compensate.tol_mm` (a start far from the answer), the batched solver
-(lib/solvers.py, `lm`, up to `compensate.max_iter` iterations) solves it
-again from q_rad, and the residual returned is then measured on the model.
-The answer always respects the joint limits (`robot` section). `in_workspace`:
-the answer lies within the trained workspace (lib/workspace.py).
-
-Bad requests get an XML-RPC Fault whose message names the field and the
-problem (`q_rad: expected 6 numbers, got 5`, `target_mm[1]: not a finite number
-(nan)`, `q_rad[2]: 400.0° (6.981 rad) beyond the joint limits [-360, 360]°`,
-`requests[3].q_rad: ...` inside compensate_many); the server keeps serving.
-A target is *unreachable* (a Fault, not an answer) when
-  - it lies farther from the base than the arm can reach: the sum of the
-    model's link lengths |a| + |d|, its tool offset and base shift (a generous
-    bound: a target beyond it can be reached by no joint angles), or
-  - after both solvers the residual still exceeds `serve.unreachable_mm`
-    (the target needs angles beyond the joint limits, or lies outside the arm's workspace).
-A target solved to a residual above `compensate.tol_mm` but within
-`serve.unreachable_mm` is answered with converged False.
-
-The model is shared by the server's threads (one per request) behind a lock:
-requests are answered one at a time; clients may connect concurrently. It
-refuses to start without the trained artifacts (`dvc repro` makes them).
-
-The server listens on 127.0.0.1 only, unless told otherwise: to serve a robot
-on the network, `python -m pipeline.serve --host 0.0.0.0` (or the PC's address
-on the robot's network) and open the port in the PC's firewall.
-
-URScript (the robot program), with the PC at 192.168.1.10:
-
-    comp = rpc_factory("xmlrpc", "http://192.168.1.10:50000/RPC2")
-    r = comp.compensate_list(get_actual_joint_positions(), [x_mm, y_mm, z_mm])
-    if r[7] > 0.5:
-      movej([r[0], r[1], r[2], r[3], r[4], r[5]])
-    end
-
-URScript sends its lists as arrays of doubles (get_actual_joint_positions()
-is a list of 6 floats in rad), which is what both methods take. Its documented
-variable types are bool, int, float, string, pose and list, and the one struct
-its XML-RPC exchanges is a pose (members x, y, z, rx, ry, rz). So a robot
-program reads `compensate_list`'s flat list, by index, on every
-PolyScope version; the struct of `compensate` is for other clients (Python's
-xmlrpc.client: r["q_rad"], r["converged"]) and for controllers whose URScript
-reads structs. The targets are in the model's base frame (the DH base of
-reports/frame.json), in mm; a UR controller's poses are in metres, and in a
-base frame that may be turned about z from the DH base (the ipa-ur10 preset
-measured 180°: `validate.commanded.rz_deg`), so convert before calling.
+What a request costs and when it is answered, refused or unreachable: lib/service.py (the logic: a
+worker thread owning the model batches concurrent requests; each has a budget, serve.max_iter and
+serve.budget_ms). A bad or unreachable request gets a Fault (code -32602) naming the field; the
+server keeps serving. This module is the transport: the HTTP limits (serve.max_body_bytes: 413;
+serve.timeout_s: an idle or half-sent request is dropped; malformed HTTP or a body that is not an
+XML-RPC call: 400; other methods than POST: 405), messages and log lines cut to serve.echo_chars,
+and loading the artifacts and params. It listens on 127.0.0.1 unless told otherwise (--host
+0.0.0.0 to serve a robot on the network; XML-RPC has no authentication). docs/robot-cell.md: the
+protocol and a URScript example.
 """
 import argparse
 import inspect
-import math
+import socket
 import socketserver
-import threading
+import time
+import xmlrpc.client
 from pathlib import Path
 from xmlrpc.client import Fault
 from xmlrpc.server import SimpleXMLRPCRequestHandler, SimpleXMLRPCServer
 
-import numpy as np
 import torch
 
 from .lib.artifacts import MODEL_WEIGHTS, WORKSPACE_JSON
 from .lib.compensation import reach_mm
-from .lib.config import for_stage, load_params, logger, read_json
-from .lib.realtime import Realtime
+from .lib.config import PARAMS as PARAMS_YAML, ParamsError, for_stage, load_params, logger, read_json
 from .lib.robots import load_robot
-from .lib.solvers import compensate
+from .lib.service import RequestError, Service
 from .lib.training import load_model
 from .lib.workspace import Workspace
 
 log = logger(__name__)
 PATH = "/RPC2"
 INVALID_PARAMS, NO_METHOD, INTERNAL = -32602, -32601, -32603       # the XML-RPC fault code convention
-
+METHODS = ("compensate", "compensate_many", "compensate_list")
 
 PARAMS = ("robot", "compensate", "serve")
 REQUIRED = [MODEL_WEIGHTS, WORKSPACE_JSON]                # the trained artifacts it reads (the checkpoint
                                                           # carries its config and physics geometry)
+SERVICE_KEYS = ("unreachable_mm", "max_iter", "budget_ms", "stall_iter", "stall_ratio", "max_batch",
+                "batch_wait_ms", "max_items", "compile")  # the serve: keys lib/service.py takes
 
 
 def check_artifacts() -> None:
@@ -101,132 +63,117 @@ def check_artifacts() -> None:
                          f"(in {Path.cwd()}); run `dvc repro` first")
 
 
-class BadRequest(Fault):
-    def __init__(self, message: str):
-        super().__init__(INVALID_PARAMS, message)
-
-
-def numbers(value, field: str, n: int) -> np.ndarray:
-    """value as n finite floats, or a BadRequest naming the field."""
-    if not isinstance(value, (list, tuple)):
-        raise BadRequest(f"{field}: expected a list of {n} numbers, got {describe(value)}")
-    if len(value) != n:
-        raise BadRequest(f"{field}: expected {n} numbers, got {len(value)}")
-    for i, v in enumerate(value):
-        if isinstance(v, bool) or not isinstance(v, (int, float)):
-            raise BadRequest(f"{field}[{i}]: expected a number, got {describe(v)}")
-        try:
-            f = float(v)
-        except OverflowError:                              # an integer beyond any float
-            f = math.inf
-        if not math.isfinite(f):
-            raise BadRequest(f"{field}[{i}]: not a finite number ({f})")
-    return np.array(value, float)
-
-
-def describe(v) -> str:
-    kinds = {str: "a string", dict: "a struct", bool: "a boolean", list: "a list", tuple: "a list",
-             int: "a number", float: "a number", type(None): "nil"}
-    text = repr(v)
-    return f"{kinds.get(type(v), type(v).__name__)} ({text if len(text) <= 40 else text[:37] + '...'})"
-
-
-class Compensator:
-    """The model, its workspace and limits; its methods are the service's (`compensate`, ...)."""
-
-    def __init__(self, params: dict):
-        self.cfg, serve = params["compensate"], params["serve"]
-        self.robot = load_robot(params["robot"])
-        self.model = load_model(MODEL_WEIGHTS)
-        self.limits_deg = np.asarray(self.robot.limits_deg, float)
-        self.tol, self.unreachable = float(self.cfg["tol_mm"]), float(serve["unreachable_mm"])
-        workspace = Workspace.from_dict(read_json(WORKSPACE_JSON))
-        self.realtime = Realtime(self.model, np.radians(self.limits_deg), self.tol, workspace=workspace,
-                                 compile=bool(serve["compile"]))
-        self.reach = reach_mm(self.model.physics.geometry())
-        self.lock = threading.Lock()                      # one model evaluation at a time
-
-    def check(self, q_rad, target_mm, where: str = "") -> tuple[np.ndarray, np.ndarray]:
-        q, target = numbers(q_rad, where + "q_rad", 6), numbers(target_mm, where + "target_mm", 3)
-        beyond = np.flatnonzero(self.robot.check_joints(np.degrees(q)[None])[0])
-        if len(beyond):
-            i = int(beyond[0])
-            a, (lo, hi) = np.degrees(q[i]), self.limits_deg[i]
-            raise BadRequest(f"{where}q_rad[{i}]: {a:.1f}° ({q[i]:.3f} rad) beyond the joint limits "
-                             f"[{lo:g}, {hi:g}]° ([{np.radians(lo):.3f}, {np.radians(hi):.3f}] rad)")
-        dist = float(np.linalg.norm(target))
-        if dist > self.reach:
-            raise BadRequest(f"{where}target_mm: unreachable ({dist:.1f} mm from the base, beyond the arm's "
-                             f"reach of {self.reach:.1f} mm)")
-        return q, target
-
-    def solve(self, q: np.ndarray, target: np.ndarray, where: str = "") -> dict:
-        with self.lock:
-            r = self.realtime(q, target)
-            q_out, residual, converged = r.q, r.residual_mm, r.converged
-            if not converged:                             # far start: the full solver, residual measured
-                q_deg, pred, _, ok, _, _ = compensate(self.model, np.degrees(q)[None], target[None],
-                                                      self.cfg, self.robot, "lm")
-                q_out, residual, converged = np.radians(q_deg[0]), float(np.linalg.norm(pred[0] - target)), bool(ok[0])
-                in_ws = bool(self.realtime.workspace(q_deg)[1][0])
-            else:
-                in_ws = bool(r.in_workspace)
-        if not converged and residual > self.unreachable:
-            raise BadRequest(f"{where}target_mm: unreachable (residual {residual:.1f} mm after compensation, "
-                             f"tolerance {self.tol:g} mm)")
-        return {"q_rad": [float(v) for v in q_out], "residual_mm": float(residual), "converged": bool(converged),
-                "in_workspace": in_ws}
-
-    # the XML-RPC methods
-    def compensate(self, q_rad, target_mm):
-        """compensate(q_rad [6], target_mm [3]) -> {q_rad, residual_mm, converged, in_workspace}."""
-        return self.solve(*self.check(q_rad, target_mm))
-
-    def compensate_list(self, q_rad, target_mm):
-        """compensate_list(q_rad [6], target_mm [3]) -> [q1..q6 rad, residual_mm, converged, in_workspace]
-        as 9 floats (1.0 / 0.0 for the flags): URScript reads lists, not structs."""
-        r = self.compensate(q_rad, target_mm)
-        return r["q_rad"] + [r["residual_mm"], float(r["converged"]), float(r["in_workspace"])]
-
-    def compensate_many(self, requests):
-        """compensate_many([[q_rad, target_mm], ...]) -> [{q_rad, residual_mm, converged, in_workspace}, ...]."""
-        if not isinstance(requests, (list, tuple)):
-            raise BadRequest(f"requests: expected a list of [q_rad, target_mm], got {describe(requests)}")
-        checked = []
-        for i, item in enumerate(requests):                # every item checked before any is solved
-            if not isinstance(item, (list, tuple)) or len(item) != 2:
-                raise BadRequest(f"requests[{i}]: expected [q_rad, target_mm], got {describe(item)}")
-            checked.append(self.check(*item, where=f"requests[{i}]."))
-        return [self.solve(q, t, where=f"requests[{i}].") for i, (q, t) in enumerate(checked)]
+def clip(text: str, n: int) -> str:
+    """text cut to n characters (what a message or a log line may echo of a request)."""
+    return text if len(text) <= n else text[:n - 3] + "..."
 
 
 class Handler(SimpleXMLRPCRequestHandler):
+    """POST /RPC2 only, within the server's limits; every refusal a 4xx, the connection then closed."""
     rpc_paths = (PATH,)                                   # any other path: 404
+    default_request_version = "HTTP/1.0"                  # a garbled request line: a 400 with its status line
+
+    def setup(self):
+        self.timeout = self.server.limits["timeout_s"]    # each read and write: idle or slow clients dropped
+        super().setup()
+
+    def parse_request(self):
+        if not super().parse_request():                   # a malformed request line or headers: 400 sent
+            return False
+        if self.command != "POST":
+            self.send_error(405, f"only POST to {PATH} (XML-RPC)")
+            return False
+        return True
+
+    def do_POST(self):
+        if not self.is_rpc_path_valid():
+            return self.report_404()
+        limit, length = self.server.limits["max_body_bytes"], self.headers.get("content-length")
+        if length is None:
+            return self.send_error(411, "Content-Length required")
+        if not (length.strip().isascii() and length.strip().isdigit()):
+            return self.send_error(400, f"bad Content-Length {clip(repr(length), 40)}")
+        if int(length) > limit:
+            return self.refuse_unread(413, f"request body of {int(length)} bytes, more than the limit of "
+                                           f"{limit} (serve.max_body_bytes)")
+        data = self.rfile.read(int(length))               # a TimeoutError: handle_one_request drops it
+        if len(data) < int(length):
+            self.close_connection = True                  # the client went away
+            return
+        data = self.decode_request_content(data)          # gzip: decoded, up to 20 MB (xmlrpc.server)
+        if data is None:
+            return
+        try:
+            params, method = xmlrpc.client.loads(data, use_builtin_types=self.server.use_builtin_types)
+            if method is None:
+                raise ValueError("a methodResponse")
+        except Exception as e:
+            return self.send_error(400, f"not an XML-RPC call ({type(e).__name__})")
+        body = self.server.respond(method, params)
+        self.send_response(200)
+        self.send_header("Content-Type", "text/xml")
+        self.send_header("Content-Length", str(len(body)))
+        self.end_headers()
+        self.wfile.write(body)
+
+    def refuse_unread(self, code: int, message: str) -> None:
+        """Answer code without reading the body; then discard what the client still sends (at most
+        timeout_s), so that it reads the answer rather than a reset connection."""
+        self.send_error(code, message)
+        self.wfile.flush()
+        try:
+            self.connection.shutdown(socket.SHUT_WR)
+            end = time.monotonic() + self.timeout
+            while time.monotonic() < end and self.connection.recv(65536):
+                pass
+        except OSError:
+            pass
+
+    def log_message(self, format, *args):
+        log.warning("%s", clip(f"{self.client_address[0]}: {format % args}", self.server.limits["echo_chars"]))
 
 
 class Server(socketserver.ThreadingMixIn, SimpleXMLRPCServer):
-    """SimpleXMLRPCServer, one thread per request; faults logged, never fatal."""
+    """SimpleXMLRPCServer, one thread per connection; faults logged, never fatal. `limits`: the transport's
+    (max_body_bytes, timeout_s, echo_chars); `service`: lib/service.Service."""
     daemon_threads = True
     request_queue_size = 64                               # listen backlog: socketserver's 5 drops concurrent connects
 
-    def _dispatch(self, method, params):
+    def respond(self, method: str, params: tuple) -> bytes:
+        """The XML-RPC response (answer or Fault) to a parsed call."""
         try:
-            func = self.funcs.get(method)
-            if func is None:
-                raise Fault(NO_METHOD, f"unknown method {method!r}; methods: {', '.join(sorted(self.funcs))}")
+            answer = xmlrpc.client.dumps((self._dispatch(method, params),), methodresponse=True)
+        except Fault as f:
+            answer = xmlrpc.client.dumps(f)
+        return answer.encode("utf-8", "xmlcharrefreplace")
+
+    def _dispatch(self, method, params):
+        n = self.limits["echo_chars"]
+        func = self.funcs.get(method)
+        try:
+            if func is None:                              # the name echoed last, so cutting spares the list
+                raise Fault(NO_METHOD, clip(f"unknown method (methods: {', '.join(sorted(self.funcs))}): "
+                                            f"{method!r}", n))
             try:
                 inspect.signature(func).bind(*params)
             except TypeError:
                 names = ", ".join(inspect.signature(func).parameters)
                 raise Fault(INVALID_PARAMS, f"{method}: expected {len(inspect.signature(func).parameters)} "
                                             f"argument(s) ({names}), got {len(params)}") from None
-            return func(*params)
+            try:
+                return func(*params)
+            except RequestError as e:
+                raise Fault(INVALID_PARAMS, clip(str(e), n)) from None
         except Fault as f:
-            log.warning("%s: fault: %s", method, f.faultString)
+            log.warning("%s", clip(f"fault: {f.faultString}" if func is None else f"{method}: fault: {f.faultString}", n))
             raise
         except Exception as e:                            # a bug, not a bad request: say so, keep serving
             log.exception("%s: internal error", method)
-            raise Fault(INTERNAL, f"{method}: internal error ({type(e).__name__}: {e})") from None
+            raise Fault(INTERNAL, clip(f"{method}: internal error ({type(e).__name__}: {e})", n)) from None
+
+    def server_close(self):
+        super().server_close()
+        self.service.close()
 
 
 def make_server(params: dict, host: str | None = None, port: int | None = None,
@@ -236,18 +183,23 @@ def make_server(params: dict, host: str | None = None, port: int | None = None,
     params = for_stage(params, PARAMS)
     cfg = params["serve"]
     if compile is not None:
-        params = {**params, "serve": {**cfg, "compile": compile}}
+        cfg = {**cfg, "compile": compile}
     host, port = cfg["host"] if host is None else host, cfg["port"] if port is None else port
     check_artifacts()
-    comp = Compensator(params)
+    model = load_model(MODEL_WEIGHTS)
+    service = Service(model, Workspace.from_dict(read_json(WORKSPACE_JSON)), load_robot(params["robot"]).limits_deg,
+                      reach_mm(model.physics.geometry()), tol_mm=params["compensate"]["tol_mm"],
+                      jacobian_of=params["compensate"]["jacobian_of"], **{k: cfg[k] for k in SERVICE_KEYS})
     try:
         server = Server((host, port), requestHandler=Handler, allow_none=False, logRequests=False)
     except OSError as e:
+        service.close()
         raise SystemExit(f"pipeline.serve: cannot listen on {host}:{port}: {e}") from None
+    server.limits = {k: cfg[k] for k in ("max_body_bytes", "timeout_s", "echo_chars")}
+    server.service = service
     server.register_introspection_functions()
-    for name in ("compensate", "compensate_many", "compensate_list"):
-        server.register_function(getattr(comp, name), name)
-    server.compensator = comp
+    for name in METHODS:
+        server.register_function(getattr(service, name), name)
     return server
 
 
@@ -265,7 +217,14 @@ def main(argv=None):
     ap.add_argument("--compile", action=argparse.BooleanOptionalAction, default=None,
                     help="torch.compile the controller path (default: serve.compile)")
     a = ap.parse_args(argv)
-    server = make_server(load_params(), a.host, a.port, a.compile)
+    missing = [str(p) for p in [PARAMS_YAML, *REQUIRED] if not p.exists()]
+    if not PARAMS_YAML.exists():
+        raise SystemExit(f"pipeline.serve: missing {', '.join(missing)} in {Path.cwd()}: run it in the "
+                         f"project's root (where params.yaml is), after `dvc repro`")
+    try:
+        server = make_server(load_params(), a.host, a.port, a.compile)
+    except ParamsError as e:
+        raise SystemExit(f"pipeline.serve: {e}") from None
     log.info("serving %s: %s (torch %d threads)", url(server), ", ".join(server.system_listMethods()),
              torch.get_num_threads())
     try:

@@ -25,7 +25,9 @@ def run(params: dict) -> dict:
     nominal = theory_geometry(load_robot(p["robot"]), read_json(FRAME_JSON)["tool_mm"])
     df = aligned(load_points(), calibration, nominal)
     geometry = physics_geometry(p["model"]["physics"], with_parts(calibration.geometry, read_json(PARTS_JSON)), nominal)
-    with Live(dir=str(LIVE), save_dvc_exp=False, dvcyaml=False) as live:   # dvclive needs a git repo with a commit
+    # save_dvc_exp: dvclive needs a git repo with a commit; no system monitor and no timestamps: the curves
+    # are hashed in dvc.lock, so the same params give the same bytes (issue 21)
+    with Live(dir=str(LIVE), save_dvc_exp=False, dvcyaml=False, report=None, monitor_system=False) as live:
         model, summary = train_boter(df, geometry, p["model"], p["loss"], p["train"],
                                      p["workspace"]["radius_quantile"], live)
     MODEL_WEIGHTS.parent.mkdir(parents=True, exist_ok=True)

@@ -7,7 +7,7 @@ A campaign is read by the ingest rules (lib/readers.py, bad rows listed,
 fatal errors naming file, row and column) with its own `ingest` overrides,
 and judged `same` or `refit` (lib/validation.py). Writes
 reports/validation/NAME.json and .parquet; the summary stage writes
-reports/validation.json and reports/validation.parquet (DATA_FORMAT.md), an
+reports/validation.json and reports/validation.parquet (docs/data-format.md), an
 empty summary when there are no campaigns.
 """
 import argparse

@@ -120,6 +120,8 @@ def test_onnx_read_by_onnxruntime_matches_pytorch(tmp_path, ensemble):
     import onnx
     graph = onnx.load(str(path)).graph
     assert [i.name for i in graph.input] == ["q_rad"] and [o.name for o in graph.output] == ["p_mm"]
+    assert b"onnx_model.py" not in path.read_bytes()                # no source paths (stack traces): issue 21
+    assert not any(n.metadata_props or n.doc_string for n in graph.node)
     ort = OnnxModel(path)
     for n in (1, 7, 300):                                           # the batch size is free
         q = poses(n, seed=n).float()

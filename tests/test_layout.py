@@ -292,3 +292,20 @@ def test_editing_library_code_makes_dvc_status_report_its_stages(tmp_path, edite
     if edited.endswith("robots.py"):                   # the DH tables reach every stage but split
         assert stale == {"ingest", "frame", "theory", "calibrate", "train", "baselines", "evaluate",
                          "compensate", "validate@twin_side", "validation", "export", "report"}
+
+
+STANDS_ALONE_EXCEPT = ("data/presets/", "pipeline/bench/", "tests/test_ingest.py", "tests/test_preset.py",
+                       "tests/test_layout.py", "README.md", "docs/data-format.md", "docs/experiments.md",
+                       "CHANGELOG.md")
+
+
+def test_the_project_stands_on_its_own():
+    """Only the presets, the benchmarks, the tests on the public datasets (which skip without them) and
+    the pages saying where to put those datasets name the folder beside the checkout; nothing cites a
+    document outside the repository."""
+    files = subprocess.run(["git", "ls-files", "--cached", "--others", "--exclude-standard"], cwd=ROOT,
+                           capture_output=True, text=True, check=True).stdout.split()
+    named = [f for f in files if (ROOT / f).is_file() and f.endswith((".py", ".md", ".yaml", ".toml", ".txt", ".lock"))
+             and not f.startswith(STANDS_ALONE_EXCEPT)
+             and any(s in (ROOT / f).read_text(errors="ignore") for s in ("../shared", "DATA_FORMAT.md", "SPEC.md"))]
+    assert not named, f"these refer to documents or data outside the repository: {named}"

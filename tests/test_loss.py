@@ -37,7 +37,7 @@ def test_weightings_worked_example():
 def test_paper_weights_are_trainable_and_shrink():
     paper = SPILoss("paper")
     paper(PRED, GT, THEORY)[0].backward()
-    # dL/dlogλ = λ L > 0: gradient descent lowers both λ (the loose end SPEC.md names)
+    # dL/dlogλ = λ L > 0: gradient descent lowers both λ (the loose end docs/method.md names)
     assert (paper.log_lambda.grad > 0).all()
     with pytest.raises(ValueError, match="unknown 'gradnorm'"):
         SPILoss("gradnorm")

@@ -1,7 +1,8 @@
 """End to end: `dvc repro` on the bundled twin campaign in a fresh git repo, with a small model.
 
-Checks every contract output, that a second repro does nothing, that
-`dvc exp run -S` works and that an invalid combination stops before training.
+Checks every contract output, that a second repro does nothing, that a repro in a fresh copy
+elsewhere gives the same bytes (dvc.lock unchanged), that `dvc exp run -S` works and that an
+invalid combination stops before training.
 """
 import json
 import os
@@ -95,6 +96,29 @@ def test_repro_produces_contract_outputs_and_is_idempotent(repo):
     assert "up to date" in again and "Running stage" not in again
     shown = sh("dvc metrics show --json", repo).stdout
     assert "reports/metrics.json" in shown
+
+
+def locked_hashes(repo: Path) -> dict:
+    """{(stage, path): md5} of every output (outs, metrics, plots) dvc.lock records."""
+    stages = yaml.safe_load((repo / "dvc.lock").read_text())["stages"]
+    return {(stage, o["path"]): o.get("md5") for stage, s in stages.items() for o in s.get("outs", [])}
+
+
+@pytest.mark.slow
+def test_repro_in_a_fresh_copy_reproduces_every_output_to_the_byte(repo, tmp_path):
+    """Issue 21: a clone (another directory, other processes, no DVC cache) given the first repo's
+    dvc.lock re-runs every stage to the same bytes, so that `dvc repro` leaves `git status` clean."""
+    sh("dvc repro", repo)                                       # a no-op after the first test
+    other = project_copy(tmp_path)                              # another path: no absolute paths in outputs
+    shutil.copy2(repo / "dvc.lock", other / "dvc.lock")
+    sh("git commit -qam 'dvc.lock of the first repo'", other)
+    ran = sh("dvc repro", other).stdout.count("Running stage")  # its outputs are missing: every stage runs
+    first, second = locked_hashes(repo), locked_hashes(other)
+    assert ran == len({stage for stage, _ in first})
+    assert len(first) > 30 and set(first) == set(second)
+    changed = sorted(f"{stage}: {path}" for (stage, path), md5 in first.items() if second[stage, path] != md5)
+    assert not changed, f"outputs not reproduced to the byte: {changed}"
+    assert sh("git status --porcelain", other).stdout == ""
 
 
 @pytest.mark.slow

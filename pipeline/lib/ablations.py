@@ -17,7 +17,7 @@ GROUPS = {                                   # name -> params changes (one sourc
     "body_mask": {"model": {"mask": "body"}},
     "no_resnet": {"model": {"head": "linear"}},
     "no_transformer": {"model": {"encoder": False}},
-    # not in the paper: SPEC.md's loss-weighting choice, measured the same way
+    # not in the paper: docs/method.md's loss-weighting choice, measured the same way
     "paper_weights": {"loss": {"weighting": "paper"}},
     "fixed_weights": {"loss": {"weighting": "fixed"}},
 }

@@ -1,4 +1,4 @@
-"""Column names: the one source for every table the stages pass along (DATA_FORMAT.md)."""
+"""Column names: the one source for every table the stages pass along (docs/data-format.md)."""
 
 JOINTS_DEG = [f"j{i}_deg" for i in range(1, 7)]          # recorded joint angles, degrees
 MEAS = ["meas_x", "meas_y", "meas_z"]                     # measured marker position, mm
@@ -8,7 +8,7 @@ PRED = ["pred_x", "pred_y", "pred_z"]                     # model prediction, ba
 AXES = ["x", "y", "z"]
 CAMPAIGN, STATION = "campaign", "station"                 # each point's campaign and tracker station
 
-# reports/compensation.csv (DATA_FORMAT.md: names are a contract)
+# reports/compensation.csv (docs/data-format.md: names are a contract)
 DJ_DEG = [f"dj{i}_deg" for i in range(1, 7)]
 JCOMP_DEG = [f"j{i}_comp_deg" for i in range(1, 7)]
 TARGET = ["target_x", "target_y", "target_z"]

@@ -489,9 +489,10 @@ def caption(fn) -> str:
 
 
 def save(fig, path: Path) -> None:
-    """Write fig as a PNG at DPI and close it."""
+    """Write fig as a PNG at DPI and close it. No `Software` text chunk (matplotlib's version): the PNGs
+    are hashed in dvc.lock, and only their pixels should count."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=DPI)
+    fig.savefig(path, dpi=DPI, metadata={"Software": None})
     _plt().close(fig)
 
 

@@ -9,7 +9,7 @@ def regression_metrics(pred: np.ndarray, real: np.ndarray, theory: np.ndarray) -
     """pred, real, theory: (n, 3) mm -> {"x"|"y"|"z"|"3d": {"mae", "mse", "rmse", "r2"}}.
 
     R² compares the predicted error Δ̂ = pred - theory with the real error
-    Δ = real - theory, the denominator taken around the mean real Δ (SPEC.md).
+    Δ = real - theory, the denominator taken around the mean real Δ (docs/method.md).
     """
     e = pred - real                                        # (n, 3) prediction error
     d_real = real - theory                                 # (n, 3) real error vectors

@@ -23,7 +23,7 @@ from torch import nn
 from .kinematics import DTYPE, DHChain
 from .workspace import Fade
 
-# eq. 4, row i = query joint i, True = may not attend (SPEC.md)
+# eq. 4, row i = query joint i, True = may not attend (docs/method.md)
 SPI_MASK = [[0, 0, 0, 0, 0, 0],
             [0, 0, 0, 0, 0, 0],
             [0, 0, 0, 0, 0, 0],
@@ -31,7 +31,7 @@ SPI_MASK = [[0, 0, 0, 0, 0, 0],
             [1, 1, 1, 0, 0, 0],
             [1, 1, 1, 0, 0, 0]]
 # eq. 43 as printed, the Body-Transformer mask: each joint sees itself and its
-# chain neighbours (SPEC.md words it "within 2 hops"; the printed matrix stands)
+# chain neighbours (docs/method.md words it "within 2 hops"; the printed matrix stands)
 BODY_MASK = [[0, 0, 1, 1, 1, 1],
              [0, 0, 0, 1, 1, 1],
              [1, 0, 0, 0, 1, 1],

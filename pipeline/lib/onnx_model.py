@@ -1,8 +1,13 @@
 """The trained model as ONNX (physics branch + network + fade, eq. 9): `q_rad` (batch, 6) float32 in,
-`p_mm` (batch, 3) float64 out, base frame (DATA_FORMAT.md, "Exports for the robot cell").
+`p_mm` (batch, 3) float64 out, base frame (docs/data-format.md, "Exports for the robot cell").
 
 Exported with torch.onnx's dynamo exporter (torch.export, batch size left free); the physics branch
 stays float64 inside the graph, as in PyTorch. Read back with onnxruntime (`OnnxModel`).
+
+The file is the same bytes for the same weights (a DVC output, hashed in dvc.lock): the exporter's
+debugging annotations (`metadata_props` on nodes, values, graph and model, and doc strings) are
+dropped, since they carry the absolute path and line numbers of the exported source (each node's
+`pkg.torch.onnx.stack_trace`), which differ between clones. They never reach the predictions.
 """
 import logging
 
@@ -31,9 +36,50 @@ def export_onnx(model, path) -> None:
     if isinstance(model, Ensemble):
         model = model.for_export()
     batch = torch.export.Dim("batch")
-    torch.onnx.export(_Positions(model).eval(), (torch.zeros(4, 6),), str(path), input_names=["q_rad"],
-                      output_names=["p_mm"], dynamic_shapes=({0: batch},), dynamo=True, verbose=False,
-                      external_data=False)                 # one self-contained file
+    program = torch.onnx.export(_Positions(model).eval(), (torch.zeros(4, 6),), None, input_names=["q_rad"],
+                                output_names=["p_mm"], dynamic_shapes=({0: batch},), dynamo=True,
+                                verbose=False)
+    import onnx
+    proto = program.model_proto
+    strip_annotations(proto)
+    onnx.save_model(proto, str(path), save_as_external_data=False)   # one self-contained file
+
+
+def strip_annotations(proto) -> None:
+    """Drop every `metadata_props` and `doc_string` of an ONNX ModelProto, in place (functions and
+    subgraphs included): the exporter's annotations, which name source paths and lines."""
+    def values(g):
+        return [*g.input, *g.output, *g.value_info, *g.initializer,
+                *(t for s in g.sparse_initializer for t in (s.values, s.indices))]
+
+    def graph(g):
+        g.ClearField("doc_string")
+        del g.metadata_props[:]
+        for v in values(g):
+            v.ClearField("doc_string")
+            del v.metadata_props[:]
+        nodes(g.node)
+
+    def nodes(ns):
+        for n in ns:
+            n.ClearField("doc_string")
+            del n.metadata_props[:]
+            for a in n.attribute:
+                a.ClearField("doc_string")
+                if a.HasField("g"):
+                    graph(a.g)
+                for sub in a.graphs:
+                    graph(sub)
+
+    proto.ClearField("doc_string")
+    del proto.metadata_props[:]
+    graph(proto.graph)
+    for f in proto.functions:
+        f.ClearField("doc_string")
+        del f.metadata_props[:]
+        for v in f.value_info:
+            del v.metadata_props[:]
+        nodes(f.node)
 
 
 class OnnxModel:

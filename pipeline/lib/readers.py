@@ -1,4 +1,4 @@
-"""Reading tracker/controller exports -> one table of points (DATA_FORMAT.md).
+"""Reading tracker/controller exports -> one table of points (docs/data-format.md).
 
 `ingest(cfg, robot)` does it all and writes nothing (the ingest stage writes).
 Inputs, chosen by settings alone (the `ingest:` section, and the robot of `robot:`):

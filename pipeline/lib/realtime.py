@@ -18,7 +18,9 @@ geometric Jacobian (kinematics.fk_jacobian), one FK pass. Joint limits clamp
 every step. `compile=True` runs both steps as one torch.compile graph: 10-20
 s once, in the constructor, then a call costs about half of eager
 PyTorch's (at batch 1, eager time goes as much to per-operator overhead as
-to the matrix products). `python -m pipeline.bench speed` times it;
+to the matrix products). `batch` takes B poses in one evaluation (the
+service, service.py, batches concurrent requests so), compiled for B = 1
+only. `python -m pipeline.bench speed` times it;
 tests/test_compensate.py checks every answer against the model.
 """
 from dataclasses import dataclass
@@ -51,40 +53,48 @@ class Realtime:
         lim = np.array([[-np.inf, np.inf]] * 6) if limits_rad is None else np.asarray(limits_rad, float)
         self.lo, self.hi = (torch.as_tensor(lim[:, i], dtype=DTYPE) for i in (0, 1))
         self.damping, self.workspace = damping, workspace   # workspace: lib/workspace.Workspace
-        self.solve = self._solve
-        if compile:                                         # compile now, not in the first cycle
+        self.solve = self._solve                            # a single pose's (batches run eager: inductor
+        if compile:                                         # fails on the batched transformer fast path)
             self.solve = torch.compile(self._solve, dynamic=False)
-            self(np.zeros(6), np.zeros(3))
+            self(np.zeros(6), np.zeros(3))                  # compile now, not in the first cycle
 
     def _step(self, q, target):
-        """One chord step from q (1, 6): returns (the next q (1, 6), |residual at q| (1,) mm)."""
-        p, J = fk_jacobian(q, self.model.physics.geometry())   # (1, 3), (1, 3, 6)
-        r = p + self.model.delta(q) - target                # (1, 3), eq. 9
+        """One chord step from q (B, 6): returns (the next q (B, 6), |residual at q| (B,) mm)."""
+        p, J = fk_jacobian(q, self.model.physics.geometry())   # (B, 3), (B, 3, 6)
+        r = p + self.model.delta(q) - target                # (B, 3), eq. 9
         q_next = q + min_norm_step(J, r, self.damping)
         return torch.clamp(q_next, self.lo, self.hi), r.norm(dim=1)
 
     def _solve(self, q0, target):
-        """Both steps (one graph when compiled): q1, q2 (1, 6) and |r0|, |r1| (1,)."""
+        """Both steps (one graph when compiled): q1, q2 (B, 6) and |r0|, |r1| (B,)."""
         q1, r0 = self._step(q0, target)
         q2, r1 = self._step(q1, target)
         return q1, q2, r0, r1
 
-    @torch.inference_mode()
     def __call__(self, q0_rad, target_mm) -> Result:
-        # fresh contiguous copies: the compiled graph is specialised to one layout (no recompiles)
-        q0 = torch.tensor(np.asarray(q0_rad, float).reshape(1, 6), dtype=DTYPE)
-        target = torch.tensor(np.asarray(target_mm, float).reshape(1, 3), dtype=DTYPE)
-        q1, q2, r0, r1 = self.solve(q0, target)
-        r0, r1 = float(r0), float(r1)
-        if r1 < self.tol:
-            return self._flag(Result(q1[0].numpy(), r1, True, True))
-        predicted = r1 * r1 / r0 if r1 < r0 else float("inf")
-        return self._flag(Result(q2[0].numpy(), predicted, False, predicted < self.tol))
+        return self.batch(np.reshape(q0_rad, (1, 6)), np.reshape(target_mm, (1, 3)))[0]
 
-    def _flag(self, r: Result) -> Result:
+    @torch.inference_mode()
+    def batch(self, q0_rad, target_mm) -> list[Result]:
+        """Compensate B poses at once, (B, 6) rad and (B, 3) mm: each as a call alone would (the same
+        steps, one evaluation of the model for all)."""
+        # fresh contiguous copies: the compiled graph is specialised to one layout (no recompiles)
+        q0 = torch.tensor(np.asarray(q0_rad, float).reshape(-1, 6), dtype=DTYPE)
+        target = torch.tensor(np.asarray(target_mm, float).reshape(-1, 3), dtype=DTYPE)
+        q1, q2, r0, r1 = (t.numpy() for t in (self.solve if len(q0) == 1 else self._solve)(q0, target))
+        out = []
+        for i in range(len(q0)):
+            a, b = float(r0[i]), float(r1[i])
+            if b < self.tol:
+                out.append(Result(q1[i], b, True, True))
+            else:
+                predicted = b * b / a if b < a else float("inf")
+                out.append(Result(q2[i], predicted, False, predicted < self.tol))
         if self.workspace is not None:
-            r.in_workspace = bool(self.workspace(np.degrees(r.q))[1][0])
-        return r
+            inside = self.workspace(np.degrees([r.q for r in out]))[1]
+            for r, w in zip(out, inside):
+                r.in_workspace = bool(w)
+        return out
 
 
 def check(rt: Realtime, q0_rad: np.ndarray, targets: np.ndarray) -> dict:

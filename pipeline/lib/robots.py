@@ -1,6 +1,6 @@
 """Robot models as data: the one source of every DH table and joint limit.
 
-Standard DH (paper eq. 1, SPEC.md stage 3), per joint i:
+Standard DH (paper eq. 1, docs/method.md stage 3), per joint i:
     T_i = Rz(theta_i + offset_i) Tz(d_i) Tx(a_i) Rx(alpha_i)
 Lengths in mm, angles in rad. The physics branch, the twin, calibration and
 compensation all build their chains from `load_robot(params["robot"])`.
@@ -13,7 +13,7 @@ from .config import check_keys
 
 PI2 = np.pi / 2
 
-# CB3 nominal tables (SPEC.md). Joint limits are the controller's software
+# CB3 nominal tables (docs/method.md). Joint limits are the controller's software
 # limits (±360° on every UR joint). Link masses (kg) and centres of mass (mm, in
 # each link's own DH frame) after Universal Robots' "Parameters for calculations
 # of kinematics and dynamics": the gravity torques of the elasto-geometric

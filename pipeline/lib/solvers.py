@@ -11,7 +11,8 @@ points:
         6 unknowns), λ adapted per point, joint limits respected, stop at
         |r| < tol_mm.
 `min_norm_step` is the damped minimum-norm step both `lm` and the controller
-path (realtime.py: one pose per call, two model evaluations) take.
+path (realtime.py: two model evaluations a pose) take; `lm_step`, one lm
+iteration, is also what the service (service.py) resumes request by request.
 """
 import time
 
@@ -76,22 +77,41 @@ def solve_adam(model, q0, target, cfg: dict, limits=None):
     return q_final, pred, iters, done, torch.stack(history)
 
 
-def solve_lm(model, q0, target, cfg: dict, limits=None, lam0=1e-3):
-    """Batched Levenberg-Marquardt on the frozen model: cfg max_iter, tol_mm, jacobian_of.
-    Returns q, prediction, iterations, converged, history.
+LAM0 = 1e-3                                                 # lm's starting damping
 
-    jacobian_of: "model" differentiates the whole model by autograd; "physics"
-    takes its DH branch's geometric Jacobian (kinematics.fk_jacobian: exact,
-    float64, one FK pass), leaving out the network's small slope: each step is
-    then a chord step, the residual always from the whole model.
-    """
+
+def lm_jacobian(model, jacobian_of: str):
+    """The Jacobian lm steps with, q (A, 6) -> (A, 3, 6): "physics" takes the model's DH branch's
+    geometric Jacobian (kinematics.fk_jacobian: exact, float64, one FK pass), leaving out the network's
+    small slope (each step is then a chord step, the residual always from the whole model); "model"
+    differentiates the whole model by autograd."""
+    if jacobian_of == "physics":
+        return lambda q: fk_jacobian(q, model.physics.geometry())[1]
+    if jacobian_of == "model":
+        return lambda q: jacobian(lambda x: predict(model, x), q)
+    raise ValueError(f"params.yaml compensate.jacobian_of: {jacobian_of!r}; use physics or model")
+
+
+def lm_step(model, jac, q, r, err, lam, target, limits=None):
+    """One lm iteration for points q (A, 6), residual r (A, 3) mm, |r| err (A,), damping lam (A,):
+    the step is kept where it lowers |r| (then λ/3, else λ·10). Returns the new q, r, err, lam."""
+    q_try = q + min_norm_step(jac(q), r, lam)               # (A, 6)
+    if limits is not None:
+        q_try = q_try.clamp(limits[:, 0], limits[:, 1])
+    with torch.no_grad():
+        r_try = predict(model, q_try) - target
+    err_try = r_try.norm(dim=1)
+    ok = err_try < err
+    return (torch.where(ok[:, None], q_try, q), torch.where(ok[:, None], r_try, r), torch.where(ok, err_try, err),
+            torch.where(ok, lam / 3, lam * 10))
+
+
+def solve_lm(model, q0, target, cfg: dict, limits=None, lam0=LAM0):
+    """Batched Levenberg-Marquardt on the frozen model (`lm_step` until every point is within tol_mm):
+    cfg max_iter, tol_mm, jacobian_of (`lm_jacobian`). Returns q, prediction, iterations, converged,
+    history."""
     max_iter, tol_mm = cfg["max_iter"], cfg["tol_mm"]
-    if cfg["jacobian_of"] == "physics":
-        jac = lambda q: fk_jacobian(q, model.physics.geometry())[1]
-    elif cfg["jacobian_of"] == "model":
-        jac = lambda q: jacobian(lambda x: predict(model, x), q)
-    else:
-        raise ValueError(f"params.yaml compensate.jacobian_of: {cfg['jacobian_of']!r}; use physics or model")
+    jac = lm_jacobian(model, cfg["jacobian_of"])
     q = q0.clone()
     lam = torch.full((len(q0),), lam0, dtype=DTYPE)
     iters = torch.full((len(q0),), max_iter)
@@ -107,16 +127,7 @@ def solve_lm(model, q0, target, cfg: dict, limits=None, lam0=1e-3):
         if done.all():
             break
         a = (~done).nonzero().squeeze(1)                    # active points
-        J = jac(q[a])                                       # (A, 3, 6)
-        q_try = q[a] + min_norm_step(J, r[a], lam[a])       # (A, 6)
-        if limits is not None:
-            q_try = q_try.clamp(limits[:, 0], limits[:, 1])
-        with torch.no_grad():
-            r_try = predict(model, q_try) - target[a]
-        ok = r_try.norm(dim=1) < err[a]
-        q[a[ok]], r[a[ok]] = q_try[ok], r_try[ok]
-        err[a[ok]] = r_try[ok].norm(dim=1)
-        lam[a] = torch.where(ok, lam[a] / 3, lam[a] * 10)
+        q[a], r[a], err[a], lam[a] = lm_step(model, jac, q[a], r[a], err[a], lam[a], target[a], limits)
         history.append(err.clone())
     else:
         new = (err < tol_mm) & ~done

@@ -1,4 +1,4 @@
-"""The 8:1:1 split with torch's random_split semantics (SPEC.md stage 4).
+"""The 8:1:1 split with torch's random_split semantics (docs/method.md stage 4).
 
 `random_split(range(n), [0.8, 0.1, 0.1], generator=Generator().manual_seed(7))`
 gives 580/72/72 for 724 rows, as in the paper.

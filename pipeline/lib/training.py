@@ -113,14 +113,14 @@ def fit(model, loss_fn, train, val, cfg: dict, live=None, desc="train", progress
             sched.step(val_mae)
         bar.set_postfix(val_mae=f"{val_mae:.4f}", best=f"{best:.4f}@{best_epoch}", refresh=False)
         if live is not None:
-            live.log_metric("loss", float(np.mean([l[0] for l in losses])))
-            live.log_metric("data_loss", float(np.mean([l[1]["data"] for l in losses])))
-            live.log_metric("physics_loss", float(np.mean([l[1]["physics"] for l in losses])))
-            live.log_metric("train_mae_3d_mm", train_mae)
-            live.log_metric("val_mae_3d_mm", val_mae)
-            live.log_metric("lr", opt.param_groups[0]["lr"])
+            row = {"loss": float(np.mean([l[0] for l in losses])),
+                   "data_loss": float(np.mean([l[1]["data"] for l in losses])),
+                   "physics_loss": float(np.mean([l[1]["physics"] for l in losses])),
+                   "train_mae_3d_mm": train_mae, "val_mae_3d_mm": val_mae, "lr": opt.param_groups[0]["lr"]}
             if hasattr(model, "alpha"):
-                live.log_metric("alpha", model.alpha.item())
+                row["alpha"] = model.alpha.item()
+            for name, value in row.items():             # no wall-clock column: the TSVs are hashed (dvc.lock)
+                live.log_metric(name, value, timestamp=False)
             live.next_step()
         if epoch - best_epoch >= cfg["patience"]:
             break

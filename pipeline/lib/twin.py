@@ -1,6 +1,6 @@
 """Digital twin: a virtual UR5 that is as wrong as a real one, and the default campaign.
 
-The twin's true arm differs from the nominal UR5 table (SPEC.md stage 3) the
+The twin's true arm differs from the nominal UR5 table (docs/method.md stage 3) the
 way real arms do:
   geometric      DH length errors (d, a), twist errors (alpha), joint zero
                  offsets, parallel-axis tilts (beta, joints 2-3), and a marker
@@ -26,7 +26,7 @@ API
     twin.drive(q_deg, rng)              # (n, 3) one tracker measurement per pose (noisy, no misreads)
     twin.noise_floor_mm                 # 3D MAE a perfect model still shows (Monte Carlo)
     twin.campaign(n=724)                # (joints_df, tracker_df, misreads {id: offset mm}),
-                                        # the tables in DATA_FORMAT.md format
+                                        # the tables in docs/data-format.md format
     twin.validation_campaign()          # a second campaign: tracker moved, poses front and side
     twin.validation_campaign(726, {"side": 300}, "B")   # the same from a second station, side only
 
@@ -317,7 +317,7 @@ class Twin:
         return self.noise_floor(self.poses())
 
     def campaign(self, n: int = N_POINTS, seed: int | None = None):
-        """(joints_df, tracker_df, misreads) in the DATA_FORMAT.md format; misreads: {id: offset mm}."""
+        """(joints_df, tracker_df, misreads) in the docs/data-format.md format; misreads: {id: offset mm}."""
         seed = self.seed if seed is None else seed
         q = self.poses(n, seed)
         ids = [f"P{i + 1:04d}" for i in range(n)]

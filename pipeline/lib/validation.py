@@ -1,4 +1,4 @@
-"""Judging a calibration on an independent campaign (DATA_FORMAT.md, "Validation").
+"""Judging a calibration on an independent campaign (docs/data-format.md, "Validation").
 
 Every method predicts the marker in the robot's base frame; the campaign
 measured it in its tracker's frame. Two ways to compare them:
@@ -123,7 +123,7 @@ def stats(e: np.ndarray) -> dict:
 
 
 def summary(table: pd.DataFrame, mode: str) -> dict:
-    """validation.json's entry for one campaign (DATA_FORMAT.md keys, then the in/out split)."""
+    """validation.json's entry for one campaign (docs/data-format.md keys, then the in/out split)."""
     j = table[~table.registered]
     s = {m: stats(j[f"error_{m}_mm"].to_numpy()) for m in METHODS}
     inside = j.in_workspace.to_numpy()

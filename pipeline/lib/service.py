@@ -1,0 +1,275 @@
+"""The compensation service's logic (pipeline/serve.py is only its transport): check a request,
+solve it within a bounded budget, answer.
+
+One worker thread owns the model. A request thread checks its request (`check`: numbers, joint
+limits, reach; a RequestError naming the field), puts it on a queue and waits for its answer. The
+worker, in a loop:
+  1. takes what is queued (up to `max_batch`; when idle, it waits up to `batch_wait_ms` for as
+     many as its last round took: a lone client never waits) and runs the controller path
+     (realtime.py: two model evaluations) on all of them at once; each converged one is answered
+     at once;
+  2. the others join the lm set, solved by `lm` from their start (solvers.lm_step, the residual
+     then measured on the model): one iteration for the whole set per loop, so requests arriving
+     meanwhile wait for one iteration, never for another request's solve. A request leaves the set
+     converged (within tol_mm), stalled (its residual above `unreachable_mm` and not cut by
+     `stall_ratio` in `stall_iter` iterations: the target cannot be reached), or at its budget
+     (`max_iter` iterations or `budget_ms` from when the worker took it).
+Left above `unreachable_mm`, a request is a RequestError "unreachable"; within it, an answer with
+converged False.
+"""
+import math
+import queue
+import threading
+import time
+from concurrent.futures import Future
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from .kinematics import DTYPE
+from .realtime import Realtime
+from .solvers import LAM0, lm_jacobian, lm_step, predict
+
+
+class RequestError(ValueError):
+    """A bad or unreachable request; the message names the field."""
+
+
+def describe(v) -> str:
+    """A value's kind and its repr, cut to 40 characters (what a message may echo of it)."""
+    kinds = {str: "a string", dict: "a struct", bool: "a boolean", list: "a list", tuple: "a list",
+             int: "a number", float: "a number", type(None): "nil"}
+    kind = kinds.get(type(v), type(v).__name__)
+    if isinstance(v, (list, tuple, dict, str)) and len(v) > 40:   # no repr of a huge value
+        v = v[:40] if not isinstance(v, dict) else dict(list(v.items())[:3])
+    text = repr(v)
+    return f"{kind} ({text if len(text) <= 40 else text[:37] + '...'})"
+
+
+def numbers(value, field: str, n: int) -> np.ndarray:
+    """value as n finite floats, or a RequestError naming the field."""
+    if not isinstance(value, (list, tuple)):
+        raise RequestError(f"{field}: expected a list of {n} numbers, got {describe(value)}")
+    if len(value) != n:
+        raise RequestError(f"{field}: expected {n} numbers, got {len(value)}")
+    for i, v in enumerate(value):
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            raise RequestError(f"{field}[{i}]: expected a number, got {describe(v)}")
+        try:
+            f = float(v)
+        except OverflowError:                              # an integer beyond any float
+            f = math.inf
+        if not math.isfinite(f):
+            raise RequestError(f"{field}[{i}]: not a finite number ({f})")
+    return np.array(value, float)
+
+
+@dataclass(eq=False)
+class Job:
+    q: np.ndarray                  # (6,) rad, the start
+    target: np.ndarray             # (3,) mm
+    where: str                     # the field prefix of its messages ("" or "requests[3].")
+    future: Future = field(default_factory=Future)
+    deadline: float = 0.0          # time.monotonic() at which its budget ends (set when taken)
+    iters: int = 0
+    history: list = field(default_factory=list)   # |r| (mm) after each lm iteration, the start first
+
+
+class Service:
+    """The model behind one worker thread; its methods are the service's (`compensate`, ...).
+
+    model, workspace (lib/workspace.Workspace), limits_deg (6, 2), reach_mm (compensation.reach_mm),
+    tol_mm and jacobian_of (the `compensate:` section), and the limits of the `serve:` section."""
+
+    def __init__(self, model, workspace, limits_deg, reach_mm: float, *, tol_mm: float, jacobian_of: str,
+                 unreachable_mm: float, max_iter: int, budget_ms: float, stall_iter: int, stall_ratio: float,
+                 max_batch: int, batch_wait_ms: float, max_items: int, compile: bool):
+        self.model, self.workspace, self.reach = model, workspace, float(reach_mm)
+        self.limits_deg = np.asarray(limits_deg, float)
+        self.limits = torch.as_tensor(np.radians(self.limits_deg), dtype=DTYPE)
+        self.tol, self.unreachable = float(tol_mm), float(unreachable_mm)
+        self.max_iter, self.budget = int(max_iter), float(budget_ms) / 1000
+        self.stall_iter, self.stall_ratio = int(stall_iter), float(stall_ratio)
+        self.max_batch, self.batch_wait = int(max_batch), float(batch_wait_ms) / 1000
+        self.max_items = int(max_items)
+        self.realtime = Realtime(model, np.radians(self.limits_deg), self.tol, workspace=workspace,
+                                 compile=compile)
+        self.jac = lm_jacobian(model, jacobian_of)
+        self.queue: queue.Queue[Job] = queue.Queue()
+        self.active: list[Job] = []                       # the lm set, and its state (A rows)
+        self.state = None                                 # q, r, err, lam, target tensors
+        self.last_round = 0                               # requests in the worker's last round
+        self.closed = threading.Event()
+        self.worker = threading.Thread(target=self._run, name="compensation worker", daemon=True)
+        self.worker.start()
+
+    def close(self) -> None:
+        """Stop the worker; requests still waiting get a RequestError."""
+        self.closed.set()
+        self.worker.join()
+        for job in self.active + [self.queue.get_nowait() for _ in range(self.queue.qsize())]:
+            job.future.set_exception(RequestError(f"{job.where}target_mm: the service stopped"))
+
+    # the service's methods
+    def check(self, q_rad, target_mm, where: str = "") -> tuple[np.ndarray, np.ndarray]:
+        """q_rad (6 numbers within the joint limits) and target_mm (3 numbers within reach) as arrays,
+        or a RequestError naming the field (prefixed `where`)."""
+        q, target = numbers(q_rad, where + "q_rad", 6), numbers(target_mm, where + "target_mm", 3)
+        lo, hi = self.limits_deg[:, 0], self.limits_deg[:, 1]
+        beyond = np.flatnonzero((np.degrees(q) < lo) | (np.degrees(q) > hi))
+        if len(beyond):
+            i = int(beyond[0])
+            a, (lo, hi) = np.degrees(q[i]), self.limits_deg[i]
+            raise RequestError(f"{where}q_rad[{i}]: {a:.1f}° ({q[i]:.3f} rad) beyond the joint limits "
+                               f"[{lo:g}, {hi:g}]° ([{np.radians(lo):.3f}, {np.radians(hi):.3f}] rad)")
+        dist = float(np.linalg.norm(target))
+        if dist > self.reach:
+            raise RequestError(f"{where}target_mm: unreachable ({dist:.1f} mm from the base, beyond the arm's "
+                               f"reach of {self.reach:.1f} mm)")
+        return q, target
+
+    def submit(self, q: np.ndarray, target: np.ndarray, where: str = "") -> Future:
+        """Queue a checked request for the worker; its future holds the answer or a RequestError."""
+        job = Job(q, target, where)
+        if self.closed.is_set():
+            raise RequestError(f"{where}target_mm: the service stopped")
+        self.queue.put(job)
+        return job.future
+
+    def compensate(self, q_rad, target_mm) -> dict:
+        """{q_rad, residual_mm, converged, in_workspace}, or a RequestError."""
+        return self.submit(*self.check(q_rad, target_mm)).result()
+
+    def compensate_list(self, q_rad, target_mm) -> list:
+        """compensate's answer as 9 floats: q1..q6 rad, residual_mm, converged, in_workspace (1.0 / 0.0)."""
+        r = self.compensate(q_rad, target_mm)
+        return r["q_rad"] + [r["residual_mm"], float(r["converged"]), float(r["in_workspace"])]
+
+    def compensate_many(self, requests) -> list:
+        """Each [q_rad, target_mm] answered in its place: compensate's struct, or {"error": message} for a
+        bad or unreachable item. At most `max_items`; queued `max_batch` at a time, so other clients'
+        requests are taken between them."""
+        if not isinstance(requests, (list, tuple)):
+            raise RequestError(f"requests: expected a list of [q_rad, target_mm], got {describe(requests)}")
+        if len(requests) > self.max_items:
+            raise RequestError(f"requests: {len(requests)} items, more than the limit of {self.max_items} "
+                               f"(serve.max_items): split the batch")
+        out = []
+        for start in range(0, len(requests), self.max_batch):
+            chunk = []
+            for i, item in enumerate(requests[start:start + self.max_batch], start):
+                try:
+                    if not isinstance(item, (list, tuple)) or len(item) != 2:
+                        raise RequestError(f"requests[{i}]: expected [q_rad, target_mm], got {describe(item)}")
+                    chunk.append(self.submit(*self.check(*item, where=f"requests[{i}]."), f"requests[{i}]."))
+                except RequestError as e:
+                    chunk.append(str(e))
+            for f in chunk:
+                try:
+                    out.append({"error": f} if isinstance(f, str) else f.result())
+                except RequestError as e:
+                    out.append({"error": str(e)})
+        return out
+
+    # the worker
+    def _run(self) -> None:
+        while not self.closed.is_set():
+            jobs = self._take(wait=not self.active)
+            try:
+                if jobs:
+                    self._chord(jobs)
+                if self.active:
+                    self._lm_iteration()
+            except Exception as e:                        # a bug: fail these requests, keep serving
+                for job in jobs + self.active:
+                    if not job.future.done():
+                        job.future.set_exception(e)
+                self.active, self.state = [], None
+
+    def _take(self, wait: bool) -> list[Job]:
+        """What is queued, up to max_batch; wait (the worker is idle): block for the first, then wait up to
+        batch_wait while fewer have come than the last round had (a lone client never waits)."""
+        jobs = []
+        if wait:
+            try:
+                jobs.append(self.queue.get(timeout=0.1))  # wakes to see `closed`
+            except queue.Empty:
+                return jobs
+        until = time.monotonic() + (self.batch_wait if wait else 0.0)
+        while len(jobs) < self.max_batch:
+            left = until - time.monotonic() if len(jobs) < self.last_round else 0.0
+            try:
+                jobs.append(self.queue.get(timeout=left) if left > 0 else self.queue.get_nowait())
+            except queue.Empty:
+                break
+        if jobs:
+            self.last_round = len(jobs)
+        return jobs
+
+    def _chord(self, jobs: list[Job]) -> None:
+        """The controller path for every job at once; the unconverged join the lm set from their start."""
+        start = time.monotonic()
+        for job in jobs:
+            job.deadline = start + self.budget
+        results = self.realtime.batch(np.array([j.q for j in jobs]), np.array([j.target for j in jobs]))
+        rest = []
+        for job, r in zip(jobs, results):
+            if r.converged:
+                job.future.set_result(self._answer(r.q, r.residual_mm, True, r.in_workspace))
+            else:
+                rest.append(job)
+        if not rest:
+            return
+        q = torch.tensor(np.array([j.q for j in rest]), dtype=DTYPE)
+        target = torch.tensor(np.array([j.target for j in rest]), dtype=DTYPE)
+        with torch.no_grad():
+            r = predict(self.model, q) - target
+        err = r.norm(dim=1)
+        lam = torch.full((len(rest),), LAM0, dtype=DTYPE)
+        for job, e in zip(rest, err.tolist()):
+            job.history.append(e)
+        new = (q, r, err, lam, target)
+        self.active += rest
+        self.state = new if self.state is None else tuple(torch.cat([a, b]) for a, b in zip(self.state, new))
+        self._finish()
+
+    def _lm_iteration(self) -> None:
+        q, r, err, lam, target = self.state
+        q, r, err, lam = lm_step(self.model, self.jac, q, r, err, lam, target, self.limits)
+        self.state = (q, r, err, lam, target)
+        for job, e in zip(self.active, err.tolist()):
+            job.iters += 1
+            job.history.append(e)
+        self._finish()
+
+    def _finish(self) -> None:
+        """Answer the jobs of the lm set that converged, stalled or spent their budget; keep the rest."""
+        q, r, err, lam, target = self.state
+        now, keep = time.monotonic(), []
+        for i, job in enumerate(self.active):
+            e, h = job.history[-1], job.history
+            stalled = (e > self.unreachable and len(h) > self.stall_iter
+                       and e > self.stall_ratio * h[-1 - self.stall_iter])
+            spent = job.iters >= self.max_iter or now >= job.deadline
+            if not (e < self.tol or stalled or spent):
+                keep.append(i)
+                continue
+            if e < self.tol or e <= self.unreachable:
+                q_rad = q[i].numpy().copy()
+                inside = bool(self.workspace(np.degrees(q_rad)[None])[1][0])
+                job.future.set_result(self._answer(q_rad, e, e < self.tol, inside))
+                continue
+            why = (f"no progress in {self.stall_iter} iterations" if stalled else
+                   f"the budget: {job.iters} iterations, {1000 * (now - job.deadline + self.budget):.0f} ms")
+            job.future.set_exception(RequestError(
+                f"{job.where}target_mm: unreachable (residual {e:.1f} mm after compensation, tolerance "
+                f"{self.tol:g} mm; {why})"))
+        if len(keep) < len(self.active):
+            self.active = [self.active[i] for i in keep]
+            self.state = tuple(t[keep] for t in self.state) if keep else None
+
+    @staticmethod
+    def _answer(q_rad, residual: float, converged: bool, in_workspace: bool) -> dict:
+        return {"q_rad": [float(v) for v in q_rad], "residual_mm": float(residual), "converged": bool(converged),
+                "in_workspace": bool(in_workspace)}
