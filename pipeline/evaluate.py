@@ -18,7 +18,7 @@ import numpy as np
 import pandas as pd
 
 from .lib.artifacts import (BASELINES_MD, BASELINES_TABLE, CALIBRATED_GEOMETRY, FRAME_JSON, METRICS_JSON,
-                            MODEL_WEIGHTS, PREDICTIONS_TABLE, WORKSPACE_JSON, load_points)
+                            MODEL_WEIGHTS, PARTS_JSON, PREDICTIONS_TABLE, WORKSPACE_JSON, load_points)
 from .lib.columns import CAMPAIGN, JOINTS_DEG, MEAS, PRED, SPLITS, STATION, THEORY
 from .lib.config import for_stage, load_params, logger, read_json, write_json
 from .lib.geometry import Calibration, aligned, theory_geometry
@@ -72,24 +72,29 @@ def run(params: dict) -> dict:
     df = aligned(load_points(), Calibration.from_dict(read_json(CALIBRATED_GEOMETRY)), nominal)
     model = load_model(MODEL_WEIGHTS)
     pred = predict(model, df)
-    err = np.linalg.norm(pred - df[MEAS].to_numpy(), axis=1)
     q = df[JOINTS_DEG].to_numpy()
-    val = (df.split == "val").to_numpy()
-    ws = Workspace.fit(q[(df.split == "train").to_numpy()], err[val], cfg)
-    write_json(WORKSPACE_JSON, ws.to_dict())
-    out = df[["point_id", CAMPAIGN, STATION, "split"] + JOINTS_DEG + THEORY + MEAS].copy()
-    out[PRED] = pred
-    u, inside = ws(q)
-    out["uncertainty_mm"], out["in_workspace"] = u, inside
-    out.to_parquet(PREDICTIONS_TABLE, index=False)
-
-    metrics = split_metrics(df, pred)
     name = f"spi_boter_{model.config['physics']}"
     methods = {"nominal_dh": df[THEORY].to_numpy(), name: pred}
     base = df[["point_id"]].merge(pd.read_parquet(BASELINES_TABLE), on="point_id", how="left")
     for col in base.columns[1::3]:
         stem = col.removesuffix("_x")
         methods.setdefault(stem, base[[f"{stem}_{a}" for a in "xyz"]].to_numpy())
+    errors = {k: np.linalg.norm(v - df[MEAS].to_numpy(), axis=1) for k, v in methods.items()}
+    err, val = errors[name], (df.split == "val").to_numpy()
+    parts = read_json(PARTS_JSON)
+    maps = {"model": err, "calibrated": errors["calibrated_dh"],
+            "calibrated_parts": errors.get("calibrated_parts", errors["calibrated_dh"])}
+    ws = Workspace.fit(q[(df.split == "train").to_numpy()], {k: v[val] for k, v in maps.items()}, cfg,
+                       model.config["fade_to"], parts["geometry"].get("amap_cover") if parts["enabled"] else None)
+    write_json(WORKSPACE_JSON, ws.to_dict())
+    out = df[["point_id", CAMPAIGN, STATION, "split"] + JOINTS_DEG + THEORY + MEAS].copy()
+    out[PRED] = pred
+    u, inside = ws(q)
+    out["uncertainty_mm"], out["in_workspace"] = u, inside
+    out["in_range_angle_map"] = ws.parts(q)["angle_map"]
+    out.to_parquet(PREDICTIONS_TABLE, index=False)
+
+    metrics = split_metrics(df, pred)
     metrics["baselines"] = {k: split_metrics(df, v) for k, v in methods.items()}
     metrics["model"] = name
     metrics["campaigns"] = campaign_metrics(df, methods)
@@ -105,9 +110,9 @@ def run(params: dict) -> dict:
     BASELINES_MD.write_text(table)
     log.info("evaluated %s on %s points\n%s", name,
              {s: int((df.split == s).sum()) for s in SPLITS}, table)
-    log.info("workspace: radius %.1f deg over joints %s, u0 %.4f mm; test: %.0f%% in the workspace, "
-             "uncertainty covers the error on %.0f%% (target %.0f%%)", ws.radius, ws.to_dict()["joints"],
-             ws.u0, 100 * metrics["uncertainty"].get("test", {}).get("in_workspace_share", np.nan),
+    log.info("workspace: radius %.1f deg over joints %s; uncertainty %.4f (model), %.4f (calibration + error maps), "
+             "%.4f mm (calibration); test: %.0f%% in the workspace, uncertainty covers the error on %.0f%% "
+             "(target %.0f%%)", ws.radius, ws.to_dict()["joints"], ws.u0, ws.u_parts, ws.u_cal, 100 * metrics["uncertainty"].get("test", {}).get("in_workspace_share", np.nan),
              100 * metrics["uncertainty"].get("test", {}).get("coverage", np.nan), 100 * cfg["coverage"])
     return metrics
 

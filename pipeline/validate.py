@@ -93,10 +93,11 @@ def run_campaign(params: dict, name: str) -> dict:
     P = df[MEAS].to_numpy()
     errors, registered, frames = judge(pred, P, c["frame"], frame, cfg["register_points"], frame_cfg, flange,
                                        cfg["tool_rank_tol"])
-    u, inside = Workspace.from_dict(read_json(WORKSPACE_JSON))(q)
+    ws = Workspace.from_dict(read_json(WORKSPACE_JSON))
+    u, inside = ws(q)
     table = pd.DataFrame({"point_id": df.point_id, "campaign": name, "registered": registered,
                           **{f"error_{m}_mm": errors[m] for m in METHODS},
-                          "uncertainty_mm": u, "in_workspace": inside})
+                          "uncertainty_mm": u, "in_workspace": inside, "in_range_angle_map": ws.parts(q)["angle_map"]})
     out = summary(table, c["frame"])
     out["ingest"] = {k: ingested[k] for k in ("n_read", "n_kept", "dropped", "dropped_counts")}
     out["registration"] = {m: {"tool_offset_mm": f["tool_offset_mm"], "tool_held": f.get("tool_held")}
@@ -128,7 +129,8 @@ def run_summary(params: dict) -> dict:
     empty = pd.DataFrame({"point_id": pd.Series(dtype=str), "campaign": pd.Series(dtype=str),
                           "registered": pd.Series(dtype=bool),
                           **{f"error_{m}_mm": pd.Series(dtype=float) for m in METHODS},
-                          "uncertainty_mm": pd.Series(dtype=float), "in_workspace": pd.Series(dtype=bool)})
+                          "uncertainty_mm": pd.Series(dtype=float), "in_workspace": pd.Series(dtype=bool),
+                          "in_range_angle_map": pd.Series(dtype=bool)})
     pd.concat(tables or [empty], ignore_index=True).to_parquet(VALIDATION_TABLE, index=False)
     write_json(VALIDATION_JSON, out)
     log.info("validation summary: %d campaign(s) %s", len(names), names)

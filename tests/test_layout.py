@@ -122,7 +122,7 @@ MODULES = sorted((top, m) for top, mods in TOP.items() for m in mods)           
 
 def test_every_stage_is_a_pipeline_module():
     assert set(STAGES.values()) <= set(TOP)
-    assert len(STAGES) == 16
+    assert len(STAGES) == 17
     assert {"pipeline.ingest", "pipeline.train", "pipeline.report"} <= set(STAGES.values())
 
 
@@ -290,7 +290,7 @@ def test_editing_library_code_makes_dvc_status_report_its_stages(tmp_path, edite
              for u in users for k in foreach_keys(dvc_stages()[u], params)}
     assert stale == users and stale                    # every stage that runs it, and only those
     if edited.endswith("robots.py"):                   # the DH tables reach every stage but split
-        assert stale == {"ingest", "frame", "theory", "calibrate", "train", "baselines", "evaluate",
+        assert stale == {"ingest", "frame", "theory", "calibrate", "parts", "train", "baselines", "evaluate",
                          "compensate", "validate@twin_side", "validation", "export", "report"}
 
 

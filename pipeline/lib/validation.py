@@ -138,6 +138,9 @@ def summary(table: pd.DataFrame, mode: str) -> dict:
                              for m in METHODS} for w in ("in", "out")},
         "uncertainty_coverage": {w: (float((k.error_model_mm <= k.uncertainty_mm).mean()) if len(k) else None)
                                  for w, k in (("all", j), ("in", j[inside]), ("out", j[~inside]))},
+        "angle_map": {"in_range_share": float(j.in_range_angle_map.mean()) if len(j) else None,
+                      **{w: {m: stats(j.loc[j.in_range_angle_map == (w == "in"), f"error_{m}_mm"].to_numpy())
+                             for m in METHODS} for w in ("in", "out")}},
     }
 
 

@@ -9,11 +9,13 @@ not cover it. Angles are wrapped: 350° and -10° are the same angle.
     d(q)          distance (deg, Euclidean over joints 1-5, wrapped) from q to the nearest training pose
     radius_deg    the `radius_quantile` of the training poses' own nearest-neighbour distances (leave
                   one out): how far apart training poses are where they do cover the space
-    in_workspace  d(q) <= radius_deg
-    uncertainty   u0 * max(1, d(q) / radius_deg), u0 = the `coverage` quantile of the model's
-                  validation-split 3D errors: inside, the model errs less than u0 on that share of poses;
-                  outside, the estimate grows with the distance (the network extrapolates, the
-                  error it adds grows with it). Its coverage is measured, not assumed (validate, report).
+    in_workspace  d(q) <= radius_deg (the network's coverage)
+    uncertainty   the `coverage` quantile of the validation-split 3D errors of what holds at q: the
+                  whole model within the radius; the calibration with its per-joint error maps
+                  (errormaps.py) where the network has faded (the maps hold wherever each mapped
+                  joint's angle was measured); the calibration alone where a mapped joint was
+                  not; blended by the fade weight. Its coverage is measured, not assumed
+                  (validate, report).
     fade(q)       the network's correction weight (`Fade`, inside BoTER): 1 within radius_deg,
                   falling linearly to 0 at `fade_to` radii, so far from every training pose the
                   model is the calibrated physics it sits on.
@@ -83,31 +85,63 @@ class Fade(nn.Module):
 
 
 class Workspace:
-    """The training poses' coverage and the model's error scale; JSON-able via `to_dict`."""
+    """Where each part of the correction holds, and the model's error scale; JSON-able via `to_dict`.
 
-    def __init__(self, train_q_deg, radius_deg: float, u0_mm: float):
+    Parts: the network (joint-space radius, `in_workspace`) and the per-joint angle maps (each mapped
+    joint's angle inside its trained coverage, `angle_cover`: errormaps.coverage). uncertainty_mm is
+    the error scale of what holds at the pose: u_model (the whole model, validation split) where the
+    network is in full, u_parts (the calibration with the error maps) where it has faded, u_calibrated
+    (the calibration alone) where a mapped joint lies outside its coverage, blended by the network's
+    fade weight (Fade) between its radius and fade_to radii.
+    """
+
+    def __init__(self, train_q_deg, radius_deg: float, u_model_mm: float, u_parts_mm: float,
+                 u_calibrated_mm: float, fade_to: float | None, angle_cover=None):
         self.train_q = np.asarray(train_q_deg, float)          # (m, 6)
-        self.radius, self.u0 = float(radius_deg), float(u0_mm)
+        self.radius, self.u0 = float(radius_deg), float(u_model_mm)
+        self.u_parts, self.u_cal, self.fade_to = float(u_parts_mm), float(u_calibrated_mm), fade_to
+        self.angle_cover = None if angle_cover is None else np.asarray(angle_cover, float)   # (6, 360)
 
     @classmethod
-    def fit(cls, train_q_deg, val_error_mm, cfg: dict) -> "Workspace":
-        """From the training poses (m, 6) deg, the model's 3D errors (mm) on the validation split and
-        the `workspace:` section (radius_quantile, coverage)."""
-        return cls(train_q_deg, workspace_radius(train_q_deg, cfg["radius_quantile"]),
-                   np.quantile(val_error_mm, cfg["coverage"]))
+    def fit(cls, train_q_deg, val_errors_mm: dict, cfg: dict, fade_to, angle_cover=None) -> "Workspace":
+        """From the training poses (m, 6) deg, the validation split's 3D errors (mm) of "model",
+        "calibrated_parts" and "calibrated", the `workspace:` section (radius_quantile, coverage), the
+        model's fade_to and the angle maps' coverage (None: no maps)."""
+        q = lambda k: float(np.quantile(val_errors_mm[k], cfg["coverage"]))
+        return cls(train_q_deg, workspace_radius(train_q_deg, cfg["radius_quantile"]), q("model"),
+                   q("calibrated_parts"), q("calibrated"), fade_to, angle_cover)
 
     def distance(self, q_deg) -> np.ndarray:
         return nearest_distance(np.atleast_2d(q_deg), self.train_q)
 
+    def parts(self, q_deg) -> dict:
+        """Per pose (n,) bool: inside the network's workspace ("network") and every mapped joint inside
+        its angle map's coverage ("angle_map"; all True without maps)."""
+        q = np.atleast_2d(np.asarray(q_deg, float))
+        out = {"network": self.distance(q) <= self.radius}
+        if self.angle_cover is not None:
+            on = self.angle_cover.any(1)
+            b = np.floor(np.remainder(q, 360.0)).astype(int) % 360
+            out["angle_map"] = (self.angle_cover[np.arange(6), b] >= 1.0)[:, on].all(1)
+        else:
+            out["angle_map"] = np.ones(len(q), bool)
+        return out
+
     def __call__(self, q_deg) -> tuple[np.ndarray, np.ndarray]:
-        """Poses (n, 6) deg -> (uncertainty_mm (n,), in_workspace (n,) bool)."""
-        d = self.distance(q_deg)
-        return self.u0 * np.maximum(1.0, d / self.radius), d <= self.radius
+        """Poses (n, 6) deg -> (uncertainty_mm (n,), in_workspace (n,) bool: the network's)."""
+        q = np.atleast_2d(np.asarray(q_deg, float))
+        d = self.distance(q) / self.radius                     # radii
+        w = np.ones(len(q)) if self.fade_to is None else np.clip((self.fade_to - d) / (self.fade_to - 1.0), 0, 1)
+        u_phys = np.where(self.parts(q)["angle_map"], self.u_parts, self.u_cal)
+        return w * self.u0 + (1 - w) * u_phys, d <= 1.0
 
     def to_dict(self) -> dict:
-        return {"joints": [j + 1 for j in JOINTS], "radius_deg": self.radius, "u0_mm": self.u0,
+        return {"joints": [j + 1 for j in JOINTS], "radius_deg": self.radius, "u_model_mm": self.u0,
+                "u_parts_mm": self.u_parts, "u_calibrated_mm": self.u_cal, "fade_to": self.fade_to,
+                "angle_cover": None if self.angle_cover is None else self.angle_cover.round(6).tolist(),
                 "train_q_deg": self.train_q.round(6).tolist()}
 
     @classmethod
     def from_dict(cls, d: dict) -> "Workspace":
-        return cls(d["train_q_deg"], d["radius_deg"], d["u0_mm"])
+        return cls(d["train_q_deg"], d["radius_deg"], d["u_model_mm"], d["u_parts_mm"], d["u_calibrated_mm"],
+                   d["fade_to"], d["angle_cover"])
