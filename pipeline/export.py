@@ -12,11 +12,12 @@ pipeline does not use for its own kinematics:
            tool0 on joint 6's frame), built in Pinocchio, vs the exported chain up to joint 6;
            the flange transform after joint 6 the format cannot hold is reported
 
-A URDF has no joint compliance. When the calibration identified the joints' gravity sag
-(`compliance`), its rigid part alone is millimetres off (the sag's mean is absorbed in the
-joint offsets), so the exported chain is the rigid one that best reproduces the calibrated
-model at the commanded angles (`rigid_equivalent`, least squares over the campaign's poses);
-how far it stays from the calibrated model is `rigid_fit` in export.json.
+A URDF has no joint compliance and no per-joint error maps. When the model's physics branch (the
+calibration, with the parts stage's maps when they hold) has them, its rigid part alone is
+millimetres off (the sag's mean is absorbed in the joint offsets), so the exported chain is the
+rigid one that best reproduces that physics at the commanded angles (`rigid_equivalent`, least
+squares over the campaign's poses); how far it stays from it, and what it leaves out, is
+`rigid_fit` in export.json. The ONNX model carries every part.
     onnx   onnxruntime vs PyTorch on every test pose: on the same float32 angles, and on the
            float64 angles PyTorch is fed otherwise (the float32 input's rounding)
 """
@@ -25,13 +26,13 @@ import pinocchio as pin
 import torch
 import yaml
 
-from .lib.artifacts import (CALIBRATED_GEOMETRY, EXPORT_JSON, MODEL_ONNX, MODEL_WEIGHTS, UR_YAML, URDF_FILE,
+from .lib.artifacts import (CALIBRATED_GEOMETRY, EXPORT_JSON, MODEL_ONNX, MODEL_WEIGHTS, PARTS_JSON, UR_YAML, URDF_FILE,
                             load_points)
 from .lib.columns import JOINTS_DEG
 from .lib.config import for_stage, load_params, logger, read_json, write_json
-from .lib.geometry import Calibration
+from .lib.geometry import Calibration, with_parts
 from .lib.identify import identify
-from .lib.kinematics import DTYPE, fk, fk_frames
+from .lib.kinematics import DTYPE, GEOMETRY_KEYS, fk, fk_frames
 from .lib.onnx_model import OnnxModel, export_onnx
 from .lib.robots import TABLES, load_robot
 from .lib.training import load_model
@@ -70,18 +71,22 @@ def ur_yaml_poses(kinematics: dict, q_rad: np.ndarray) -> np.ndarray:
 
 
 def rigid_equivalent(g: dict, q: torch.Tensor, cfg: dict) -> tuple[dict, dict]:
-    """The rigid chain (compliance 0) closest to geometry g's positions at poses q: g itself when
-    it is rigid, else identified (calibrate's groups but compliance) on g's own positions.
-    Returns (geometry, {"mean_mm", "max_mm"} of its distance to g's positions)."""
+    """The rigid chain (no compliance, no error maps) closest to geometry g's positions at poses q: g
+    itself when it is rigid, else identified (calibrate's groups but compliance) on g's own positions.
+    Returns (geometry, {"mean_mm", "max_mm"} of its distance to g's positions, "left_out": what g has
+    that the chain cannot hold})."""
     with torch.no_grad():
         p = fk(q, g).numpy()
-    rigid = {**g, "compliance": torch.zeros(6, dtype=DTYPE)}
-    if g["compliance"].any():
+    left_out = (["joint compliance under gravity"] if g["compliance"].any() else []) + \
+        [name for key, name in (("amap_coef", "per-joint angle error maps"), ("lmap_coef", "per-joint load error maps"))
+         if key in g]
+    rigid = {k: v for k, v in g.items() if k in GEOMETRY_KEYS} | {"compliance": torch.zeros(6, dtype=DTYPE)}
+    if left_out:
         cfg = {**cfg, "params": [k for k in cfg["params"] if k != "compliance"], "loss": "linear"}
         rigid = identify(q, p, rigid, cfg)[0]
     with torch.no_grad():
         e = np.linalg.norm(fk(q, rigid).numpy() - p, axis=1)
-    return rigid, {"mean_mm": float(e.mean()), "max_mm": float(e.max())}
+    return rigid, {"mean_mm": float(e.mean()), "max_mm": float(e.max()), "left_out": left_out}
 
 
 def run(params: dict) -> dict:
@@ -89,7 +94,8 @@ def run(params: dict) -> dict:
     robot = load_robot(p["robot"])
     pts = load_points()
     q = torch.as_tensor(np.radians(pts[JOINTS_DEG].to_numpy()), dtype=DTYPE)
-    g, fit = rigid_equivalent(Calibration.from_dict(read_json(CALIBRATED_GEOMETRY)).geometry, q, p["calibrate"])
+    calibrated = with_parts(Calibration.from_dict(read_json(CALIBRATED_GEOMETRY)).geometry, read_json(PARTS_JSON))
+    g, fit = rigid_equivalent(calibrated, q, p["calibrate"])      # the model's physics branch, as a rigid chain
     with torch.no_grad():
         p_rigid, flange6 = fk(q, g).numpy(), fk_frames(q, g)[-1].numpy()      # flange6 (n, 4, 4) before the base
     summary = {"n_poses": len(pts), "rigid_fit": fit}

@@ -4,15 +4,19 @@ Several training campaigns: each campaign is split on its own (8:1:1, seed 7,
 in its table order), so every campaign has test points and a campaign's split
 does not change when another campaign is added. One campaign: the paper's split.
 
+With `split.holdout` (a development check of extrapolation), the poses of a region of joint space
+(splits.region: every listed joint above its quantile) are held out first, split "holdout": nothing
+trains or validates on them, and evaluate reports every method on them beside the random test split.
+
 Writes data/interim/split.parquet (point_id, split) and reports/split.json.
 """
 import numpy as np
 import pandas as pd
 
 from .lib.artifacts import POINTS_TABLE, SPLIT_JSON, SPLIT_TABLE
-from .lib.columns import CAMPAIGN, SPLITS
+from .lib.columns import CAMPAIGN, JOINTS_DEG, SPLITS
 from .lib.config import for_stage, load_params, logger, write_json
-from .lib.splits import split_indices
+from .lib.splits import region, split_indices
 
 log = logger(__name__)
 PARAMS = ("split",)
@@ -20,18 +24,21 @@ PARAMS = ("split",)
 
 def run(params: dict) -> dict:
     cfg = for_stage(params, PARAMS)["split"]
-    pts = pd.read_parquet(POINTS_TABLE, columns=["point_id", CAMPAIGN])
+    pts = pd.read_parquet(POINTS_TABLE, columns=["point_id", CAMPAIGN] + JOINTS_DEG)
     split = pd.Series("", index=pts.index)
     per = {}
     for campaign in pts[CAMPAIGN].unique():
         rows = np.flatnonzero(pts[CAMPAIGN] == campaign)                           # positions, table order
+        held = region(pts[JOINTS_DEG].to_numpy()[rows], cfg["holdout"])
+        split.iloc[rows[held]] = "holdout"
+        rows = rows[~held]
         idx = split_indices(len(rows), cfg["fractions"], cfg["seed"])
         for name, r in idx.items():
             split.iloc[rows[r]] = name
-        per[campaign] = {k: len(v) for k, v in idx.items()}
+        per[campaign] = {**{k: len(v) for k, v in idx.items()}, "holdout": int(held.sum())}
     SPLIT_TABLE.parent.mkdir(parents=True, exist_ok=True)
     pd.DataFrame({"point_id": pts["point_id"], "split": split}).to_parquet(SPLIT_TABLE, index=False)
-    summary = {"seed": cfg["seed"], "fractions": cfg["fractions"],
+    summary = {"seed": cfg["seed"], "fractions": cfg["fractions"], "holdout": cfg["holdout"],
                "counts": {k: sum(c[k] for c in per.values()) for k in SPLITS},
                "per_campaign": per}
     write_json(SPLIT_JSON, summary)

@@ -24,7 +24,8 @@ SECTIONS = {
     "campaigns.campaign": ("ingest", "station"),
     "frame": ("outlier_k", "outlier_min_mm", "estimate_tool", "tool_per_station", "robust_loss", "robust_scale_mm",
               "max_rms_mm"),
-    "split": ("seed", "fractions"),
+    "split": ("seed", "fractions", "holdout"),
+    "split.holdout": ("joints", "quantile"),
     "calibrate": ("loss", "loss_scale_mm", "params", "tilt_joints", "rank_tol", "tol", "max_nfev"),
     "parts": ("noise_mm", "angle_map", "load_map", "thermal"),
     "parts.thermal": ("column", "cte_per_k"),
@@ -46,6 +47,9 @@ SECTIONS = {
     "serve": ("host", "port", "unreachable_mm", "compile", "max_iter", "budget_ms", "stall_iter", "stall_ratio",
               "max_batch", "batch_wait_ms", "max_items", "max_body_bytes", "timeout_s", "echo_chars"),
 }
+
+
+OPTIONAL = ("holdout",)        # nested sections that may be null (off)
 
 
 class ParamsError(ValueError):
@@ -72,8 +76,9 @@ def section(params: dict, name: str) -> dict:
         raise ParamsError(f"params.yaml: missing section {name!r} (keys: {', '.join(SECTIONS[name])})")
     cfg = check_keys(params[name], name)
     for sub in SECTIONS:                               # nested sections (not validate.campaign / campaigns.campaign: one per entry)
-        if sub.startswith(name + ".") and sub.split(".", 1)[1] in SECTIONS[name]:
-            check_keys(cfg[sub.split(".", 1)[1]], sub)
+        key = sub.split(".", 1)[1] if sub.startswith(name + ".") else None
+        if key in SECTIONS[name] and not (key in OPTIONAL and cfg[key] is None):
+            check_keys(cfg[key], sub)
     return cfg
 
 

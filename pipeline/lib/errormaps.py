@@ -30,6 +30,7 @@ import numpy as np
 import torch
 
 MAP_KEYS = ("amap_coef", "amap_cover", "lmap_lo", "lmap_step", "lmap_coef")
+JOINT_ROWS = torch.arange(6)[:, None]                    # (6, 1): joint i's row of a (6, M) coefficient table
 ARCSEC = np.pi / (180 * 3600)
 
 
@@ -74,12 +75,10 @@ def joint_errors(q_rad: torch.Tensor, tau: torch.Tensor, g: dict) -> torch.Tenso
     out = torch.zeros_like(q_rad)
     if "amap_coef" in g:
         idx, w = angle_terms(torch.rad2deg(q_rad), g["amap_coef"], g["amap_cover"])
-        coef = g["amap_coef"].unsqueeze(0).expand(len(q_rad), -1, -1)
-        out = out + (torch.gather(coef, 2, idx) * w).sum(-1)
+        out = out + (g["amap_coef"][JOINT_ROWS, idx] * w).sum(-1)          # (B, 6, 4) -> (B, 6)
     if "lmap_coef" in g:
         idx, w = load_terms(tau, g["lmap_lo"], g["lmap_step"], g["lmap_coef"].shape[1] - 3)
-        coef = g["lmap_coef"].unsqueeze(0).expand(len(q_rad), -1, -1)
-        out = out + (torch.gather(coef, 2, idx) * w).sum(-1)
+        out = out + (g["lmap_coef"][JOINT_ROWS, idx] * w).sum(-1)
     return out
 
 
