@@ -95,13 +95,14 @@ def run_campaign(params: dict, name: str) -> dict:
                                        cfg["tool_rank_tol"])
     ws = Workspace.from_dict(read_json(WORKSPACE_JSON))
     u, inside = ws(q)
+    u = np.sqrt(u ** 2 + frames["model"].get("registration_rms_mm", 0.0) ** 2)     # validation.py: the campaign's own
     table = pd.DataFrame({"point_id": df.point_id, "campaign": name, "registered": registered,
                           **{f"error_{m}_mm": errors[m] for m in METHODS},
                           "uncertainty_mm": u, "in_workspace": inside, "in_range_angle_map": ws.parts(q)["angle_map"]})
     out = summary(table, c["frame"])
     out["ingest"] = {k: ingested[k] for k in ("n_read", "n_kept", "dropped", "dropped_counts")}
-    out["registration"] = {m: {"tool_offset_mm": f["tool_offset_mm"], "tool_held": f.get("tool_held")}
-                           for m, f in frames.items()}
+    out["registration"] = {m: {"tool_offset_mm": f["tool_offset_mm"], "tool_held": f.get("tool_held"),
+                               "rms_mm": f.get("registration_rms_mm")} for m, f in frames.items()}
     out["thermal"] = thermal
     if c["commanded"]:                               # each method's base frame, the marker back on the training tool
         measured = {m: (P - frames[m]["t"]) @ frames[m]["R"] - np.einsum("mij,j->mi", flange[m],

@@ -11,10 +11,10 @@ from scipy.spatial.transform import Rotation
 from pipeline import validate
 from pipeline.lib import twin as T
 from pipeline.lib.config import load_params, write_json
-from pipeline.lib.kinematics import fk_numpy, nominal_geometry, save_geometry
+from pipeline.lib.kinematics import fk, flange_rotations, fk_numpy, nominal_geometry, save_geometry
 from pipeline.lib.robots import nominal_robot
 from pipeline.lib.training import make_model, save_model
-from pipeline.lib.validation import judge, position_accuracy, registration_subset, summary
+from pipeline.lib.validation import METHODS, judge, position_accuracy, registration_subset, summary
 from pipeline.lib.workspace import Workspace
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -36,11 +36,41 @@ def test_refit_recovers_a_known_frame_and_judges_only_the_other_points():
     np.testing.assert_allclose(frames["nominal"]["t"], t, atol=0.1)      # mm (25 mm kept: ~1 mm)
     assert errors["nominal"][~registered].max() < 0.06               # judged: noise only
     table = pd.DataFrame({"registered": registered, "in_workspace": True, "uncertainty_mm": 0.1,
-                          **{f"error_{m}_mm": errors["nominal"] for m in ("nominal", "calibrated", "model")}})
+                          "in_range_angle_map": True, **{f"error_{m}_mm": errors["nominal"] for m in METHODS}})
     s = summary(table, "refit")
     assert s["n_judged"] == 170 and s["n_register"] == 30
     assert s["max_3d_mm"]["nominal"] == pytest.approx(errors["nominal"][~registered].max())
     assert s["max_3d_mm"]["nominal"] < 0.06                        # the 25 mm misread was not judged
+
+
+@pytest.mark.parametrize("poses", ["any", "tool down"])
+def test_refit_tool_recovers_a_remounted_probe_where_the_orientations_tell(poses):
+    """A probe re-mounted 2, -1, 3 mm off: fitted with the frame where the flange turns every way; with the
+    tool always pointing down its offset along the tool axis is a translation of the frame, so it stays at 0
+    (held) and the frame takes it: either way the judged points are at the noise."""
+    rng = np.random.default_rng(4)
+    q = T.sample_poses(200, rng)
+    if poses == "tool down":                                      # flange z along -z of the base for every pose
+        q[:, 3], q[:, 4] = -q[:, 1] - q[:, 2] - 90.0, -90.0
+    g = {**nominal_geometry(UR5), "tool": torch.tensor([0.0, 0.0, 100.0], dtype=torch.float64)}
+    qt = torch.as_tensor(np.radians(q))
+    with torch.no_grad():
+        p, Rf = fk(qt, g).numpy(), flange_rotations(qt, g).numpy()
+    dt = np.array([2.0, -1.0, 3.0])
+    R, t = Rotation.from_euler("xyz", [5, -15, 70], degrees=True).as_matrix(), np.array([1500.0, 200, -300])
+    P = (p + np.einsum("nij,j->ni", Rf, dt)) @ R.T + t + rng.normal(0, 0.01, p.shape)
+    errors, registered, frames = judge({"m": p}, P, "refit_tool", {}, 30, PARAMS["frame"], {"m": Rf},
+                                       PARAMS["validate"]["tool_rank_tol"])
+    f = frames["m"]
+    if poses == "any":
+        np.testing.assert_allclose(f["tool_offset_mm"], dt, atol=0.05)
+        assert f["tool_held"] == []
+    else:
+        assert f["tool_held"] == ["tool_z"] and f["tool_offset_mm"][2] == 0.0
+        np.testing.assert_allclose(f["tool_offset_mm"][:2], dt[:2], atol=0.05)
+    assert errors["m"][~registered].mean() < 0.03
+    plain, _, _ = judge({"m": p}, P, "refit", {}, 30, PARAMS["frame"])                 # the frame alone cannot
+    assert plain["m"][~registered].mean() > (0.3 if poses == "any" else 0.03)
 
 
 def test_registration_points_spread_over_the_campaign():
@@ -53,10 +83,16 @@ def test_workspace_flags_poses_outside_the_training_coverage():
     rng = np.random.default_rng(1)
     train, front, side = (T.sample_poses(576, rng), T.sample_poses(200, rng),
                           T.sample_poses(200, rng, region="side"))
-    ws = Workspace.fit(train, np.full(72, 0.1), PARAMS["workspace"])
+    val = {"model": np.full(72, 0.1), "calibrated_parts": np.full(72, 0.2), "calibrated": np.full(72, 0.3)}
+    ws = Workspace.fit(train, val, PARAMS["workspace"], 2.0)
     (u_front, in_front), (u_side, in_side) = ws(front), ws(side)
     assert in_front.mean() > 0.95 and in_side.mean() < 0.2
     assert u_front.min() == pytest.approx(0.1) and u_side.mean() > 1.4 * u_front.mean()
+    assert u_side.max() == pytest.approx(0.2)                          # faded: the calibration with its maps
+    cover = np.zeros((6, 360))
+    cover[0, :61], cover[0, 300:] = 1.0, 1.0                           # joint 1 mapped over -60..60 only
+    ws_maps = Workspace.fit(train, val, PARAMS["workspace"], 2.0, cover)
+    assert ws_maps.parts(side)["angle_map"].mean() < 0.05 and ws_maps(side)[0].max() == pytest.approx(0.3)
     far = side[ws.distance(side).argmax()]
     assert ws(far[None])[0][0] > ws(side[:1])[0][0] or not ws(far[None])[1][0]
     again = Workspace.from_dict(json.loads(json.dumps(ws.to_dict())))
@@ -74,8 +110,10 @@ def project(tmp_path, monkeypatch):
     save_geometry("models/calibration.json", nominal_geometry(UR5))
     save_model(make_model(params["model"], nominal_geometry(UR5)), "models/boter.pt", params["model"])
     rng = np.random.default_rng(2)
-    write_json("models/workspace.json", Workspace.fit(T.sample_poses(300, rng), np.full(10, 0.1),
-                                                      params["workspace"]).to_dict())
+    write_json("models/workspace.json", Workspace.fit(T.sample_poses(300, rng), {k: np.full(10, 0.1) for k in
+                                                      ("model", "calibrated_parts", "calibrated")},
+                                                      params["workspace"], 2.0).to_dict())
+    save_geometry("models/parts.json", nominal_geometry(UR5), {"enabled": False, "thermal": None})
     joints, tracker, _ = T.Twin().validation_campaign(n={"front": 30, "side": 30})
     joints.loc[7, "j3_deg"] = np.nan                                # a bad row
     Path("c").mkdir()
@@ -99,8 +137,9 @@ def test_campaign_with_a_bad_row_lists_it_and_is_judged(project):
     assert 0.5 < out["mean_3d_mm"]["nominal"] < 2.0
     assert 0.3 < out["in_workspace_share"] < 0.8                    # half the poses at the side
     table = pd.read_parquet("reports/validation/moved.parquet")
-    assert list(table.columns) == ["point_id", "campaign", "registered", "error_nominal_mm",
-                                   "error_calibrated_mm", "error_model_mm", "uncertainty_mm", "in_workspace"]
+    assert list(table.columns) == ["point_id", "campaign", "registered", "error_nominal_mm", "error_calibrated_mm",
+                                   "error_calibrated_parts_mm", "error_model_mm", "uncertainty_mm", "in_workspace",
+                                   "in_range_angle_map"]
     s = validate.run_summary(project)
     assert set(s["campaigns"]) == {"moved"} and len(pd.read_parquet("reports/validation.parquet")) == 59
     project["validate"]["campaigns"] = {}

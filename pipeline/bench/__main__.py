@@ -23,6 +23,8 @@ def main(argv=None):
     ap.add_argument("--epochs", type=int, default=None, help="override train.max_epochs (real)")
     ap.add_argument("--sets", nargs="+", choices=list(REAL_SETS), default=None,
                     help="sets to run (default: the real ones; twin and twin-2stations on request)")
+    ap.add_argument("--dnn", action=argparse.BooleanOptionalAction, default=True,
+                    help="also train the paper's DNN baseline (every seed)")
     ap.add_argument("--other-physics", action=argparse.BooleanOptionalAction, default=True,
                     help="also train SPI-BoTER on the other physics branch (first seed)")
     ap.add_argument("-S", "--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
@@ -37,7 +39,7 @@ def main(argv=None):
     ap.add_argument("--calls", type=int, default=10000, help="compensate calls in all (serve)")
     a = ap.parse_args(argv)
     if a.what == "real":
-        bench_real(a.seeds, a.epochs, a.sets, a.other_physics, a.overrides, a.engine, a.address, a.threads)
+        bench_real(a.seeds, a.epochs, a.sets, a.other_physics, a.overrides, a.engine, a.address, a.threads, a.dnn)
     elif a.what == "serve":
         bench_serve(a.clients, a.calls)
     elif a.what == "sweep":

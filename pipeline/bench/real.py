@@ -38,6 +38,7 @@ from ..lib.config import load_params, logger, read_json, write_json
 from ..lib.kinematics import fk_numpy
 from ..lib.presets import merged_params
 from ..lib.robots import load_robot
+from ..lib.twin import SEED, generate
 from .common import BENCH, DATASETS, ROOT, prepared
 
 log = logger(__name__)
@@ -48,6 +49,8 @@ REAL_SETS = {"gtpn-ur5": {"preset": "gtpn-ur5", "dataset": "gtpn-ur5", "base_fra
              "ipa-ur10": {"preset": "ipa-ur10", "dataset": "ipa-ur10", "base_frame": False},
              "ipa-ur10-cb": {"preset": "ipa-ur10-cb", "dataset": "ipa-ur10", "base_frame": False},
              "twin": {"preset": None, "dataset": None, "base_frame": False},
+             # the twin before issue 22 (no fine angular structure in its joints): its campaign made here
+             "twin-nofine": {"preset": None, "dataset": None, "base_frame": False, "twin_fine": False},
              "twin-2stations": {"preset": "twin-2stations", "dataset": None, "base_frame": False}}
 
 
@@ -131,7 +134,7 @@ def seed_run(job) -> dict:
             "valid": valid, "pred": pred}
 
 
-def run_set(name: str, seeds: list[int], epochs: int | None, other_physics: bool = True,
+def run_set(name: str, seeds: list[int], epochs: int | None, other_physics: bool = True, dnn: bool = True,
             on_seed=None, overrides: list[str] = (), engine: str = "sequential", address: str | None = None,
             threads: int | None = None) -> dict:
     """The full pipeline on one real set, once per training seed: the stages up to calibrate once,
@@ -150,6 +153,12 @@ def run_set(name: str, seeds: list[int], epochs: int | None, other_physics: bool
     with tempfile.TemporaryDirectory() as tmp:
         os.chdir(tmp)
         try:
+            if REAL_SETS[name].get("twin_fine") is False:   # the twin's campaigns without the fine structure
+                generate("twin", SEED, fine=False)
+                for ingest in [params["ingest"]] + [c["ingest"] for c in params["validate"]["campaigns"].values()]:
+                    for k in ("joints", "tracker"):
+                        ingest[k] = str(Path(tmp, "twin", Path(ingest[k]).relative_to(ROOT / "data/raw")))
+                params["compensate"]["twin"] = str(Path(tmp, "twin/twin.json"))
             for campaign in params["campaigns"]["more"] or {}:
                 stage("ingest", params, "campaign", campaign)
             for name_ in ("ingest", "frame", "theory", "split", "calibrate", "parts"):
@@ -169,7 +178,7 @@ def run_set(name: str, seeds: list[int], epochs: int | None, other_physics: bool
         for i, seed in enumerate(seeds):
             p = copy.deepcopy(params)
             p["model"]["init_seed"], p["train"]["seed"] = seed, seed
-            p["baselines"]["dnn"] = True
+            p["baselines"]["dnn"] = dnn
             p["baselines"]["other_physics"] = other_physics and i == 0   # first seed only
             jobs.append((tmp, p, list(test.point_id)))
         done = {}
@@ -231,7 +240,7 @@ def seed_summary(per: dict, nominal: float | None, physics: str) -> dict:
 
 def bench_real(seeds: list[int], epochs: int | None, only: list[str] | None, other_physics=True,
                overrides: list[str] = (), engine: str = "sequential", address: str | None = None,
-               threads: int | None = None) -> dict:
+               threads: int | None = None, dnn: bool = True) -> dict:
     out_path = BENCH / "real_data.json"
     out = read_json(out_path) if out_path.exists() else {}
     for name in only or [k for k, v in REAL_SETS.items() if v["dataset"]]:
@@ -245,8 +254,8 @@ def bench_real(seeds: list[int], epochs: int | None, only: list[str] | None, oth
         def save(partial, key=key):
             out[key] = partial
             write_json(out_path, out)
-        out[key] = run_set(name, seeds, epochs, other_physics, on_seed=save, overrides=overrides, engine=engine,
-                           address=address, threads=threads)
+        out[key] = run_set(name, seeds, epochs, other_physics, dnn, on_seed=save, overrides=overrides,
+                           engine=engine, address=address, threads=threads)
         log.info("%s: %s", key, out[key]["test_3d_mae"])
         write_json(out_path, out)
     write_json(out_path, out)

@@ -425,12 +425,16 @@ def twin_record(twin: Twin, misreads: dict) -> dict:
     }
 
 
-def generate(out_dir: Path | str = RAW, seed: int = SEED, params: dict | None = None) -> dict:
+def generate(out_dir: Path | str = RAW, seed: int = SEED, params: dict | None = None, fine: bool = True) -> dict:
     """Write joints.csv, tracker.csv, validation/{joints,tracker}.csv and twin.json; with params,
-    also measure the difficulty."""
+    also measure the difficulty. fine=False: the twin without its joints' fine angular structure
+    (as before issue 22; the other errors, poses and noise are the same draws)."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    twin = Twin(seed)
+    errors = sample_errors(seed)
+    if not fine:
+        errors["fine_amp_arcsec"] = np.zeros_like(errors["fine_amp_arcsec"])
+    twin = Twin(seed, errors)
     joints, tracker, misreads = twin.campaign()
     joints.to_csv(out_dir / "joints.csv", index=False, float_format="%.6f", lineterminator="\n")
     tracker.to_csv(out_dir / "tracker.csv", index=False, float_format="%.4f", lineterminator="\n")

@@ -13,6 +13,10 @@ measured it in its tracker's frame. Two ways to compare them:
             campaign is left to judge. Only the frame is refitted, not the tool. The
             nominal method's registration is checked like the frame stage's fit
             (frames.check_fit): a mirrored or far-off campaign stops.
+    The registration's residual (rms per point, corrected for the parameters fitted) is the part of a
+    new campaign's error that no training campaign shows (the tracker set up again, drift, the
+    temperature): the model's uncertainty on the campaign is sqrt(uncertainty_mm² + that²) (refit
+    modes; `same` adds nothing).
     refit_tool  the tracker moved and the probe may have been re-mounted: as refit, and a tool
             offset dt (flange frame) fitted with each method's frame on the same points, every
             method's marker moved by R_flange(q) dt (its own chain's flange). Only where the
@@ -113,6 +117,9 @@ def judge(pred: dict, P_world: np.ndarray, mode: str, frame: dict, n_register: i
             p = p + np.einsum("mij,j->mi", flange_R[m], dt)
             frames[m] = {"R": R, "t": t, "tool_offset_mm": dt, "tool_held": held}
         errors[m] = np.linalg.norm(p @ R.T + t - P_world, axis=1)
+        k = np.flatnonzero(reg)[inl]                      # the registration's own residual, per degree of freedom
+        dof = max(3 * len(k) - (6 + 3 - len(frames[m].get("tool_held", ["x"] * 3))), 1)
+        frames[m]["registration_rms_mm"] = float(np.sqrt((errors[m][k] ** 2).sum() / dof * 3))
     return errors, reg, frames
 
 
