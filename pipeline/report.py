@@ -17,21 +17,22 @@ import pandas as pd
 
 from .lib import figures, page
 from .lib.artifacts import (BASELINES_MD, CALIBRATION_JSON, COMPENSATION_JSON, CONVERGENCE_CSV, DRIVE_CSV,
-                            EXPORT_JSON, FRAME_JSON, INGEST_JSON, LIVE, METRICS_JSON, MODEL_WEIGHTS, PREDICTIONS_TABLE,
+                            EXPORT_JSON, FRAME_JSON, INGEST_JSON, LIVE, METRICS_JSON, MODEL_WEIGHTS, PARTS_REPORT,
+                            PREDICTIONS_TABLE,
                             REPORTS, SPLIT_JSON, THEORY_JSON, TRAIN_JSON, VALIDATION_JSON, VALIDATION_TABLE)
 from .lib.columns import MEAS, PRED, THEORY
 from .lib.config import for_stage, load_params, logger, read_json
 from .lib.training import load_model
 
 log = logger(__name__)
-PARAMS = ("robot", "ingest", "campaigns", "frame", "split", "calibrate", "model", "loss", "train", "baselines",
+PARAMS = ("robot", "ingest", "campaigns", "frame", "split", "calibrate", "parts", "model", "loss", "train", "baselines",
           "workspace", "compensate", "validate", "ablation")      # the settings the page shows, and compensate's
 
 PLOTS = REPORTS / "plots"
 INDEX = REPORTS / "index.md"
 PLY = REPORTS / "points_error.ply"
 CURVES = LIVE / "plots" / "metrics"          # dvclive's per-epoch curves
-SUMMARIES = {"ingest": INGEST_JSON, "frame": FRAME_JSON, "theory": THEORY_JSON,
+SUMMARIES = {"ingest": INGEST_JSON, "frame": FRAME_JSON, "theory": THEORY_JSON, "parts": PARTS_REPORT,
              "split": SPLIT_JSON, "calibration": CALIBRATION_JSON,
              "train": TRAIN_JSON, "compensation": COMPENSATION_JSON, "validation": VALIDATION_JSON,
              "export": EXPORT_JSON}

@@ -66,9 +66,11 @@ def absolute_paths(params: dict) -> dict:
 
 
 def stage(name: str, params: dict, *args: str) -> None:
-    """Run one stage as dvc repro would, on params written to ./params.yaml."""
+    """Run one stage as dvc repro would, on params written to ./params.yaml, with this tree's code
+    (not whichever checkout pip installed)."""
     Path("params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
-    subprocess.run([sys.executable, "-m", f"pipeline.{name}", *args], check=True)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
+    subprocess.run([sys.executable, "-m", f"pipeline.{name}", *args], check=True, env=env)
 
 
 def stage_here(name: str, *args: str) -> None:

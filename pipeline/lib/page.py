@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from .artifacts import (BASELINES_MD, CALIBRATION_JSON, COMPENSATION_CSV, COMPENSATION_JSON, DRIVE_CSV, FRAME_JSON,
-                        INGEST_JSON, METRICS_JSON, REPORTS, THEORY_JSON, TRAIN_JSON)
+                        INGEST_JSON, METRICS_JSON, PARTS_REPORT, REPORTS, THEORY_JSON, TRAIN_JSON)
 from .columns import AXES
 from .config import PARAMS
 from .figures import DRIVE_TOL_MM, FIGURES, PLY_CMAP, PLY_PERCENTILE, caption
@@ -178,6 +178,39 @@ def section_data(ing: dict | None, fr: dict | None, th: dict | None, sp: dict | 
     out += ["**Split**: " + ", ".join(f"{k} {v}" for k, v in counts.items())
             + (f" (seed {sp.get('seed')}, fractions {fmt(sp.get('fractions'), 2)})" if sp else "")
             + ".", ""]
+    return "\n".join(out)
+
+
+def section_parts(r: dict | None) -> str:
+    """reports/parts.json: the per-joint error maps, what they gained, what they moved."""
+    out = ["## Per-joint error maps (parts stage)", ""]
+    if not r:
+        return "\n".join(out + ["_reports/parts.json not found (parts stage not run)._", ""])
+    s = r["splits"]
+    out += [f"{link(PARTS_REPORT)}: {r.get('n_coefficients')} coefficients, "
+            + ("**on**" if r.get("enabled") else "**off** (they did not lower the validation error)")
+            + ". Each joint's angle error as a function of its own angle, and of the gravity torque it "
+              "carries, fitted on the calibration's residual with the calibration's parameters re-estimated "
+              "beside them; the model's physics branch carries them.", "",
+            table(["split", "n", "calibration mm", "calibration + maps mm"],
+                  [[k, v["n"], v["calibrated"]["mean_mm"], v["calibrated_parts"]["mean_mm"]] for k, v in s.items()]),
+            table(["part", "joint", "rms arcsec", "displacement rms mm", "re-learned share"],
+                  [[b["part"], b["joint"], b["coef_rms_arcsec"], b["displacement_rms_mm"], b["relearned_share"]]
+                   for b in r.get("blocks", [])]),
+            "Re-learned share: how much of a part's displacement the calibration's own parameters could "
+            "make (0: nothing a DH, tilt, tool, base or compliance parameter can do).", ""]
+    moved = sorted(((k, v) for k, v in (r.get("calibration_corrections") or {}).items() if v.get("calibration_se")),
+                   key=lambda kv: -abs(kv[1]["delta"] / kv[1]["calibration_se"]))[:8]
+    if moved:
+        out += ["The calibration's parameters, re-estimated with the maps (largest moves in the calibration's "
+                "own standard errors; deg, mm):", "",
+                table(["parameter", "change", "calibration σ", "in σ"],
+                      [[k, v["delta"], v["calibration_se"], v["delta"] / v["calibration_se"]] for k, v in moved])]
+    th = r.get("thermal")
+    if th:
+        out += [f"Thermal reference: {th['column']} {fmt(th['temperature_ref_c'])} °C over the training points "
+                f"(span {fmt(th['span_k'])} K); links expand by {th['cte_per_k']:g}/K on a campaign measured "
+                "at another temperature.", ""]
     return "\n".join(out)
 
 
@@ -421,7 +454,7 @@ def write_index(ctx, figs: dict, ply: dict) -> str:
     parts = ["\n".join(head), section_settings(ctx.params), section_metrics(m, counts),
              section_baselines(m, ctx.baselines_md),
              section_data(s["ingest"], s["frame"], s["theory"], s["split"], counts),
-             section_calibration(s["calibration"]), section_training(s["train"]),
+             section_calibration(s["calibration"]), section_parts(s["parts"]), section_training(s["train"]),
              section_compensation(s["compensation"], ctx.drive),
              section_validation(s["validation"], m.get("uncertainty")), section_export(s["export"]),
              section_ablation(),
