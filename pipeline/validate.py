@@ -69,6 +69,22 @@ def thermal_change(df: pd.DataFrame, parts: dict) -> dict | None:
     return {**th, "temperature_c": T, "dT_k": T - th["temperature_ref_c"]}
 
 
+def per_joint_coverage(ws: Workspace, q: np.ndarray, table: pd.DataFrame) -> dict:
+    """Per mapped joint: the share of judged points whose angle of that joint its map covers, and each
+    method's mean error on them: what each joint's map can add where it holds."""
+    if ws.angle_cover is None:
+        return {}
+    judged = ~table.registered.to_numpy()
+    b = np.floor(np.remainder(q, 360.0)).astype(int) % 360
+    out = {}
+    for j in np.flatnonzero(ws.angle_cover.any(1)):
+        m = judged & (ws.angle_cover[j, b[:, j]] >= 1.0)
+        out[f"j{j + 1}"] = {"share": float(m.sum() / max(judged.sum(), 1)),
+                            **{k: (float(table.loc[m, f"error_{k}_mm"].mean()) if m.any() else None)
+                               for k in ("calibrated", "calibrated_parts", "model")}}
+    return out
+
+
 def run_campaign(params: dict, name: str) -> dict:
     p = for_stage(params, PARAMS["campaign"])
     frame_cfg, cfg = p["frame"], p["validate"]
@@ -100,6 +116,7 @@ def run_campaign(params: dict, name: str) -> dict:
                           **{f"error_{m}_mm": errors[m] for m in METHODS},
                           "uncertainty_mm": u, "in_workspace": inside, "in_range_angle_map": ws.parts(q)["angle_map"]})
     out = summary(table, c["frame"])
+    out["angle_map"]["per_joint"] = per_joint_coverage(ws, q, table)
     out["ingest"] = {k: ingested[k] for k in ("n_read", "n_kept", "dropped", "dropped_counts")}
     out["registration"] = {m: {"tool_offset_mm": f["tool_offset_mm"], "tool_held": f.get("tool_held"),
                                "rms_mm": f.get("registration_rms_mm")} for m, f in frames.items()}
