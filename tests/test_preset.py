@@ -44,7 +44,11 @@ def test_presets_only_set_known_keys(name):
 
 def test_ipa_preset_settings():
     p = merged_params("ipa-ur10", BASE)
-    assert set(p["validate"]["campaigns"]) == {"series_b_same", "series_b_refit"}   # replaced, not merged
+    assert set(p["validate"]["campaigns"]) == {"series_b_same", "series_b_refit", "series_d"}   # replaced, not merged
+    assert p["validate"]["campaigns"]["series_d"]["frame"] == "refit_tool"
+    assert p["parts"]["thermal"] == {"column": "measurement_temperature", "cte_per_k": BASE["parts"]["thermal"]["cte_per_k"]}
+    for sec in p:
+        section(p, sec)
     assert p["robot"]["model"] == "ur10" and p["robot"]["tool_mm"] == [0.0, 0.0, 109.0]
     assert p["frame"]["estimate_tool"] is True
     assert (p["ingest"]["sep"], p["ingest"]["decimal"], p["ingest"]["angle_unit"]) == (";", ",", "rad")

@@ -95,8 +95,9 @@ def write_inputs(root: Path, params: dict, optional: bool = True) -> pd.DataFram
     val = pd.DataFrame({"point_id": [f"V{i:04d}" for i in range(40)], "campaign": "moved",
                         "registered": np.arange(40) < 5, "error_nominal_mm": rng.uniform(0.5, 2, 40),
                         "error_calibrated_mm": rng.uniform(0.1, 0.4, 40),
+                        "error_calibrated_parts_mm": rng.uniform(0.1, 0.3, 40),
                         "error_model_mm": np.where(inside, 0.1, 0.3), "uncertainty_mm": 0.15,
-                        "in_workspace": inside})
+                        "in_workspace": inside, "in_range_angle_map": True})
     val.to_parquet(root / "reports/validation.parquet", index=False)
     (root / "reports/validation.json").write_text(json.dumps({"campaigns": {"moved": summary(val, "refit")
                                                                             | {"ingest": {"n_kept": 40,

@@ -126,8 +126,9 @@ def test_difficulty_is_that_of_a_real_ur5(twin, recorded):
     assert 0.9 < d["nominal_after_frame_mean_mm"] < 1.3           # real UR5: ≈1 mm
     assert 0.15 < d["rigid_fit_mean_mm"]["test"] < 0.35           # rigid DH: the sag remains
     assert d["rigid_fit_mean_mm"]["test"] > 3 * recorded["noise_floor_mm"]
-    # elasto-geometric: the sag is explained, the gear error is not (well above the floor still)
-    assert 1.15 * recorded["noise_floor_mm"] < d["classical_fit_mean_mm"]["test"] < 0.4 * d["rigid_fit_mean_mm"]["test"]
+    # elasto-geometric: the sag is explained, the gear error and the joints' fine structure are not
+    # (well above the floor still: what the per-joint error maps are for)
+    assert 2 * recorded["noise_floor_mm"] < d["classical_fit_mean_mm"]["test"] < 0.6 * d["rigid_fit_mean_mm"]["test"]
 
 
 def test_validation_campaign_is_the_same_arm_from_another_tracker_pose(twin, recorded):
