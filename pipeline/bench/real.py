@@ -92,8 +92,11 @@ def validation_runs(params: dict) -> dict:
         stage_here("validate", "campaign", name)
         v = read_json(VALIDATION_DIR / f"{name}.json")
         out[name] = {"n_judged": v["n_judged"], "frame": v["frame"], "in_workspace_share": v["in_workspace_share"],
-                     "mean_3d_mm": v["mean_3d_mm"],
+                     "mean_3d_mm": v["mean_3d_mm"], "angle_map_in_range_share": v["angle_map"]["in_range_share"],
+                     "uncertainty_coverage": v["uncertainty_coverage"]["all"],
                      **{f"mean_3d_mm_{w}": {m: s["mean"] for m, s in v["by_workspace"][w].items()}
+                        for w in ("in", "out")},
+                     **{f"mean_3d_mm_map_{w}": {m: s["mean"] for m, s in v["angle_map"][w].items()}
                         for w in ("in", "out")}}
     return out
 
@@ -211,8 +214,10 @@ def set_summary(runs: list[dict], valid: list[dict], per_campaign: list[dict], e
     validation = {}
     stat = lambda f, r: None if None in r else float(f(r))            # None: no point in that part
     for c in valid[0]:                      # per campaign and method: mean, std and every seed
-        validation[c] = {k: valid[0][c][k] for k in ("n_judged", "frame", "in_workspace_share")}
-        for key in ("mean_3d_mm", "mean_3d_mm_in", "mean_3d_mm_out"):
+        validation[c] = {k: valid[0][c][k] for k in ("n_judged", "frame", "in_workspace_share",
+                                                     "angle_map_in_range_share")}
+        validation[c]["uncertainty_coverage_runs"] = [v[c]["uncertainty_coverage"] for v in valid]
+        for key in ("mean_3d_mm", "mean_3d_mm_in", "mean_3d_mm_out", "mean_3d_mm_map_in", "mean_3d_mm_map_out"):
             runs_ = {m: [v[c][key][m] for v in valid] for m in valid[0][c][key]}
             validation[c][key] = {m: stat(np.mean, r) for m, r in runs_.items()}
             validation[c][key + "_std"] = {m: stat(np.std, r) for m, r in runs_.items()}
