@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from .lib import sweep
-from .lib.ablations import GROUPS, Job, train_one
+from .lib.ablations import GROUPS, Data, Job, train_one
 from .lib.artifacts import CALIBRATED_GEOMETRY, FRAME_JSON, PARTS_JSON, REPORTS, TIMINGS, load_points
 from .lib.config import for_stage, load_params, logger, read_json, split_timings, write_json
 from .lib.figures import fig_ablation, save
@@ -37,8 +37,9 @@ PARAMS = {"group": ("robot", "model", "loss", "train", "ablation", "workspace"),
           "summary": ()}
 
 
-def jobs_for(params: dict, groups: list[str]) -> list[Job]:
-    """A Job per (group, seed of `ablation.seeds`) on the pipeline's aligned points and geometries."""
+def jobs_for(params: dict, groups: list[str]) -> tuple[list[Job], Data]:
+    """A Job per (group, seed of `ablation.seeds`), and the Data they train on: the pipeline's aligned
+    points and geometries."""
     unknown = [g for g in groups if g not in GROUPS]
     if unknown:
         raise ValueError(f"unknown ablation group(s) {unknown}; use {list(GROUPS)}")
@@ -47,7 +48,7 @@ def jobs_for(params: dict, groups: list[str]) -> list[Job]:
     nominal = theory_geometry(load_robot(p["robot"]), read_json(FRAME_JSON)["tool_mm"])
     points = aligned(load_points(), calibration, nominal)
     geometries = {"calibrated": with_parts(calibration.geometry, read_json(PARTS_JSON)), "nominal": nominal}
-    return [Job(points, geometries, p, g, s) for g in groups for s in p["ablation"]["seeds"]]
+    return [Job(p, g, s) for g in groups for s in p["ablation"]["seeds"]], Data(points, geometries)
 
 
 def run_groups(params: dict, groups: list[str], engine: str = "sequential", address: str | None = None,
@@ -55,10 +56,10 @@ def run_groups(params: dict, groups: list[str], engine: str = "sequential", addr
     """Every (group, seed) of `ablation.seeds` as one job (lib/sweep.py: in order, or Ray tasks);
     writes reports/ablation/<group>.json per group. threads: torch threads per job (default:
     every core when sequential, 1 on Ray)."""
-    jobs = jobs_for(params, groups)
+    jobs, data = jobs_for(params, groups)
     seeds = params["ablation"]["seeds"]
     threads = sweep.threads_per_job(engine, threads)
-    runs, timing = sweep.run(train_one, jobs, engine, address, threads, desc="ablation")
+    runs, timing = sweep.run(train_one, jobs, engine, address, threads, desc="ablation", shared=data)
     out = {}
     for k, g in enumerate(groups):
         mine = slice(k * len(seeds), (k + 1) * len(seeds))

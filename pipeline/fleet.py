@@ -6,12 +6,15 @@
 A fleet is a folder with one folder per robot, each holding its campaign (the
 tracker/controller exports) and a `params.yaml` override, like a preset: merged
 over the project's params.yaml, paths relative to the robot's folder. Each robot
-is one job (lib/sweep.py: in order, or a Ray task on a local instance or a cluster):
-the pipeline's stages (ingest .. evaluate, export, report), each `python -m
-pipeline.<stage>` as `dvc repro` runs them, in `<out>/<robot>/`, which then holds
-that robot's params.yaml, artifacts (models/, data/interim/) and report
-(reports/index.md). A robot that fails is reported with its stage and error
-message, and the others finish. reports/fleet.json and reports/fleet.md: per
+is one job (lib/sweep.py: in order, or a Ray task on a local instance or a cluster),
+which carries the robot's folder as bytes and its merged params: on its node, in a
+scratch folder (the robot's files under `campaign/`), the pipeline's stages (ingest ..
+evaluate, export, report), each `python -m pipeline.<stage>` as `dvc repro` runs
+them. The scratch folder comes back as bytes and is written here to `<out>/<robot>/`,
+which then holds that robot's params.yaml, campaign, artifacts (models/, data/interim/),
+report (reports/index.md) and logs: no filesystem is shared with the nodes. A robot
+that fails is reported with its stage and error message (its folder, logs included,
+still comes back), and the others finish. reports/fleet.json and reports/fleet.md: per
 robot the test 3D MAE of nominal DH, the classical calibration and the model.
 
 DVC: `fleet/dvc.yaml` (opt-in, like ablation/) is one stage whose output is the
@@ -25,6 +28,7 @@ import math
 import os
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -37,6 +41,7 @@ from .lib.presets import deep_merge
 from .lib.twin import Twin
 
 log = logger(__name__)
+CAMPAIGN = "campaign"               # a robot's working folder: its fleet folder's files are copied here
 STAGES = ["ingest", "frame", "theory", "split", "calibrate", "parts", "train", "baselines", "evaluate", "export", "report"]
 FLEET_JSON, FLEET_MD = Path("reports/fleet.json"), Path("reports/fleet.md")
 BENCH_JSON = Path("reports/bench/fleet.json")
@@ -45,41 +50,57 @@ DEMO_SEED = 2000
 
 def robot_params(base: dict, robot_dir: Path) -> dict:
     """The project's params with the robot's params.yaml merged over it; its campaign paths made
-    absolute; no further campaigns, no validation campaigns, no twin drive check unless it says so."""
+    relative to the robot's working folder, where its folder's files are copied to `campaign/`; no
+    further campaigns, no validation campaigns, no twin drive check unless it says so."""
     over = yaml.safe_load((robot_dir / "params.yaml").read_text()) if (robot_dir / "params.yaml").exists() else {}
     p = deep_merge({**base, "campaigns": {**base["campaigns"], "more": {}},
                     "validate": {**base["validate"], "campaigns": {}},
                     "compensate": {**base["compensate"], "drive_check": False}}, over or {})
     for k in ("joints", "tracker"):
-        p["ingest"][k] = str((robot_dir / p["ingest"][k]).resolve())
+        p["ingest"][k] = (Path(CAMPAIGN) / p["ingest"][k]).as_posix()
     return p
 
 
-def calibrate_robot(job) -> dict:
-    """One robot: every stage in its output folder (threads: torch threads of each stage)."""
-    name, params, out, threads = job
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+def robot_job(base: dict, robot_dir: Path, threads: int) -> dict:
+    """One robot as a job that carries all it needs, so its node shares no filesystem with this one:
+    its name, its params (robot_params) and its folder's files as bytes (lib/sweep.py: pack)."""
+    return {"robot": robot_dir.name, "params": robot_params(base, robot_dir), "files": sweep.pack(robot_dir),
+            "threads": threads}
+
+
+def calibrate_robot(job: dict) -> dict:
+    """One robot: its folder's files unpacked to `campaign/` of a scratch folder, every stage run there
+    (`python -m pipeline.<stage>` with the code this process runs: on Ray, the package shipped with
+    the task; the job's torch threads), and the whole folder (params, campaign, models, tables,
+    reports, logs) returned as bytes under "files", for the driver to write where it wants it."""
+    name, params, threads = job["robot"], job["params"], job["threads"]
     env = {**os.environ, "OMP_NUM_THREADS": str(threads),
-           "PYTHONPATH": os.pathsep.join([str(sweep.PROJECT), os.environ.get("PYTHONPATH", "")])}
+           "PYTHONPATH": os.pathsep.join([str(sweep.CODE_ROOT), os.environ.get("PYTHONPATH", "")])}
     t0 = time.perf_counter()
-    for stage in STAGES:
-        r = subprocess.run([sys.executable, "-m", f"pipeline.{stage}"], cwd=out, env=env, capture_output=True,
-                           text=True)
-        (out / "logs").mkdir(exist_ok=True)
-        (out / "logs" / f"{stage}.log").write_text(r.stdout + r.stderr)
-        if r.returncode:
-            lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
-            return {"robot": name, "status": "failed", "stage": stage, "reason": lines[-1] if lines else
-                    f"exit code {r.returncode}", "seconds": time.perf_counter() - t0}
-    m = read_json(out / "reports/metrics.json")
-    test = lambda method: m["baselines"][method]["test"]["3d"]["mae"]
-    return {"robot": name, "status": "ok", "model": params["robot"]["model"],
-            "n_points": read_json(out / "reports/theory.json")["n_points"],
-            "test_3d_mae_mm": {"nominal": test("nominal_dh"), "calibrated": test("calibrated_dh"),
-                               "model": m["test"]["3d"]["mae"]},
-            "seconds": time.perf_counter() - t0}
+    with tempfile.TemporaryDirectory(prefix=f"fleet-{name}-") as tmp:
+        out = sweep.unpack(job["files"], Path(tmp) / CAMPAIGN).parent
+        (out / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+        result = None
+        for stage in STAGES:
+            r = subprocess.run([sys.executable, "-m", f"pipeline.{stage}"], cwd=out, env=env, capture_output=True,
+                               text=True)
+            (out / "logs").mkdir(exist_ok=True)
+            (out / "logs" / f"{stage}.log").write_text(r.stdout + r.stderr)
+            if r.returncode:
+                lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+                result = {"robot": name, "status": "failed", "stage": stage, "reason": lines[-1] if lines else
+                          f"exit code {r.returncode}"}
+                break
+        if result is None:
+            m = read_json(out / "reports/metrics.json")
+            test = lambda method: m["baselines"][method]["test"]["3d"]["mae"]
+            result = {"robot": name, "status": "ok", "model": params["robot"]["model"],
+                      "n_points": read_json(out / "reports/theory.json")["n_points"],
+                      "test_3d_mae_mm": {"nominal": test("nominal_dh"), "calibrated": test("calibrated_dh"),
+                                         "model": m["test"]["3d"]["mae"]}}
+        result["seconds"] = time.perf_counter() - t0
+        result["files"] = sweep.pack(out)
+    return result
 
 
 def fleet_estimate(summary: dict, threads: int, robots: int = 100, nodes=(1, 4, 10, 25)) -> dict:
@@ -103,13 +124,17 @@ def run_fleet(fleet_dir, out="fleet/robots", engine: str = "sequential", address
         raise FileNotFoundError(f"{fleet_dir}: no robot folders (one per robot: its campaign and params.yaml)")
     base = base or load_params()
     threads = sweep.threads_per_job(engine, threads)
-    jobs = [(d.name, robot_params(base, d), str(Path(out) / d.name), threads) for d in robots]
-    results, timing = sweep.run(calibrate_robot, jobs, engine, address, threads, desc="fleet")
+    jobs = [robot_job(base, d, threads) for d in robots]
+
+    def arrived(i, r):                          # the robot's folder, written here as it comes back
+        sweep.unpack(r.pop("files"), Path(out) / r["robot"])
+    results, timing = sweep.run(calibrate_robot, jobs, engine, address, threads, desc="fleet", on_result=arrived)
     ok = [r for r in results if r["status"] == "ok"]
     summary = {"fleet": str(fleet_dir), "out": str(out), "engine": engine, "n_robots": len(results),
                "n_ok": len(ok), "failed": {r["robot"]: f"{r['stage']}: {r['reason']}" for r in results
                                           if r["status"] != "ok"},
                "robots": results, "seconds": timing["seconds"],
+               "nodes": {r["robot"]: n for r, n in zip(results, timing["job_nodes"])},
                "robot_seconds_mean": float(np.mean([r["seconds"] for r in ok])) if ok else None}
     write_json(FLEET_JSON, summary)
     if bench and ok:

@@ -20,10 +20,14 @@ def test_robot_params_merge_the_override_over_the_project(tmp_path):
     d = tmp_path / "r1"
     d.mkdir()
     (d / "params.yaml").write_text("robot: {model: ur10}\ningest: {joints: j.csv, tracker: t.csv}\n")
+    (d / "j.csv").write_text("joints")
     p = fleet.robot_params(load_params(ROOT / "params.yaml"), d)
-    assert p["robot"]["model"] == "ur10" and p["ingest"]["joints"] == str((d / "j.csv").resolve())
+    assert p["robot"]["model"] == "ur10" and p["ingest"]["joints"] == "campaign/j.csv"   # the copy's, relative
     assert p["validate"]["campaigns"] == {} and p["campaigns"]["more"] == {}
     assert p["model"] == load_params(ROOT / "params.yaml")["model"]          # the rest: the project's
+    job = fleet.robot_job(load_params(ROOT / "params.yaml"), d, 1)            # the folder travels as bytes
+    assert job["robot"] == "r1" and job["params"] == p and job["threads"] == 1
+    assert job["files"] == {"j.csv": b"joints", "params.yaml": (d / "params.yaml").read_bytes()}
 
 
 def test_empty_fleet_folder_is_named(tmp_path):
@@ -42,7 +46,8 @@ def test_fleet_on_ray_reports_a_broken_campaign_and_finishes_the_others(tmp_path
     assert s["n_robots"] == 3 and s["n_ok"] == 2
     assert list(s["failed"]) == ["ur5_03"]
     reason = s["failed"]["ur5_03"]
-    assert reason.startswith("ingest:") and "ur5_03/tracker.csv" in reason and "column(s) z" in reason
+    assert reason.startswith("ingest:") and "campaign/tracker.csv" in reason and "column(s) z" in reason
+    assert "column(s) z" in (Path("out") / "ur5_03/logs/ingest.log").read_text()    # its folder came back too
     assert {r["robot"]: r.get("model") for r in s["robots"] if r["status"] == "ok"} == \
         {"ur5_01": "ur5", "ur10_02": "ur10"}
     for r in s["robots"]:
@@ -51,5 +56,8 @@ def test_fleet_on_ray_reports_a_broken_campaign_and_finishes_the_others(tmp_path
             assert e["calibrated"] < e["nominal"] / 3, r["robot"]          # each twin really calibrated
             assert (Path("out") / r["robot"] / "reports/index.md").exists()
             assert (Path("out") / r["robot"] / "models/calibrated.urdf").exists()
+            # written here from what the task sent back: the campaign with it, the params pointing at it
+            assert (Path("out") / r["robot"] / "campaign/tracker.csv").exists()
+            assert "joints: campaign/joints.csv" in (Path("out") / r["robot"] / "params.yaml").read_text()
     assert json.loads(Path("reports/fleet.json").read_text())["n_ok"] == 2
     assert "failed in ingest" in Path("reports/fleet.md").read_text()

@@ -1,19 +1,48 @@
-"""Sweeps on Ray: the same numbers as the sequential path (lib/sweep.py, pipeline.ablation)."""
+"""Sweeps on Ray: the same numbers as the sequential path (lib/sweep.py, pipeline.ablation), on a local
+Ray and on a two-node cluster that shares nothing of the project with the jobs: the code travels in
+Ray's runtime environment, the tables in the object store, folders as bytes."""
 import json
 import shutil
+from pathlib import Path
 
 import pytest
 
-from pipeline import ablation
+from pipeline import ablation, fleet
 from pipeline.lib import sweep
 from pipeline.lib.config import load_params
 
 FILES = ["data/interim/points.parquet", "data/interim/split.parquet", "reports/frame.json",
-         "models/calibration.json"]
+         "models/calibration.json", "models/parts.json"]
 
 
 def square(x):
     return x * x
+
+
+def scaled(x, shared):
+    return x * shared["k"]
+
+
+def test_shared_values_and_folders_as_values(tmp_path):
+    """shared reaches every job; a folder packs to {relative path: bytes} and unpacks the same;
+    unpack writes nothing outside its folder."""
+    out, timing = sweep.run(scaled, [1, 2, 3], shared={"k": 10})
+    assert out == [10, 20, 30] and timing["job_nodes"] == [None] * 3
+    assert timing["job_code"] == [str(sweep.CODE_ROOT)] * 3
+    (tmp_path / "a/b").mkdir(parents=True)
+    (tmp_path / "a/b/c.bin").write_bytes(b"\x00\x01")
+    (tmp_path / "a/d.txt").write_text("d")
+    (tmp_path / "a/skip").mkdir()
+    (tmp_path / "a/skip/e").write_text("e")
+    files = sweep.pack(tmp_path / "a", skip=("skip",))
+    assert files == {"b/c.bin": b"\x00\x01", "d.txt": b"d"}
+    sweep.unpack(files, tmp_path / "copy")
+    assert sweep.pack(tmp_path / "copy") == files
+    with pytest.raises(ValueError, match="not a path inside the folder"):
+        sweep.unpack({"../evil": b""}, tmp_path / "copy")
+    env = sweep.runtime_env()                       # the package's code, nothing else of the project
+    assert env["py_modules"] == [str(sweep.PACKAGE)] and sweep.PACKAGE.name == "pipeline"
+    assert "__pycache__/" in env["excludes"]
 
 
 def test_unknown_engine_and_group_are_named():
@@ -61,3 +90,56 @@ def test_bench_real_seeds_on_ray_equal_sequential():
     assert seq["test_3d_mae_ensemble"] == ray["test_3d_mae_ensemble"]
     assert seq["validation"]["twin_side"]["mean_3d_mm_runs"] == ray["validation"]["twin_side"]["mean_3d_mm_runs"]
     assert len(set(seq["test_3d_mae_runs"]["spi_boter"])) == 2           # two seeds, two models
+
+
+@pytest.fixture()
+def two_nodes():
+    """A Ray cluster of two nodes on this machine (a head and a worker, one CPU each), torn down after."""
+    from ray.cluster_utils import Cluster
+    cluster = Cluster(initialize_head=True, head_node_args={"num_cpus": 1, "object_store_memory": 100 * 2**20})
+    try:
+        cluster.add_node(num_cpus=1, object_store_memory=100 * 2**20)
+        cluster.wait_for_nodes()
+        yield cluster
+    finally:
+        cluster.shutdown()
+
+
+@pytest.mark.slow
+def test_sweep_and_fleet_on_a_two_node_cluster(trained_project, tmp_path, monkeypatch, two_nodes):
+    """Issue 24: a two-run ablation sweep on a two-node cluster (ray.cluster_utils.Cluster, the driver
+    connecting by its address), run in a folder that holds nothing of the project: the same numbers as
+    the sequential engine (one torch thread each), one run on each node, the code imported from the
+    package Ray shipped with the tasks, not from the project. Then a one-robot fleet on it: the robot's
+    folder goes to its task as bytes and comes back as bytes, written here."""
+    for f in FILES:
+        (tmp_path / f).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy(trained_project / f, tmp_path / f)
+    params = load_params(trained_project / "params.yaml")
+    params["model"].update(d_model=12, n_head=2, n_layer=1, d_hidden=32)
+    params["train"].update(max_epochs=3, patience=3)
+    params["ablation"].update(seeds=[3, 4], max_epochs=None)
+    monkeypatch.chdir(tmp_path)
+    seq = ablation.run_groups(params, ["baseline"], "sequential", threads=1)
+    seq_runs = json.loads((tmp_path / "reports/ablation/baseline.json").read_text())["runs"]
+    ray_ = ablation.run_groups(params, ["baseline"], "ray", address=two_nodes.address, threads=1)
+    ray_runs = json.loads((tmp_path / "reports/ablation/baseline.json").read_text())["runs"]
+    for a, b in zip(seq_runs, ray_runs, strict=True):
+        assert a["seed"] == b["seed"] and a["test"] == b["test"] and a["epochs_run"] == b["epochs_run"] == 3
+    assert seq_runs[0]["test"] != seq_runs[1]["test"]
+    nodes = ray_["timing"]["job_nodes"]
+    assert set(nodes) == {n.node_id for n in two_nodes.list_all_nodes()}            # one run on each node
+    project = Path(__file__).resolve().parents[1]
+    for code in ray_["timing"]["job_code"]:                  # the shipped copy of the package, not this tree
+        assert Path(code, "pipeline/lib/sweep.py").exists() and Path(code).resolve() != project
+    assert seq["timing"]["job_code"] == [str(sweep.CODE_ROOT)] * 2
+    # one robot, its folder there and back as bytes
+    fleet.demo("fleet_in", robots=1, n=150)
+    f = fleet.run_fleet("fleet_in", "out", engine="ray", address=two_nodes.address,
+                        base=params | {"train": {**params["train"], "max_epochs": 6, "patience": 6}})
+    assert f["n_ok"] == 1 and f["nodes"]["ur5_01"] in nodes
+    e = f["robots"][0]["test_3d_mae_mm"]
+    assert e["calibrated"] < e["nominal"] / 3
+    for name in ("campaign/tracker.csv", "params.yaml", "models/boter.pt", "models/model.onnx", "reports/index.md",
+                 "logs/train.log"):
+        assert (tmp_path / "out/ur5_01" / name).is_file(), name

@@ -16,6 +16,10 @@ and the seeds' SPI-BoTER models averaged (an ensemble); and, per seed, every
 error per method on the judged points, inside and outside the trained workspace;
 and each training campaign's test 3D MAE per method (ipa-ur10-cb: Series_C and
 Series_B trained together).
+
+The stages up to parts run once per set, here; every seed is then a job (lib/sweep.py) that
+carries the prepared directory as bytes (with the campaigns' input files under inputs/; on Ray in
+the object store, once per node), so Ray's nodes need no shared filesystem.
 """
 import copy
 import os
@@ -116,13 +120,15 @@ def overridden(params: dict, overrides: list[str]) -> dict:
     return p
 
 
-def seed_run(job) -> dict:
-    """One training seed of a set (a sweep job): in a copy of the prepared directory (ingest ..
-    calibrate done), train, baselines, evaluate and every validate campaign, in this process."""
-    prepared, p, test_ids = job
+def seed_run(job, files: dict) -> dict:
+    """One training seed of a set (a sweep job): the prepared directory (ingest .. parts done, the
+    campaigns' input files under inputs/; lib/sweep.py's pack: it travels as bytes, in Ray's object
+    store once per node) unpacked to a scratch directory; there train, baselines, evaluate and every
+    validate campaign, in this process."""
+    p, test_ids = job
     cwd = os.getcwd()
     with tempfile.TemporaryDirectory() as tmp:
-        shutil.copytree(prepared, tmp, dirs_exist_ok=True)
+        sweep.unpack(files, tmp)
         os.chdir(tmp)
         try:
             Path("params.yaml").write_text(yaml.safe_dump(p, sort_keys=False))
@@ -137,6 +143,21 @@ def seed_run(job) -> dict:
             "per_campaign": {c: {k: v[k]["test"]["mae"] for k in v if k not in ("station", "n")}
                              for c, v in metrics["campaigns"].items()},
             "valid": valid, "pred": pred}
+
+
+def localized(params: dict, folder: Path) -> dict:
+    """params with every campaign's input files (ingest, campaigns.more, validate.campaigns) copied to
+    folder/inputs/ and their paths made relative to folder: the seeds' jobs carry them with the rest."""
+    p = copy.deepcopy(params)
+    ingests = ([("main", p["ingest"])] + [(n, c["ingest"]) for n, c in (p["campaigns"]["more"] or {}).items()]
+               + [(n, c["ingest"]) for n, c in (p["validate"]["campaigns"] or {}).items()])
+    for name, ingest in ingests:
+        for k in ("joints", "tracker"):
+            rel = Path("inputs", name, k + "_" + Path(ingest[k]).name)
+            (folder / rel).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(ingest[k], folder / rel)
+            ingest[k] = rel.as_posix()
+    return p
 
 
 def run_set(name: str, seeds: list[int], epochs: int | None, other_physics: bool = True, dnn: bool = True,
@@ -179,13 +200,15 @@ def run_set(name: str, seeds: list[int], epochs: int | None, other_physics: bool
                 nominal = float(np.linalg.norm(e, axis=1).mean())
         finally:
             os.chdir(cwd)
+        local = localized(params, Path(tmp))
+        prepared_files = sweep.pack(tmp)                # the prepared directory, a value: no shared filesystem
         jobs = []
         for i, seed in enumerate(seeds):
-            p = copy.deepcopy(params)
+            p = copy.deepcopy(local)
             p["model"]["init_seed"], p["train"]["seed"] = seed, seed
             p["baselines"]["dnn"] = dnn
             p["baselines"]["other_physics"] = other_physics and i == 0   # first seed only
-            jobs.append((tmp, p, list(test.point_id)))
+            jobs.append((p, list(test.point_id)))
         done = {}
 
         def summary(finished: dict) -> dict:
@@ -201,7 +224,8 @@ def run_set(name: str, seeds: list[int], epochs: int | None, other_physics: bool
             done[i] = r
             if on_seed:
                 on_seed({**summary(done), "engine": engine, "threads_per_seed": threads})
-        sweep.run(seed_run, jobs, engine, address, threads, desc=f"{name} seeds", on_result=finished)
+        sweep.run(seed_run, jobs, engine, address, threads, desc=f"{name} seeds", on_result=finished,
+                  shared=prepared_files)
     return {**summary(done), "engine": engine, "threads_per_seed": threads}
 
 

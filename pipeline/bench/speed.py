@@ -1,4 +1,5 @@
-"""`bench speed`: training seconds per epoch (10 epochs), prediction (PyTorch and onnxruntime, batch 4096 and
+"""`bench speed`: training seconds per epoch (10 epochs on the CPU; where torch sees a GPU, also 60 on it,
+eager steps and one CUDA graph an epoch), prediction (PyTorch and onnxruntime, batch 4096 and
 one pose), `lm` and `adam` compensation (batched and one pose), the controller path (realtime.py) eager and
 compiled, and peak memory; writes reports/bench/speed.json. Needs a finished `dvc repro` in the project."""
 import resource
@@ -44,8 +45,18 @@ def bench_speed() -> dict:
     df, geometries = prepared(params)
     train_t, val_t = tensors(df[df.split == "train"]), tensors(df[df.split == "val"])
     model = make_model(params["model"], geometries[params["model"]["physics"]])
-    cfg = {**params["train"], "max_epochs": 10, "patience": 10}
+    cfg = {**params["train"], "max_epochs": 10, "patience": 10, "device": "cpu"}
     hist = fit(model, SPILoss(**params["loss"]), train_t, val_t, cfg, progress=False)
+    gpu = {}
+    if torch.cuda.is_available():      # train.device cuda: eager steps against one CUDA graph an epoch
+        for name, graphed in (("eager", False), ("graphed", True)):
+            m = make_model(params["model"], geometries[params["model"]["physics"]])
+            h = fit(m, SPILoss(**params["loss"]), train_t, val_t, {**cfg, "max_epochs": 60, "patience": 60,
+                                                                    "device": "cuda"}, progress=False, graphed=graphed)
+            gpu[name] = {"seconds_per_epoch": h["seconds_per_epoch"], "epochs_timed": h["epochs_run"],
+                         "best_val_mae_3d_mm": h["best_val_mae_3d_mm"]}
+        gpu["device"] = torch.cuda.get_device_name()
+        gpu["speedup_graphed_over_cpu"] = hist["seconds_per_epoch"] / gpu["graphed"]["seconds_per_epoch"]
 
     model = load_model(MODEL_WEIGHTS)
     q = torch.as_tensor(np.radians(np.random.default_rng(0).uniform(-3, 3, (4096, 6))), dtype=torch.float64)
@@ -80,7 +91,8 @@ def bench_speed() -> dict:
                                     params["compensate"]["tol_mm"], compiled)
     out = {"machine": machine(),
            "train": {"n_train": len(train_t[0]), "seconds_per_epoch": hist["seconds_per_epoch"],
-                     "epochs_timed": hist["epochs_run"], "model": params["model"]},
+                     "epochs_timed": hist["epochs_run"], "model": params["model"], "device": "cpu"},
+           "train_cuda": gpu or "no CUDA GPU seen by torch: not measured",
            "predict": {"batch": 4096, "poses_per_s": 4096 / batch_s, "single_pose_ms": 1000 * single_s,
                        "onnxruntime": {"poses_per_s": 4096 / onnx_batch_s, "single_pose_ms": 1000 * onnx_single_s,
                                        "single_pose_speedup_over_pytorch": single_s / onnx_single_s}},

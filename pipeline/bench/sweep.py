@@ -8,7 +8,7 @@ import time
 from pathlib import Path
 
 from ..lib import sweep                                   # lib/sweep.py: jobs in order or as Ray tasks
-from ..lib.ablations import Job, train_one
+from ..lib.ablations import Data, Job, train_one
 from ..lib.artifacts import CALIBRATED_GEOMETRY, FRAME_JSON, PARTS_JSON, POINTS_TABLE, SPLIT_TABLE
 from ..lib.config import load_params, logger, write_json
 from .common import BENCH, machine, prepared
@@ -30,7 +30,7 @@ def bench_sweep(groups=("baseline", "no_resnet"), seeds=(139, 140), epochs: int 
     cores = os.cpu_count() or 1
     df, geometries = prepared(params)
     p = {k: params[k] for k in ("model", "loss", "train", "workspace", "ablation")}
-    jobs = [Job(df, geometries, p, g, s) for g in groups for s in seeds]
+    jobs, data = [Job(p, g, s) for g in groups for s in seeds], Data(df, geometries)
     files = [POINTS_TABLE, SPLIT_TABLE, FRAME_JSON, CALIBRATED_GEOMETRY, PARTS_JSON]
     out = {"machine": machine(), "what": f"ablation groups {list(groups)} x seeds {list(seeds)}, {epochs} epochs "
                                          "each (the full ablation: 8 groups x 5 seeds, up to 400 epochs)"}
@@ -42,7 +42,8 @@ def bench_sweep(groups=("baseline", "no_resnet"), seeds=(139, 140), epochs: int 
         os.chdir(tmp)
         try:
             for engine, threads in (("sequential", cores), ("ray", 1)):
-                runs, timing = sweep.run(train_one, jobs, engine, None, threads, desc=f"sweep {engine}")
+                runs, timing = sweep.run(train_one, jobs, engine, None, threads, desc=f"sweep {engine}",
+                                         shared=data)
                 out[engine] = {**timing, "test_3d_mae": [r["test"]["3d"]["mae"] for r in runs]}
         finally:
             os.chdir(cwd)
@@ -54,7 +55,7 @@ def bench_sweep(groups=("baseline", "no_resnet"), seeds=(139, 140), epochs: int 
     with_startup = time.perf_counter() - t0
     import ray                                            # the same, Ray already up: the per-task cost alone
     ray.init(include_dashboard=False, log_to_driver=False, configure_logging=False,
-             runtime_env={"env_vars": {"PYTHONPATH": str(sweep.PROJECT)}})
+             runtime_env=sweep.runtime_env())              # the package's code goes with the job
     try:
         sweep.run(noop, list(range(n)), "ray", desc="noop warm-up")
         _, warm = sweep.run(noop, list(range(n)), "ray", desc="noop")

@@ -1,5 +1,6 @@
 """The ablation groups (the paper's sec. 4.2.3-4.2.4, and the loss weighting) and one training run
-of a group at a seed: what `python -m pipeline.ablation` and `bench sweep` run as jobs (lib/sweep.py)."""
+of a group at a seed: what `python -m pipeline.ablation` and `bench sweep` run as jobs (lib/sweep.py), each
+job (Job) its settings, the data every job trains on (Data) shared: on Ray, in the object store once."""
 import copy
 from dataclasses import dataclass
 
@@ -25,13 +26,18 @@ GROUPS = {                                   # name -> params changes (one sourc
 
 @dataclass
 class Job:
-    """One training run: the aligned points (with their split), the physics geometries by
-    `model.physics`, the sections model, loss, train, workspace and ablation, a group and a seed."""
-    points: pd.DataFrame
-    geometries: dict
+    """One training run: the sections model, loss, train, workspace and ablation, a group and a seed."""
     params: dict
     group: str
     seed: int
+
+
+@dataclass
+class Data:
+    """What every run of a sweep trains on: the aligned points (with their split) and the physics
+    geometries by `model.physics`. A sweep's `shared` value: on Ray, put once into the object store."""
+    points: pd.DataFrame
+    geometries: dict
 
 
 def group_params(params: dict, group: str, seed: int) -> dict:
@@ -43,10 +49,11 @@ def group_params(params: dict, group: str, seed: int) -> dict:
     return p
 
 
-def train_one(job: Job) -> dict:
-    """One (group, seed) training run (torch threads set by its sweep); returns its test metrics and epochs."""
-    df, p = job.points, group_params(job.params, job.group, job.seed)
-    model, hist = train_boter(df, job.geometries[p["model"]["physics"]], p["model"], p["loss"], p["train"],
+def train_one(job: Job, data: Data) -> dict:
+    """One (group, seed) training run on `data` (torch threads set by its sweep); returns its test
+    metrics and epochs."""
+    df, p = data.points, group_params(job.params, job.group, job.seed)
+    model, hist = train_boter(df, data.geometries[p["model"]["physics"]], p["model"], p["loss"], p["train"],
                               p["workspace"]["radius_quantile"], progress=False)
     test = split_metrics(df, predict(model.eval(), df))["test"]
     log.info("%s seed %d: test 3D MAE %.4f mm, best epoch %d", job.group, job.seed, test["3d"]["mae"],

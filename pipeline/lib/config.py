@@ -35,7 +35,7 @@ SECTIONS = {
               "alpha0", "dropout", "fade_to", "init_seed"),
     "loss": ("weighting", "physics", "lambda_data", "lambda_physics"),
     "train": ("lr", "weight_decay", "batch_size", "grad_clip", "max_epochs", "patience", "seed", "ema",
-              "members", "lr_drop", "lr_patience"),
+              "members", "lr_drop", "lr_patience", "device"),
     "baselines": ("dnn", "other_physics"),
     "workspace": ("radius_quantile", "coverage"),
     "validate": ("register_points", "tool_rank_tol", "campaigns"),

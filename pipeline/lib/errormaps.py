@@ -30,7 +30,6 @@ import numpy as np
 import torch
 
 MAP_KEYS = ("amap_coef", "amap_cover", "lmap_lo", "lmap_step", "lmap_coef")
-JOINT_ROWS = torch.arange(6)[:, None]                    # (6, 1): joint i's row of a (6, M) coefficient table
 ARCSEC = np.pi / (180 * 3600)
 
 
@@ -49,10 +48,10 @@ def angle_terms(q_deg: torch.Tensor, coef: torch.Tensor, cover: torch.Tensor):
     a = torch.remainder(q_deg, 360.0)                                     # (B, 6) in [0, 360)
     u = a * (n / 360.0)
     k = torch.floor(u)
-    idx = torch.remainder(k.long().unsqueeze(-1) + torch.arange(4), n)    # (B, 6, 4)
+    idx = torch.remainder(k.long().unsqueeze(-1) + torch.arange(4, device=k.device), n)    # (B, 6, 4)
     b = torch.floor(a)                                                    # coverage bins: 1 degree
     f = a - b
-    rows = torch.arange(6).expand_as(b)
+    rows = torch.arange(6, device=b.device).expand_as(b)
     w = (1 - f) * cover[rows, b.long() % 360] + f * cover[rows, (b.long() + 1) % 360]
     return idx, cubic_weights(u - k) * w.unsqueeze(-1)
 
@@ -67,18 +66,19 @@ def load_terms(tau: torch.Tensor, lo: torch.Tensor, step: torch.Tensor, n: int):
     k = torch.minimum(torch.floor(u), torch.full_like(u, n - 1))
     fade = (1.0 - torch.maximum(lo - tau, tau - hi).clamp(min=0) / (0.1 * safe * n)).clamp(0.0, 1.0)
     w = cubic_weights(u - k) * (fade * on).unsqueeze(-1)
-    return k.long().unsqueeze(-1) + torch.arange(4), w
+    return k.long().unsqueeze(-1) + torch.arange(4, device=k.device), w
 
 
 def joint_errors(q_rad: torch.Tensor, tau: torch.Tensor, g: dict) -> torch.Tensor:
     """δθ (B, 6) rad of geometry g's maps at joint angles q (B, 6) rad and gravity torques tau (B, 6)."""
     out = torch.zeros_like(q_rad)
+    rows = torch.arange(6, device=q_rad.device)[:, None]                  # (6, 1): joint i's row of a (6, M) table
     if "amap_coef" in g:
         idx, w = angle_terms(torch.rad2deg(q_rad), g["amap_coef"], g["amap_cover"])
-        out = out + (g["amap_coef"][JOINT_ROWS, idx] * w).sum(-1)          # (B, 6, 4) -> (B, 6)
+        out = out + (g["amap_coef"][rows, idx] * w).sum(-1)          # (B, 6, 4) -> (B, 6)
     if "lmap_coef" in g:
         idx, w = load_terms(tau, g["lmap_lo"], g["lmap_step"], g["lmap_coef"].shape[1] - 3)
-        out = out + (g["lmap_coef"][JOINT_ROWS, idx] * w).sum(-1)
+        out = out + (g["lmap_coef"][rows, idx] * w).sum(-1)
     return out
 
 

@@ -89,7 +89,7 @@ def dh_matrices(q: torch.Tensor, g: dict) -> torch.Tensor:
 def link_frames(q: torch.Tensor, g: dict) -> torch.Tensor:
     """Frames 0..6 of the rigid chain (no deflection) in the base frame: (B, 6) rad -> (B, 7, 4, 4)."""
     T = dh_matrices(q, g)
-    F = [torch.eye(4, dtype=T.dtype).expand_as(T[:, 0])]                  # (B, 4, 4)
+    F = [torch.eye(4, dtype=T.dtype, device=T.device).expand_as(T[:, 0])]  # (B, 4, 4)
     for i in range(6):
         F.append(F[-1] @ T[:, i])
     return torch.stack(F, 1)
@@ -104,7 +104,8 @@ def gravity_torques(q: torch.Tensor, g: dict) -> torch.Tensor:
     """
     F = link_frames(q, g)                                                     # (B, 7, 4, 4)
     c = torch.einsum("bkij,kj->bki", F[:, 1:, :3, :3], g["com"]) + F[:, 1:, :3, 3]   # (B, 6, 3) mm
-    f = (g["mass"][:, None] * torch.tensor(GRAVITY, dtype=c.dtype)).expand_as(c)     # (B, 6, 3) N
+    # m_k g, made on the mass's device (no host tensor: a CUDA graph holds no copy from the host)
+    f = torch.stack([g["mass"] * gk for gk in GRAVITY], -1).expand_as(c)        # (B, 6, 3) N
     suffix = lambda x: x.flip(1).cumsum(1).flip(1)                            # sum over k >= i
     z, o = F[:, :6, :3, 2], F[:, :6, :3, 3]                                   # (B, 6, 3) joint axes, origins
     moment = suffix(torch.linalg.cross(c, f, dim=-1)) - torch.linalg.cross(o, suffix(f), dim=-1)

@@ -52,8 +52,9 @@ class SPILoss(nn.Module):
             return torch.exp(-self.s)
         return self.lam
 
-    def forward(self, p_pred, p_gt, p_theory):
-        """Returns (total, {"data": .., "physics": ..}) for logging."""
+    def terms(self, p_pred, p_gt, p_theory):
+        """(total, {"data": L_data, "physics": L_physics}) with the terms as tensors (NaN without the
+        physics term): no host sync, so a captured CUDA graph can hold it (training.EpochGraph)."""
         terms = [data_loss(p_pred, p_gt)]
         if self.use_physics:
             terms.append(physics_loss(p_pred, p_theory))
@@ -62,5 +63,9 @@ class SPILoss(nn.Module):
         total = (w * L).sum()                                   # eq. 18
         if self.weighting == "uncertainty":
             total = total + self.s[: len(terms)].sum()
-        parts = {"data": L[0].item(), "physics": L[1].item() if self.use_physics else math.nan}
-        return total, parts
+        return total, {"data": L[0], "physics": L[1] if self.use_physics else math.nan}
+
+    def forward(self, p_pred, p_gt, p_theory):
+        """Returns (total, {"data": .., "physics": ..}) for logging, the terms as floats."""
+        total, parts = self.terms(p_pred, p_gt, p_theory)
+        return total, {k: v.item() if isinstance(v, torch.Tensor) else v for k, v in parts.items()}
