@@ -3,6 +3,8 @@
     models/calibrated.urdf       the calibrated rigid chain (lib/urdf.py), base_link .. flange, tool0
     models/ur_calibration.yaml   UR robots: the UR ROS description's kinematics calibration
     models/model.onnx            the trained model, q_rad -> p_mm (lib/onnx_model.py)
+    models/controller.onnx       the controller path (lib/realtime.py: two chord steps) as one graph,
+                                 q0_rad, target_mm, joint limits -> q1, q2, |r0|, |r1| (lib/onnx_model.py)
 
 and reports/export.json, what each file was checked against, by libraries the
 pipeline does not use for its own kinematics:
@@ -20,20 +22,24 @@ squares over the campaign's poses); how far it stays from it, and what it leaves
 `rigid_fit` in export.json. The ONNX model carries every part.
     onnx   onnxruntime vs PyTorch on every test pose: on the same float32 angles, and on the
            float64 angles PyTorch is fed otherwise (the float32 input's rounding)
+    controller  onnxruntime's answers (OnnxRealtime) vs the PyTorch controller path's (Realtime) on
+           every test pose towards its theory position, one call each and all in one batch: the largest
+           difference in angles (rad) and residual (mm), and answers whose flags differ
 """
 import numpy as np
 import pinocchio as pin
 import torch
 import yaml
 
-from .lib.artifacts import (CALIBRATED_GEOMETRY, EXPORT_JSON, MODEL_ONNX, MODEL_WEIGHTS, PARTS_JSON, UR_YAML, URDF_FILE,
+from .lib.artifacts import (CALIBRATED_GEOMETRY, CONTROLLER_ONNX, EXPORT_JSON, MODEL_ONNX, MODEL_WEIGHTS, PARTS_JSON, UR_YAML, URDF_FILE,
                             load_points)
-from .lib.columns import JOINTS_DEG
+from .lib.columns import JOINTS_DEG, THEORY
 from .lib.config import for_stage, load_params, logger, read_json, write_json
 from .lib.geometry import Calibration, with_parts
 from .lib.identify import identify
+from .lib.realtime import Realtime
 from .lib.kinematics import DTYPE, GEOMETRY_KEYS, fk, fk_frames
-from .lib.onnx_model import OnnxModel, export_onnx
+from .lib.onnx_model import OnnxModel, OnnxRealtime, deviation, export_controller, export_onnx
 from .lib.robots import TABLES, load_robot
 from .lib.training import load_model
 from .lib.urdf import UR_YAML_NAMES, base_transform, flange_residual, joint_origins, to_urdf, ur_kinematics
@@ -136,6 +142,15 @@ def run(params: dict) -> dict:
     log.info("%s: onnxruntime vs PyTorch on %d test poses: max %.2e mm on the same float32 angles, %.2e mm "
              "from the float64 angles", MODEL_ONNX, test.sum(), summary["onnx"]["max_deviation_mm"],
              summary["onnx"]["max_deviation_from_float64_angles_mm"])
+
+    export_controller(model, CONTROLLER_ONNX)
+    limits = np.radians(robot.limits_deg)
+    dev = deviation(Realtime(model, limits), OnnxRealtime(CONTROLLER_ONNX, limits), q[test].numpy(),
+                    pts.loc[test, THEORY].to_numpy())
+    summary["controller"] = {"file": str(CONTROLLER_ONNX), "checked_with": "onnxruntime", **dev}
+    log.info("%s: onnxruntime's answers vs the PyTorch controller path's on %d test poses (alone and in a "
+             "batch): max %.1e rad, residual %.1e mm; flags differ in %d", CONTROLLER_ONNX, test.sum(),
+             dev["max_q_rad"], dev["max_residual_mm"], dev["flags_differ"])
     write_json(EXPORT_JSON, summary)
     return summary
 

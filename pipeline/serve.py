@@ -1,6 +1,6 @@
 """The compensation service: the trained model over XML-RPC, for a robot program to call.
 
-    python -m pipeline.serve [--port N] [--host H] [--compile]     (defaults: the `serve:` section)
+    python -m pipeline.serve [--port N] [--host H] [--no-onnx] [--compile]   (defaults: the `serve:` section)
 
 XML-RPC at http://HOST:PORT/RPC2 (only that path, only POST; default 127.0.0.1:50000):
 
@@ -16,11 +16,12 @@ XML-RPC at http://HOST:PORT/RPC2 (only that path, only POST; default 127.0.0.1:5
 
 What a request costs and when it is answered, refused or unreachable: lib/service.py (the logic: a
 worker thread owning the model batches concurrent requests; each has a budget, serve.max_iter and
-serve.budget_ms). A bad or unreachable request gets a Fault (code -32602) naming the field; the
+serve.budget_ms). The controller path runs on onnxruntime, from the export stage's models/controller.onnx
+(serve.onnx; checked against the PyTorch model at start-up), else in PyTorch. A bad or unreachable request gets a Fault (code -32602) naming the field; the
 server keeps serving. This module is the transport: the HTTP limits (serve.max_body_bytes: 413;
 serve.timeout_s: an idle or half-sent request is dropped; malformed HTTP or a body that is not an
-XML-RPC call: 400; other methods than POST: 405), messages and log lines cut to serve.echo_chars,
-and loading the artifacts and params. It listens on 127.0.0.1 unless told otherwise (--host
+XML-RPC call: 400; other methods than POST: 405; HTTP/1.1 keep-alive), messages and log lines cut to
+serve.echo_chars, and loading the artifacts and params. It listens on 127.0.0.1 unless told otherwise (--host
 0.0.0.0 to serve a robot on the network; XML-RPC has no authentication). docs/robot-cell.md: the
 protocol and a URScript example.
 """
@@ -34,11 +35,14 @@ from pathlib import Path
 from xmlrpc.client import Fault
 from xmlrpc.server import SimpleXMLRPCRequestHandler, SimpleXMLRPCServer
 
+import numpy as np
 import torch
 
-from .lib.artifacts import MODEL_WEIGHTS, WORKSPACE_JSON
+from .lib.artifacts import CONTROLLER_ONNX, MODEL_WEIGHTS, WORKSPACE_JSON
 from .lib.compensation import reach_mm
 from .lib.config import PARAMS as PARAMS_YAML, ParamsError, for_stage, load_params, logger, read_json
+from .lib.onnx_model import OnnxRealtime, deviation
+from .lib.realtime import Realtime
 from .lib.robots import load_robot
 from .lib.service import RequestError, Service
 from .lib.training import load_model
@@ -72,6 +76,8 @@ class Handler(SimpleXMLRPCRequestHandler):
     """POST /RPC2 only, within the server's limits; every refusal a 4xx, the connection then closed."""
     rpc_paths = (PATH,)                                   # any other path: 404
     default_request_version = "HTTP/1.0"                  # a garbled request line: a 400 with its status line
+    protocol_version = "HTTP/1.1"                         # keep-alive: a client's calls share one connection
+                                                          # and one server thread (HTTP/1.0 clients: closed)
 
     def setup(self):
         self.timeout = self.server.limits["timeout_s"]    # each read and write: idle or slow clients dropped
@@ -176,20 +182,45 @@ class Server(socketserver.ThreadingMixIn, SimpleXMLRPCServer):
         self.service.close()
 
 
+def fast_path(model, workspace: Workspace, limits_deg, tol_mm: float) -> OnnxRealtime | None:
+    """The controller path on onnxruntime from models/controller.onnx, when it is there and answers as the
+    PyTorch model does (on 8 training poses, 0.5 mm off: an export of another model would not); else None,
+    with a warning saying why (the service then runs it in PyTorch)."""
+    if not CONTROLLER_ONNX.exists():
+        log.warning("no %s (run `dvc repro`): the controller path runs in PyTorch", CONTROLLER_ONNX)
+        return None
+    limits = np.radians(limits_deg)
+    fast = OnnxRealtime(CONTROLLER_ONNX, limits, tol_mm, workspace)
+    q0 = np.radians(workspace.train_q[:8])
+    with torch.no_grad():
+        target = model(torch.as_tensor(q0))[0].numpy() + [0.5, -0.3, 0.2]
+    d = deviation(Realtime(model, limits, tol_mm, workspace=workspace), fast, q0, target)
+    if d["max_q_rad"] > 1e-6 or d["max_residual_mm"] > 1e-4:
+        log.warning("%s does not answer as %s (%.1e rad, %.1e mm apart: exported from another model?); run "
+                    "`dvc repro`: the controller path runs in PyTorch", CONTROLLER_ONNX, MODEL_WEIGHTS,
+                    d["max_q_rad"], d["max_residual_mm"])
+        return None
+    return fast
+
+
 def make_server(params: dict, host: str | None = None, port: int | None = None,
-                compile: bool | None = None) -> Server:
+                compile: bool | None = None, onnx: bool | None = None) -> Server:
     """The service on host:port (None: the `serve:` section; port 0: a free port, in server.server_address),
-    not yet serving: call serve_forever()."""
+    not yet serving: call serve_forever(). compile, onnx: override serve.compile, serve.onnx."""
     params = for_stage(params, PARAMS)
     cfg = params["serve"]
-    if compile is not None:
-        cfg = {**cfg, "compile": compile}
+    cfg = {**cfg, **{k: v for k, v in (("compile", compile), ("onnx", onnx)) if v is not None}}
     host, port = cfg["host"] if host is None else host, cfg["port"] if port is None else port
     check_artifacts()
     model = load_model(MODEL_WEIGHTS)
-    service = Service(model, Workspace.from_dict(read_json(WORKSPACE_JSON)), load_robot(params["robot"]).limits_deg,
-                      reach_mm(model.physics.geometry()), tol_mm=params["compensate"]["tol_mm"],
-                      jacobian_of=params["compensate"]["jacobian_of"], **{k: cfg[k] for k in SERVICE_KEYS})
+    workspace, limits_deg = Workspace.from_dict(read_json(WORKSPACE_JSON)), load_robot(params["robot"]).limits_deg
+    tol = params["compensate"]["tol_mm"]
+    controller = fast_path(model, workspace, limits_deg, tol) if cfg["onnx"] else None
+    log.info("the controller path on %s", f"onnxruntime ({CONTROLLER_ONNX})" if controller is not None else
+             "PyTorch" + (", compiled" if cfg["compile"] else ""))
+    service = Service(model, workspace, limits_deg, reach_mm(model.physics.geometry()), tol_mm=tol,
+                      jacobian_of=params["compensate"]["jacobian_of"], controller=controller,
+                      **{k: cfg[k] for k in SERVICE_KEYS})
     try:
         server = Server((host, port), requestHandler=Handler, allow_none=False, logRequests=False)
     except OSError as e:
@@ -214,15 +245,17 @@ def main(argv=None):
     ap.add_argument("--port", type=int, default=None, help="TCP port (default: serve.port)")
     ap.add_argument("--host", default=None, help="address to listen on (default: serve.host; 0.0.0.0: every "
                                                  "interface, to serve a robot on the network)")
+    ap.add_argument("--onnx", action=argparse.BooleanOptionalAction, default=None,
+                    help="run the controller path on onnxruntime, models/controller.onnx (default: serve.onnx)")
     ap.add_argument("--compile", action=argparse.BooleanOptionalAction, default=None,
-                    help="torch.compile the controller path (default: serve.compile)")
+                    help="torch.compile the controller path when it runs in PyTorch (default: serve.compile)")
     a = ap.parse_args(argv)
     missing = [str(p) for p in [PARAMS_YAML, *REQUIRED] if not p.exists()]
     if not PARAMS_YAML.exists():
         raise SystemExit(f"pipeline.serve: missing {', '.join(missing)} in {Path.cwd()}: run it in the "
                          f"project's root (where params.yaml is), after `dvc repro`")
     try:
-        server = make_server(load_params(), a.host, a.port, a.compile)
+        server = make_server(load_params(), a.host, a.port, a.compile, a.onnx)
     except ParamsError as e:
         raise SystemExit(f"pipeline.serve: {e}") from None
     log.info("serving %s: %s (torch %d threads)", url(server), ", ".join(server.system_listMethods()),

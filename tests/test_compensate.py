@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from pipeline.compensate import read_targets
-from pipeline.lib.solvers import compensate, jacobian
+from pipeline.lib.solvers import compensate, jacobian, min_norm_step, solve3
 from pipeline.lib.kinematics import nominal_geometry
 from pipeline.lib.model import BoTER
 from pipeline.lib.realtime import Realtime
@@ -113,7 +113,8 @@ def test_realtime_lands_every_pose_within_0_001_mm_in_two_evaluations(model):
 def test_realtime_flags_answers_outside_the_trained_workspace(model):
     from pipeline.lib.workspace import Workspace
     q0, tgt = targets(model, n=3)
-    ws = Workspace(q0[:1], radius_deg=5.0, u0_mm=0.1)             # trained on the first pose only
+    ws = Workspace(q0[:1], radius_deg=5.0, u_model_mm=0.1, u_parts_mm=0.1, u_calibrated_mm=0.1,
+                   fade_to=None)                                  # trained on the first pose only
     r = [Realtime(model, workspace=ws)(np.radians(a), b) for a, b in zip(q0, tgt)]
     assert [x.in_workspace for x in r] == [True, False, False]
     assert Realtime(model)(np.radians(q0[0]), tgt[0]).in_workspace is None
@@ -135,3 +136,20 @@ def test_realtime_compiled_matches_eager(model):
         e, c = eager(a, b), compiled(a, b)
         np.testing.assert_allclose(c.q, e.q, atol=1e-9)
         assert c.verified == e.verified and c.converged
+
+
+def test_the_closed_form_3x3_solve_equals_lapacks(model):
+    """solvers.solve3 (what the ONNX controller graph runs: ONNX has no linear solve) against torch.linalg.solve
+    on the damped J Jᵀ of chord steps, at poses near and at a singularity (wrist: joint 5 at 0)."""
+    q0, _ = targets(model, n=40)
+    q = torch.as_tensor(np.radians(np.vstack([q0, [[10.0, -70, 80, -90, 0.0, 5]]])))
+    from pipeline.lib.kinematics import fk_jacobian
+    J = fk_jacobian(q, model.physics.geometry())[1]
+    r = torch.as_tensor(np.random.default_rng(0).normal(0, 1, (len(q), 3)))
+    JJt = J @ J.transpose(1, 2)
+    A = JJt + 1e-9 * JJt.diagonal(dim1=1, dim2=2).mean(1)[:, None, None] * torch.eye(3, dtype=torch.float64)
+    ref = torch.linalg.solve(A, r.unsqueeze(-1)).squeeze(-1)
+    torch.testing.assert_close(solve3(A, r), ref, rtol=1e-10, atol=0)
+    step = min_norm_step(J, r, 1e-9)                       # and the step it gives, to 1e-12 rad
+    x = solve3(A, r)
+    assert (step + (J.transpose(1, 2) @ x.unsqueeze(-1)).squeeze(-1)).abs().max() < 1e-12

@@ -11,12 +11,16 @@ import yaml
 from scipy.spatial.transform import Rotation
 
 from pipeline.export import rigid_equivalent, ur_yaml_poses, urdf_positions
-from pipeline.lib.config import load_params
+from conftest import project_points
+from pipeline.lib.columns import JOINTS_DEG, THEORY
+from pipeline.lib.config import load_params, read_json
 from pipeline.lib.kinematics import DTYPE, fk, fk_frames, nominal_geometry
 from pipeline.lib.model import Ensemble
-from pipeline.lib.onnx_model import OnnxModel, export_onnx
-from pipeline.lib.robots import UR_JOINTS, nominal_robot
-from pipeline.lib.training import make_model
+from pipeline.lib.onnx_model import OnnxModel, OnnxRealtime, export_controller, export_onnx
+from pipeline.lib.realtime import Realtime
+from pipeline.lib.robots import UR_JOINTS, load_robot, nominal_robot
+from pipeline.lib.training import load_model, make_model
+from pipeline.lib.workspace import Workspace
 from pipeline.lib.twin import sample_poses
 from pipeline.lib.urdf import base_transform, flange_residual, joint_origins, to_urdf, ur_kinematics
 
@@ -102,7 +106,7 @@ def test_a_calibration_with_joint_compliance_exports_its_best_rigid_chain():
         part = (fk(q, {**g, "compliance": torch.zeros(6, dtype=DTYPE)}) - fk(q, g)).norm(dim=1).numpy()
     assert fit["mean_mm"] < part.mean() / 5
     _, none = rigid_equivalent(calibrated_like(), q, PARAMS["calibrate"])    # rigid already: itself
-    assert none == {"mean_mm": 0.0, "max_mm": 0.0}
+    assert none == {"mean_mm": 0.0, "max_mm": 0.0, "left_out": []}
 
 
 def small_boter(seed=0):
@@ -142,3 +146,78 @@ def test_export_stage_files_read_back(in_trained_project):
     kin = yaml.safe_load(Path("models/ur_calibration.yaml").read_text())["kinematics"]
     assert list(kin) == ["shoulder", "upper_arm", "forearm", "wrist_1", "wrist_2", "wrist_3"]
     assert OnnxModel("models/model.onnx")(np.zeros((2, 6))).shape == (2, 3)
+
+
+# The controller path as one graph (issue 24): models/controller.onnx, run by OnnxRealtime
+def assert_same_answers(a: list, b: list) -> None:
+    """Two controller paths' Results, pose by pose: angles to 1e-9 rad, residuals to 1e-6 mm, the same flags."""
+    assert len(a) == len(b)
+    for i, (x, y) in enumerate(zip(a, b)):
+        assert np.abs(x.q - y.q).max() < 1e-9, (i, x.q - y.q)
+        assert (x.residual_mm == y.residual_mm == np.inf) or abs(x.residual_mm - y.residual_mm) < 1e-6, (i, x, y)
+        assert (x.verified, x.converged, x.in_workspace) == (y.verified, y.converged, y.in_workspace), (i, x, y)
+
+
+def controller_cases(model, params) -> tuple[np.ndarray, np.ndarray]:
+    """Start angles (n, 6) rad and targets (n, 3) mm: the test points towards their theory positions (as the
+    compensate stage), the same angles 0.02 mm from the model's position there (verified in one step), far
+    from the training poses (outside the workspace), and the origin (out of reach: not converged)."""
+    df = project_points(params)
+    test = df[df.split == "test"]
+    q0, theory = np.radians(test[JOINTS_DEG].to_numpy()), test[THEORY].to_numpy()
+    far = q0[:5] + np.radians([70.0, 0, 0, 0, 0, 0])
+    with torch.no_grad():
+        at = lambda q: model(torch.as_tensor(q))[0].numpy()
+        near, off = at(q0) + [0.012, -0.01, 0.0115], at(far) + [0.3, 0.0, -0.2]
+    return np.vstack([q0, q0, far, q0[:1]]), np.vstack([theory, near, off, [[0.0, 0.0, 0.0]]])
+
+
+def test_controller_onnx_answers_as_the_pytorch_controller_path(in_trained_project):
+    """The export stage's models/controller.onnx on onnxruntime (OnnxRealtime) answers every case as the PyTorch
+    controller path (Realtime) does, one pose per call and all in one batch, with the robot's joint limits and
+    with limits that bind; its inputs and outputs as documented (docs/robot-cell.md)."""
+    import onnx
+    graph = onnx.load("models/controller.onnx").graph
+    assert [i.name for i in graph.input] == ["q0_rad", "target_mm", "q_min_rad", "q_max_rad"]
+    assert [o.name for o in graph.output] == ["q1_rad", "q2_rad", "r0_mm", "r1_mm"]
+    double = onnx.TensorProto.DOUBLE
+    assert all(v.type.tensor_type.elem_type == double for v in [*graph.input, *graph.output])
+    assert graph.input[0].type.tensor_type.shape.dim[0].dim_param                 # the batch size is free
+    assert [len(o.type.tensor_type.shape.dim) for o in graph.output] == [2, 2, 1, 1]
+    params = in_trained_project
+    model, ws = load_model("models/boter.pt"), Workspace.from_dict(read_json("models/workspace.json"))
+    limits, tol = np.radians(load_robot(params["robot"]).limits_deg), params["compensate"]["tol_mm"]
+    q0, tgt = controller_cases(model, params)
+    torch_rt, onnx_rt = Realtime(model, limits, tol, workspace=ws), OnnxRealtime("models/controller.onnx", limits,
+                                                                                  tol, ws)
+    single = [onnx_rt(a, b) for a, b in zip(q0, tgt)]
+    assert_same_answers(single, [torch_rt(a, b) for a, b in zip(q0, tgt)])
+    assert_same_answers(onnx_rt.batch(q0, tgt), torch_rt.batch(q0, tgt))
+    flags = lambda k: {getattr(r, k) for r in single}
+    assert flags("verified") == flags("converged") == flags("in_workspace") == {True, False}   # every kind occurs
+    tight = np.stack([q0[:3] - np.radians(0.01), q0[:3] + np.radians(0.01)], -1)   # (3, 6, 2): ±0.01°
+    for lim, a, b in zip(tight, q0[:3], tgt[:3]):                                  # the clamps bind
+        x, y = OnnxRealtime("models/controller.onnx", lim, tol)(a, b), Realtime(model, lim, tol)(a, b)
+        assert_same_answers([x], [y])
+        assert np.abs(x.q - a).max() <= np.radians(0.01) + 1e-12 and not x.converged
+
+
+def test_controller_onnx_is_the_same_bytes_when_exported_again(in_trained_project, tmp_path):
+    """A DVC output: exported again (another process, another directory), the same file, with no source paths."""
+    export_controller(load_model("models/boter.pt"), tmp_path / "controller.onnx")
+    data = (tmp_path / "controller.onnx").read_bytes()
+    assert data == Path("models/controller.onnx").read_bytes()
+    assert b"realtime.py" not in data and b"onnx_model.py" not in data
+    r = json.loads(Path("reports/export.json").read_text())["controller"]
+    assert r["max_q_rad"] < 1e-9 and r["max_residual_mm"] < 1e-6 and r["flags_differ"] == 0
+
+
+def test_controller_onnx_of_an_ensemble_answers_as_realtime(tmp_path):
+    model = Ensemble([small_boter(0), small_boter(1)]).eval()
+    export_controller(model, tmp_path / "controller.onnx")
+    q0 = poses(30, seed=5).numpy()
+    with torch.no_grad():
+        tgt = model(torch.as_tensor(q0))[0].numpy() + [0.2, -0.1, 0.1]
+    onnx_rt, torch_rt = OnnxRealtime(tmp_path / "controller.onnx"), Realtime(model)
+    assert_same_answers([onnx_rt(a, b) for a, b in zip(q0, tgt)], [torch_rt(a, b) for a, b in zip(q0, tgt)])
+    assert_same_answers(onnx_rt.batch(q0, tgt), torch_rt.batch(q0, tgt))

@@ -22,6 +22,9 @@ from pipeline.lib.columns import JOINTS_DEG, THEORY
 from pipeline.lib.config import load_params
 from pipeline.lib.training import load_model
 from conftest import ENV, project_points
+from pipeline import serve as serve_module
+from pipeline.lib.onnx_model import OnnxRealtime, export_controller
+from pipeline.lib.realtime import Realtime
 from pipeline.serve import make_server, url
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -46,8 +49,8 @@ def poses(project, params):
     return np.radians(df[JOINTS_DEG].to_numpy()), df[THEORY].to_numpy()
 
 
-def serving(params, host="127.0.0.1", port=0):
-    server = make_server(params, host, port)
+def serving(params, host="127.0.0.1", port=0, **kw):
+    server = make_server(params, host, port, **kw)
     threading.Thread(target=server.serve_forever, daemon=True).start()
     return server
 
@@ -400,3 +403,45 @@ def test_the_command_outside_a_project_is_one_line(tmp_path):
     err = r.stderr.strip()
     assert r.returncode != 0 and "Traceback" not in err and len(err.splitlines()) == 1, err
     assert "params.yaml" in err and "models/boter.pt" in err and str(tmp_path) in err
+
+
+# Issue 24: the controller path on onnxruntime
+def test_the_service_runs_the_controller_path_on_onnxruntime(server, client, params, poses):
+    """serve.onnx (the default): the export stage's models/controller.onnx, and its answers are the PyTorch
+    path's (to 1e-9 rad), alone and batched."""
+    assert isinstance(server.service.realtime, OnnxRealtime)
+    q0, target = poses[0][:6].tolist(), poses[1][:6].tolist()
+    pytorch = serving(params, onnx=False)
+    try:
+        assert isinstance(pytorch.service.realtime, Realtime)
+        other = xmlrpc.client.ServerProxy(url(pytorch))
+        for a, b in zip(q0, target):
+            assert same_answer(client.compensate(a, b), other.compensate(a, b))
+        pairs = [[a, b] for a, b in zip(q0, target)]
+        assert all(same_answer(x, y) for x, y in zip(client.compensate_many(pairs), other.compensate_many(pairs)))
+    finally:
+        pytorch.shutdown()
+        pytorch.server_close()
+
+
+def test_without_the_controller_file_or_with_a_stale_one_the_service_runs_pytorch(params, monkeypatch, tmp_path,
+                                                                                   caplog, poses):
+    """No models/controller.onnx, or one exported from another model: a warning saying so, and the PyTorch path."""
+    monkeypatch.setattr(serve_module, "CONTROLLER_ONNX", tmp_path / "controller.onnx")
+    model = load_model("models/boter.pt")
+    for what in ("missing", "another model"):
+        if what == "another model":
+            with torch.no_grad():
+                model.alpha.mul_(3.0)                       # another network correction, the same everything else
+            export_controller(model, tmp_path / "controller.onnx")
+        with caplog.at_level("WARNING"):
+            server = serving(params)
+        try:
+            assert isinstance(server.service.realtime, Realtime), what
+            assert "controller path runs in PyTorch" in caplog.text and str(tmp_path) in caplog.text, what
+            c = xmlrpc.client.ServerProxy(url(server))
+            assert c.compensate(poses[0][0].tolist(), poses[1][0].tolist())["converged"]
+        finally:
+            server.shutdown()
+            server.server_close()
+        caplog.clear()

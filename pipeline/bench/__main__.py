@@ -2,7 +2,9 @@
 
     python -m pipeline.bench real  [--seeds 139 140 ...] [--engine ray]   the real sets in ../shared/datasets
     python -m pipeline.bench real --sets twin twin-2stations   the twin, from one and two stations
-    python -m pipeline.bench speed                          training, prediction, compensation timings
+    python -m pipeline.bench speed [--soak 600] [--rounds 20]   training, prediction, compensation timings, the
+                                                            controller path (PyTorch vs onnxruntime, alternating) and a soak
+    python -m pipeline.bench speed --only controller        the controller path's part alone
     python -m pipeline.bench serve [--clients 8 --calls 10000]   the compensation service under load
     python -m pipeline.bench sweep                          a reduced ablation, in order vs on a local Ray
 """
@@ -37,15 +39,24 @@ def main(argv=None):
                                                               "core in order, 1 on Ray)")
     ap.add_argument("--clients", type=int, default=8, help="concurrent clients (serve)")
     ap.add_argument("--calls", type=int, default=10000, help="compensate calls in all (serve)")
+    ap.add_argument("--paths", nargs="+", choices=["onnx", "eager", "compiled"], default=["onnx", "eager", "compiled"],
+                    help="serve: the controller paths to start the service with, one after the other")
+    ap.add_argument("--soak", type=float, default=600.0, help="speed: seconds of the onnxruntime controller path alone")
+    ap.add_argument("--rounds", type=int, default=20,
+                    help="speed: rounds over the test targets, the controller paths interleaved call by call")
+    ap.add_argument("--torch-threads", type=int, default=1,
+                    help="speed: torch threads of the PyTorch controller path in the comparison (onnxruntime: 1)")
+    ap.add_argument("--only", choices=["controller"], default=None,
+                    help="speed: only the controller path's part (replaces that part of speed.json)")
     a = ap.parse_args(argv)
     if a.what == "real":
         bench_real(a.seeds, a.epochs, a.sets, a.other_physics, a.overrides, a.engine, a.address, a.threads, a.dnn)
     elif a.what == "serve":
-        bench_serve(a.clients, a.calls)
+        bench_serve(a.clients, a.calls, a.paths)
     elif a.what == "sweep":
         bench_sweep()
     else:
-        bench_speed()
+        bench_speed(a.soak, a.rounds, a.only, a.torch_threads)
 
 
 if __name__ == "__main__":

@@ -1,18 +1,21 @@
 """`bench serve`: the compensation service (`python -m pipeline.serve`, a subprocess on a free loopback
-port) under load, eager and compiled: startup time, then one client and `--clients` concurrent clients
-calling `compensate` on the test points; latency percentiles and calls per second. Writes
-reports/bench/serve.json. Needs a finished `dvc repro` in the project."""
+port) under load, its controller path on onnxruntime (models/controller.onnx, the default), in eager
+PyTorch and compiled (`--paths`): startup time, then one client and `--clients` concurrent clients
+calling `compensate` on the test points; latency percentiles, calls per second, failed calls, and the
+concurrent clients' throughput over one client's. Writes reports/bench/serve.json (the paths run
+replace theirs, the others kept). Needs a finished `dvc repro` in the project."""
 import socket
 import subprocess
 import sys
 import threading
 import time
 import xmlrpc.client
+from pathlib import Path
 
 import numpy as np
 
 from ..lib.columns import JOINTS_DEG, THEORY
-from ..lib.config import load_params, logger, write_json
+from ..lib.config import load_params, logger, read_json, write_json
 from .common import BENCH, machine, prepared
 
 log = logger(__name__)
@@ -46,23 +49,32 @@ def load_test(url: str, q0: list, tgt: list, clients: int, calls: int) -> dict:
             "seconds": seconds}
 
 
-def bench_serve(clients: int = 8, calls: int = 10000) -> dict:
+FLAGS = {"onnx": ["--onnx"], "eager": ["--no-onnx", "--no-compile"], "compiled": ["--no-onnx", "--compile"]}
+
+
+def bench_serve(clients: int = 8, calls: int = 10000, paths=("onnx", "eager", "compiled")) -> dict:
     """The compensation service under load: `python -m pipeline.serve` in a subprocess on a free loopback
-    port, eager and compiled (--compile); for each, one client (calls/10 calls: a call's own latency)
-    then `clients` concurrent clients (calls in all), on the test points (recorded angles -> theory
-    position, cycled). Needs a finished `dvc repro` in the project."""
+    port, for each controller path of `paths` (FLAGS); for each, one client (calls/10 calls: a call's own
+    latency) then `clients` concurrent clients (calls in all), on the test points (recorded angles ->
+    theory position, cycled). Needs a finished `dvc repro` in the project."""
     df = prepared(load_params())[0]
     test = df[df.split == "test"]
     q0, tgt = np.radians(test[JOINTS_DEG].to_numpy()).tolist(), test[THEORY].to_numpy().tolist()
-    out = {"machine": machine(), "server": "python -m pipeline.serve, a subprocess on 127.0.0.1 (the clients "
-                                           "on the same machine)", "n_test_points": len(q0)}
-    for name, flag in (("eager", "--no-compile"), ("compiled", "--compile")):
+    path = BENCH / "serve.json"
+    old = read_json(path) if path.exists() else {}
+    for v in old.values():                                # earlier runs' paths keep their machine
+        if isinstance(v, dict) and "one_client" in v:
+            v.setdefault("machine", old.get("machine"))
+    out = {**old, "machine": machine(),
+           "server": "python -m pipeline.serve, a subprocess on 127.0.0.1 (the clients on the same machine)",
+           "n_test_points": len(q0)}
+    for name in paths:
         with socket.socket() as s:
             s.bind(("127.0.0.1", 0))
             port = s.getsockname()[1]
         url = f"http://127.0.0.1:{port}/RPC2"
         t0 = time.perf_counter()
-        proc = subprocess.Popen([sys.executable, "-m", "pipeline.serve", "--port", str(port), flag])
+        proc = subprocess.Popen([sys.executable, "-m", "pipeline.serve", "--port", str(port), *FLAGS[name]])
         try:
             while True:                                   # until it answers
                 try:
@@ -72,9 +84,11 @@ def bench_serve(clients: int = 8, calls: int = 10000) -> dict:
                     if proc.poll() is not None or time.perf_counter() - t0 > 120:
                         raise RuntimeError(f"python -m pipeline.serve did not start (exit code {proc.poll()})")
                     time.sleep(0.2)
-            out[name] = {"startup_s": time.perf_counter() - t0,
+            out[name] = {"startup_s": time.perf_counter() - t0, "machine": machine(), "project": str(Path.cwd()),
                          "one_client": load_test(url, q0, tgt, 1, calls // 10),
                          "concurrent": load_test(url, q0, tgt, clients, calls)}
+            out[name]["concurrent_over_one_client"] = (out[name]["concurrent"]["calls_per_s"]
+                                                       / out[name]["one_client"]["calls_per_s"])
         finally:
             proc.terminate()
             proc.wait(timeout=30)
@@ -84,5 +98,7 @@ def bench_serve(clients: int = 8, calls: int = 10000) -> dict:
                      "latency p50 %.1f ms, p90 %.1f ms, p99 %.1f ms, max %.1f ms", name, r["clients"], r["calls"],
                      r["seconds"], r["calls_per_s"], r["failed"], r["not_converged"], r["ms_p50"], r["ms_p90"],
                      r["ms_p99"], r["ms_max"])
-    write_json(BENCH / "serve.json", out)
+        log.info("serve %s: %d clients give %.2fx one client's calls/s", name, clients,
+                 out[name]["concurrent_over_one_client"])
+    write_json(path, out)
     return out

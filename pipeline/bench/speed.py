@@ -1,19 +1,29 @@
 """`bench speed`: training seconds per epoch (10 epochs on the CPU; where torch sees a GPU, also 60 on it,
 eager steps and one CUDA graph an epoch), prediction (PyTorch and onnxruntime, batch 4096 and
 one pose), `lm` and `adam` compensation (batched and one pose), the controller path (realtime.py) eager and
-compiled, and peak memory; writes reports/bench/speed.json. Needs a finished `dvc repro` in the project."""
+compiled, and peak memory; writes reports/bench/speed.json. Needs a finished `dvc repro` in the project.
+
+`controller` (issue 24): the controller path in PyTorch (eager, compiled) and on onnxruntime
+(models/controller.onnx, OnnxRealtime), timed alternating in one run on the same poses, so that a load
+beside the benchmark falls on all three alike: call by call (the order rotating), and round by round (a
+round over every pose by one path, then the next: caches warm): p50/p90/p99/p99.9/max and the ratios; then `soak` seconds of the onnxruntime path alone (p50/p99/p99.9/max per window, and the drift:
+the last window's p50 over the first's). `--only controller` runs just that part and replaces just those
+keys of speed.json (each part records its machine).
+"""
+import gc
 import resource
 import time
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import torch
 
-from ..lib.artifacts import MODEL_ONNX, MODEL_WEIGHTS
+from ..lib.artifacts import CONTROLLER_ONNX, MODEL_ONNX, MODEL_WEIGHTS
 from ..lib.columns import JOINTS_DEG, TARGET
-from ..lib.config import load_params, logger, write_json
+from ..lib.config import load_params, logger, read_json, write_json
 from ..lib.loss import SPILoss
-from ..lib.onnx_model import OnnxModel
+from ..lib.onnx_model import OnnxModel, OnnxRealtime, deviation
 from ..lib.realtime import Realtime, check
 from ..lib.robots import load_robot
 from ..lib.solvers import compensate
@@ -21,6 +31,141 @@ from ..lib.training import fit, load_model, make_model, tensors
 from .common import BENCH, machine, prepared, timed
 
 log = logger(__name__)
+PATHS = ("pytorch_eager", "pytorch_compiled", "onnx")
+
+
+def latency(ms) -> dict:
+    """Percentiles (ms) of call latencies."""
+    ms = np.asarray(ms)
+    return {"calls": len(ms), "ms_p50": float(np.percentile(ms, 50)), "ms_p90": float(np.percentile(ms, 90)),
+            "ms_p99": float(np.percentile(ms, 99)), "ms_p99_9": float(np.percentile(ms, 99.9)),
+            "ms_max": float(ms.max()), "ms_mean": float(ms.mean())}
+
+
+def bench_controller(model, q0: np.ndarray, tgt: np.ndarray, limits: np.ndarray, tol_mm: float, rounds: int = 20,
+                     soak_s: float = 600.0, torch_threads: int = 1) -> dict:
+    """The controller path, one pose per call, in PyTorch eager and compiled and on onnxruntime (the export
+    stage's models/controller.onnx): every call of the three interleaved (pose by pose, the order rotating),
+    `rounds` times over the (q0, target) pairs, after one warm-up round; the answers compared; then the
+    onnxruntime path alone for soak_s seconds, back to back, cycling the pairs. PyTorch on torch_threads
+    threads (1, as onnxruntime: a controller's one core; with 2 on a busy 2-core machine its OpenMP workers
+    wait on each other and on the load: eager p50 47 ms there, against 9 ms on 1)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(torch_threads)
+    try:
+        return _bench_controller(model, q0, tgt, limits, tol_mm, rounds, soak_s)
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _bench_controller(model, q0, tgt, limits, tol_mm, rounds, soak_s) -> dict:
+    rts, setup = {}, {}
+    for name in PATHS:
+        t = time.perf_counter()
+        rts[name] = (OnnxRealtime(CONTROLLER_ONNX, limits, tol_mm) if name == "onnx" else
+                     Realtime(model, limits, tol_mm, compile=name == "pytorch_compiled"))
+        setup[name] = time.perf_counter() - t
+    for rt in rts.values():                                            # warm-up
+        for a, b in zip(q0, tgt):
+            rt(a, b)
+    out = {"project": str(Path.cwd()), "model_parameters": sum(p.numel() for p in model.parameters()),
+           "n_poses": len(q0), "rounds": rounds, "threads": {"pytorch": torch.get_num_threads(), "onnxruntime": 1},
+           "setup_s": setup}
+    for mode in ("call", "round"):
+        ms = interleaved(rts, q0, tgt, rounds, mode)
+        r = {name: latency(ms[name]) for name in PATHS}
+        r["ratio_over_onnx"] = {a: {k: r[a][k] / r["onnx"][k] for k in ("ms_p50", "ms_p99", "ms_p99_9")}
+                                for a in PATHS[:2]}
+        out[f"by_{mode}"] = r
+    out["agreement_onnx_vs_pytorch"] = deviation(rts["pytorch_eager"], rts["onnx"], q0, tgt)
+    out["onnx_check"] = check(rts["onnx"], q0, tgt, model)
+    out["soak"] = soak(rts["onnx"], q0, tgt, soak_s)
+    return out
+
+
+def interleaved(rts: dict, q0, tgt, rounds: int, mode: str) -> dict:
+    """Call latencies (ms) of each path of rts, `rounds` times over the pairs, interleaved: mode "call", call
+    by call (each pose by every path in turn, who goes first rotating: the same load on each, but each call
+    finds the caches holding the others' weights), or "round", a round over all poses by one path, then the
+    next (its caches warm, the load still shared over seconds)."""
+    ms = {name: [] for name in rts}
+    names = list(rts)
+    for k in range(rounds):
+        order = names[k % len(names):] + names[:k % len(names)]
+        if mode == "call":
+            calls = [(name, a, b) for j, (a, b) in enumerate(zip(q0, tgt))
+                     for name in order[j % len(names):] + order[:j % len(names)]]
+        else:
+            calls = [(name, a, b) for name in order for a, b in zip(q0, tgt)]
+        for name, a, b in calls:
+            rt = rts[name]
+            t = time.perf_counter()
+            rt(a, b)
+            ms[name].append(1000 * (time.perf_counter() - t))
+    return ms
+
+
+def soak(rt, q0: np.ndarray, tgt: np.ndarray, seconds: float) -> dict:
+    """rt called back to back for `seconds`, cycling the pairs: latency per window (60 s, or seconds/5 when
+    shorter), over all, and the drift (the last window's p50 over the first's; RSS before and after)."""
+    window = min(60.0, seconds / 5)
+    rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    gc.collect()
+    ms, at, i = [], [], 0
+    start = time.perf_counter()
+    while (now := time.perf_counter()) - start < seconds:
+        a, b = q0[i % len(q0)], tgt[i % len(tgt)]
+        i += 1
+        t = time.perf_counter()
+        rt(a, b)
+        ms.append(1000 * (time.perf_counter() - t))
+        at.append(t - start)
+    ms, w = np.array(ms), (np.array(at) // window).astype(int)
+    windows = [{"from_s": k * window, **latency(ms[w == k])} for k in range(w.max() + 1) if (w == k).sum() > 0]
+    if len(windows) > 1 and windows[-1]["calls"] < 0.5 * windows[0]["calls"]:
+        windows = windows[:-1]                                         # a last, cut-short window
+    return {"seconds": seconds, "window_s": window, "all": latency(ms), "windows": windows,
+            "drift_p50": windows[-1]["ms_p50"] / windows[0]["ms_p50"],
+            "drift_p99": windows[-1]["ms_p99"] / windows[0]["ms_p99"],
+            "max_rss_mb_before": rss0, "max_rss_mb_after": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
+
+
+def log_controller(c: dict) -> None:
+    for mode in ("call", "round"):
+        for name in PATHS:
+            r = c[f"by_{mode}"][name]
+            log.info("controller path, interleaved by %-5s %-16s p50 %.3f ms, p90 %.3f, p99 %.3f, p99.9 %.3f, "
+                     "max %.3f (%d calls)", mode, name, r["ms_p50"], r["ms_p90"], r["ms_p99"], r["ms_p99_9"],
+                     r["ms_max"], r["calls"])
+        for a, r in c[f"by_{mode}"]["ratio_over_onnx"].items():
+            log.info("  %s / onnx: p50 %.2fx, p99 %.2fx, p99.9 %.2fx", a, r["ms_p50"], r["ms_p99"], r["ms_p99_9"])
+    d, s = c["agreement_onnx_vs_pytorch"], c["soak"]
+    log.info("onnx vs pytorch answers: max %.1e rad, residual %.1e mm, flags differ %d", d["max_q_rad"],
+             d["max_residual_mm"], d["flags_differ"])
+    log.info("soak %.0f s (%d calls): p50 %.3f ms, p99 %.3f, p99.9 %.3f, max %.3f; drift p50 %.3f, p99 %.3f",
+             s["seconds"], s["all"]["calls"], s["all"]["ms_p50"], s["all"]["ms_p99"], s["all"]["ms_p99_9"],
+             s["all"]["ms_max"], s["drift_p50"], s["drift_p99"])
+    for w in s["windows"]:
+        log.info("  from %5.0f s: p50 %.3f ms, p99 %.3f, p99.9 %.3f, max %.3f", w["from_s"], w["ms_p50"], w["ms_p99"],
+                 w["ms_p99_9"], w["ms_max"])
+
+
+def controller_only(soak_s: float, rounds: int, torch_threads: int) -> dict:
+    """`bench speed --only controller`: bench_controller on the compensate stage's targets; replaces the
+    `controller` key of speed.json (with its machine), the rest of the file kept."""
+    params = load_params()
+    model = load_model(MODEL_WEIGHTS)
+    targets = pd.read_csv("reports/compensation.csv")
+    q0, tgt = np.radians(targets[JOINTS_DEG].to_numpy()), targets[TARGET].to_numpy()
+    c = bench_controller(model, q0, tgt, np.radians(load_robot(params["robot"]).limits_deg),
+                         params["compensate"]["tol_mm"], rounds, soak_s, torch_threads)
+    path = BENCH / "speed.json"
+    out = read_json(path) if path.exists() else {}
+    out["controller"] = {"machine": machine(), **c}
+    write_json(path, out)
+    log_controller(c)
+    return out
+
 
 def bench_realtime(model, q0: np.ndarray, tgt: np.ndarray, limits: np.ndarray, tol_mm: float,
                    compiled: bool, repeats: int = 5) -> dict:
@@ -39,8 +184,10 @@ def bench_realtime(model, q0: np.ndarray, tgt: np.ndarray, limits: np.ndarray, t
             "ms_max": float(np.max(ms)), **check(rt, q0, tgt)}
 
 
-def bench_speed() -> dict:
+def bench_speed(soak_s: float = 600.0, rounds: int = 20, only: str | None = None, torch_threads: int = 1) -> dict:
     """Needs a finished `dvc repro` in the project (model, points, split)."""
+    if only == "controller":
+        return controller_only(soak_s, rounds, torch_threads)
     params = load_params()
     df, geometries = prepared(params)
     train_t, val_t = tensors(df[df.split == "train"]), tensors(df[df.split == "val"])
@@ -89,6 +236,8 @@ def bench_speed() -> dict:
     for name, compiled in (("realtime_eager", False), ("realtime", True)):
         comp[name] = bench_realtime(model, np.radians(q0), tgt, np.radians(robot.limits_deg),
                                     params["compensate"]["tol_mm"], compiled)
+    controller = bench_controller(model, np.radians(q0), tgt, np.radians(robot.limits_deg),
+                                  params["compensate"]["tol_mm"], rounds, soak_s, torch_threads)
     out = {"machine": machine(),
            "train": {"n_train": len(train_t[0]), "seconds_per_epoch": hist["seconds_per_epoch"],
                      "epochs_timed": hist["epochs_run"], "model": params["model"], "device": "cpu"},
@@ -97,6 +246,7 @@ def bench_speed() -> dict:
                        "onnxruntime": {"poses_per_s": 4096 / onnx_batch_s, "single_pose_ms": 1000 * onnx_single_s,
                                        "single_pose_speedup_over_pytorch": single_s / onnx_single_s}},
            "compensate": comp,
+           "controller": {"machine": machine(), **controller},
            "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
     write_json(BENCH / "speed.json", out)
     log.info("predict one pose: PyTorch %.3f ms, onnxruntime %.3f ms", 1000 * single_s, 1000 * onnx_single_s)
@@ -107,4 +257,5 @@ def bench_speed() -> dict:
              comp["adam"]["iterations_mean"], comp["iteration_ratio_adam_over_lm"],
              comp["lm"]["single_pose_ms_median"], comp["realtime"]["ms_median"], comp["realtime"]["ms_p99"],
              comp["realtime_eager"]["ms_median"], comp["realtime"]["true_residual_mm_max"], out["peak_rss_mb"])
+    log_controller(controller)
     return out

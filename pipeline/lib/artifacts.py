@@ -39,6 +39,7 @@ DRIVE_CSV = REPORTS / "drive_check.csv"
 URDF_FILE = MODELS / "calibrated.urdf"                # export (docs/data-format.md, exports for the robot cell)
 UR_YAML = MODELS / "ur_calibration.yaml"
 MODEL_ONNX = MODELS / "model.onnx"
+CONTROLLER_ONNX = MODELS / "controller.onnx"
 EXPORT_JSON = REPORTS / "export.json"
 VALIDATION_DIR = REPORTS / "validation"               # validate@<campaign>: <campaign>.json/.parquet
 VALIDATION_JSON = REPORTS / "validation.json"         # validation (all campaigns)

@@ -44,8 +44,8 @@ SECTIONS = {
     "compensate": ("solver", "lr", "max_iter", "tol_mse", "tol_mm", "jacobian_of", "drive_check",
                    "twin", "drive_seed"),
     "ablation": ("seeds", "max_epochs"),
-    "serve": ("host", "port", "unreachable_mm", "compile", "max_iter", "budget_ms", "stall_iter", "stall_ratio",
-              "max_batch", "batch_wait_ms", "max_items", "max_body_bytes", "timeout_s", "echo_chars"),
+    "serve": ("host", "port", "unreachable_mm", "onnx", "compile", "max_iter", "budget_ms", "stall_iter",
+              "stall_ratio", "max_batch", "batch_wait_ms", "max_items", "max_body_bytes", "timeout_s", "echo_chars"),
 }
 
 

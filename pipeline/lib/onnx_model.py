@@ -1,5 +1,15 @@
 """The trained model as ONNX (physics branch + network + fade, eq. 9): `q_rad` (batch, 6) float32 in,
-`p_mm` (batch, 3) float64 out, base frame (docs/data-format.md, "Exports for the robot cell").
+`p_mm` (batch, 3) float64 out, base frame (docs/data-format.md, "Exports for the robot cell"). And the
+controller path (realtime.py: both chord steps, two evaluations of the model) as one graph, run by
+`OnnxRealtime` as Realtime runs it in PyTorch:
+
+    q0_rad (batch, 6), target_mm (batch, 3), q_min_rad (6,), q_max_rad (6,)   float64
+      -> q1_rad (batch, 6), q2_rad (batch, 6), r0_mm (batch,), r1_mm (batch,)  float64
+
+The joint limits are inputs, not constants: the graph is the model's alone, as model.onnx is, and a
+change of the robot's limits cannot leave it answering with old ones. The 3×3 linear solve of each
+step runs in closed form in the graph (solvers.solve3: ONNX has no solve), the error maps' table
+look-ups as Gather; the answers equal PyTorch's to ~1e-12 rad (tests/test_compensate.py).
 
 Exported with torch.onnx's dynamo exporter (torch.export, batch size left free); the physics branch
 stays float64 inside the graph, as in PyTorch. Read back with onnxruntime (`OnnxModel`).
@@ -10,12 +20,18 @@ dropped, since they carry the absolute path and line numbers of the exported sou
 `pkg.torch.onnx.stack_trace`), which differ between clones. They never reach the predictions.
 """
 import logging
+import warnings
 
 import numpy as np
 import torch
 from torch import nn
 
+from .kinematics import DTYPE
 from .model import Ensemble
+from .realtime import Result, answers, two_steps
+
+CONTROLLER_INPUTS = ("q0_rad", "target_mm", "q_min_rad", "q_max_rad")
+CONTROLLER_OUTPUTS = ("q1_rad", "q2_rad", "r0_mm", "r1_mm")
 
 
 class _Positions(nn.Module):
@@ -29,16 +45,50 @@ class _Positions(nn.Module):
         return self.model(q_rad.double())[0]
 
 
+class _Controller(nn.Module):
+    """The controller path's two chord steps (realtime.two_steps) as a module, for the exporter."""
+
+    def __init__(self, model, damping: float):
+        super().__init__()
+        self.model, self.damping = model, damping
+
+    def forward(self, q0_rad, target_mm, q_min_rad, q_max_rad):
+        return two_steps(self.model, q0_rad, target_mm, q_min_rad, q_max_rad, self.damping)
+
+
 def export_onnx(model, path) -> None:
     """Write `model` (BoTER or Ensemble, eval mode) to `path` as ONNX."""
+    _export(_Positions(_exportable(model)), (torch.zeros(4, 6),), ["q_rad"], ["p_mm"], ({0: "batch"},), path)
+
+
+def export_controller(model, path, damping: float = 1e-9) -> None:
+    """Write the controller path of `model` (BoTER or Ensemble, eval mode) to `path` as one ONNX graph:
+    both chord steps, exactly what realtime.Realtime computes with that damping (its default)."""
+    m = _exportable(model)
+    for p in m.parameters():
+        p.requires_grad_(False)
+    args = (torch.zeros(4, 6, dtype=DTYPE), torch.zeros(4, 3, dtype=DTYPE), torch.full((6,), -np.pi, dtype=DTYPE),
+            torch.full((6,), np.pi, dtype=DTYPE))
+    _export(_Controller(m, damping), args, list(CONTROLLER_INPUTS), list(CONTROLLER_OUTPUTS),
+            ({0: "batch"}, {0: "batch"}, None, None), path)
+
+
+def _exportable(model):
+    return (model.for_export() if isinstance(model, Ensemble) else model).eval()
+
+
+def _export(module, args, inputs, outputs, dynamic, path) -> None:
+    """torch.onnx (dynamo) export of module at args, the dims named in dynamic free; written without the
+    exporter's annotations (strip_annotations), as one self-contained file."""
     for name in ("onnxscript", "onnx_ir"):                # their graph passes log every rewrite at INFO
         logging.getLogger(name).setLevel(logging.WARNING)
-    if isinstance(model, Ensemble):
-        model = model.for_export()
-    batch = torch.export.Dim("batch")
-    program = torch.onnx.export(_Positions(model).eval(), (torch.zeros(4, 6),), None, input_names=["q_rad"],
-                                output_names=["p_mm"], dynamic_shapes=({0: batch},), dynamo=True,
-                                verbose=False)
+    dims = {}
+    shapes = tuple(None if d is None else {i: dims.setdefault(n, torch.export.Dim(n)) for i, n in d.items()}
+                   for d in dynamic)
+    with warnings.catch_warnings():                        # two inputs sharing the batch axis: said, harmless
+        warnings.filterwarnings("ignore", "# The axis name: .* will not be used")
+        program = torch.onnx.export(module.eval(), args, None, input_names=inputs, output_names=outputs,
+                                    dynamic_shapes=shapes, dynamo=True, verbose=False)
     import onnx
     proto = program.model_proto
     strip_annotations(proto)
@@ -86,10 +136,57 @@ class OnnxModel:
     """`OnnxModel(path)(q_rad (n, 6)) -> p_mm (n, 3)` with onnxruntime on one CPU thread."""
 
     def __init__(self, path):
-        import onnxruntime as ort
-        opts = ort.SessionOptions()
-        opts.intra_op_num_threads = opts.inter_op_num_threads = 1
-        self.session = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+        self.session = session(path)
 
     def __call__(self, q_rad) -> np.ndarray:
         return self.session.run(["p_mm"], {"q_rad": np.asarray(q_rad, np.float32).reshape(-1, 6)})[0]
+
+
+def session(path, fixed: dict | None = None):
+    """An onnxruntime session on one CPU thread (what every runner here uses); fixed: free dimensions held
+    at a size ({"batch": 1}: shapes known when the session is made, its memory planned once, ~7% faster)."""
+    import onnxruntime as ort
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = opts.inter_op_num_threads = 1
+    for name, size in (fixed or {}).items():
+        opts.add_free_dimension_override_by_name(name, size)
+    return ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+
+
+class OnnxRealtime:
+    """The controller path on onnxruntime, one thread: `OnnxRealtime(path, limits_rad)(q0_rad, target_mm)
+    -> realtime.Result`, as `Realtime(model, limits_rad)` answers (the same two steps, exported by
+    `export_controller`); `batch` for B poses in one run. No model needed: the file is the whole solve.
+    A single pose runs on a session with the batch size held at 1, a batch on one with it free."""
+
+    def __init__(self, path, limits_rad: np.ndarray | None = None, tol_mm: float = 1e-3, workspace=None):
+        self.session, self.tol, self.workspace = session(path), tol_mm, workspace
+        self.single = session(path, {self.session.get_inputs()[0].shape[0]: 1})
+        lim = np.array([[-np.inf, np.inf]] * 6) if limits_rad is None else np.asarray(limits_rad, float)
+        self.limits = {"q_min_rad": np.ascontiguousarray(lim[:, 0]), "q_max_rad": np.ascontiguousarray(lim[:, 1])}
+
+    def solve(self, q0_rad, target_mm) -> list[np.ndarray]:
+        """The graph's outputs for q0 (B, 6) rad, target (B, 3) mm: q1, q2 (B, 6), |r0|, |r1| (B,)."""
+        q0 = np.asarray(q0_rad, np.float64).reshape(-1, 6)
+        return (self.single if len(q0) == 1 else self.session).run(
+            None, {"q0_rad": q0, "target_mm": np.asarray(target_mm, np.float64).reshape(-1, 3), **self.limits})
+
+    def __call__(self, q0_rad, target_mm) -> Result:
+        return self.batch(q0_rad, target_mm)[0]
+
+    def batch(self, q0_rad, target_mm) -> list[Result]:
+        return answers(*self.solve(q0_rad, target_mm), self.tol, self.workspace)
+
+
+def deviation(a, b, q0_rad: np.ndarray, target_mm: np.ndarray) -> dict:
+    """How far two controller paths (Realtime, OnnxRealtime) answer apart on the pairs (n, 6), (n, 3),
+    each pose alone and all in one batch: the largest |Δq| (rad) and |Δ residual_mm|, and how many
+    answers differ in verified, converged or in_workspace."""
+    ra = [a(x, y) for x, y in zip(q0_rad, target_mm)] + a.batch(q0_rad, target_mm)
+    rb = [b(x, y) for x, y in zip(q0_rad, target_mm)] + b.batch(q0_rad, target_mm)
+    dq = max(float(np.abs(x.q - y.q).max()) for x, y in zip(ra, rb))
+    dr = max(abs(x.residual_mm - y.residual_mm) if np.isfinite(x.residual_mm) or np.isfinite(y.residual_mm)
+             else 0.0 for x, y in zip(ra, rb))
+    flags = sum((x.verified, x.converged, x.in_workspace) != (y.verified, y.converged, y.in_workspace)
+                for x, y in zip(ra, rb))
+    return {"n_answers": len(ra), "max_q_rad": dq, "max_residual_mm": dr, "flags_differ": int(flags)}

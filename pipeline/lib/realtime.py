@@ -22,6 +22,10 @@ to the matrix products). `batch` takes B poses in one evaluation (the
 service, service.py, batches concurrent requests so), compiled for B = 1
 only. `python -m pipeline.bench speed` times it;
 tests/test_compensate.py checks every answer against the model.
+
+`two_steps` is the whole solve as one function of tensors: onnx_model.export_controller exports it as one
+ONNX graph (models/controller.onnx), which onnx_model.OnnxRealtime runs on onnxruntime with the same call
+and Results (`answers`), to 1e-9 rad (tests/test_export.py).
 """
 from dataclasses import dataclass
 
@@ -58,18 +62,9 @@ class Realtime:
             self.solve = torch.compile(self._solve, dynamic=False)
             self(np.zeros(6), np.zeros(3))                  # compile now, not in the first cycle
 
-    def _step(self, q, target):
-        """One chord step from q (B, 6): returns (the next q (B, 6), |residual at q| (B,) mm)."""
-        p, J = fk_jacobian(q, self.model.physics.geometry())   # (B, 3), (B, 3, 6)
-        r = p + self.model.delta(q) - target                # (B, 3), eq. 9
-        q_next = q + min_norm_step(J, r, self.damping)
-        return torch.clamp(q_next, self.lo, self.hi), r.norm(dim=1)
-
     def _solve(self, q0, target):
         """Both steps (one graph when compiled): q1, q2 (B, 6) and |r0|, |r1| (B,)."""
-        q1, r0 = self._step(q0, target)
-        q2, r1 = self._step(q1, target)
-        return q1, q2, r0, r1
+        return two_steps(self.model, q0, target, self.lo, self.hi, self.damping)
 
     def __call__(self, q0_rad, target_mm) -> Result:
         return self.batch(np.reshape(q0_rad, (1, 6)), np.reshape(target_mm, (1, 3)))[0]
@@ -82,27 +77,51 @@ class Realtime:
         q0 = torch.tensor(np.asarray(q0_rad, float).reshape(-1, 6), dtype=DTYPE)
         target = torch.tensor(np.asarray(target_mm, float).reshape(-1, 3), dtype=DTYPE)
         q1, q2, r0, r1 = (t.numpy() for t in (self.solve if len(q0) == 1 else self._solve)(q0, target))
-        out = []
-        for i in range(len(q0)):
-            a, b = float(r0[i]), float(r1[i])
-            if b < self.tol:
-                out.append(Result(q1[i], b, True, True))
-            else:
-                predicted = b * b / a if b < a else float("inf")
-                out.append(Result(q2[i], predicted, False, predicted < self.tol))
-        if self.workspace is not None:
-            inside = self.workspace(np.degrees([r.q for r in out]))[1]
-            for r, w in zip(out, inside):
-                r.in_workspace = bool(w)
-        return out
+        return answers(q1, q2, r0, r1, self.tol, self.workspace)
 
 
-def check(rt: Realtime, q0_rad: np.ndarray, targets: np.ndarray) -> dict:
-    """Compensate every (q0, target) pair (n, 6), (n, 3) one call at a time; how the answers did,
-    their residuals measured by an independent batched evaluation of the model."""
+def two_steps(model, q0, target, lo, hi, damping: float):
+    """The two chord steps from q0 (B, 6) rad towards target (B, 3) mm, joint limits lo, hi (6,) rad:
+    q1, q2 (B, 6) and |r0|, |r1| (B,) mm. What Realtime runs (eager or compiled) and what
+    onnx_model.export_controller exports as one graph."""
+    q1, r0 = chord_step(model, q0, target, lo, hi, damping)
+    q2, r1 = chord_step(model, q1, target, lo, hi, damping)
+    return q1, q2, r0, r1
+
+
+def chord_step(model, q, target, lo, hi, damping: float):
+    """One chord step from q (B, 6): returns (the next q (B, 6), |residual at q| (B,) mm)."""
+    p, J = fk_jacobian(q, model.physics.geometry())        # (B, 3), (B, 3, 6)
+    r = p + model.delta(q) - target                        # (B, 3), eq. 9
+    q_next = q + min_norm_step(J, r, damping)
+    return torch.clamp(q_next, lo, hi), r.norm(dim=1)
+
+
+def answers(q1, q2, r0, r1, tol_mm: float, workspace=None) -> list[Result]:
+    """The two steps' outputs (numpy: (B, 6), (B, 6), (B,), (B,)) as B Results: q1 when |r1| < tol_mm
+    (verified), else q2 with the predicted residual |r1|²/|r0|; in_workspace when a workspace is given."""
+    out = []
+    for i in range(len(q1)):
+        a, b = float(r0[i]), float(r1[i])
+        if b < tol_mm:
+            out.append(Result(q1[i], b, True, True))
+        else:
+            predicted = b * b / a if b < a else float("inf")
+            out.append(Result(q2[i], predicted, False, predicted < tol_mm))
+    if workspace is not None:
+        inside = workspace(np.degrees([r.q for r in out]))[1]
+        for r, w in zip(out, inside):
+            r.in_workspace = bool(w)
+    return out
+
+
+def check(rt, q0_rad: np.ndarray, targets: np.ndarray, model=None) -> dict:
+    """Compensate every (q0, target) pair (n, 6), (n, 3) one call at a time with rt (a Realtime or
+    onnx_model.OnnxRealtime); how the answers did, their residuals measured by an independent batched
+    evaluation of the PyTorch model (default: rt's)."""
     results = [rt(a, b) for a, b in zip(q0_rad, targets)]
     with torch.no_grad():
-        pred = rt.model(torch.as_tensor(np.array([r.q for r in results]), dtype=DTYPE))[0].numpy()
+        pred = (rt.model if model is None else model)(torch.as_tensor(np.array([r.q for r in results]), dtype=DTYPE))[0].numpy()
     true = np.linalg.norm(pred - targets, axis=1)
     return {"n_points": len(results), "evaluations_per_call": 2,
             "verified_share": float(np.mean([r.verified for r in results])),

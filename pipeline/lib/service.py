@@ -6,8 +6,9 @@ limits, reach; a RequestError naming the field), puts it on a queue and waits fo
 worker, in a loop:
   1. takes what is queued (up to `max_batch`; when idle, it waits up to `batch_wait_ms` for as
      many as its last round took: a lone client never waits) and runs the controller path
-     (realtime.py: two model evaluations) on all of them at once; each converged one is answered
-     at once;
+     (two model evaluations) on all of them at once: on onnxruntime when given the exported graph
+     (onnx_model.OnnxRealtime, the fast path), else in PyTorch (realtime.Realtime); each converged one
+     is answered at once;
   2. the others join the lm set, solved by `lm` from their start (solvers.lm_step, the residual
      then measured on the model): one iteration for the whole set per loop, so requests arriving
      meanwhile wait for one iteration, never for another request's solve. A request leaves the set
@@ -80,11 +81,13 @@ class Service:
     """The model behind one worker thread; its methods are the service's (`compensate`, ...).
 
     model, workspace (lib/workspace.Workspace), limits_deg (6, 2), reach_mm (compensation.reach_mm),
-    tol_mm and jacobian_of (the `compensate:` section), and the limits of the `serve:` section."""
+    tol_mm and jacobian_of (the `compensate:` section), and the limits of the `serve:` section. controller:
+    the controller path to run (onnx_model.OnnxRealtime on the same model, limits, tol_mm and workspace);
+    None: realtime.Realtime on the model, compiled when `compile`. lm always runs the PyTorch model."""
 
     def __init__(self, model, workspace, limits_deg, reach_mm: float, *, tol_mm: float, jacobian_of: str,
                  unreachable_mm: float, max_iter: int, budget_ms: float, stall_iter: int, stall_ratio: float,
-                 max_batch: int, batch_wait_ms: float, max_items: int, compile: bool):
+                 max_batch: int, batch_wait_ms: float, max_items: int, compile: bool, controller=None):
         self.model, self.workspace, self.reach = model, workspace, float(reach_mm)
         self.limits_deg = np.asarray(limits_deg, float)
         self.limits = torch.as_tensor(np.radians(self.limits_deg), dtype=DTYPE)
@@ -93,8 +96,8 @@ class Service:
         self.stall_iter, self.stall_ratio = int(stall_iter), float(stall_ratio)
         self.max_batch, self.batch_wait = int(max_batch), float(batch_wait_ms) / 1000
         self.max_items = int(max_items)
-        self.realtime = Realtime(model, np.radians(self.limits_deg), self.tol, workspace=workspace,
-                                 compile=compile)
+        self.realtime = controller if controller is not None else Realtime(
+            model, np.radians(self.limits_deg), self.tol, workspace=workspace, compile=compile)
         self.jac = lm_jacobian(model, jacobian_of)
         self.queue: queue.Queue[Job] = queue.Queue()
         self.active: list[Job] = []                       # the lm set, and its state (A rows)

@@ -19,7 +19,7 @@ import time
 import numpy as np
 import torch
 
-from .kinematics import DTYPE, fk_jacobian
+from .kinematics import DTYPE, cross, fk_jacobian
 
 
 def min_norm_step(J, r, lam):
@@ -31,7 +31,21 @@ def min_norm_step(J, r, lam):
     JJt = J @ J.transpose(1, 2)                             # (B, 3, 3)
     scale = torch.as_tensor(lam, dtype=DTYPE) * JJt.diagonal(dim1=1, dim2=2).mean(1)   # (B,)
     damped = JJt + scale[:, None, None] * torch.eye(3, dtype=DTYPE)
-    return -(J.transpose(1, 2) @ torch.linalg.solve(damped, r.unsqueeze(-1))).squeeze(-1)
+    if torch.compiler.is_exporting():                      # ONNX has no linear solve: the closed form
+        x = solve3(damped, r)
+    else:
+        x = torch.linalg.solve(damped, r.unsqueeze(-1)).squeeze(-1)
+    return -(J.transpose(1, 2) @ x.unsqueeze(-1)).squeeze(-1)
+
+
+def solve3(A, b):
+    """x = A⁻¹ b for 3×3 systems A (B, 3, 3), b (B, 3), in closed form (what the ONNX export runs for
+    torch.linalg.solve): with A's columns a0, a1, a2, the rows of A⁻¹ are a1×a2, a2×a0, a0×a1 over
+    det A = a0 · (a1×a2). On the damped J Jᵀ of a chord step it agrees with LAPACK's LU to ~1e-13
+    relative (tests/test_compensate.py)."""
+    a0, a1, a2 = A[..., 0], A[..., 1], A[..., 2]           # (B, 3) columns
+    rows = torch.stack([cross(a1, a2), cross(a2, a0), cross(a0, a1)], 1)   # (B, 3, 3): det · A⁻¹
+    return (rows @ b.unsqueeze(-1)).squeeze(-1) / (a0 * rows[:, 0]).sum(-1, keepdim=True)
 
 
 def predict(model, q):                                     # (B, 6) -> (B, 3)
