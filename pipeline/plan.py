@@ -37,13 +37,14 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from .lib.artifacts import CALIBRATED_GEOMETRY, CALIBRATION_JSON, FRAME_JSON, PARTS_JSON, WORKSPACE_JSON
+from .lib.artifacts import (CALIBRATED_GEOMETRY, CALIBRATION_JSON, FRAME_JSON, PARTS_JSON, PARTS_REPORT,
+                            WORKSPACE_JSON)
 from .lib.columns import JOINTS_DEG, TARGET
 from .lib.config import for_stage, load_params, logger, read_json, write_json
 from .lib.geometry import Calibration
 from .lib.identify import parameter_spec
 from .lib.kinematics import nominal_geometry
-from .lib.planning import Coverage, Identification, candidates, plan, program_joints
+from .lib.planning import Coverage, Identification, MapBlock, candidates, plan, program_joints
 from .lib.robots import load_robot
 from .lib.waypoints import read_waypoints
 from .lib.workspace import Workspace
@@ -154,17 +155,24 @@ def run(argv=None) -> dict:
                            report["residual_sigma_mm"], station["new_station"])
     seed = cfg["seed"] if a.seed is None else a.seed
     cand = candidates(q_wp, np.random.default_rng(seed), nominal_geometry(robot), cfg["rules"], robot.limits_deg,
-                      cov, cfg["per_waypoint"], cfg["region"], cfg["region_margin_deg"], tracker)
+                      cov, cfg["per_waypoint"], cfg["region"], cfg["region_margin_deg"], tracker,
+                      link_q=cov.train_q if station["new_station"] else None)
+    maps = MapBlock(cov.joints, a_cfg["knot_deg"], a_cfg["prior_arcsec"], a_cfg["smooth_arcsec"],
+                    p["parts"]["noise_mm"]) if cov.joints else None
     if len(cand["q"]) == 0:
         raise Refused(f"{src}: no acceptable candidate pose near the program (rules failed: "
                       f"{ {k: v for k, v in cand['rejected_by'].items() if v} }); nothing written. "
                       "Check params.yaml plan.rules and the tracker's position")
     result = plan(q_wp, a.n, cov, ident, cand, cfg["cover_k"], not a.identifiability_only,
-                  train_fraction=p["split"]["fractions"][0])
+                  train_fraction=p["split"]["fractions"][0], maps=maps)
     ids = pose_ids(len(result.q_deg))
     rep = result.report
     rep["identifiability"]["reported_se"] = {k: report["estimates"][k]["se"] for k in ident.names
                                              if k in report.get("estimates", {})}
+    if PARTS_REPORT.exists() and read_json(PARTS_JSON)["enabled"]:   # what calibration + maps leave, per coordinate
+        s = read_json(PARTS_REPORT)["splits"]["train"]["calibrated_parts"]["rms_mm"] / np.sqrt(3.0)
+        rep["identifiability"]["sigma_after_maps_mm"] = float(s)
+        rep["identifiability"]["se_scale_after_maps"] = float(s / ident.sigma_mm)
     wp_ids = df["point_id"].tolist()
     for w, entry in enumerate(rep["coverage"]["per_waypoint"]):
         entry["point_id"] = wp_ids[w]

@@ -70,6 +70,9 @@ def test_the_three_files_with_their_names_and_columns(side_plan):
         assert ident[when]["condition_number"] > 1 and all(v["se"] > 0 for v in ident[when]["se"].values())
     assert set(ident["after"]["se"]) == set(ident["parameters"]) and "station_tx" in ident["after"]["se"]
     assert set(ident["before"]["se"]) == set(ident["parameters"]) - set(planning.STATION_NAMES)
+    maps = ident["angle_maps"]                  # the program's uncovered joint (1) in the criterion, with its priors
+    assert maps["joints"] == [1] and maps["joint1"]["after"]["mean_arcsec"] < maps["joint1"]["before"]["mean_arcsec"]
+    assert on_disk["candidates"]["made"]["link"] > 0              # a new station may measure old poses again
     for k, se in ident["reported_se"].items():           # before the plan: the calibration's own se, recomputed
         assert ident["before"]["se"][k]["se"] == pytest.approx(se, rel=0.02)
         assert ident["after"]["se"][k]["se"] <= ident["before"]["se"][k]["se"] * (1 + 1e-9)
@@ -265,3 +268,27 @@ def test_predicted_standard_errors_agree_with_a_monte_carlo_identification():
     ratio = np.std(runs, axis=0, ddof=1) / np.array([predicted[k]["se"] for k in ident.names])
     # 12 runs: a standard deviation is known to about ±21%; the median over the parameters much better
     assert 0.8 < np.median(ratio) < 1.2 and ratio.min() > 0.45 and ratio.max() < 1.7, dict(zip(ident.names, ratio))
+
+
+def test_the_criterion_gain_is_the_log_det_increase():
+    """DCriterion's sparse arithmetic (the map block's 4 columns per joint) against dense log dets, with a
+    new station's columns and joint 1's angle map with its priors."""
+    params = load_params()
+    params["calibrate"]["params"] = ["a", "offset", "tool"]
+    q_old, q_new = sample_poses(40, np.random.default_rng(41)), sample_poses(30, np.random.default_rng(42), region="side")
+    ident = twin_identification(q_old, params, 0.05)
+    ident.new_station = True
+    block = planning.MapBlock([1], 10.0, 300.0, 50.0, 0.1)
+    g = ident.geometry
+    crit = planning.DCriterion(ident.rows(q_old, False), *block.rows(q_old, g), ident.rows(q_new, True),
+                               *block.rows(q_new, g), block.precision())
+    dense = crit.dense(crit.A, crit.vals, crit.idx)                               # (30, 3, P), scaled
+    logdet = lambda M: np.linalg.slogdet(M)[1]
+    gains = crit.gains(np.arange(30))
+    for c in (0, 7, 29):
+        assert gains[c] == pytest.approx(logdet(crit.M + dense[c].T @ dense[c]) - logdet(crit.M), rel=1e-7)
+    M0 = crit.M.copy()
+    crit.add(7)
+    np.testing.assert_allclose(crit.M, M0 + dense[7].T @ dense[7])
+    np.testing.assert_allclose(crit.Minv @ crit.M, np.eye(len(M0)), atol=1e-6)
+    assert block.size == 36 and (dense[:, :, crit.Pc:] != 0).sum(-1).max() <= 4      # one joint: 4 knots a pose

@@ -5,26 +5,30 @@ poses, the network's joint-space radius, the per-joint angle maps' coverage) and
 identified parameters, geometry and residual sigma), choose N poses to measure:
 
 candidates   each waypoint's own joints and perturbations of them (`tight`: every joint within
-             0.8 x the angle maps' reach; `wide`: joints 1-5 within 0.8 x the network's radius), and
-             poses sampled in the program's joint box (the waypoints' range widened by a margin);
-             every candidate acceptable (poses.py: joint limits, singularities, table and column
-             clearance, the tracker's side when the tracker's position is given).
-criterion    COVERAGE_THEN_D. Greedy, one pose at a time:
+             0.8 x the angle maps' reach; `wide`: joints 1-5 within 0.8 x the network's radius), poses
+             sampled in the program's joint box (the waypoints' range widened by a margin), and, for a
+             new tracker station, the existing training poses (`link`: measured again from it, they tie
+             its frame to the old one); every candidate acceptable (poses.py: joint limits,
+             singularities, table and column clearance, the tracker's side when its position is given).
+criterion    CRITERION. Greedy, one pose at a time:
              1. coverage: every part of every waypoint that the existing training poses leave
                 uncovered, as Workspace.parts defines it (the network: a training pose within the
                 radius over joints 1-5; the angle maps: every mapped joint's angle within `reach`
                 of a training angle, errormaps.coverage), needs `cover_k` planned poses; the next
                 pose is the candidate that satisfies most of the parts still short (ties: the
                 larger D-optimality gain);
-             2. D-optimality: then the candidate that most raises log det(JᵀJ), J the identification
-                Jacobian (identify.geometry_jacobian) of the calibration's identified parameters at
-                the calibrated geometry over the existing training poses and the poses chosen so far
-                (with a new tracker station, its 6 frame parameters too: they are identified jointly).
+             2. D-optimality: then the candidate that most raises log det M (DCriterion), M = JᵀJ + Λ
+                over the calibration's identified parameters (J: identify.geometry_jacobian at the
+                calibrated geometry), a new tracker station's 6 frame parameters (identified jointly:
+                they cost information) and the angle-map coefficients of the joints the program
+                lacks (MapBlock, with the parts stage's priors Λ: the correction's part), the existing
+                training poses and the poses chosen so far in it: a Bayesian D-optimal design.
              `cover=False`: D-optimality alone (the identifiability-only choice).
-prediction   the information matrix M = JᵀJ before (existing poses) and after (with the plan):
-             the condition number of its column-normalised form (as identify.identifiability) and
-             the standard error of every identified parameter, sigma sqrt(diag(M⁻¹)), sigma the
-             calibration's residual sigma (per coordinate, mm).
+prediction   the information matrix JᵀJ of the calibration's parameters (and a new station's) before
+             (existing poses) and after (with the plan): the condition number of its column-normalised
+             form (as identify.identifiability) and the standard error of every identified parameter,
+             sigma sqrt(diag((JᵀJ)⁻¹)), sigma the calibration's residual sigma (per coordinate, mm); and
+             the map block's standard error at the waypoints' angles (arcsec, map_se).
 tour         nearest neighbour in joint space from the pose nearest the program's first waypoint,
              improved by 2-opt; the metric, a step's largest joint move (deg, unwrapped: what a movej
              takes); its travel: the sum of those, and of the steps' joint-space (Euclidean) distances.
@@ -34,11 +38,12 @@ Coverage after is computed as if every planned pose were a training pose (the sa
 `expected_after_split` is the share still covered when each planned pose trains with probability
 `train_fraction`.
 """
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import torch
 
+from .errormaps import ARCSEC, calibration_like, cubic_weights, second_difference
 from .errormaps import coverage as angle_coverage
 from .identify import geometry_jacobian, is_angular
 from .kinematics import DTYPE, fk, fk_jacobian
@@ -48,10 +53,12 @@ from .workspace import JOINTS, Workspace, wrapped
 
 CRITERION = "coverage_then_d_optimal"
 CRITERION_TEXT = ("coverage first (greedy: every uncovered part of every waypoint, as Workspace.parts defines it, "
-                  "gets cover_k planned poses), then D-optimality (greedy: maximise log det JᵀJ of the "
-                  "calibration's identified parameters, existing training poses included)")
+                  "gets cover_k planned poses), then D-optimality (greedy: maximise log det(JᵀJ + Λ) of the "
+                  "calibration's identified parameters, a new station's frame and the uncovered joints' angle-map "
+                  "coefficients with their priors Λ; existing training poses included)")
 D_ONLY = "d_optimal"
-D_ONLY_TEXT = "D-optimality alone (greedy: maximise log det JᵀJ of the calibration's identified parameters)"
+D_ONLY_TEXT = ("D-optimality alone (greedy: maximise log det(JᵀJ + Λ) of the calibration's identified parameters, "
+               "a new station's frame and the uncovered joints' angle-map coefficients with their priors Λ)")
 STATION_NAMES = ["station_rx", "station_ry", "station_rz", "station_tx", "station_ty", "station_tz"]
 
 
@@ -205,12 +212,123 @@ def prediction(M: np.ndarray, ident: Identification, robot_only: bool = False) -
             "identified": bool(full), "se": se}
 
 
-def d_gains(A: np.ndarray, M: np.ndarray) -> np.ndarray:
-    """log det(M + A_cᵀA_c) - log det M for each candidate's rows A_c (m, 3, P): log det(I + A_c M⁻¹ A_cᵀ)."""
-    L = np.linalg.cholesky(M)
-    B = np.linalg.solve(L, A.reshape(-1, A.shape[-1]).T).T.reshape(A.shape)     # A_c L⁻ᵀ
-    G = np.eye(A.shape[1]) + B @ B.transpose(0, 2, 1)
-    return np.linalg.slogdet(G)[1]
+def map_se(block: "MapBlock", crit: "DCriterion", Minv_before: np.ndarray, q_wp, geometry: dict) -> dict:
+    """The predicted standard error (arcsec) of each map-block joint's angle error at the waypoints' angles
+    (the posterior noise² b M⁻¹ bᵀ of errormaps.fit, b the B-spline weights there), before and after."""
+    out = {"joints": block.joints, "noise_mm": block.noise_mm if block.joints else None}
+    if not block.joints:
+        return out
+    q = np.atleast_2d(q_wp)
+    n, Pc, s = block.knots, crit.Pc, crit.s
+    for b, j in enumerate(block.joints):
+        u = np.remainder(q[:, j - 1], 360.0) * n / 360.0
+        k = np.floor(u)
+        cols = Pc + (k.astype(int)[:, None] + np.arange(4)) % n + b * n                # (w, 4)
+        w = cubic_weights(u - k) / s[cols]
+        se = lambda Mi: block.noise_mm * np.sqrt(np.einsum("wk,wkl,wl->w", w, Mi[cols[:, :, None], cols[:, None, :]],
+                                                           w)) / ARCSEC
+        out[f"joint{j}"] = {when: {"mean_arcsec": float(se(Mi).mean()), "max_arcsec": float(se(Mi).max())}
+                            for when, Mi in (("before", Minv_before), ("after", crit.Minv))}
+    return out
+
+
+@dataclass
+class MapBlock:
+    """The angle maps of `joints` (1-based) in the D-criterion: every B-spline coefficient of those joints'
+    maps (360 / knot_deg each, rad) with the parts stage's Gaussian priors, as errormaps.fit weighs them
+    (a size prior, a smoothness prior, none of a constant joint offset): the correction's part that a
+    program outside the maps' coverage needs, and that a new tracker station can confound (a station
+    turned about the base axis looks like joint 1's error over the poses it measures)."""
+    joints: list
+    knot_deg: float
+    prior_arcsec: float
+    smooth_arcsec: float
+    noise_mm: float
+
+    @property
+    def knots(self) -> int:
+        return int(round(360.0 / self.knot_deg))
+
+    @property
+    def size(self) -> int:
+        return self.knots * len(self.joints)
+
+    def rows(self, q_deg, geometry: dict) -> tuple[np.ndarray, np.ndarray]:
+        """Sparse rows of poses q (m, 6) deg: values (m, 3, 4k) mm/rad and their columns (m, 4k) in the block:
+        the chain's joint Jacobian (kinematics.fk_jacobian) times each joint's four B-spline weights."""
+        q = np.atleast_2d(np.asarray(q_deg, float))
+        vals, idx = np.zeros((len(q), 3, 4 * len(self.joints))), np.zeros((len(q), 4 * len(self.joints)), int)
+        if not self.joints or not len(q):
+            return vals, idx
+        qt = torch.as_tensor(np.radians(q), dtype=DTYPE)
+        with torch.no_grad():
+            J = np.concatenate([fk_jacobian(qt[s:s + 512], geometry)[1].numpy() for s in range(0, len(q), 512)])
+        n = self.knots
+        for b, j in enumerate(self.joints):
+            u = np.remainder(q[:, j - 1], 360.0) * n / 360.0
+            k = np.floor(u)
+            w = cubic_weights(u - k)                                           # (m, 4)
+            idx[:, 4 * b:4 * b + 4] = (k.astype(int)[:, None] + np.arange(4)) % n + b * n
+            vals[:, :, 4 * b:4 * b + 4] = J[:, :, j - 1, None] * w[:, None, :]
+        return vals, idx
+
+    def precision(self) -> np.ndarray:
+        """The priors' precision (size, size) in the units of JᵀJ (errormaps.fit's penalty)."""
+        n = self.knots
+        one = ((self.noise_mm / (self.prior_arcsec * ARCSEC)) ** 2 * np.eye(n)
+               + (self.noise_mm / (self.smooth_arcsec * ARCSEC)) ** 2 * second_difference(n, True).T
+               @ second_difference(n, True))
+        V = calibration_like("angle_map", n)
+        one = one + (self.noise_mm / (0.01 * ARCSEC)) ** 2 * V.T @ V
+        out = np.zeros((self.size, self.size))
+        for b in range(len(self.joints)):
+            out[b * n:(b + 1) * n, b * n:(b + 1) * n] = one
+        return out
+
+
+class DCriterion:
+    """log det M, M = JᵀJ + Λ over [the calibration's parameters (+ a new station's), the map block's
+    coefficients], Λ the map block's prior (and a 1e-9 ridge), the existing poses in, and its gain for each
+    candidate pose (log det(I₃ + A_c M⁻¹ A_cᵀ), A_c the pose's 3 rows: dense over the calibration's
+    columns, 4 per mapped joint over the block's): columns scaled to unit norm for the arithmetic."""
+
+    def __init__(self, A_old: np.ndarray, vals_old, idx_old, A: np.ndarray, vals, idx, prior: np.ndarray):
+        self.Pc, self.Pm = A.shape[-1], prior.shape[0]
+        col = (A ** 2).sum((0, 1)) + (A_old ** 2).sum((0, 1))
+        colm = np.diag(prior).copy()
+        for v, i in ((vals, idx), (vals_old, idx_old)):
+            np.add.at(colm, i.ravel(), (v ** 2).sum(1).ravel())
+        self.s = np.sqrt(np.r_[col, colm])
+        self.s[self.s == 0] = 1.0
+        self.A, self.vals, self.idx = A / self.s[:self.Pc], vals / self.s[self.Pc + idx][:, None, :], idx
+        M = information(self.dense(A_old / self.s[:self.Pc], vals_old / self.s[self.Pc + idx_old][:, None, :],
+                                   idx_old))
+        M[self.Pc:, self.Pc:] += prior / np.outer(self.s[self.Pc:], self.s[self.Pc:])
+        self.M = M + 1e-9 * np.eye(len(M))
+        self.Minv = np.linalg.inv(self.M)
+
+    def dense(self, A, vals, idx) -> np.ndarray:
+        out = np.zeros((len(A), 3, self.Pc + self.Pm))
+        out[:, :, :self.Pc] = A
+        for k in range(idx.shape[1]):
+            np.add.at(out, (np.arange(len(A)), slice(None), self.Pc + idx[:, k]), vals[:, :, k])
+        return out
+
+    def gains(self, rows: np.ndarray) -> np.ndarray:
+        """The log det gain of each candidate in `rows` (indices)."""
+        Ac, Am, I = self.A[rows], self.vals[rows], self.Pc + self.idx[rows]
+        Mi, Pc = self.Minv, self.Pc
+        G = np.eye(3) + np.einsum("mip,pq,mjq->mij", Ac, Mi[:Pc, :Pc], Ac)
+        if I.shape[1]:
+            X = np.einsum("mip,pmk,mjk->mij", Ac, Mi[:Pc][:, I], Am)
+            G += X + X.transpose(0, 2, 1) + np.einsum("mik,mkl,mjl->mij", Am, Mi[I[:, :, None], I[:, None, :]], Am)
+        return np.linalg.slogdet(G)[1]
+
+    def add(self, c: int) -> None:
+        a = self.dense(self.A[c:c + 1], self.vals[c:c + 1], self.idx[c:c + 1])[0]          # (3, P)
+        B = self.Minv @ a.T
+        self.Minv -= B @ np.linalg.solve(np.eye(3) + a @ B, B.T)
+        self.M += a.T @ a
 
 
 # ----------------------------------------------------------------------------- candidates
@@ -229,11 +347,13 @@ def program_joints(q0_deg, target, geometry: dict, limits_deg, iterations: int =
 
 
 def candidates(q_wp, rng: np.random.Generator, geometry: dict, rules: dict, limits_deg, cov: Coverage,
-               per_waypoint: int, region: int, margin_deg: float, tracker_mm=None) -> dict:
+               per_waypoint: int, region: int, margin_deg: float, tracker_mm=None, link_q=None) -> dict:
     """Acceptable candidate poses: {"q" (m, 6) deg rounded to 1e-6, "near" (m,) the waypoint each was
-    made from (-1: sampled in the program's region), "kind" (m,) "waypoint" | "tight" | "wide" |
-    "region", "made": how many of each kind were drawn, "rejected_by": {rule: count}}.
-    geometry: the nominal chain the rules are judged on (as the twin's campaigns are)."""
+    made from (-1: not), "kind" (m,) "waypoint" | "tight" | "wide" | "region" | "link", "made": how many
+    of each kind were drawn, "rejected_by": {rule: count}}. link_q: poses already measured (the
+    training poses) that a new tracker station may measure again, to tie its frame to theirs (at most
+    `region` of them, at random). geometry: the nominal chain the rules are judged on (as the twin's
+    campaigns are)."""
     q_wp = np.atleast_2d(np.asarray(q_wp, float))
     lim = np.asarray(limits_deg, float)
     tight = 0.8 * cov.reach if cov.joints else 0.2 * cov.radius / np.sqrt(5)
@@ -256,13 +376,19 @@ def candidates(q_wp, rng: np.random.Generator, geometry: dict, rules: dict, limi
         near.append(np.full(len(q), -1))
         kind.append(np.array(["region"] * len(q), object))
         got, tries = got + len(q), tries + 1
+    if link_q is not None and len(link_q):
+        link = np.asarray(link_q, float)
+        qs.append(link[rng.permutation(len(link))[:region]])
+        near.append(np.full(len(qs[-1]), -1))
+        kind.append(np.array(["link"] * len(qs[-1]), object))
     q, near, kind = np.round(np.concatenate(qs), 6), np.concatenate(near), np.concatenate(kind)
     c = checks(q, g, rules, lim, tracker_mm=tracker_mm)
     ok = np.ones(len(q), bool)
     for v in c.values():
         ok &= v
-    made = {kd: int((kind == kd).sum()) for kd in ("waypoint", "tight", "wide", "region")}
+    made = {kd: int((kind == kd).sum()) for kd in ("waypoint", "tight", "wide", "region", "link")}
     return {"q": q[ok], "near": near[ok], "kind": kind[ok], "made": made,
+            "acceptable": {kd: int((ok & (kind == kd)).sum()) for kd in made},
             "rejected_by": {r: int((~v & (kind != "region")).sum()) for r, v in c.items()},
             "waypoints_acceptable": ok[:len(q_wp)]}
 
@@ -349,10 +475,12 @@ def expected_split_coverage(S: np.ndarray, reqs: list, n_wp: int, covered_before
 
 
 def plan(q_wp, n: int, cov: Coverage, ident: Identification, cand: dict, cover_k: int = 2,
-         cover: bool = True, start_q=None, train_fraction: float = 0.8) -> Plan:
+         cover: bool = True, start_q=None, train_fraction: float = 0.8, maps: MapBlock | None = None) -> Plan:
     """Choose n poses among the candidates `cand` (candidates()) for the program's waypoints q_wp (k, 6)
     deg by CRITERION (cover=False: D_ONLY), order them (tour) and report coverage, identifiability and
-    travel (module docstring). start_q: where the tour starts from (default the first waypoint)."""
+    travel (module docstring). start_q: where the tour starts from (default the first waypoint). maps:
+    the angle maps' settings (MapBlock); the joints whose coverage the program lacks enter the
+    D-criterion with their priors (None: the calibration's parameters alone)."""
     if n < 1:
         raise ValueError(f"plan: n must be at least 1, got {n}")
     q_wp = np.atleast_2d(np.asarray(q_wp, float))
@@ -364,16 +492,17 @@ def plan(q_wp, n: int, cov: Coverage, ident: Identification, cand: dict, cover_k
     need = np.full(len(reqs), cover_k if cover else 0)
     A_old = ident.rows(cov.train_q, new=False) if len(cov.train_q) else np.zeros((0, 3, len(ident.parameter_names)))
     A = ident.rows(Q, new=True)
-    scale = np.sqrt((A ** 2).sum((0, 1)) + (A_old ** 2).sum((0, 1)))
-    scale = np.where(scale > 0, scale, 1.0)
-    An, An_old = A / scale, A_old / scale
-    ridge = 1e-9 * np.eye(A.shape[-1])
-    M = information(An_old) + ridge
+    block = None if maps is None else replace(maps, joints=[j for j in maps.joints
+                                                           if any(p == f"joint{j}" for _, p in reqs)])
+    block = block if block is not None and block.joints else MapBlock([], 1.0, 1.0, 1.0, 1.0)
+    crit = DCriterion(A_old, *block.rows(cov.train_q, ident.geometry), A, *block.rows(Q, ident.geometry),
+                      block.precision())
+    Minv_before = crit.Minv.copy()
     free = np.ones(len(Q), bool)
     chosen, role = [], []
     for _ in range(min(n, len(Q))):
         gain = np.full(len(Q), -np.inf)
-        gain[free] = d_gains(An[free], M)
+        gain[free] = crit.gains(np.flatnonzero(free))
         score = (S[:, need > 0].sum(1) if (need > 0).any() else np.zeros(len(Q))).astype(float)
         score[~free] = -1
         if score.max() > 0:                                     # coverage: most parts still short, then D
@@ -386,7 +515,7 @@ def plan(q_wp, n: int, cov: Coverage, ident: Identification, cand: dict, cover_k
             role.append("d_optimal")
         chosen.append(c)
         free[c] = False
-        M = M + information(An[c:c + 1])
+        crit.add(c)
     chosen = np.array(chosen)
     start_q = q_wp[0] if start_q is None else np.asarray(start_q, float)
     first = int(np.argmin(step_cost(Q[chosen], start_q)))
@@ -422,11 +551,14 @@ def plan(q_wp, n: int, cov: Coverage, ident: Identification, cand: dict, cover_k
                              for w in range(len(q_wp))]},
         "identifiability": {"sigma_mm": ident.sigma_mm, "parameters": ident.parameter_names,
                             "new_station": ident.new_station,
+                            "angle_maps": map_se(block, crit, Minv_before, q_wp, ident.geometry),
                             "before": prediction(M_before, ident, robot_only=ident.new_station), "after": prediction(M_after, ident)},
         "travel": {**travel(q), "order": "nearest neighbour from the pose nearest the program's first waypoint, "
                                          "then 2-opt; a step costs its largest joint move",
                    "nearest_neighbour_only": nn_travel},
-        "candidates": {"made": cand["made"], "acceptable": int(len(Q)), "rejected_by": cand["rejected_by"],
+        "candidates": {"made": cand["made"], "acceptable": cand.get("acceptable", int(len(Q))),
+                       "rejected_by": cand["rejected_by"],
+                       "chosen": {kd: int((cand["kind"][chosen] == kd).sum()) for kd in np.unique(cand["kind"])},
                        "waypoints_acceptable": int(np.sum(cand["waypoints_acceptable"]))},
     }
     return Plan(q, role, [int(cand["near"][c]) for c in chosen], report)
