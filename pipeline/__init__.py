@@ -4,7 +4,7 @@ imports them. tests/test_layout.py holds the layout to this."""
 import os
 
 # Run by hand (python -m pipeline.<name>, or the spi-boter-<name> script), never by ./dvc.yaml.
-COMMANDS = ("bench", "serve", "program", "fleet", "ablation", "preset", "twin")
+COMMANDS = ("bench", "serve", "program", "plan", "fleet", "ablation", "preset", "twin")
 
 # Before numpy loads: BLAS threads on the small matrices here only fight torch's
 # threads (measured 5-10x slower calibration with them).

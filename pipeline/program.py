@@ -13,6 +13,7 @@ compensated joints make the trained model (the real arm) reach it. Every waypoin
 is solved by `compensate.solver` (lib/solvers.py) within the joint limits; the output CSV
 is the Δθ table (docs/data-format.md), the URScript one `movej` per waypoint.
 
+The waypoints are read, checked and compensated by lib/waypoints.py (shared with `python -m pipeline.plan`).
 Safe by construction (docs/robot-cell.md):
   - nothing from the file reaches the URScript but numbers formatted here and point ids that
     match ID_PATTERN (others are refused with file, row and column);
@@ -25,7 +26,6 @@ Bad input exits 2 with the file, row (the header is row 1) and column. Needs a f
 `dvc repro` (model, workspace, frame).
 """
 import argparse
-import re
 import sys
 from pathlib import Path
 
@@ -33,90 +33,16 @@ import numpy as np
 import pandas as pd
 
 from .lib.artifacts import FRAME_JSON, MODEL_WEIGHTS, WORKSPACE_JSON
-from .lib.columns import JCOMP_DEG, JOINTS_DEG, TARGET
-from .lib.compensation import delta_table, reach_mm, solve
+from .lib.columns import JCOMP_DEG
 from .lib.config import for_stage, load_params, logger, read_json
 from .lib.geometry import theory_geometry
-from .lib.kinematics import fk_numpy
-from .lib.readers import IngestError, find_column, looks_like_radians, parse_number, read_table
 from .lib.robots import load_robot
 from .lib.training import load_model
+from .lib.waypoints import ID_PATTERN, Refused, compensate_program, read_waypoints, unreached  # noqa: F401
 from .lib.workspace import Workspace
 
 log = logger(__name__)
 PARAMS = ("robot", "compensate")
-ID_PATTERN = re.compile(r"[A-Za-z0-9_.:-]{1,64}")          # what a point id may be, to reach a URScript comment
-
-
-class Refused(Exception):
-    """The program has waypoints that must not become moves; the message lists them."""
-
-
-def read_waypoints(path, robot) -> pd.DataFrame:
-    """The waypoints file, checked: point_id, j1_deg..j6_deg and, if given, target_x..z; every bad
-    cell is an IngestError naming file, row (the header is row 1) and column."""
-    header, cells, lines, _, decimal = read_table(str(path), "auto", "auto")
-    lower = {h.lower() for h in header}
-    targets = [c for c in TARGET if c in lower]
-    if 0 < len(targets) < 3:
-        raise IngestError(f"target columns need all of {TARGET}; found {targets}", file=path)
-    names = JOINTS_DEG + (TARGET if targets else [])
-    cols = [find_column(header, c, "waypoint", str(path)) for c in names]
-    values = np.empty((len(cells), len(cols)))
-    for r, row in enumerate(cells):
-        for k, c in enumerate(cols):
-            values[r, k], err = parse_number(row[c] if c < len(row) else "", decimal)
-            if err or not np.isfinite(values[r, k]):
-                raise IngestError(f"not a finite number ({err[1] if err else row[c]})", file=path, row=lines[r],
-                                  column=names[k])
-    df = pd.DataFrame(values, columns=names)
-    if "point_id" in lower:
-        c = find_column(header, "point_id", "point id", str(path))
-        ids = [row[c].strip() if c < len(row) else "" for row in cells]
-        for r, pid in enumerate(ids):
-            if not ID_PATTERN.fullmatch(pid):
-                raise IngestError(f"point id {pid[:40]!r} is not 1-64 of the characters A-Z a-z 0-9 _ . : - "
-                                  "(ids reach the robot program's comments)", file=path, row=lines[r],
-                                  column=header[c])
-    else:
-        ids = [f"W{i + 1:03d}" for i in range(len(df))]
-    df.insert(0, "point_id", ids)
-    out = robot.check_joints(df[JOINTS_DEG].to_numpy())
-    if out.any():
-        i, j = map(int, np.argwhere(out)[0])
-        lo, hi = robot.limits_deg[j]
-        raise IngestError(f"{df[JOINTS_DEG[j]].iloc[i]}° beyond the joint limits [{lo:g}, {hi:g}]°", file=path,
-                          row=lines[i], column=JOINTS_DEG[j])
-    if looks_like_radians(df[JOINTS_DEG].to_numpy()):
-        raise IngestError("every joint angle lies within ±6.29: these look like radians in *_deg columns; "
-                          "convert them to degrees", file=path)
-    return df
-
-
-def compensate_program(df: pd.DataFrame, model, workspace, robot, nominal: dict, cfg: dict) -> pd.DataFrame:
-    """The Δθ table of the waypoints df (targets: df's, else the nominal positions of its joints)."""
-    q0 = df[JOINTS_DEG].to_numpy()
-    target = df[TARGET].to_numpy() if TARGET[0] in df else fk_numpy(q0, robot, nominal)
-    reach = reach_mm(model.physics.geometry())
-    far = np.linalg.norm(target, axis=1) > reach
-    if far.any():
-        raise Refused("unreachable: " + "; ".join(
-            f"{p}: target {np.linalg.norm(t):.1f} mm from the base, beyond the arm's reach of {reach:.1f} mm"
-            for p, t in zip(df.point_id[far], target[far])))
-    solved = solve(model, q0, target, cfg, robot)
-    table = delta_table(df["point_id"], q0, target, solved, workspace)
-    log.info("%d waypoints compensated in %.2f s: %d converged (residual max %.2e mm), %d outside the "
-             "trained workspace", len(table), solved.seconds, table.converged.sum(), table.residual_mm.max(),
-             (~table.in_workspace).sum())
-    return table
-
-
-def unreached(table: pd.DataFrame, robot) -> dict:
-    """{point_id: why} for every waypoint that must not become a move."""
-    beyond = robot.check_joints(table[JCOMP_DEG].to_numpy()).any(1)
-    return {r.point_id: (f"residual {r.residual_mm:.4f} mm" + (", not converged" if not r.converged else "")
-                         + (", beyond the joint limits" if b else ""))
-            for r, b in zip(table.itertuples(), beyond) if not r.converged or b}
 
 
 def urscript(table: pd.DataFrame, skipped: dict, acc: float = 1.4, vel: float = 1.05) -> str:

@@ -7,10 +7,13 @@
     python -m pipeline.bench speed --only controller        the controller path's part alone
     python -m pipeline.bench serve [--clients 8 --calls 10000]   the compensation service under load
     python -m pipeline.bench sweep                          a reduced ablation, in order vs on a local Ray
+    python -m pipeline.bench plan [--n 60 --seeds 139 140 141]   the measurement planner's loop closed on the twin
+    python -m pipeline.bench plan --curve [--sizes 25 50 100 200 400 700]   error against the poses measured
 """
 import argparse
 
 from ..lib.sweep import ENGINES
+from .plan import VARIANTS, bench_plan
 from .real import REAL_SETS, bench_real
 from .serve import bench_serve
 from .speed import bench_speed
@@ -20,9 +23,10 @@ from .sweep import bench_sweep
 def main(argv=None):
     ap = argparse.ArgumentParser(prog="python -m pipeline.bench", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("what", choices=["real", "speed", "serve", "sweep"])
-    ap.add_argument("--seeds", type=int, nargs="+", default=[139], help="training seeds (real)")
-    ap.add_argument("--epochs", type=int, default=None, help="override train.max_epochs (real)")
+    ap.add_argument("what", choices=["real", "speed", "serve", "sweep", "plan"])
+    ap.add_argument("--seeds", type=int, nargs="+", default=None,
+                    help="training seeds (real: 139; plan: 139 140 141, each also the seed of its measurements)")
+    ap.add_argument("--epochs", type=int, default=None, help="override train.max_epochs (real, plan)")
     ap.add_argument("--sets", nargs="+", choices=list(REAL_SETS), default=None,
                     help="sets to run (default: the real ones; twin and twin-2stations on request)")
     ap.add_argument("--dnn", action=argparse.BooleanOptionalAction, default=True,
@@ -30,13 +34,13 @@ def main(argv=None):
     ap.add_argument("--other-physics", action=argparse.BooleanOptionalAction, default=True,
                     help="also train SPI-BoTER on the other physics branch (first seed)")
     ap.add_argument("-S", "--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-                    help="override a params.yaml value for the run (real), as dvc exp run -S: "
+                    help="override a params.yaml value for the run (real, plan), as dvc exp run -S: "
                          "train.ema=0.999; recorded in the output under the set's name + '@' + overrides")
     ap.add_argument("--engine", choices=ENGINES, default="sequential",
                     help="real: the seeds in order, or as Ray tasks (lib/sweep.py)")
     ap.add_argument("--address", default=None, help="real: a Ray cluster (default: RAY_ADDRESS, else local)")
     ap.add_argument("--threads", type=int, default=None, help="real: torch threads per seed (default: every "
-                                                              "core in order, 1 on Ray)")
+                                                              "core in order, 1 on Ray); plan: torch threads")
     ap.add_argument("--clients", type=int, default=8, help="concurrent clients (serve)")
     ap.add_argument("--calls", type=int, default=10000, help="compensate calls in all (serve)")
     ap.add_argument("--paths", nargs="+", choices=["onnx", "eager", "compiled"], default=["onnx", "eager", "compiled"],
@@ -48,9 +52,27 @@ def main(argv=None):
                     help="speed: torch threads of the PyTorch controller path in the comparison (onnxruntime: 1)")
     ap.add_argument("--only", choices=["controller"], default=None,
                     help="speed: only the controller path's part (replaces that part of speed.json)")
+    ap.add_argument("--n", type=int, default=60, help="plan: poses planned (and drawn at random) per variant")
+    ap.add_argument("--waypoints", type=int, default=20, help="plan: the side program's waypoints")
+    ap.add_argument("--variants", nargs="+", choices=list(VARIANTS), default=list(VARIANTS),
+                    help="plan: the variants beside today's project (closed loop)")
+    ap.add_argument("--se-check", type=int, default=5, help="plan: Monte Carlo identifications of the planned "
+                                                            "poses' standard errors (first seed; 0 off)")
+    ap.add_argument("--curve", action="store_true", help="plan: the learning curve instead of the closed loop")
+    ap.add_argument("--sizes", type=int, nargs="+", default=[25, 50, 100, 200, 400, 700],
+                    help="plan --curve: numbers of measured poses")
+    ap.add_argument("--work", type=int, default=40, help="plan --curve: the front work region's waypoints")
+    ap.add_argument("--keep", default=None, help="plan: keep the scratch projects in this folder")
+    ap.add_argument("--station", choices=["new", "same"], default="new",
+                    help="plan: measure the new poses from a tracker station of their own (facing the side), "
+                         "or from the default campaign's")
     a = ap.parse_args(argv)
-    if a.what == "real":
-        bench_real(a.seeds, a.epochs, a.sets, a.other_physics, a.overrides, a.engine, a.address, a.threads, a.dnn)
+    if a.what == "plan":
+        bench_plan(a.n, a.seeds or [139, 140, 141], a.waypoints, a.variants, a.curve, a.sizes, a.overrides,
+                   a.epochs, a.se_check, a.threads, a.work, a.keep,
+                   a.station == "new")
+    elif a.what == "real":
+        bench_real(a.seeds or [139], a.epochs, a.sets, a.other_physics, a.overrides, a.engine, a.address, a.threads, a.dnn)
     elif a.what == "serve":
         bench_serve(a.clients, a.calls, a.paths)
     elif a.what == "sweep":

@@ -44,6 +44,10 @@ SECTIONS = {
     "compensate": ("solver", "lr", "max_iter", "tol_mse", "tol_mm", "jacobian_of", "drive_check",
                    "twin", "drive_seed"),
     "ablation": ("seeds", "max_epochs"),
+    "plan": ("cover_k", "per_waypoint", "region", "region_margin_deg", "seed", "rules", "settle_s", "handshake_io",
+             "acc", "vel"),
+    "plan.rules": ("radius_mm", "height_mm", "elbow_up", "elbow_min_mm", "table_mm", "column_mm", "sin_elbow",
+                   "sin_wrist", "tracker_side_deg"),
     "serve": ("host", "port", "unreachable_mm", "onnx", "compile", "max_iter", "budget_ms", "stall_iter",
               "stall_ratio", "max_batch", "batch_wait_ms", "max_items", "max_body_bytes", "timeout_s", "echo_chars"),
 }

@@ -48,8 +48,9 @@ from .columns import JOINTS_DEG
 from .config import read_json, write_json
 from .frames import robust_kabsch, to_base
 from .identify import identify
-from .kinematics import DTYPE, GRAVITY, fk, gravity_torques, link_frames, nominal_geometry
+from .kinematics import DTYPE, GRAVITY, fk, gravity_torques, nominal_geometry
 from .metrics import drive_table
+from .poses import RULES, acceptable
 from .robots import nominal_robot
 from .splits import split_indices
 
@@ -207,9 +208,9 @@ def gear_error_rad(q: np.ndarray, amp_deg: np.ndarray, phase: np.ndarray, cycles
 def sample_poses(n: int, rng: np.random.Generator, robot=None, region: str = "front") -> np.ndarray:
     """n commanded poses (deg, 6 decimals) spread over a region of the workspace (REGIONS).
 
-    Rejection sampling from wide joint ranges; a pose is kept when (nominal FK):
-    the flange is in the region (front: azimuth within ±60° of -x; side: -150..-80°), 300-850 mm
-    from the base axis, 0-750 mm above the table), the elbow is up and above
+    Rejection sampling from wide joint ranges; a pose is kept when (nominal FK, the rules of
+    poses.RULES, lib/poses.py): the flange is in the region (front: azimuth within ±60° of -x; side:
+    -150..-80°), 300-850 mm from the base axis, 0-750 mm above the table), the elbow is up and above
     the wrist, every wrist frame clears the table (z > 40 mm) and the base column
     (> 180 mm from the axis), and the elbow (|sin q3| > 0.15) and wrist
     (|sin q5| > 0.2) stay away from their singularities.
@@ -226,17 +227,8 @@ def sample_poses(n: int, rng: np.random.Generator, robot=None, region: str = "fr
 
 
 def _acceptable(q_deg: np.ndarray, g: dict, azimuth_deg: tuple) -> np.ndarray:
-    with torch.no_grad():
-        F = link_frames(torch.as_tensor(np.radians(q_deg), dtype=DTYPE), g).numpy()
-    o = F[:, :, :3, 3]                                              # frame origins (n, 7, 3)
-    p = o[:, 6]
-    r = np.hypot(p[:, 0], p[:, 1])
-    azimuth = np.degrees(np.arctan2(p[:, 1], -p[:, 0]))
-    s3, s5 = np.abs(np.sin(np.radians(q_deg[:, 2]))), np.abs(np.sin(np.radians(q_deg[:, 4])))
-    wrist_r = np.hypot(o[:, 3:, 0], o[:, 3:, 1]).min(1)
-    return ((azimuth > azimuth_deg[0]) & (azimuth < azimuth_deg[1]) & (r > 300) & (r < 850) & (p[:, 2] > 0) & (p[:, 2] < 750)
-            & (o[:, 2, 2] > o[:, 3, 2]) & (o[:, 2, 2] > 150) & (o[:, 3:, 2].min(1) > 40)
-            & (wrist_r > 180) & (s3 > 0.15) & (s5 > 0.2))
+    """The twin's rules (poses.RULES) in the azimuth window of a region."""
+    return acceptable(q_deg, g, RULES, azimuth_deg=azimuth_deg)
 
 
 # ----------------------------------------------------------------------------- twin

@@ -1,0 +1,294 @@
+"""The measurement planner (issue 23): what to measure so that a program lies inside the trained workspace.
+
+`python -m pipeline.plan PROGRAM.csv --n N --out DIR` on a small trained project (conftest.trained_project),
+for a program at the side of the arm, where the twin's default campaign never went; and the library
+(lib/planning.py, lib/poses.py) on the twin: acceptability, the tour, D-optimality against random
+choice, and the predicted standard errors against a Monte Carlo identification.
+"""
+import json
+import re
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+
+from pipeline import plan as plan_cmd
+from pipeline.lib import planning, poses
+from pipeline.lib.columns import JOINTS_DEG
+from pipeline.lib.config import load_params, read_json
+from pipeline.lib.errormaps import coverage as angle_coverage
+from pipeline.lib.identify import geometry_jacobian, identifiability, identify
+from pipeline.lib.kinematics import DTYPE, fk, nominal_geometry
+from pipeline.lib.robots import load_robot
+from pipeline.lib.poses import RULES
+from pipeline.lib.twin import REGIONS, Twin, sample_poses, true_geometry
+from pipeline.lib.workspace import Workspace
+
+N = 16
+TRACKER_MM = [-1200.0, -2600.0, 900.0]          # a new tracker placement facing the side of the arm
+
+
+def exit_code(argv, capsys) -> tuple[int, str]:
+    try:
+        plan_cmd.main(argv)
+        code = 0
+    except SystemExit as e:
+        code = e.code
+    out = capsys.readouterr()
+    return code, out.err + out.out
+
+
+@pytest.fixture(scope="module")
+def side_plan(trained_project, tmp_path_factory):
+    """A 6-waypoint program at the side of the arm (joint 1 at 70-150°), planned for N poses from a new
+    tracker placement: (its folder, the waypoints (6, 6) deg, plan.json, params)."""
+    mp = pytest.MonkeyPatch()
+    mp.chdir(trained_project)
+    tmp = tmp_path_factory.mktemp("plan")
+    q_wp = sample_poses(6, np.random.default_rng(11), region="side")
+    src = tmp / "side.csv"
+    pd.DataFrame(q_wp, columns=JOINTS_DEG).assign(point_id=[f"S{i}" for i in range(6)]).to_csv(src, index=False)
+    out = tmp / "campaign"
+    rep = plan_cmd.run([str(src), "--n", str(N), "--out", str(out), "--tracker-mm", *map(str, TRACKER_MM)])
+    params = load_params()
+    yield out, q_wp, rep, params
+    mp.undo()
+
+
+def test_the_three_files_with_their_names_and_columns(side_plan):
+    out, q_wp, rep, _ = side_plan
+    assert sorted(p.name for p in out.iterdir()) == sorted(plan_cmd.FILES)
+    poses_csv = pd.read_csv(out / "poses.csv")
+    assert list(poses_csv.columns) == ["pose_id"] + JOINTS_DEG and len(poses_csv) == N
+    assert poses_csv.pose_id.tolist() == [f"M{i + 1:03d}" for i in range(N)]
+    on_disk = json.loads((out / "plan.json").read_text())
+    assert on_disk["n_planned"] == N and on_disk["criterion"]["name"] == planning.CRITERION
+    assert {"before", "after", "after_expected_split"} <= set(on_disk["coverage"])
+    ident = on_disk["identifiability"]
+    for when in ("before", "after"):
+        assert ident[when]["condition_number"] > 1 and all(v["se"] > 0 for v in ident[when]["se"].values())
+    assert set(ident["after"]["se"]) == set(ident["parameters"]) and "station_tx" in ident["after"]["se"]
+    assert set(ident["before"]["se"]) == set(ident["parameters"]) - set(planning.STATION_NAMES)
+    maps = ident["angle_maps"]                  # the program's uncovered joint (1) in the criterion, with its priors
+    assert maps["joints"] == [1] and maps["joint1"]["after"]["mean_arcsec"] < maps["joint1"]["before"]["mean_arcsec"]
+    assert on_disk["candidates"]["made"]["link"] > 0              # a new station may measure old poses again
+    for k, se in ident["reported_se"].items():           # before the plan: the calibration's own se, recomputed
+        assert ident["before"]["se"][k]["se"] == pytest.approx(se, rel=0.02)
+        assert ident["after"]["se"][k]["se"] <= ident["before"]["se"][k]["se"] * (1 + 1e-9)
+    t = on_disk["travel"]
+    assert t["steps"] == N - 1 and 0 < t["max_joint_deg"] <= t["nearest_neighbour_only"]["max_joint_deg"] + 1e-6
+    q = poses_csv[JOINTS_DEG].to_numpy()
+    assert t["max_joint_deg"] == pytest.approx(np.abs(np.diff(q, axis=0)).max(1).sum(), rel=1e-6)
+    assert [p["pose_id"] for p in on_disk["poses"]] == poses_csv.pose_id.tolist()
+
+
+def test_the_urscript_holds_only_formatted_numbers_and_fixed_text(side_plan):
+    out, *_ = side_plan
+    script = (out / "measure.script").read_text()
+    number = r"-?[0-9]+\.[0-9]+"
+    allowed = [r"# measurement campaign planned by `python -m pipeline\.plan`: [0-9]+ poses, [0-9.]+ s at each for "
+               r"the tracker", r"def measure_campaign\(\):", rf"  (acc|vel|settle) = {number}", r"  # M[0-9]{3,}",
+               rf"  movej\(\[{number}(, {number}){{5}}\], a=acc, v=vel\)", r"  sleep\(settle\)", r"end"]
+    lines = script.rstrip("\n").split("\n")
+    for line in lines:
+        assert any(re.fullmatch(a, line) for a in allowed), line
+    assert lines[1] == "def measure_campaign():" and lines[-1] == "end"
+    moves = re.findall(r"movej\(\[([^\]]+)\]", script)
+    q_script = np.array([[float(v) for v in m.split(", ")] for m in moves])
+    q_csv = np.radians(pd.read_csv(out / "poses.csv")[JOINTS_DEG].to_numpy())
+    assert q_script.shape == (N, 6)
+    np.testing.assert_allclose(q_script, q_csv, rtol=0, atol=1e-9)
+    assert script.count("sleep(settle)") == N and "popup" not in script
+
+
+def test_the_handshake_is_fixed_text_around_a_formatted_number():
+    cfg = {"acc": 1.0, "vel": 0.5, "settle_s": 1.5, "handshake_io": 3}
+    s = plan_cmd.measure_script(np.zeros((2, 6)), cfg)
+    assert s.count("  set_standard_digital_out(3, True)\n  while not get_standard_digital_in(3):\n    sync()\n"
+                   "  end\n  set_standard_digital_out(3, False)") == 2
+    for bad in ({"handshake_io": "1); popup(\"x\""}, {"handshake_io": 9}, {"settle_s": float("nan")},
+                {"acc": "1.0"}, {"vel": -1.0}):
+        with pytest.raises(ValueError, match=r"params.yaml plan\."):
+            plan_cmd.measure_script(np.zeros((1, 6)), {**cfg, **bad})
+
+
+def test_every_planned_pose_is_within_the_limits_and_acceptable(side_plan):
+    out, _, rep, params = side_plan
+    robot = load_robot(params["robot"])
+    q = pd.read_csv(out / "poses.csv")[JOINTS_DEG].to_numpy()
+    assert not robot.check_joints(q).any()
+    g = nominal_geometry(robot)
+    failed = poses.rejected(q, g, params["plan"]["rules"], robot.limits_deg, tracker_mm=TRACKER_MM)
+    assert not any(failed), failed
+    assert "tracker_side_deg" in poses.checks(q, g, params["plan"]["rules"], tracker_mm=TRACKER_MM)
+    assert (np.abs(np.sin(np.radians(q[:, 4]))) > params["plan"]["rules"]["sin_wrist"]).all()   # no singular wrist
+    assert rep["tracker"] == {"station": None, "new_station": True, "position_mm": TRACKER_MM, "side_rule_deg": 90.0}
+
+
+def test_a_side_program_goes_from_outside_to_inside_the_trained_workspace(side_plan):
+    """Recomputed with Workspace.parts itself: the training poses plus the planned ones (same radius,
+    the angle maps' coverage by errormaps.coverage with the parts settings)."""
+    out, q_wp, rep, params = side_plan
+    ws = Workspace.from_dict(read_json("models/workspace.json"))
+    before = ws.parts(q_wp)
+    assert before["network"].mean() <= 1 / 6 and before["angle_map"].mean() <= 1 / 6
+    q = pd.read_csv(out / "poses.csv")[JOINTS_DEG].to_numpy()
+    train = np.vstack([ws.train_q, q])
+    a = params["parts"]["angle_map"]
+    cover = angle_coverage(train, [j + 1 for j in np.flatnonzero(ws.angle_cover.any(1))], a["reach_deg"],
+                           a["fade_deg"])
+    after = Workspace(train, ws.radius, 0, 0, 0, None, cover).parts(q_wp)
+    assert after["network"].all() and after["angle_map"].all()
+    c = rep["coverage"]
+    assert c["before"]["all"] <= 1 / 6 and c["after"]["all"] == 1.0 and c["parts_short_after"] == 0
+    assert 0.8 <= c["after_expected_split"] <= 1.0
+    assert rep["n_coverage"] >= 1 and all(w["after"]["all"] for w in c["per_waypoint"])
+
+
+@pytest.mark.parametrize("edit, message", [
+    (lambda d: d.assign(j2_deg=["1.0", "x", "2", "3"]), r"row 3, column 'j2_deg': not a finite number"),
+    (lambda d: d.drop(columns="j5_deg"), r"column 'j5_deg': missing waypoint column 'j5_deg'"),
+    (lambda d: d.assign(j4_deg=[0.0, 0.0, 500.0, 0.0]), r"row 4, column 'j4_deg': 500.0° beyond the joint limits"),
+    (lambda d: d.assign(point_id=["a", "b); popup(1", "c", "d"]), r"row 3, column .point_id.: point id"),
+    (lambda d: d * 0.01, r"look like radians"),
+])
+def test_bad_waypoints_are_named_by_file_row_and_column(in_trained_project, tmp_path, capsys, edit, message):
+    src = tmp_path / "bad.csv"
+    edit(pd.DataFrame(np.tile([[100.0, -80.0, 100.0, -110.0, 80.0, 10.0]], (4, 1)), columns=JOINTS_DEG)).to_csv(
+        src, index=False)
+    code, said = exit_code([str(src), "--n", "5", "--out", str(tmp_path / "o")], capsys)
+    assert code == 2 and re.search(message, said) and str(src) in said and "Traceback" not in said, said
+    assert said.count("\n") == 1 and not (tmp_path / "o").exists()
+
+
+def test_bad_arguments_are_refused(in_trained_project, tmp_path, capsys):
+    src = tmp_path / "ok.csv"
+    pd.DataFrame(sample_poses(2, np.random.default_rng(1), region="side"), columns=JOINTS_DEG).to_csv(src, index=False)
+    a_file = tmp_path / "a_file"
+    a_file.write_text("x")
+    for argv, message in (([str(src), "--n", "0", "--out", str(tmp_path / "o")], "--n 0: plan at least 1 pose"),
+                          ([str(src), "--n", "3", "--out", str(a_file)], "a file, not a folder"),
+                          ([str(src), "--n", "3", "--out", str(tmp_path), "--station", "nowhere"],
+                           "not a station of reports/frame.json"),
+                          ([str(tmp_path / "none.csv"), "--n", "3", "--out", str(tmp_path / "o")], "no such file")):
+        code, said = exit_code(argv, capsys)
+        assert code == 2 and message in said and "Traceback" not in said, said
+    assert a_file.read_text() == "x" and not (tmp_path / "o").exists()
+
+
+# ----------------------------------------------------------------------------- the library, on the twin
+
+def test_the_twin_samples_by_the_library_rules():
+    """twin.sample_poses keeps exactly the poses poses.acceptable accepts (RULES in the region's window)."""
+    g = nominal_geometry(Twin().robot)
+    q = np.round(np.random.default_rng(3).uniform([-60, -160, -160, -270, -160, -180], [60, -20, 160, 90, 160, 180],
+                                                  (2000, 6)), 6)
+    ok = poses.acceptable(q, g, RULES, azimuth_deg=REGIONS["front"][1])
+    assert 0 < ok.sum() < len(q)
+    q_s = sample_poses(50, np.random.default_rng(4))
+    assert poses.acceptable(q_s, g, RULES, azimuth_deg=REGIONS["front"][1]).all()
+    assert not poses.acceptable(q_s, g, RULES, azimuth_deg=REGIONS["side"][1]).any()
+    behind = poses.checks(q_s, g, RULES, tracker_mm=[3000.0, 0.0, 500.0])["tracker_side_deg"]     # tracker behind
+    facing = poses.checks(q_s, g, RULES, tracker_mm=[-3000.0, 0.0, 500.0])["tracker_side_deg"]    # in front
+    assert facing.all() and not behind.any()
+
+
+def test_the_tour_visits_every_pose_once_and_2opt_shortens_it():
+    rng = np.random.default_rng(0)
+    line = np.zeros((12, 6))
+    line[:, 0] = np.arange(12) * 10.0
+    perm = rng.permutation(12)
+    order = planning.tour(line[perm], start=int(np.argmin(perm)))
+    assert sorted(order) == list(range(12)) and perm[order[0]] == 0
+    assert planning.travel(line[perm][order])["max_joint_deg"] == pytest.approx(110.0)      # straight along the line
+    q = rng.uniform(-90, 90, (40, 6))
+    nn, opt = planning.tour(q, 0, passes=0), planning.tour(q, 0)
+    assert sorted(opt) == list(range(40)) and opt[0] == 0
+    assert planning.travel(q[opt])["max_joint_deg"] <= planning.travel(q[nn])["max_joint_deg"]
+
+
+def twin_identification(q_deg, params, sigma):
+    """The twin's identifiable parameters on poses q (names by identify.identifiability at nominal), as an
+    Identification at the twin's true rigid geometry."""
+    g = true_geometry(Twin().errors)
+    cfg = params["calibrate"]
+    J, spec = geometry_jacobian(torch.as_tensor(np.radians(q_deg), dtype=DTYPE), nominal_geometry(Twin().robot), cfg)
+    keep = identifiability(J, [s[0] for s in spec], cfg["rank_tol"])["keep"]
+    return planning.Identification(g, cfg, [s[0] for s, k in zip(spec, keep) if k], sigma)
+
+
+def scratch_plan(q_cand, n, ident, cover=False):
+    """A plan with no training poses yet (from scratch), the candidates given."""
+    cov = planning.Coverage(np.zeros((0, 6)), 30.0, [], 3.0, 5.0)
+    cand = {"q": q_cand, "near": np.full(len(q_cand), -1), "kind": np.array(["region"] * len(q_cand), object),
+            "made": {}, "rejected_by": {}, "waypoints_acceptable": np.ones(0, bool)}
+    return planning.plan(q_cand[:3], n, cov, ident, cand, cover=cover)
+
+
+def log_det(ident, q):
+    A = ident.rows(q, new=True)
+    M = planning.information(A)
+    d = np.sqrt(np.diag(M))
+    return np.linalg.slogdet(M / np.outer(d, d))[1] + 2 * np.log(d).sum()
+
+
+def test_d_optimal_choice_beats_random_choice_on_log_det():
+    params = load_params()
+    q_cand = sample_poses(300, np.random.default_rng(21))
+    ident = twin_identification(q_cand, params, 0.05)
+    chosen = scratch_plan(q_cand, 50, ident).q_deg
+    best = log_det(ident, chosen)
+    rng = np.random.default_rng(22)
+    random_ = [log_det(ident, q_cand[rng.choice(len(q_cand), 50, replace=False)]) for _ in range(20)]
+    assert best > max(random_), (best, max(random_))
+
+
+def test_predicted_standard_errors_agree_with_a_monte_carlo_identification():
+    """The plan's sigma sqrt(diag((JᵀJ)⁻¹)) against the spread of identify() over 12 noisy measurements of
+    the 40 planned poses on the twin's noise-free rigid geometry (Gaussian noise, sigma per coordinate);
+    the geometric groups a, alpha, offset, beta and tool (small, for speed)."""
+    params = load_params()
+    params["calibrate"]["params"] = ["a", "alpha", "offset", "beta", "tool"]
+    sigma = 0.05
+    q_cand = sample_poses(200, np.random.default_rng(31))
+    ident = twin_identification(q_cand, params, sigma)
+    pl = scratch_plan(q_cand, 40, ident)
+    predicted = pl.report["identifiability"]["after"]["se"]
+    q = torch.as_tensor(np.radians(pl.q_deg), dtype=DTYPE)
+    with torch.no_grad():
+        p_true = fk(q, true_geometry(Twin().errors)).numpy()
+    cfg = {**params["calibrate"], "loss": "linear"}
+    rng = np.random.default_rng(32)
+    runs = []
+    for _ in range(12):
+        _, rep = identify(q, p_true + rng.normal(0, sigma, p_true.shape), nominal_geometry(Twin().robot), cfg)
+        assert rep["identified"] == ident.names
+        runs.append([rep["estimates"][k]["delta"] for k in ident.names])
+    ratio = np.std(runs, axis=0, ddof=1) / np.array([predicted[k]["se"] for k in ident.names])
+    # 12 runs: a standard deviation is known to about ±21%; the median over the parameters much better
+    assert 0.8 < np.median(ratio) < 1.2 and ratio.min() > 0.45 and ratio.max() < 1.7, dict(zip(ident.names, ratio))
+
+
+def test_the_criterion_gain_is_the_log_det_increase():
+    """DCriterion's sparse arithmetic (the map block's 4 columns per joint) against dense log dets, with a
+    new station's columns and joint 1's angle map with its priors."""
+    params = load_params()
+    params["calibrate"]["params"] = ["a", "offset", "tool"]
+    q_old, q_new = sample_poses(40, np.random.default_rng(41)), sample_poses(30, np.random.default_rng(42), region="side")
+    ident = twin_identification(q_old, params, 0.05)
+    ident.new_station = True
+    block = planning.MapBlock([1], 10.0, 300.0, 50.0, 0.1)
+    g = ident.geometry
+    crit = planning.DCriterion(ident.rows(q_old, False), *block.rows(q_old, g), ident.rows(q_new, True),
+                               *block.rows(q_new, g), block.precision())
+    dense = crit.dense(crit.A, crit.vals, crit.idx)                               # (30, 3, P), scaled
+    logdet = lambda M: np.linalg.slogdet(M)[1]
+    gains = crit.gains(np.arange(30))
+    for c in (0, 7, 29):
+        assert gains[c] == pytest.approx(logdet(crit.M + dense[c].T @ dense[c]) - logdet(crit.M), rel=1e-7)
+    M0 = crit.M.copy()
+    crit.add(7)
+    np.testing.assert_allclose(crit.M, M0 + dense[7].T @ dense[7])
+    np.testing.assert_allclose(crit.Minv @ crit.M, np.eye(len(M0)), atol=1e-6)
+    assert block.size == 36 and (dense[:, :, crit.Pc:] != 0).sum(-1).max() <= 4      # one joint: 4 knots a pose
