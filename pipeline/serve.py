@@ -212,6 +212,7 @@ def make_server(params: dict, host: str | None = None, port: int | None = None,
     cfg = {**cfg, **{k: v for k, v in (("compile", compile), ("onnx", onnx)) if v is not None}}
     host, port = cfg["host"] if host is None else host, cfg["port"] if port is None else port
     check_artifacts()
+    torch.set_num_threads(cfg["torch_threads"])             # process-wide
     model = load_model(MODEL_WEIGHTS)
     workspace, limits_deg = Workspace.from_dict(read_json(WORKSPACE_JSON)), load_robot(params["robot"]).limits_deg
     tol = params["compensate"]["tol_mm"]

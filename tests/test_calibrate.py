@@ -97,7 +97,8 @@ def test_elastic_calibration_recovers_the_twins_joint_stiffness(masses, rtol):
     flange, rounded elsewhere) the shape of the torques differs slightly: within 8 %.
     """
     e = T.sample_errors()
-    e.update(gear_amp_deg=np.zeros((6, 2)), joint_sigma_deg=0.0, tracker_sigma_mm=0.0)
+    e.update(gear_amp_deg=np.zeros((6, 2)), fine_amp_arcsec=np.zeros_like(e["fine_amp_arcsec"]),
+             joint_sigma_deg=0.0, tracker_sigma_mm=0.0)
     twin = T.Twin(errors=e)
     q = twin.poses(400)
     g0 = nominal_geometry(T.ur5())

@@ -310,10 +310,12 @@ def test_typo_cells_in_joints_drop_their_rows(tmp_path):
 def test_a_typo_does_not_hide_a_wrong_length_unit(tmp_path):
     """Positions in metres read as mm, one cell without its decimal point: the typo is dropped and
     the rest still stops ingest as metres (not 'implausibly large')."""
-    paths, cells = twin_copy(tmp_path, [("tracker", 6, "X", "-16278867")], m_scale=1e-3)   # -1.6278867 m
-    assert cells["tracker"][6][1:] == ["-1.5775106", "1.4860104", "2.4274781"]      # the others: metres
+    metres = twin_copy(tmp_path, m_scale=1e-3)[1]["tracker"][6]            # e.g. -1.5774915 (m)
+    typo = metres[1].replace(".", "")                                       # e.g. -15774915
+    paths, cells = twin_copy(tmp_path, [("tracker", 6, "X", typo)], m_scale=1e-3)
+    assert abs(float(typo)) > 1e6 and all(abs(float(v)) < 3 for v in cells["tracker"][6][2:])  # the others: m
     raises([paths["tracker"], "read as mm", "look like metres", "length_unit: m"], ingest, params(**paths))
-    paths, _ = twin_copy(tmp_path, [("tracker", 6, "X", "-16278867")])     # the other way round:
+    paths, _ = twin_copy(tmp_path, [("tracker", 6, "X", typo)])            # the other way round:
     raises([paths["tracker"], "read as m", "look like millimetres", "length_unit: mm"], ingest,
            twin_params(**paths, length_unit="m"))                                     # every point far off
 

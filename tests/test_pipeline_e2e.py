@@ -149,7 +149,7 @@ def test_repro_from_two_tracker_stations(tmp_path):
     assert frame["R"] == frame["stations"]["a"]["R"]
     metrics = json.loads((repo / "reports/metrics.json").read_text())
     assert {c: v["station"] for c, v in metrics["campaigns"].items()} == {"main": "a", "station_b": "b"}
-    assert metrics["campaigns"]["station_b"]["n"] == {"train": 240, "val": 30, "test": 30}
+    assert metrics["campaigns"]["station_b"]["n"] == {"train": 240, "val": 30, "test": 30, "holdout": 0}
     for c in ("main", "station_b"):
         m = metrics["campaigns"][c]
         assert m["calibrated_dh"]["test"]["mae"] < 0.2 * m["nominal_dh"]["test"]["mae"], c

@@ -57,10 +57,13 @@ def serving(params, host="127.0.0.1", port=0, **kw):
 
 @pytest.fixture(scope="module")
 def server(params):
+    threads = torch.get_num_threads()
     s = serving(params)
+    assert torch.get_num_threads() == params["serve"]["torch_threads"]
     yield s
     s.shutdown()
     s.server_close()
+    torch.set_num_threads(threads)                            # make_server sets it process-wide
 
 
 @pytest.fixture()

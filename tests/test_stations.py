@@ -32,10 +32,13 @@ def rigid(R, t, p):
 
 
 def noiseless_twin(gear=False) -> dict:
+    """The twin's errors without noise; without gear=True also without the joints' gear error and fine
+    structure (what the rigid calibration cannot model)."""
     e = T.sample_errors()
     e.update(joint_sigma_deg=0.0, tracker_sigma_mm=0.0)
     if not gear:
         e["gear_amp_deg"] = np.zeros((6, 2))
+        e["fine_amp_arcsec"] = np.zeros_like(e["fine_amp_arcsec"])
     return e
 
 
@@ -191,7 +194,8 @@ def test_two_twin_stations_recovered_through_frame_and_calibrate_stages(tmp_path
     assert pts[CAMPAIGN].unique().tolist() == ["front", "side"] and pts[STATION].unique().tolist() == ["a", "b"]
     assert pts.point_id.str.startswith("side:B").sum() == 150
     counts = read_json("reports/split.json")["per_campaign"]
-    assert counts["side"] == {k: len(v) for k, v in split_indices(150, [0.8, 0.1, 0.1], 7).items()}
+    assert counts["side"] == {**{k: len(v) for k, v in split_indices(150, [0.8, 0.1, 0.1], 7).items()},
+                              "holdout": 0}
     side = pts[pts[CAMPAIGN] == "side"]
     expected = np.empty(150, object)
     for name, rows in split_indices(150, [0.8, 0.1, 0.1], 7).items():

@@ -10,7 +10,7 @@ import torch
 from pipeline.lib import twin as T
 from pipeline.lib.columns import JOINTS_DEG
 from pipeline.lib.config import load_params
-from pipeline.lib.kinematics import DTYPE, fk, fk_numpy
+from pipeline.lib.kinematics import DTYPE, fk, fk_numpy, link_frames
 
 ROOT = Path(__file__).resolve().parents[1]
 RAW = ROOT / "data" / "raw"
@@ -83,7 +83,7 @@ def test_gravity_torque_of_a_stretched_arm():
     g = T.true_geometry(T.zero_errors())
     q = torch.zeros(1, 6, dtype=DTYPE)
     tau = T.gravity_torques(q, g)[0].numpy()
-    F = T.link_frames(q, g)[0].numpy()
+    F = link_frames(q, g)[0].numpy()
     com = np.einsum("kij,kj->ki", F[1:, :3, :3], T.LINK_COM) + F[1:, :3, 3]
     lever = com[1:, 0] - F[1, 0, 3]                             # x offsets from the shoulder
     expected = (T.LINK_MASS[1:] * 9.80665 * lever).sum() / 1000.0

@@ -48,7 +48,7 @@ SECTIONS = {
              "acc", "vel"),
     "plan.rules": ("radius_mm", "height_mm", "elbow_up", "elbow_min_mm", "table_mm", "column_mm", "sin_elbow",
                    "sin_wrist", "tracker_side_deg"),
-    "serve": ("host", "port", "unreachable_mm", "onnx", "compile", "max_iter", "budget_ms", "stall_iter",
+    "serve": ("host", "port", "unreachable_mm", "onnx", "torch_threads", "compile", "max_iter", "budget_ms", "stall_iter",
               "stall_ratio", "max_batch", "batch_wait_ms", "max_items", "max_body_bytes", "timeout_s", "echo_chars"),
 }
 
