@@ -2,7 +2,7 @@
 
 `trained_project`: a project directory with trained artifacts, for the tests of what runs on them
 (the service, the program compensator, the exports). The project itself when `dvc repro` has made
-them; on a fresh clone (CI runs the tests before any repro) the pipeline's stages, run on the
+them and they are current; on a fresh clone, or after a change to the code or params, (CI runs the tests before any repro) the pipeline's stages, run on the
 bundled twin campaign with a small model in a scratch directory (~1 min, once per session).
 """
 import os
@@ -52,9 +52,17 @@ def project_points(params: dict) -> pd.DataFrame:
 
 @pytest.fixture(scope="session")
 def trained_project(tmp_path_factory) -> Path:
-    if all((ROOT / p).exists() for p in NEEDED):
-        return ROOT
-    return small_project(tmp_path_factory.mktemp("project"))
+    return ROOT if up_to_date(ROOT) else small_project(tmp_path_factory.mktemp("project"))
+
+
+def up_to_date(root: Path) -> bool:
+    """The project's own artifacts exist and `dvc status` finds STAGES current (artifacts a repro made
+    before a code change are stale: the tests then build their own)."""
+    if not all((root / p).exists() for p in NEEDED):
+        return False
+    r = subprocess.run(["dvc", "status", "--quiet", "--with-deps", *STAGES], cwd=root, capture_output=True,
+                       env={**ENV, "DVC_NO_ANALYTICS": "1"})
+    return r.returncode == 0
 
 
 @pytest.fixture
