@@ -402,6 +402,13 @@ def curve_summary(runs: dict) -> dict:
 
 # ----------------------------------------------------------------------------- the command
 
+def save(key: str, rec: dict) -> None:
+    """Merge one record into plan.json, re-read first (a closed loop and a curve may run side by side)."""
+    out = read_json(OUT) if OUT.exists() else {}
+    out[key] = rec
+    write_json(OUT, out)
+
+
 def bench_plan(n: int = 60, seeds=(139, 140, 141), waypoints: int = 20, variants=VARIANTS, curve: bool = False,
                sizes=(25, 50, 100, 200, 400, 700), overrides=(), epochs: int | None = None, se_runs: int = 5,
                threads: int | None = None, work: int = 40, keep: str | None = None, new_station: bool = True) -> dict:
@@ -409,7 +416,6 @@ def bench_plan(n: int = 60, seeds=(139, 140, 141), waypoints: int = 20, variants
     folder for the scratch projects, kept (default: a temporary one, removed)."""
     if threads:
         torch.set_num_threads(threads)
-    out = read_json(OUT) if OUT.exists() else {}
     key = ("learning_curve" if curve else "closed_loop" + ("" if new_station else "_same_station")) \
         + ("@" + ",".join(overrides) if overrides else "")
     rec = {"machine": machine(), "overrides": list(overrides), "epochs": epochs, "seeds": list(seeds)}
@@ -426,8 +432,7 @@ def bench_plan(n: int = 60, seeds=(139, 140, 141), waypoints: int = 20, variants
                                                        se_runs if s == seeds[0] else 0, scratch, new_station)
                 rec["summary"] = closed_loop_summary(rec["runs"], variants)
                 rec["seconds"] = time.perf_counter() - t0
-                out[key] = rec
-                write_json(OUT, out)
+                save(key, rec)
         else:
             twin = Twin.from_json(ROOT / load_params(ROOT / "params.yaml")["compensate"]["twin"])
             q_fc = sample_poses(FRONT_CHECK["n"], np.random.default_rng(FRONT_CHECK["seed"]), twin.robot)
@@ -444,6 +449,5 @@ def bench_plan(n: int = 60, seeds=(139, 140, 141), waypoints: int = 20, variants
                                  r["validation"]["front_check"]["mean_3d_mm"]["model"])
                         rec["summary"] = curve_summary(rec["runs"])
                         rec["seconds"] = time.perf_counter() - t0
-                        out[key] = rec
-                        write_json(OUT, out)
+                        save(key, rec)
     return rec
