@@ -31,7 +31,6 @@ candidate: nothing written); 2 bad input (one line naming file, row and column; 
 """
 import argparse
 import math
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -46,16 +45,12 @@ from .lib.identify import parameter_spec
 from .lib.kinematics import nominal_geometry
 from .lib.planning import Coverage, Identification, MapBlock, candidates, plan, program_joints
 from .lib.robots import load_robot
-from .lib.waypoints import read_waypoints
+from .lib.waypoints import Refused, one_line, read_waypoints
 from .lib.workspace import Workspace
 
 log = logger(__name__)
 PARAMS = ("robot", "calibrate", "parts", "split", "plan")
 FILES = ("poses.csv", "measure.script", "plan.json")
-
-
-class Refused(Exception):
-    """Nothing can be planned (no acceptable candidate); the message says why."""
 
 
 def pose_ids(n: int) -> list[str]:
@@ -204,15 +199,7 @@ def run(argv=None) -> dict:
 
 
 def main(argv=None):
-    """run(), with bad input (exit 2) and a refused plan (exit 1) said in one message, no traceback."""
-    try:
-        return run(argv)
-    except Refused as e:
-        print(f"pipeline.plan: refused: {e}", file=sys.stderr)
-        raise SystemExit(1) from None
-    except (ValueError, OSError) as e:                   # IngestError is a ValueError
-        print(f"pipeline.plan: error: {e}", file=sys.stderr)
-        raise SystemExit(2) from None
+    return one_line("pipeline.plan", run, argv)
 
 
 if __name__ == "__main__":

@@ -26,7 +26,6 @@ Bad input exits 2 with the file, row (the header is row 1) and column. Needs a f
 `dvc repro` (model, workspace, frame).
 """
 import argparse
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -38,7 +37,7 @@ from .lib.config import for_stage, load_params, logger, read_json
 from .lib.geometry import theory_geometry
 from .lib.robots import load_robot
 from .lib.training import load_model
-from .lib.waypoints import ID_PATTERN, Refused, compensate_program, read_waypoints, unreached  # noqa: F401
+from .lib.waypoints import ID_PATTERN, Refused, compensate_program, one_line, read_waypoints, unreached  # noqa: F401
 from .lib.workspace import Workspace
 
 log = logger(__name__)
@@ -115,15 +114,7 @@ def run(argv=None) -> pd.DataFrame:
 
 
 def main(argv=None):
-    """run(), with bad input (exit 2) and a refused program (exit 1) said in one message, no traceback."""
-    try:
-        return run(argv)
-    except Refused as e:
-        print(f"pipeline.program: refused: {e}", file=sys.stderr)
-        raise SystemExit(1) from None
-    except (ValueError, OSError) as e:                   # IngestError is a ValueError
-        print(f"pipeline.program: error: {e}", file=sys.stderr)
-        raise SystemExit(2) from None
+    return one_line("pipeline.program", run, argv)
 
 
 if __name__ == "__main__":

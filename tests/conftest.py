@@ -70,3 +70,14 @@ def in_trained_project(trained_project, monkeypatch):
     """The working directory set to trained_project; its params."""
     monkeypatch.chdir(trained_project)
     return load_params()
+
+
+def exit_code(main, argv, capsys) -> tuple[int, str]:
+    """A command's exit code (0 when main returns) and what it said on stderr and stdout."""
+    try:
+        main(argv)
+        code = 0
+    except SystemExit as e:
+        code = e.code
+    out = capsys.readouterr()
+    return code, out.err + out.out

@@ -13,6 +13,7 @@ import pandas as pd
 import pytest
 import torch
 
+from conftest import exit_code
 from pipeline import plan as plan_cmd
 from pipeline.lib import planning, poses
 from pipeline.lib.columns import JOINTS_DEG
@@ -28,15 +29,6 @@ from pipeline.lib.workspace import Workspace
 N = 16
 TRACKER_MM = [-1200.0, -2600.0, 900.0]          # a new tracker placement facing the side of the arm
 
-
-def exit_code(argv, capsys) -> tuple[int, str]:
-    try:
-        plan_cmd.main(argv)
-        code = 0
-    except SystemExit as e:
-        code = e.code
-    out = capsys.readouterr()
-    return code, out.err + out.out
 
 
 @pytest.fixture(scope="module")
@@ -157,7 +149,7 @@ def test_bad_waypoints_are_named_by_file_row_and_column(in_trained_project, tmp_
     src = tmp_path / "bad.csv"
     edit(pd.DataFrame(np.tile([[100.0, -80.0, 100.0, -110.0, 80.0, 10.0]], (4, 1)), columns=JOINTS_DEG)).to_csv(
         src, index=False)
-    code, said = exit_code([str(src), "--n", "5", "--out", str(tmp_path / "o")], capsys)
+    code, said = exit_code(plan_cmd.main, [str(src), "--n", "5", "--out", str(tmp_path / "o")], capsys)
     assert code == 2 and re.search(message, said) and str(src) in said and "Traceback" not in said, said
     assert said.count("\n") == 1 and not (tmp_path / "o").exists()
 
@@ -172,7 +164,7 @@ def test_bad_arguments_are_refused(in_trained_project, tmp_path, capsys):
                           ([str(src), "--n", "3", "--out", str(tmp_path), "--station", "nowhere"],
                            "not a station of reports/frame.json"),
                           ([str(tmp_path / "none.csv"), "--n", "3", "--out", str(tmp_path / "o")], "no such file")):
-        code, said = exit_code(argv, capsys)
+        code, said = exit_code(plan_cmd.main, argv, capsys)
         assert code == 2 and message in said and "Traceback" not in said, said
     assert a_file.read_text() == "x" and not (tmp_path / "o").exists()
 

@@ -7,6 +7,7 @@ import pandas as pd
 import pytest
 import torch
 
+from conftest import exit_code
 from pipeline import program
 from pipeline.lib.artifacts import load_points
 from pipeline.lib.columns import JCOMP_DEG, JOINTS_DEG, TARGET, THEORY
@@ -78,16 +79,6 @@ def program_file(tmp_path, n=6, **columns) -> Path:
     return src
 
 
-def exit_code(argv, capsys) -> tuple[int, str]:
-    """pipeline.program's exit code (0 when it returns) and what it said on stderr and stdout."""
-    try:
-        program.main(argv)
-        code = 0
-    except SystemExit as e:
-        code = e.code
-    out = capsys.readouterr()
-    return code, out.err + out.out
-
 
 def test_an_id_cannot_inject_urscript(in_trained_project, tmp_path, capsys):
     """Issue 21, defect 1: a point id with a newline put live lines into the URScript comment. Now every
@@ -96,11 +87,11 @@ def test_an_id_cannot_inject_urscript(in_trained_project, tmp_path, capsys):
         ids = [f"W{i}" for i in range(6)]
         ids[2] = bad
         src = program_file(tmp_path, point_id=ids)
-        code, said = exit_code([str(src)], capsys)
+        code, said = exit_code(program.main, [str(src)], capsys)
         assert code == 2 and "row 4" in said and "Traceback" not in said, said
         assert not (tmp_path / "prog_comp.script").exists() and not (tmp_path / "prog_comp.csv").exists()
     ok = program_file(tmp_path, point_id=["a:1", "b_2", "c-3", "d.4", "E5", "f6"])   # campaign ids pass
-    assert exit_code([str(ok)], capsys)[0] == 0
+    assert exit_code(program.main, [str(ok)], capsys)[0] == 0
     script = (tmp_path / "prog_comp.script").read_text()
     for line in script.splitlines():                   # every line is ours: a comment, def/end, a number
         assert re.fullmatch(r"(# .*|def compensated_program\(\):|end|  (acc|vel) = [0-9.]+|  # [A-Za-z0-9_.:-]+: "
@@ -116,15 +107,15 @@ def test_an_unreached_waypoint_never_becomes_a_move(in_trained_project, tmp_path
     target[2] = [0.0, 0.0, 1.0]                                             # inside the reach, unreachable
     src = tmp_path / "prog.csv"
     pts[JOINTS_DEG].assign(point_id=["A", "B", "C", "D"], **dict(zip(TARGET, target.T))).to_csv(src, index=False)
-    code, said = exit_code([str(src)], capsys)
+    code, said = exit_code(program.main, [str(src)], capsys)
     assert code == 1 and "B: target 5000.0 mm from the base, beyond the arm's reach" in said
     assert not (tmp_path / "prog_comp.script").exists()
     target[1] = pts[THEORY].to_numpy()[1]
     pts[JOINTS_DEG].assign(point_id=["A", "B", "C", "D"], **dict(zip(TARGET, target.T))).to_csv(src, index=False)
-    code, said = exit_code([str(src)], capsys)
+    code, said = exit_code(program.main, [str(src)], capsys)
     assert code == 1 and "NOT REACHED C: residual" in said and "nothing written" in said
     assert not (tmp_path / "prog_comp.script").exists() and not (tmp_path / "prog_comp.csv").exists()
-    code, said = exit_code([str(src), "--comment-out-unreached"], capsys)
+    code, said = exit_code(program.main, [str(src), "--comment-out-unreached"], capsys)
     assert code == 0 and "1 not reached" in said
     script = (tmp_path / "prog_comp.script").read_text()
     assert script.count("movej(") == 3 and "  # C: NOT REACHED (residual" in script
@@ -137,7 +128,7 @@ def test_radians_in_degree_columns_are_refused(in_trained_project, tmp_path, cap
     pts = load_points().query("split == 'test'").head(5)
     src = tmp_path / "rad.csv"
     np.radians(pts[JOINTS_DEG]).to_csv(src, index=False)
-    code, said = exit_code([str(src)], capsys)
+    code, said = exit_code(program.main, [str(src)], capsys)
     assert code == 2 and "look like radians" in said and not (tmp_path / "rad_comp.script").exists()
 
 
@@ -148,7 +139,7 @@ def test_empty_files_separators_and_outputs_over_the_input(in_trained_project, t
     empty.write_text("")
     header.write_text(",".join(JOINTS_DEG) + "\n")
     for f, why in ((empty, "the file is empty"), (header, "no data rows below the header")):
-        code, said = exit_code([str(f)], capsys)
+        code, said = exit_code(program.main, [str(f)], capsys)
         assert code == 2 and why in said and "Traceback" not in said
     pts = load_points().query("split == 'test'").head(3)
     semi = tmp_path / "semi.csv"
@@ -156,7 +147,7 @@ def test_empty_files_separators_and_outputs_over_the_input(in_trained_project, t
         ";".join(f"{v:.6f}".replace(".", ",") for v in row) for row in pts[JOINTS_DEG].to_numpy()) + "\n")
     table = program.run([str(semi)])
     np.testing.assert_allclose(table[JOINTS_DEG].to_numpy(), pts[JOINTS_DEG].to_numpy(), atol=1e-6)
-    code, said = exit_code([str(semi), "--out", str(semi)], capsys)
+    code, said = exit_code(program.main, [str(semi), "--out", str(semi)], capsys)
     assert code == 2 and "must differ" in said
 
 
@@ -167,6 +158,6 @@ def test_waypoints_outside_the_workspace_are_in_the_summary(in_trained_project, 
     q[1] = [150.0, -30.0, 40.0, 10.0, -120.0, 0.0]                    # far from the twin's campaign
     src = tmp_path / "far.csv"
     pd.DataFrame(q, columns=JOINTS_DEG).assign(point_id=["P", "FAR", "Q"]).to_csv(src, index=False)
-    code, said = exit_code([str(src)], capsys)
+    code, said = exit_code(program.main, [str(src)], capsys)
     assert code == 0 and "outside the trained workspace" in said
     assert re.search(r"  FAR: [0-9.]+ workspace radii from the nearest training pose", said)

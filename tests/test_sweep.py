@@ -52,18 +52,25 @@ def test_unknown_engine_and_group_are_named():
         ablation.run_groups(load_params(), ["nope"])
 
 
+def small_ablation(trained_project, folder, monkeypatch, epochs: int) -> dict:
+    """The trained project's inputs (FILES) copied to folder, made the working directory; params for a
+    two-seed ablation of a small model trained `epochs` epochs."""
+    for f in FILES:
+        (folder / f).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy(trained_project / f, folder / f)
+    params = load_params(trained_project / "params.yaml")
+    params["model"].update(d_model=12, n_head=2, n_layer=1, d_hidden=32)
+    params["train"].update(max_epochs=epochs, patience=epochs)
+    params["ablation"].update(seeds=[3, 4], max_epochs=None)
+    monkeypatch.chdir(folder)
+    return params
+
+
 @pytest.mark.slow
 def test_two_run_sweep_on_ray_equals_sequential(trained_project, tmp_path, monkeypatch):
     """Two training runs (two seeds of one ablation group, a small model) as Ray tasks on a local
     Ray instance and one after the other: identical test metrics, epoch for epoch."""
-    for f in FILES:
-        (tmp_path / f).parent.mkdir(parents=True, exist_ok=True)
-        shutil.copy(trained_project / f, tmp_path / f)
-    params = load_params(trained_project / "params.yaml")
-    params["model"].update(d_model=12, n_head=2, n_layer=1, d_hidden=32)
-    params["train"].update(max_epochs=4, patience=4)
-    params["ablation"].update(seeds=[3, 4], max_epochs=None)
-    monkeypatch.chdir(tmp_path)
+    params = small_ablation(trained_project, tmp_path, monkeypatch, epochs=4)
     out = {}
     for engine in ("sequential", "ray"):
         r = ablation.run_groups(params, ["no_resnet"], engine, threads=1)
@@ -112,14 +119,7 @@ def test_sweep_and_fleet_on_a_two_node_cluster(trained_project, tmp_path, monkey
     the sequential engine (one torch thread each), one run on each node, the code imported from the
     package Ray shipped with the tasks, not from the project. Then a one-robot fleet on it: the robot's
     folder goes to its task as bytes and comes back as bytes, written here."""
-    for f in FILES:
-        (tmp_path / f).parent.mkdir(parents=True, exist_ok=True)
-        shutil.copy(trained_project / f, tmp_path / f)
-    params = load_params(trained_project / "params.yaml")
-    params["model"].update(d_model=12, n_head=2, n_layer=1, d_hidden=32)
-    params["train"].update(max_epochs=3, patience=3)
-    params["ablation"].update(seeds=[3, 4], max_epochs=None)
-    monkeypatch.chdir(tmp_path)
+    params = small_ablation(trained_project, tmp_path, monkeypatch, epochs=3)
     seq = ablation.run_groups(params, ["baseline"], "sequential", threads=1)
     seq_runs = json.loads((tmp_path / "reports/ablation/baseline.json").read_text())["runs"]
     ray_ = ablation.run_groups(params, ["baseline"], "ray", address=two_nodes.address, threads=1)

@@ -9,6 +9,7 @@ pipeline.plan`) and the benchmarks.
     ID_PATTERN                       what a point id may be: it reaches a URScript comment
 """
 import re
+import sys
 
 import numpy as np
 import pandas as pd
@@ -24,7 +25,20 @@ ID_PATTERN = re.compile(r"[A-Za-z0-9_.:-]{1,64}")          # what a point id may
 
 
 class Refused(Exception):
-    """The program has waypoints that must not become moves; the message lists them."""
+    """What a command was asked cannot be done safely (waypoints that must not become moves, nothing to
+    plan); the message says why."""
+
+
+def one_line(command: str, run, argv=None):
+    """run(argv), with bad input (exit 2) and a refusal (exit 1) said in one message, no traceback."""
+    try:
+        return run(argv)
+    except Refused as e:
+        print(f"{command}: refused: {e}", file=sys.stderr)
+        raise SystemExit(1) from None
+    except (ValueError, OSError) as e:                   # IngestError is a ValueError
+        print(f"{command}: error: {e}", file=sys.stderr)
+        raise SystemExit(2) from None
 
 
 def read_waypoints(path, robot) -> pd.DataFrame:
