@@ -9,3 +9,8 @@ COMMANDS = ("bench", "serve", "program", "plan", "fleet", "ablation", "preset", 
 # Before numpy loads: BLAS threads on the small matrices here only fight torch's
 # threads (measured 5-10x slower calibration with them).
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+# MKL (torch's BLAS and vector math on x86) on one thread: with two, float64 results differed in the last
+# bits in about one process in six on the 2-core Xeon (up to 1e-9 mm after one FK), so a fresh clone's
+# `dvc repro` could differ from dvc.lock. torch's own intra-op threads stay. Training costs ~1.7x the
+# time; a later torch.set_num_threads(n) gives MKL n threads again (sweep jobs with n > 1, benchmarks).
+os.environ.setdefault("MKL_NUM_THREADS", "1")
