@@ -8,6 +8,7 @@ from pathlib import Path
 import pytest
 
 from pipeline import ablation, fleet
+from pipeline.bench.real import localized
 from pipeline.lib import sweep
 from pipeline.lib.config import load_params
 
@@ -143,3 +144,24 @@ def test_sweep_and_fleet_on_a_two_node_cluster(trained_project, tmp_path, monkey
     for name in ("campaign/tracker.csv", "params.yaml", "models/boter.pt", "models/model.onnx", "reports/index.md",
                  "logs/train.log"):
         assert (tmp_path / "out/ur5_01" / name).is_file(), name
+
+
+def test_localized_inputs_keep_one_table_one_file(tmp_path):
+    """bench real's seeds carry their campaigns' inputs (localized): a campaign whose joints and positions
+    are one table (ipa-ur10's Series_B) must stay one file, or ingest reads it as two and asks for a point
+    id column (the defect: bench real failed on the ipa-ur10 preset's validation campaigns)."""
+    src = tmp_path / "src"
+    src.mkdir()
+    (src / "table.csv").write_text("j1\n1\n")
+    (src / "joints.csv").write_text("point_id\nA\n")
+    (src / "tracker.csv").write_text("Name\nA\n")
+    one, two = str(src / "table.csv"), {"joints": str(src / "joints.csv"), "tracker": str(src / "tracker.csv")}
+    params = {"ingest": two, "campaigns": {"more": None},
+              "validate": {"campaigns": {"b": {"ingest": {"joints": one, "tracker": one}}}}}
+    out = tmp_path / "out"
+    p = localized(params, out)
+    b = p["validate"]["campaigns"]["b"]["ingest"]
+    assert b["joints"] == b["tracker"] and (out / b["joints"]).read_text() == "j1\n1\n"
+    assert p["ingest"]["joints"] != p["ingest"]["tracker"]
+    assert (out / p["ingest"]["tracker"]).read_text() == "Name\nA\n"
+    assert params["validate"]["campaigns"]["b"]["ingest"]["joints"] == one           # the input left as it was

@@ -152,11 +152,14 @@ def localized(params: dict, folder: Path) -> dict:
     ingests = ([("main", p["ingest"])] + [(n, c["ingest"]) for n, c in (p["campaigns"]["more"] or {}).items()]
                + [(n, c["ingest"]) for n, c in (p["validate"]["campaigns"] or {}).items()])
     for name, ingest in ingests:
+        copied = {}                                   # one table holding joints and positions stays one file
         for k in ("joints", "tracker"):
-            rel = Path("inputs", name, k + "_" + Path(ingest[k]).name)
-            (folder / rel).parent.mkdir(parents=True, exist_ok=True)
-            shutil.copyfile(ingest[k], folder / rel)
-            ingest[k] = rel.as_posix()
+            src = Path(ingest[k]).resolve()
+            if src not in copied:
+                copied[src] = Path("inputs", name, k + "_" + src.name)
+                (folder / copied[src]).parent.mkdir(parents=True, exist_ok=True)
+                shutil.copyfile(src, folder / copied[src])
+            ingest[k] = copied[src].as_posix()
     return p
 
 
