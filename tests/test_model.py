@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from pipeline.lib.kinematics import nominal_geometry
-from pipeline.lib.model import Ensemble, BODY_MASK, BoTER, attention_mask, check_config
+from pipeline.lib.model import Ensemble, BODY_MASK, BoTER, attention_mask, check_config, encoder_for_export
 from pipeline.lib.robots import nominal_robot
 
 G = nominal_geometry(nominal_robot("ur5"))
@@ -121,3 +121,17 @@ def test_ensemble_batched_prediction_equals_its_members_averaged_one_by_one():
     fresh.load_state_dict(ens.state_dict())
     with torch.no_grad():
         torch.testing.assert_close(fresh.eval()(q)[0], p, rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("mask", ["spi", "body", "none"])
+def test_the_encoder_for_export_computes_what_the_module_computes(mask):
+    """The export's leaner encoder (fewer ONNX nodes) against nn.TransformerEncoder, on the paper's
+    size and a batch of poses: the same numbers to float32 rounding, the mask obeyed."""
+    torch.manual_seed(0)
+    m = BoTER(G, mask=mask, **{**SMALL, "d_model": 126, "n_layer": 4, "n_head": 9}).eval()
+    x = m.embed(torch.as_tensor(np.radians(np.random.default_rng(1).uniform(-170, 170, (17, 6)))).float())
+    with torch.no_grad():
+        want = m.encoder(x, mask=m.mask, is_causal=False)
+        got = encoder_for_export(m.encoder, x, m.mask)
+    assert want.abs().max() > 0.1
+    torch.testing.assert_close(got, want, rtol=0, atol=2e-5)

@@ -123,7 +123,9 @@ class BoTER(nn.Module):
 
     def correction(self, q):                               # (B, 6) rad -> α·Δp (B, 3), float64
         x = self.embed(q.float())                          # (B, 6, d)
-        if self.encoder is not None:
+        if self.encoder is not None and torch.compiler.is_exporting():
+            x = encoder_for_export(self.encoder, x, self.mask)
+        elif self.encoder is not None:
             x = self.encoder(x, mask=self.mask, is_causal=False)   # (B, 6, d); skips a causal-mask probe
         return (self.alpha * self.head(x.flatten(1))).to(DTYPE)   # (B, 6d) -> (B, 3)
 
@@ -146,6 +148,26 @@ class BoTER(nn.Module):
             maps.append(w)
             x = layer(x, src_mask=self.mask)
         return torch.stack(maps)
+
+
+def encoder_for_export(encoder: nn.TransformerEncoder, x, mask):
+    """encoder(x, mask) for ONNX export, the same arithmetic in fewer graph nodes: the tokens kept as
+    one (B·6, d) matrix between layers (a Gemm each linear, no reshapes around them), q, k, v split
+    once. A post-norm ReLU nn.TransformerEncoderLayer in eval mode (what BoTER builds); the answers
+    equal the module's to float32 rounding (tests/test_export.py). (B, 6, d) -> (B, 6, d)."""
+    B, n, d = x.shape
+    masked = torch.zeros(n, n).masked_fill(mask, float("-inf")) if mask is not None else 0.0   # (6, 6)
+    x = x.reshape(B * n, d)
+    for layer in encoder.layers:
+        a = layer.self_attn
+        h = a.num_heads
+        qkv = nn.functional.linear(x, a.in_proj_weight, a.in_proj_bias)            # (B·6, 3d)
+        q, k, v = qkv.reshape(B, n, 3, h, d // h).permute(2, 0, 3, 1, 4).unbind(0)   # 3 × (B, h, 6, d/h)
+        w = torch.softmax((q * (d // h) ** -0.5) @ k.transpose(-1, -2) + masked, -1)   # (B, h, 6, 6)
+        y = (w @ v).transpose(1, 2).reshape(B * n, d)                              # (B·6, d)
+        x = layer.norm1(x + a.out_proj(y))
+        x = layer.norm2(x + layer.linear2(torch.relu(layer.linear1(x))))
+    return x.reshape(B, n, d)
 
 
 class Ensemble(nn.Module):
