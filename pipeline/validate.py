@@ -22,6 +22,7 @@ from .lib.artifacts import (CALIBRATED_GEOMETRY, FRAME_JSON, MODEL_WEIGHTS, PART
 from .lib.campaigns import named_campaign
 from .lib.columns import JOINTS_DEG, MEAS
 from .lib.config import check_keys, for_stage, load_params, logger, read_json, write_json
+from .lib.errormaps import angle_covered
 from .lib.geometry import Calibration, at_temperature, theory_geometry, with_parts
 from .lib.kinematics import DTYPE, fk_numpy, flange_rotations
 from .lib.presets import deep_merge
@@ -75,10 +76,10 @@ def per_joint_coverage(ws: Workspace, q: np.ndarray, table: pd.DataFrame) -> dic
     if ws.angle_cover is None:
         return {}
     judged = ~table.registered.to_numpy()
-    b = np.floor(np.remainder(q, 360.0)).astype(int) % 360
+    covered = angle_covered(ws.angle_cover, q)                                 # (n, 6)
     out = {}
     for j in np.flatnonzero(ws.angle_cover.any(1)):
-        m = judged & (ws.angle_cover[j, b[:, j]] >= 1.0)
+        m = judged & covered[:, j]
         out[f"j{j + 1}"] = {"share": float(m.sum() / max(judged.sum(), 1)),
                             **{k: (float(table.loc[m, f"error_{k}_mm"].mean()) if m.any() else None)
                                for k in ("calibrated", "calibrated_parts", "model")}}

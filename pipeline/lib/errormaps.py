@@ -98,16 +98,21 @@ def coverage(train_q_deg: np.ndarray, joints, reach_deg: float, fade_deg: float)
     return out
 
 
+def angle_covered(cover: np.ndarray, q_deg: np.ndarray) -> np.ndarray:
+    """(n, 6) bool: joint j's angle of pose i lies in a 1° bin its map covers (cover (6, 360), the
+    bins' coverage weights, `coverage`; bin = floor(q mod 360)). What the workspace guard, validate's
+    per-joint shares and the planner all call covered."""
+    b = np.floor(np.remainder(np.atleast_2d(q_deg), 360.0)).astype(int) % 360   # (n, 6)
+    return np.asarray(cover)[np.arange(6), b] >= 1.0
+
+
 def in_range(q_deg: np.ndarray, tau: np.ndarray, maps: dict) -> dict:
     """Per pose (n,) bool: every mapped joint's angle inside its coverage ("angle_map"), every mapped
     joint's torque inside its trained range ("load_map")."""
     out = {}
     if "amap_cover" in maps:
         cover = np.asarray(maps["amap_cover"])
-        on = cover.any(1)
-        b = np.floor(np.remainder(q_deg, 360.0)).astype(int) % 360
-        ok = cover[np.arange(6), b] >= 1.0                                 # (n, 6)
-        out["angle_map"] = ok[:, on].all(1)
+        out["angle_map"] = angle_covered(cover, q_deg)[:, cover.any(1)].all(1)
     if "lmap_step" in maps:
         lo, step = np.asarray(maps["lmap_lo"]), np.asarray(maps["lmap_step"])
         n, on = np.asarray(maps["lmap_coef"]).shape[1] - 3, np.asarray(maps["lmap_step"]) > 0

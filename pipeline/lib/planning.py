@@ -43,7 +43,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import torch
 
-from .errormaps import ARCSEC, calibration_like, cubic_weights, second_difference
+from .errormaps import ARCSEC, angle_covered, calibration_like, cubic_weights, second_difference
 from .errormaps import coverage as angle_coverage
 from .identify import geometry_jacobian, is_angular
 from .kinematics import DTYPE, fk, fk_jacobian
@@ -102,14 +102,12 @@ class Coverage:
         q = np.atleast_2d(q_wp)
         net = self.parts(q)["network"] if len(self.train_q) else np.zeros(len(q), bool)
         cover = self.workspace().angle_cover if self.joints and len(self.train_q) else np.zeros((6, 360))
+        covered = angle_covered(cover, q)                                       # (n, 6)
         out = []
         for w in range(len(q)):
             if not net[w]:
                 out.append((w, "network"))
-            for j in self.joints:
-                b = int(np.floor(np.remainder(q[w, j - 1], 360.0))) % 360
-                if cover[j - 1, b] < 1.0:
-                    out.append((w, f"joint{j}"))
+            out += [(w, f"joint{j}") for j in self.joints if not covered[w, j - 1]]
         return out
 
     def satisfies(self, cand_q, q_wp, reqs) -> np.ndarray:

@@ -24,6 +24,8 @@ import numpy as np
 import torch
 from torch import nn
 
+from .errormaps import angle_covered
+
 JOINTS = [0, 1, 2, 3, 4]                                   # joints 1-5 (0-based)
 
 
@@ -120,9 +122,7 @@ class Workspace:
         q = np.atleast_2d(np.asarray(q_deg, float))
         out = {"network": self.distance(q) <= self.radius}
         if self.angle_cover is not None:
-            on = self.angle_cover.any(1)
-            b = np.floor(np.remainder(q, 360.0)).astype(int) % 360
-            out["angle_map"] = (self.angle_cover[np.arange(6), b] >= 1.0)[:, on].all(1)
+            out["angle_map"] = angle_covered(self.angle_cover, q)[:, self.angle_cover.any(1)].all(1)
         else:
             out["angle_map"] = np.ones(len(q), bool)
         return out
