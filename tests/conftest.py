@@ -1,11 +1,14 @@
 """Shared test setup: importing the package first pins BLAS threads (see pipeline/__init__.py).
 
-`trained_project`: a project directory with trained artifacts, for the tests of what runs on them
-(the service, the program compensator, the exports). The project itself when `dvc repro` has made
-them and they are current; on a fresh clone, or after a change to the code or params, (CI runs the tests before any repro) the pipeline's stages, run on the
-bundled twin campaign with a small model in a scratch directory (~1 min, once per session).
+`reproduced`: a fresh git+DVC copy of the project (the committed files, a small model) after `dvc repro`
+(~1 min, once per test session, shared by the xdist workers: the first to need it builds it under a
+file lock). `trained_project`: a project directory with trained artifacts, for the tests of what runs on
+them (the service, the program compensator, the exports): the project itself when `dvc repro` has made
+them and they are current; on a fresh clone (CI runs the tests before any repro), or after a change to
+the code or params, `reproduced`. Both are read only: a test that changes a project works on a copy.
 """
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -13,6 +16,7 @@ from pathlib import Path
 import pandas as pd
 import pytest
 import yaml
+from filelock import FileLock
 
 import pipeline  # noqa: F401
 from pipeline.lib.artifacts import load_points
@@ -22,6 +26,8 @@ from pipeline.lib.robots import load_robot
 
 ROOT = Path(__file__).resolve().parents[1]
 ENV = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
+GIT_ENV = {**os.environ, "DVC_NO_ANALYTICS": "1", "GIT_AUTHOR_NAME": "ci", "GIT_AUTHOR_EMAIL": "ci@example.com",
+           "GIT_COMMITTER_NAME": "ci", "GIT_COMMITTER_EMAIL": "ci@example.com"}
 SMALL = {"model": {"d_model": 12, "n_head": 2, "n_layer": 1, "d_hidden": 32},
          "train": {"max_epochs": 12, "patience": 12}}
 STAGES = ["ingest", "frame", "theory", "split", "calibrate", "parts", "train", "baselines", "evaluate", "export"]
@@ -29,18 +35,70 @@ NEEDED = ["models/boter.pt", "models/calibration.json", "models/workspace.json",
           "data/interim/points.parquet", "data/interim/split.parquet", "reports/export.json"]
 
 
-def small_project(root: Path) -> Path:
-    """The stages that make the trained artifacts, run on the bundled campaign with a small model."""
-    params = load_params(ROOT / "params.yaml")
-    for section, values in SMALL.items():
-        params[section].update(values)
-    for k in ("joints", "tracker"):
-        params["ingest"][k] = str(ROOT / params["ingest"][k])
-    (root / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
-    for stage in STAGES:
-        subprocess.run([sys.executable, "-m", f"pipeline.{stage}"], cwd=root, env=ENV, check=True,
-                       capture_output=True)
-    return root
+def background():
+    """preexec_fn of the tests' long subprocesses (a `dvc repro`, 16 interpreters): nice 10, so that beside
+    them, on the other xdist worker, the tests that time a service still get the CPU they measure."""
+    os.nice(10)
+
+
+def sh(cmd, cwd, check=True):
+    """A shell command in cwd with a git identity and DVC's analytics off, niced (background); its
+    CompletedProcess."""
+    r = subprocess.run(cmd, cwd=cwd, env=GIT_ENV, shell=True, capture_output=True, text=True,
+                       preexec_fn=background)
+    if check and r.returncode:
+        raise AssertionError(f"{cmd} failed ({r.returncode}):\n{r.stdout[-3000:]}\n{r.stderr[-3000:]}")
+    return r
+
+
+def deep_update(d, u):
+    for k, v in u.items():
+        d[k] = deep_update(d.get(k, {}), v) if isinstance(v, dict) else v
+    return d
+
+
+def project_copy(dst: Path) -> Path:
+    """A fresh git+DVC repo at dst holding the committed project files and a small-model params.yaml."""
+    files = sh("git ls-files --cached --others --exclude-standard", ROOT).stdout.split()
+    for f in files:
+        if (ROOT / f).is_file() and not f.startswith("tests/"):
+            (dst / f).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(ROOT / f, dst / f)
+    params = yaml.safe_load((dst / "params.yaml").read_text())
+    (dst / "params.yaml").write_text(yaml.safe_dump(deep_update(params, SMALL), sort_keys=False))
+    sh("git init -q && git add -A && git commit -qm init", dst)
+    return dst
+
+
+def repo_copy(src: Path, dst: Path) -> Path:
+    """A copy of a git+DVC repo (work tree, git, DVC cache), without DVC's locks and temporary files."""
+    shutil.copytree(src, dst, symlinks=True, ignore=lambda d, names: ["tmp"] if Path(d).name == ".dvc" else [],
+                    dirs_exist_ok=True)
+    return dst
+
+
+def once(tmp_path_factory, name: str, make) -> str:
+    """make(folder) -> str run once per test session, however many xdist workers ask: the first builds it
+    under a file lock in the session's shared temporary folder, the others wait and reuse it."""
+    base = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        base = base.parent                                  # shared by the workers of one session
+    folder, done = base / name, base / f"{name}.done"
+    with FileLock(str(base / f"{name}.lock")):
+        if not done.exists():
+            shutil.rmtree(folder, ignore_errors=True)
+            folder.mkdir()
+            done.write_text(str(make(folder)))
+    return done.read_text()
+
+
+@pytest.fixture(scope="session")
+def reproduced(tmp_path_factory) -> Path:
+    def make(folder):
+        repo = project_copy(folder)
+        sh("dvc repro", repo)
+        return repo
+    return Path(once(tmp_path_factory, "reproduced", make))
 
 
 def project_points(params: dict) -> pd.DataFrame:
@@ -51,8 +109,9 @@ def project_points(params: dict) -> pd.DataFrame:
 
 
 @pytest.fixture(scope="session")
-def trained_project(tmp_path_factory) -> Path:
-    return ROOT if up_to_date(ROOT) else small_project(tmp_path_factory.mktemp("project"))
+def trained_project(tmp_path_factory, request) -> Path:
+    current = once(tmp_path_factory, "root_up_to_date", lambda _: "yes" if up_to_date(ROOT) else "no")
+    return ROOT if current == "yes" else request.getfixturevalue("reproduced")
 
 
 def up_to_date(root: Path) -> bool:

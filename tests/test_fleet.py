@@ -36,6 +36,7 @@ def test_empty_fleet_folder_is_named(tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.xdist_group("serial")   # one Ray at a time (a second ray.init could join the first)
 def test_fleet_on_ray_reports_a_broken_campaign_and_finishes_the_others(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     robots = fleet.demo("fleet_in", robots=3, n=150)                     # ur5_01, ur10_02, ur5_03

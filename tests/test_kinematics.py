@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 
+from conftest import background
 from pipeline.lib.kinematics import DHChain, fk, fk_jacobian, fk_numpy, nominal_geometry
 from pipeline.lib.robots import load_robot, nominal_robot
 
@@ -123,5 +124,5 @@ def test_the_chain_gives_the_same_bits_in_every_process():
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
     env.pop("PYTHONHASHSEED", None)
     hashes = {subprocess.run([sys.executable, "-c", FK_HASH], env=env, capture_output=True, text=True,
-                             check=True).stdout for _ in range(16)}
+                             check=True, preexec_fn=background).stdout for _ in range(16)}
     assert len(hashes) == 1, hashes

@@ -5,58 +5,20 @@ elsewhere gives the same bytes (dvc.lock unchanged), that `dvc exp run -S` works
 invalid combination stops before training.
 """
 import json
-import os
 import shutil
-import subprocess
 from pathlib import Path
 
 import pandas as pd
 import pytest
 import yaml
 
+from conftest import project_copy, repo_copy, sh
 from pipeline.lib.columns import COMPENSATION
-
-ROOT = Path(__file__).resolve().parents[1]
-SMALL = {"model": {"d_model": 12, "n_head": 2, "n_layer": 1, "d_hidden": 32},
-         "train": {"max_epochs": 12, "patience": 12}}
-ENV = {**os.environ, "DVC_NO_ANALYTICS": "1", "GIT_AUTHOR_NAME": "ci", "GIT_AUTHOR_EMAIL": "ci@example.com",
-       "GIT_COMMITTER_NAME": "ci", "GIT_COMMITTER_EMAIL": "ci@example.com"}
-
-
-def sh(cmd, cwd, check=True):
-    r = subprocess.run(cmd, cwd=cwd, env=ENV, shell=True, capture_output=True, text=True)
-    if check and r.returncode:
-        raise AssertionError(f"{cmd} failed ({r.returncode}):\n{r.stdout[-3000:]}\n{r.stderr[-3000:]}")
-    return r
-
-
-def deep_update(d, u):
-    for k, v in u.items():
-        d[k] = deep_update(d.get(k, {}), v) if isinstance(v, dict) else v
-    return d
-
-
-def project_copy(dst: Path) -> Path:
-    """A fresh git+DVC repo at dst holding the committed project files and a small-model params.yaml."""
-    files = sh("git ls-files --cached --others --exclude-standard", ROOT).stdout.split()
-    for f in files:
-        if (ROOT / f).is_file() and not f.startswith("tests/"):
-            (dst / f).parent.mkdir(parents=True, exist_ok=True)
-            shutil.copy2(ROOT / f, dst / f)
-    params = yaml.safe_load((dst / "params.yaml").read_text())
-    (dst / "params.yaml").write_text(yaml.safe_dump(deep_update(params, SMALL), sort_keys=False))
-    sh("git init -q && git add -A && git commit -qm init", dst)
-    return dst
-
-
-@pytest.fixture(scope="module")
-def repo(tmp_path_factory):
-    return project_copy(tmp_path_factory.mktemp("repo"))
 
 
 @pytest.mark.slow
-def test_repro_produces_contract_outputs_and_is_idempotent(repo):
-    sh("dvc repro", repo)
+def test_repro_produces_contract_outputs_and_is_idempotent(reproduced):
+    repo = reproduced                                           # conftest: `dvc repro` ran in it
     metrics = json.loads((repo / "reports/metrics.json").read_text())
     for split in ("train", "val", "test"):
         for axis in ("x", "y", "z", "3d"):
@@ -105,10 +67,10 @@ def locked_hashes(repo: Path) -> dict:
 
 
 @pytest.mark.slow
-def test_repro_in_a_fresh_copy_reproduces_every_output_to_the_byte(repo, tmp_path):
+def test_repro_in_a_fresh_copy_reproduces_every_output_to_the_byte(reproduced, tmp_path):
     """Issue 21: a clone (another directory, other processes, no DVC cache) given the first repo's
     dvc.lock re-runs every stage to the same bytes, so that `dvc repro` leaves `git status` clean."""
-    sh("dvc repro", repo)                                       # a no-op after the first test
+    repo = reproduced
     other = project_copy(tmp_path)                              # another path: no absolute paths in outputs
     shutil.copy2(repo / "dvc.lock", other / "dvc.lock")
     sh("git commit -qam 'dvc.lock of the first repo'", other)
@@ -122,8 +84,8 @@ def test_repro_in_a_fresh_copy_reproduces_every_output_to_the_byte(repo, tmp_pat
 
 
 @pytest.mark.slow
-def test_exp_run_set_param_and_invalid_combination(repo):
-    sh("dvc repro", repo)
+def test_exp_run_set_param_and_invalid_combination(reproduced, tmp_path):
+    repo = repo_copy(reproduced, tmp_path / "repo")            # its own copy: an experiment changes the workspace
     sh("git add -A && git commit -qm baseline", repo)
     r = sh("dvc exp run -S model.d_model=14", repo)
     assert "Running stage 'train'" in r.stdout and "Running stage 'split'" not in r.stdout

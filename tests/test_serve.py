@@ -268,6 +268,7 @@ def rate(server, poses, clients: int, seconds: float, bad: bool = False) -> dict
     return {"calls_per_s": sum(counts) / seconds, "bad_ms": bad_ms, "faults": faults}
 
 
+@pytest.mark.xdist_group("serial")   # not beside the Ray tests (conftest: the long subprocesses are niced)
 def test_a_client_sending_unreachable_targets_does_not_stall_the_others(server, params, poses):
     """4 good clients keep at least half their calls/s while a 5th sends the origin in a loop (before:
     each origin call held the model 4-20 s, good clients fell to ~2% of theirs); each origin call is a

@@ -68,6 +68,7 @@ def small_ablation(trained_project, folder, monkeypatch, epochs: int) -> dict:
 
 
 @pytest.mark.slow
+@pytest.mark.xdist_group("serial")   # one Ray at a time (a second ray.init could join the first)
 def test_two_run_sweep_on_ray_equals_sequential(trained_project, tmp_path, monkeypatch):
     """Two training runs (two seeds of one ablation group, a small model) as Ray tasks on a local
     Ray instance and one after the other: identical test metrics, epoch for epoch."""
@@ -85,6 +86,7 @@ def test_two_run_sweep_on_ray_equals_sequential(trained_project, tmp_path, monke
 
 
 @pytest.mark.slow
+@pytest.mark.xdist_group("serial")   # one Ray at a time (a second ray.init could join the first)
 def test_bench_real_seeds_on_ray_equal_sequential():
     """`bench real`'s seed sweep (twin, two seeds, a small model, 3 epochs): each seed a job run in
     process, in order or as a Ray task, the same numbers either way, validation included."""
@@ -114,6 +116,7 @@ def two_nodes():
 
 
 @pytest.mark.slow
+@pytest.mark.xdist_group("serial")   # one Ray at a time (a second ray.init could join the first)
 def test_sweep_and_fleet_on_a_two_node_cluster(trained_project, tmp_path, monkeypatch, two_nodes):
     """Issue 24: a two-run ablation sweep on a two-node cluster (ray.cluster_utils.Cluster, the driver
     connecting by its address), run in a folder that holds nothing of the project: the same numbers as
