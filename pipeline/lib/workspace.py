@@ -37,11 +37,19 @@ def wrapped(a_deg):
 def nearest_distance(q_deg, ref_deg, chunk: int = 1024, leave_one_out: bool = False):
     """Distance (deg) from each pose q (n, 6) to the nearest of ref (m, 6), over JOINTS, wrapped.
 
-    Tensors in, a tensor out (differentiable, exportable); arrays in, an array out.
+    Tensors in, a tensor out (differentiable, exportable); arrays in, an array out, computed in numpy (in
+    the service, right after an onnxruntime run, a pose's check cost 0.32 ms in torch, 0.05 in numpy).
     """
-    as_numpy = not isinstance(q_deg, torch.Tensor)
-    q = torch.as_tensor(np.array(q_deg, float) if as_numpy else q_deg)[:, JOINTS]
-    ref = torch.as_tensor(np.array(ref_deg, float) if as_numpy else ref_deg)[:, JOINTS].to(q.dtype)
+    if not isinstance(q_deg, torch.Tensor):
+        q, ref = np.asarray(q_deg, float)[:, JOINTS], np.asarray(ref_deg, float)[:, JOINTS]
+        out = np.empty(len(q))
+        for s in range(0, len(q), chunk):
+            d = np.sqrt((wrapped(q[s:s + chunk, None] - ref[None]) ** 2).sum(-1))      # (c, m)
+            if leave_one_out:
+                d[np.arange(len(d)), s + np.arange(len(d))] = np.inf
+            out[s:s + chunk] = d.min(1)
+        return out
+    q, ref = q_deg[:, JOINTS], torch.as_tensor(ref_deg)[:, JOINTS].to(q_deg.dtype)
     if torch.compiler.is_exporting():                       # ONNX export: one chunk, the batch size stays free
         return wrapped(q[:, None] - ref[None]).norm(dim=-1).min(1).values
     out = []
@@ -50,8 +58,7 @@ def nearest_distance(q_deg, ref_deg, chunk: int = 1024, leave_one_out: bool = Fa
         if leave_one_out:
             d[torch.arange(len(d)), s + torch.arange(len(d))] = torch.inf
         out.append(d.min(1).values)
-    out = torch.cat(out)
-    return out.numpy() if as_numpy else out
+    return torch.cat(out)
 
 
 def workspace_radius(train_q_deg, quantile: float) -> float:
@@ -120,19 +127,21 @@ class Workspace:
         """Per pose (n,) bool: inside the network's workspace ("network") and every mapped joint inside
         its angle map's coverage ("angle_map"; all True without maps)."""
         q = np.atleast_2d(np.asarray(q_deg, float))
-        out = {"network": self.distance(q) <= self.radius}
-        if self.angle_cover is not None:
-            out["angle_map"] = angle_covered(self.angle_cover, q)[:, self.angle_cover.any(1)].all(1)
-        else:
-            out["angle_map"] = np.ones(len(q), bool)
-        return out
+        return {"network": self.distance(q) <= self.radius, "angle_map": self.angle_map(q)}
+
+    def angle_map(self, q_deg) -> np.ndarray:
+        """(n,) bool: every mapped joint's angle inside its map's coverage (all True without maps)."""
+        q = np.atleast_2d(np.asarray(q_deg, float))
+        if self.angle_cover is None:
+            return np.ones(len(q), bool)
+        return angle_covered(self.angle_cover, q)[:, self.angle_cover.any(1)].all(1)
 
     def __call__(self, q_deg) -> tuple[np.ndarray, np.ndarray]:
         """Poses (n, 6) deg -> (uncertainty_mm (n,), in_workspace (n,) bool: the network's)."""
         q = np.atleast_2d(np.asarray(q_deg, float))
         d = self.distance(q) / self.radius                     # radii
         w = np.ones(len(q)) if self.fade_to is None else np.clip((self.fade_to - d) / (self.fade_to - 1.0), 0, 1)
-        u_phys = np.where(self.parts(q)["angle_map"], self.u_parts, self.u_cal)
+        u_phys = np.where(self.angle_map(q), self.u_parts, self.u_cal)
         return w * self.u0 + (1 - w) * u_phys, d <= 1.0
 
     def to_dict(self) -> dict:
