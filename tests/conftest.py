@@ -10,7 +10,6 @@ the code or params, `reproduced`. Both are read only: a test that changes a proj
 import os
 import shutil
 import subprocess
-import sys
 from pathlib import Path
 
 import pandas as pd

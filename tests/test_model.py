@@ -6,6 +6,7 @@ import torch
 from pipeline.lib.kinematics import nominal_geometry
 from pipeline.lib.model import Ensemble, BODY_MASK, BoTER, attention_mask, check_config, encoder_for_export
 from pipeline.lib.robots import nominal_robot
+from pipeline.lib.workspace import nearest_distance
 
 G = nominal_geometry(nominal_robot("ur5"))
 SMALL = dict(d_model=12, n_layer=1, n_head=2, d_hidden=16, head="resnet", encoder=True, alpha0=0.1,
@@ -140,7 +141,6 @@ def test_the_encoder_for_export_computes_what_the_module_computes(mask):
 def test_nearest_distance_is_the_same_in_numpy_and_torch():
     """The workspace guard (numpy arrays) and the model's fade (tensors) measure one distance: wrapped over
     joints 1-5, by hand on two poses, and the two backends agree on many, leave-one-out included."""
-    from pipeline.lib.workspace import nearest_distance
     ref = np.array([[0.0, -90, 90, -90, 90, 0], [179.0, 0, 0, 0, 0, 0]])
     q = np.array([[3.0, -86, 90, -90, 90, 120],              # 3 and 4 deg off the first (joint 6 not counted)
                   [-179.0, 0, 0, 0, 0, 0]])                  # 2 deg off the second across ±180

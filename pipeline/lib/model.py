@@ -154,7 +154,7 @@ def encoder_for_export(encoder: nn.TransformerEncoder, x, mask):
     """encoder(x, mask) for ONNX export, the same arithmetic in fewer graph nodes: the tokens kept as
     one (B·6, d) matrix between layers (a Gemm each linear, no reshapes around them), q, k, v split
     once. A post-norm ReLU nn.TransformerEncoderLayer in eval mode (what BoTER builds); the answers
-    equal the module's to float32 rounding (tests/test_export.py). (B, 6, d) -> (B, 6, d)."""
+    equal the module's to float32 rounding (tests/test_model.py). (B, 6, d) -> (B, 6, d)."""
     B, n, d = x.shape
     masked = torch.zeros(n, n).masked_fill(mask, float("-inf")) if mask is not None else 0.0   # (6, 6)
     x = x.reshape(B * n, d)
