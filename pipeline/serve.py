@@ -190,7 +190,11 @@ def fast_path(model, workspace: Workspace, limits_deg, tol_mm: float) -> OnnxRea
         log.warning("no %s (run `dvc repro`): the controller path runs in PyTorch", CONTROLLER_ONNX)
         return None
     limits = np.radians(limits_deg)
-    fast = OnnxRealtime(CONTROLLER_ONNX, limits, tol_mm, workspace)
+    try:
+        fast = OnnxRealtime(CONTROLLER_ONNX, limits, tol_mm, workspace)
+    except ValueError as e:
+        log.warning("%s; run `dvc repro`: the controller path runs in PyTorch", e)
+        return None
     q0 = np.radians(workspace.train_q[:8])
     with torch.no_grad():
         target = model(torch.as_tensor(q0))[0].numpy() + [0.5, -0.3, 0.2]

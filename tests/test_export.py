@@ -18,6 +18,7 @@ from pipeline.lib.kinematics import DTYPE, fk, fk_frames, nominal_geometry
 from pipeline.lib.model import Ensemble
 from pipeline.lib.onnx_model import OnnxModel, OnnxRealtime, export_controller, export_onnx
 from pipeline.lib.realtime import Realtime
+from pipeline.lib.solvers import lm_jacobian, lm_step, predict
 from pipeline.lib.robots import UR_JOINTS, load_robot, nominal_robot
 from pipeline.lib.training import load_model, make_model
 from pipeline.lib.workspace import Workspace
@@ -178,11 +179,12 @@ def test_controller_onnx_answers_as_the_pytorch_controller_path(in_trained_proje
     with limits that bind; its inputs and outputs as documented (docs/robot-cell.md)."""
     import onnx
     graph = onnx.load("models/controller.onnx").graph
-    assert [i.name for i in graph.input] == ["q0_rad", "target_mm", "q_min_rad", "q_max_rad"]
+    assert [i.name for i in graph.input] == ["q0_rad", "target_mm", "q_min_rad", "q_max_rad", "damping"]
     assert [o.name for o in graph.output] == ["q1_rad", "q2_rad", "r0_mm", "r1_mm"]
     double = onnx.TensorProto.DOUBLE
     assert all(v.type.tensor_type.elem_type == double for v in [*graph.input, *graph.output])
-    assert graph.input[0].type.tensor_type.shape.dim[0].dim_param                 # the batch size is free
+    batch = graph.input[0].type.tensor_type.shape.dim[0].dim_param               # the batch size is free
+    assert batch and [d.dim_param for d in graph.input[4].type.tensor_type.shape.dim] == [batch]   # damping (batch,)
     assert [len(o.type.tensor_type.shape.dim) for o in graph.output] == [2, 2, 1, 1]
     params = in_trained_project
     model, ws = load_model("models/boter.pt"), Workspace.from_dict(read_json("models/workspace.json"))
@@ -200,6 +202,35 @@ def test_controller_onnx_answers_as_the_pytorch_controller_path(in_trained_proje
         x, y = OnnxRealtime("models/controller.onnx", lim, tol)(a, b), Realtime(model, lim, tol)(a, b)
         assert_same_answers([x], [y])
         assert np.abs(x.q - a).max() <= np.radians(0.01) + 1e-12 and not x.converged
+
+
+def test_lm_step_on_the_controller_graph_is_lm_in_pytorch(in_trained_project):
+    """OnnxRealtime.lm_step (one graph run, its first step damped by each row's λ) against solvers.lm_step
+    with the DH branch's Jacobian, from the same state at each of 12 iterations of far starts, λ per row
+    from 1e-3 to 1e2: the same steps kept (the same λ after) while above the tolerance (within it, a step
+    changes |r| by its rounding), angles to 2e-9 rad, |r| to 1e-6 mm (the float32 network's rounding;
+    iterated apart, the two drift to ~1e-7 rad)."""
+    params = in_trained_project
+    model = load_model("models/boter.pt")
+    limits = np.radians(load_robot(params["robot"]).limits_deg)
+    q0, tgt = controller_cases(model, params)
+    q0 = np.roll(q0, 5, axis=0)                                                    # starts far from the targets
+    g = OnnxRealtime("models/controller.onnx", limits)
+    jac, lim = lm_jacobian(model, "physics"), torch.as_tensor(limits, dtype=DTYPE)
+    q, t, lam = torch.as_tensor(q0, dtype=DTYPE), torch.as_tensor(tgt, dtype=DTYPE), torch.logspace(-3, 2, len(q0))
+    with torch.no_grad():
+        r = predict(model, q) - t
+    err, kept = r.norm(dim=1), []
+    for _ in range(12):
+        qg, eg, lg = g.lm_step(q.numpy(), tgt, err.numpy(), lam.numpy())
+        q2, r, err2, lam2 = lm_step(model, jac, q, r, err, lam, t, lim)
+        away = (err > 1e-3).numpy()
+        assert away.any() and np.array_equal(lg[away], lam2.numpy()[away])
+        assert np.abs(qg - q2.numpy()).max() < 2e-9 and np.abs(eg - err2.numpy()).max() < 1e-6
+        kept.append(lam2 < lam)
+        q, err, lam = q2, err2, lam2
+    kept = torch.stack(kept)
+    assert kept.any() and not kept.all() and (err < 1e-3).any()                   # steps kept, refused; some converge
 
 
 def test_controller_onnx_is_the_same_bytes_when_exported_again(in_trained_project, tmp_path):

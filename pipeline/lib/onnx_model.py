@@ -3,8 +3,12 @@
 controller path (realtime.py: both chord steps, two evaluations of the model) as one graph, run by
 `OnnxRealtime` as Realtime runs it in PyTorch:
 
-    q0_rad (batch, 6), target_mm (batch, 3), q_min_rad (6,), q_max_rad (6,)   float64
-      -> q1_rad (batch, 6), q2_rad (batch, 6), r0_mm (batch,), r1_mm (batch,)  float64
+    q0_rad (batch, 6), target_mm (batch, 3), q_min_rad (6,), q_max_rad (6,), damping (batch,)   float64
+      -> q1_rad (batch, 6), q2_rad (batch, 6), r0_mm (batch,), r1_mm (batch,)                    float64
+
+`damping` is each row's μ: the controller's (realtime.DAMPING, 1e-9), or, for the service's lm set,
+each request's λ (`OnnxRealtime.lm_step`: q1 is lm's trial step and r1 its residual, one run an
+iteration).
 
 The joint limits are inputs, not constants: the graph is the model's alone, as model.onnx is, and a
 change of the robot's limits cannot leave it answering with old ones. The 3×3 linear solve of each
@@ -28,9 +32,9 @@ from torch import nn
 
 from .kinematics import DTYPE
 from .model import Ensemble
-from .realtime import Result, answers, two_steps
+from .realtime import DAMPING, Result, answers, two_steps
 
-CONTROLLER_INPUTS = ("q0_rad", "target_mm", "q_min_rad", "q_max_rad")
+CONTROLLER_INPUTS = ("q0_rad", "target_mm", "q_min_rad", "q_max_rad", "damping")
 CONTROLLER_OUTPUTS = ("q1_rad", "q2_rad", "r0_mm", "r1_mm")
 
 
@@ -48,12 +52,12 @@ class _Positions(nn.Module):
 class _Controller(nn.Module):
     """The controller path's two chord steps (realtime.two_steps) as a module, for the exporter."""
 
-    def __init__(self, model, damping: float):
+    def __init__(self, model):
         super().__init__()
-        self.model, self.damping = model, damping
+        self.model = model
 
-    def forward(self, q0_rad, target_mm, q_min_rad, q_max_rad):
-        return two_steps(self.model, q0_rad, target_mm, q_min_rad, q_max_rad, self.damping)
+    def forward(self, q0_rad, target_mm, q_min_rad, q_max_rad, damping):
+        return two_steps(self.model, q0_rad, target_mm, q_min_rad, q_max_rad, damping)
 
 
 def export_onnx(model, path) -> None:
@@ -61,16 +65,16 @@ def export_onnx(model, path) -> None:
     _export(_Positions(_exportable(model)), (torch.zeros(4, 6),), ["q_rad"], ["p_mm"], ({0: "batch"},), path)
 
 
-def export_controller(model, path, damping: float = 1e-9) -> None:
+def export_controller(model, path) -> None:
     """Write the controller path of `model` (BoTER or Ensemble, eval mode) to `path` as one ONNX graph:
-    both chord steps, exactly what realtime.Realtime computes with that damping (its default)."""
+    both chord steps, exactly what realtime.Realtime computes with the same damping."""
     m = _exportable(model)
     for p in m.parameters():
         p.requires_grad_(False)
     args = (torch.zeros(4, 6, dtype=DTYPE), torch.zeros(4, 3, dtype=DTYPE), torch.full((6,), -np.pi, dtype=DTYPE),
-            torch.full((6,), np.pi, dtype=DTYPE))
-    _export(_Controller(m, damping), args, list(CONTROLLER_INPUTS), list(CONTROLLER_OUTPUTS),
-            ({0: "batch"}, {0: "batch"}, None, None), path)
+            torch.full((6,), np.pi, dtype=DTYPE), torch.full((4,), DAMPING, dtype=DTYPE))
+    _export(_Controller(m), args, list(CONTROLLER_INPUTS), list(CONTROLLER_OUTPUTS),
+            ({0: "batch"}, {0: "batch"}, None, None, {0: "batch"}), path)
 
 
 def _exportable(model):
@@ -159,23 +163,39 @@ class OnnxRealtime:
     `export_controller`); `batch` for B poses in one run. No model needed: the file is the whole solve.
     A single pose runs on a session with the batch size held at 1, a batch on one with it free."""
 
-    def __init__(self, path, limits_rad: np.ndarray | None = None, tol_mm: float = 1e-3, workspace=None):
-        self.session, self.tol, self.workspace = session(path), tol_mm, workspace
+    def __init__(self, path, limits_rad: np.ndarray | None = None, tol_mm: float = 1e-3, workspace=None,
+                 damping: float = DAMPING):
+        self.session, self.tol, self.workspace, self.damping = session(path), tol_mm, workspace, float(damping)
+        names = tuple(i.name for i in self.session.get_inputs())
+        if names != CONTROLLER_INPUTS:
+            raise ValueError(f"{path}: a graph with inputs {', '.join(names)}, not the controller path's "
+                             f"{', '.join(CONTROLLER_INPUTS)} (exported by an older version?)")
         self.single = session(path, {self.session.get_inputs()[0].shape[0]: 1})
         lim = np.array([[-np.inf, np.inf]] * 6) if limits_rad is None else np.asarray(limits_rad, float)
         self.limits = {"q_min_rad": np.ascontiguousarray(lim[:, 0]), "q_max_rad": np.ascontiguousarray(lim[:, 1])}
 
-    def solve(self, q0_rad, target_mm) -> list[np.ndarray]:
-        """The graph's outputs for q0 (B, 6) rad, target (B, 3) mm: q1, q2 (B, 6), |r0|, |r1| (B,)."""
+    def solve(self, q0_rad, target_mm, damping=None) -> list[np.ndarray]:
+        """The graph's outputs for q0 (B, 6) rad, target (B, 3) mm, damping (B,) (None: the controller's):
+        q1, q2 (B, 6), |r0|, |r1| (B,)."""
         q0 = np.asarray(q0_rad, np.float64).reshape(-1, 6)
+        mu = np.full(len(q0), self.damping) if damping is None else np.asarray(damping, np.float64).reshape(-1)
         return (self.single if len(q0) == 1 else self.session).run(
-            None, {"q0_rad": q0, "target_mm": np.asarray(target_mm, np.float64).reshape(-1, 3), **self.limits})
+            None, {"q0_rad": q0, "target_mm": np.asarray(target_mm, np.float64).reshape(-1, 3), **self.limits,
+                   "damping": mu})
 
     def __call__(self, q0_rad, target_mm) -> Result:
         return self.batch(q0_rad, target_mm)[0]
 
     def batch(self, q0_rad, target_mm) -> list[Result]:
         return answers(*self.solve(q0_rad, target_mm), self.tol, self.workspace)
+
+    def lm_step(self, q, target, err, lam):
+        """solvers.lm_step on the graph, numpy: q (A, 6) rad, target (A, 3) mm, |r| err (A,) mm, λ lam (A,)
+        -> the new q, err, lam. One run: its first chord step, damped by λ, is lm's trial (q1, |r1|); the
+        second is not used. As lm with compensate.jacobian_of physics (the same step and residual)."""
+        q1, _, _, r1 = self.solve(q, target, lam)
+        ok = r1 < err
+        return np.where(ok[:, None], q1, q), np.where(ok, r1, err), np.where(ok, lam / 3, lam * 10)
 
 
 def deviation(a, b, q0_rad: np.ndarray, target_mm: np.ndarray) -> dict:

@@ -35,6 +35,8 @@ import torch
 from .kinematics import DTYPE, fk_jacobian
 from .solvers import min_norm_step
 
+DAMPING = 1e-9                                             # μ of the controller's chord steps (tiny, fixed)
+
 
 @dataclass
 class Result:
@@ -49,7 +51,7 @@ class Realtime:
     """Compensate single poses with a frozen BoTER: `Realtime(model)(q0_rad, target_mm) -> Result`."""
 
     def __init__(self, model, limits_rad: np.ndarray | None = None, tol_mm: float = 1e-3,
-                 damping: float = 1e-9, compile: bool = False, workspace=None):
+                 damping: float = DAMPING, compile: bool = False, workspace=None):
         model.eval()
         for p in model.parameters():
             p.requires_grad_(False)
@@ -80,16 +82,16 @@ class Realtime:
         return answers(q1, q2, r0, r1, self.tol, self.workspace)
 
 
-def two_steps(model, q0, target, lo, hi, damping: float):
-    """The two chord steps from q0 (B, 6) rad towards target (B, 3) mm, joint limits lo, hi (6,) rad:
-    q1, q2 (B, 6) and |r0|, |r1| (B,) mm. What Realtime runs (eager or compiled) and what
+def two_steps(model, q0, target, lo, hi, damping):
+    """The two chord steps from q0 (B, 6) rad towards target (B, 3) mm, joint limits lo, hi (6,) rad,
+    damping μ (a float or (B,)): q1, q2 (B, 6) and |r0|, |r1| (B,) mm. What Realtime runs (eager or compiled) and what
     onnx_model.export_controller exports as one graph."""
     q1, r0 = chord_step(model, q0, target, lo, hi, damping)
     q2, r1 = chord_step(model, q1, target, lo, hi, damping)
     return q1, q2, r0, r1
 
 
-def chord_step(model, q, target, lo, hi, damping: float):
+def chord_step(model, q, target, lo, hi, damping):
     """One chord step from q (B, 6): returns (the next q (B, 6), |residual at q| (B,) mm)."""
     p, J = fk_jacobian(q, model.physics.geometry())        # (B, 3), (B, 3, 6)
     r = p + model.delta(q) - target                        # (B, 3), eq. 9
