@@ -121,8 +121,11 @@ def test_sweep_and_fleet_on_a_two_node_cluster(trained_project, tmp_path, monkey
     """Issue 24: a two-run ablation sweep on a two-node cluster (ray.cluster_utils.Cluster, the driver
     connecting by its address), run in a folder that holds nothing of the project: the same numbers as
     the sequential engine (one torch thread each), one run on each node, the code imported from the
-    package Ray shipped with the tasks, not from the project. Then a one-robot fleet on it: the robot's
-    folder goes to its task as bytes and comes back as bytes, written here."""
+    package Ray shipped with the tasks, not from the project. Then a two-robot fleet on it, one robot's
+    campaign broken (a column the reader needs): it is reported with the stage and the reader's message,
+    its folder and logs come back too, and the other (a UR10) is calibrated; each robot's folder goes to
+    its task as bytes and comes back as bytes, written here. (This replaced a separate three-robot fleet
+    on a local Ray, 100 s of the suite: the same run_fleet code, ray.init without an address.)"""
     params = small_ablation(trained_project, tmp_path, monkeypatch, epochs=3)
     seq = ablation.run_groups(params, ["baseline"], "sequential", threads=1)
     seq_runs = json.loads((tmp_path / "reports/ablation/baseline.json").read_text())["runs"]
@@ -137,16 +140,28 @@ def test_sweep_and_fleet_on_a_two_node_cluster(trained_project, tmp_path, monkey
     for code in ray_["timing"]["job_code"]:                  # the shipped copy of the package, not this tree
         assert Path(code, "pipeline/lib/sweep.py").exists() and Path(code).resolve() != project
     assert seq["timing"]["job_code"] == [str(sweep.CODE_ROOT)] * 2
-    # one robot, its folder there and back as bytes
-    fleet.demo("fleet_in", robots=1, n=150)
+    # two robots, their folders there and back as bytes; one campaign broken
+    robots = fleet.demo("fleet_in", robots=2, n=150)                     # ur5_01, ur10_02
+    assert [r.name for r in robots] == ["ur5_01", "ur10_02"]
+    broken = robots[0] / "tracker.csv"
+    broken.write_text(broken.read_text().replace("X,Y,Z", "X,Y,Q", 1))
     f = fleet.run_fleet("fleet_in", "out", engine="ray", address=two_nodes.address,
                         base=params | {"train": {**params["train"], "max_epochs": 6, "patience": 6}})
-    assert f["n_ok"] == 1 and f["nodes"]["ur5_01"] in nodes
-    e = f["robots"][0]["test_3d_mae_mm"]
-    assert e["calibrated"] < e["nominal"] / 3
-    for name in ("campaign/tracker.csv", "params.yaml", "models/boter.pt", "models/model.onnx", "reports/index.md",
-                 "logs/train.log"):
-        assert (tmp_path / "out/ur5_01" / name).is_file(), name
+    assert f["n_robots"] == 2 and f["n_ok"] == 1 and list(f["failed"]) == ["ur5_01"]
+    reason = f["failed"]["ur5_01"]
+    assert reason.startswith("ingest:") and "campaign/tracker.csv" in reason and "column(s) z" in reason
+    assert "column(s) z" in (tmp_path / "out/ur5_01/logs/ingest.log").read_text()   # its folder came back too
+    assert f["nodes"]["ur10_02"] in nodes
+    ok = [r for r in f["robots"] if r["status"] == "ok"]
+    assert [(r["robot"], r["model"]) for r in ok] == [("ur10_02", "ur10")]
+    e = ok[0]["test_3d_mae_mm"]
+    assert e["calibrated"] < e["nominal"] / 3                            # the twin really calibrated
+    for name in ("campaign/tracker.csv", "params.yaml", "models/boter.pt", "models/model.onnx",
+                 "models/calibrated.urdf", "reports/index.md", "logs/train.log"):
+        assert (tmp_path / "out/ur10_02" / name).is_file(), name
+    assert "joints: campaign/joints.csv" in (tmp_path / "out/ur10_02/params.yaml").read_text()
+    assert json.loads((tmp_path / "reports/fleet.json").read_text())["n_ok"] == 1
+    assert "failed in ingest" in (tmp_path / "reports/fleet.md").read_text()
 
 
 def test_localized_inputs_keep_one_table_one_file(tmp_path):

@@ -289,7 +289,7 @@ class Service:
                 keep.append(i)
                 continue
             if e < self.tol or e <= self.unreachable:
-                q_rad = np.array(q[i], float)
+                q_rad = (q[i].numpy() if isinstance(q, torch.Tensor) else q[i]).astype(float)   # a copy
                 inside = bool(self.workspace(np.degrees(q_rad)[None])[1][0])
                 job.future.set_result(self._answer(q_rad, e, e < self.tol, inside))
                 continue
