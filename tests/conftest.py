@@ -76,18 +76,6 @@ def repo_copy(src: Path, dst: Path) -> Path:
     return dst
 
 
-def pytest_collection_modifyitems(items):
-    """The order two workers run well in (xdist's loadgroup hands out work in collection order): the
-    "serial" group first, its test that needs no trained project first; then the tests that need none;
-    then those that do. So one worker builds `reproduced` while the other keeps working, rather than
-    waiting for it on the lock (a fresh clone's .ci/run saw a worker wait 66 s)."""
-    trained = {"reproduced", "trained_project"}
-    def rank(item):
-        group = item.get_closest_marker("xdist_group")
-        return (0 if group and group.args == ("serial",) else 1, bool(trained & set(item.fixturenames)))
-    items.sort(key=rank)
-
-
 def once(tmp_path_factory, name: str, make) -> str:
     """make(folder) -> str run once per test session, however many xdist workers ask: the first builds it
     under a file lock in the session's shared temporary folder, the others wait and reuse it."""
