@@ -33,6 +33,7 @@ from torch import nn
 from .kinematics import DTYPE
 from .model import Ensemble
 from .realtime import DAMPING, Result, answers, two_steps
+from .solvers import lm_keep
 
 CONTROLLER_INPUTS = ("q0_rad", "target_mm", "q_min_rad", "q_max_rad", "damping")
 CONTROLLER_OUTPUTS = ("q1_rad", "q2_rad", "r0_mm", "r1_mm")
@@ -194,8 +195,7 @@ class OnnxRealtime:
         -> the new q, err, lam. One run: its first chord step, damped by λ, is lm's trial (q1, |r1|); the
         second is not used. As lm with compensate.jacobian_of physics (the same step and residual)."""
         q1, _, _, r1 = self.solve(q, target, lam)
-        ok = r1 < err
-        return np.where(ok[:, None], q1, q), np.where(ok, r1, err), np.where(ok, lam / 3, lam * 10)
+        return lm_keep(r1 < err, q1, r1, q, err, lam)
 
 
 def deviation(a, b, q0_rad: np.ndarray, target_mm: np.ndarray) -> dict:

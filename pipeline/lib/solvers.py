@@ -116,8 +116,15 @@ def lm_step(model, jac, q, r, err, lam, target, limits=None):
         r_try = predict(model, q_try) - target
     err_try = r_try.norm(dim=1)
     ok = err_try < err
-    return (torch.where(ok[:, None], q_try, q), torch.where(ok[:, None], r_try, r), torch.where(ok, err_try, err),
-            torch.where(ok, lam / 3, lam * 10))
+    q, err, lam = lm_keep(ok, q_try, err_try, q, err, lam)
+    return q, torch.where(ok[:, None], r_try, r), err, lam
+
+
+def lm_keep(ok, q_try, err_try, q, err, lam):
+    """lm's rule, torch or numpy: where ok (the trial lowered |r|) the trial step is kept and λ/3, else
+    the point stays and λ·10. Returns the new q, err, lam."""
+    where = torch.where if isinstance(q, torch.Tensor) else np.where
+    return where(ok[:, None], q_try, q), where(ok, err_try, err), where(ok, lam / 3, lam * 10)
 
 
 def solve_lm(model, q0, target, cfg: dict, limits=None, lam0=LAM0):
