@@ -2,6 +2,7 @@
 and commands (COMMANDS: a module or a package each) over one library (pipeline/lib/), which never
 imports them. tests/test_layout.py holds the layout to this."""
 import os
+import platform
 
 # Run by hand (python -m pipeline.<name>, or the spi-boter-<name> script), never by ./dvc.yaml.
 COMMANDS = ("bench", "serve", "program", "plan", "fleet", "ablation", "preset", "twin")
@@ -14,3 +15,13 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 # `dvc repro` could differ from dvc.lock. torch's own intra-op threads stay. Training costs ~1.7x the
 # time; a later torch.set_num_threads(n) gives MKL n threads again (sweep jobs with n > 1, benchmarks).
 os.environ.setdefault("MKL_NUM_THREADS", "1")
+# The same kernels on every x86-64 CPU, Intel or AMD, with or without AVX-512: each numeric library
+# otherwise picks its kernels by the CPU it finds, and their last bits differ, so a fresh clone's
+# `dvc repro` on an AMD EPYC gave other bytes than dvc.lock made on a Xeon (every output from the frame
+# stage on). AVX2 is the widest every x86 machine here has (docs/decisions.md, "Reproducible bytes").
+if platform.machine().lower() in ("x86_64", "amd64"):
+    os.environ.setdefault("OPENBLAS_CORETYPE", "Haswell")       # numpy's and scipy's OpenBLAS
+    os.environ.setdefault("MKL_CBWR", "AVX2,STRICT")            # torch's MKL: its reproducible AVX2 branch
+    os.environ.setdefault("ATEN_CPU_CAPABILITY", "avx2")        # torch's own vectorised kernels
+    os.environ.setdefault("ONEDNN_MAX_CPU_ISA", "AVX2")         # oneDNN, under torch
+    os.environ.setdefault("NPY_DISABLE_CPU_FEATURES", "X86_V4 AVX512_ICL AVX512_SPR")   # numpy's own loops

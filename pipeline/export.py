@@ -137,8 +137,8 @@ def run(params: dict) -> dict:
     with torch.no_grad():
         same, f64 = model(q32.double())[0].numpy(), model(q[test])[0].numpy()
     summary["onnx"] = {"file": str(MODEL_ONNX), "checked_with": "onnxruntime", "n_test_poses": int(test.sum()),
-                       "max_deviation_mm": float(np.abs(onnx_p - same).max()),
-                       "max_deviation_from_float64_angles_mm": float(np.abs(onnx_p - f64).max())}
+                       "max_deviation_mm": size(np.abs(onnx_p - same).max()),
+                       "max_deviation_from_float64_angles_mm": size(np.abs(onnx_p - f64).max())}
     log.info("%s: onnxruntime vs PyTorch on %d test poses: max %.2e mm on the same float32 angles, %.2e mm "
              "from the float64 angles", MODEL_ONNX, test.sum(), summary["onnx"]["max_deviation_mm"],
              summary["onnx"]["max_deviation_from_float64_angles_mm"])
@@ -147,12 +147,19 @@ def run(params: dict) -> dict:
     limits = np.radians(robot.limits_deg)
     dev = deviation(Realtime(model, limits), OnnxRealtime(CONTROLLER_ONNX, limits), q[test].numpy(),
                     pts.loc[test, THEORY].to_numpy())
+    dev.update(max_q_rad=size(dev["max_q_rad"]), max_residual_mm=size(dev["max_residual_mm"]))
     summary["controller"] = {"file": str(CONTROLLER_ONNX), "checked_with": "onnxruntime", **dev}
     log.info("%s: onnxruntime's answers vs the PyTorch controller path's on %d test poses (alone and in a "
              "batch): max %.1e rad, residual %.1e mm; flags differ in %d", CONTROLLER_ONNX, test.sum(),
              dev["max_q_rad"], dev["max_residual_mm"], dev["flags_differ"])
     write_json(EXPORT_JSON, summary)
     return summary
+
+
+def size(x) -> float:
+    """A deviation onnxruntime measured, to 2 significant digits: its last bits follow the kernels
+    onnxruntime picks for the CPU it finds, and export.json is a DVC output (docs/decisions.md)."""
+    return float(f"{float(x):.2g}")
 
 
 if __name__ == "__main__":

@@ -1,4 +1,5 @@
-"""Shared test setup: importing the package first pins BLAS threads (see pipeline/__init__.py).
+"""Shared test setup: importing the package first pins the numeric libraries' threads and kernels
+(pipeline/__init__.py), so tests compute what the stages compute.
 
 `reproduced`: a fresh git+DVC copy of the project (the committed files, a small model) after `dvc repro`
 (~1 min, once per test session, shared by the xdist workers: the first to need it builds it under a
@@ -12,12 +13,12 @@ import shutil
 import subprocess
 from pathlib import Path
 
+import pipeline  # noqa: F401  (first, before numpy loads: its kernels and threads are pinned there)
 import pandas as pd
 import pytest
 import yaml
 from filelock import FileLock
 
-import pipeline  # noqa: F401
 from pipeline.lib.artifacts import load_points
 from pipeline.lib.config import load_params, read_json
 from pipeline.lib.geometry import Calibration, aligned, theory_geometry

@@ -1,5 +1,6 @@
 """Forward kinematics of the nominal UR5/UR10 at poses checked by hand."""
 import os
+import platform
 import subprocess
 import sys
 from pathlib import Path
@@ -126,3 +127,30 @@ def test_the_chain_gives_the_same_bits_in_every_process():
     hashes = {subprocess.run([sys.executable, "-c", FK_HASH], env=env, capture_output=True, text=True,
                              check=True, preexec_fn=background).stdout for _ in range(16)}
     assert len(hashes) == 1, hashes
+
+
+KERNELS = """
+import ctypes, glob, os
+import pipeline
+import numpy as np, torch
+from numpy._core._multiarray_umath import __cpu_features__ as npy
+openblas = ctypes.CDLL(glob.glob(os.path.dirname(np.__file__) + ".libs/libscipy_openblas*")[0])
+openblas.scipy_openblas_get_corename64_.restype = ctypes.c_char_p
+print(torch.backends.cpu.get_cpu_capability(), npy["X86_V4"], npy["AVX512_ICL"], npy["AVX512_SPR"],
+      openblas.scipy_openblas_get_corename64_().decode(), os.environ["MKL_CBWR"], os.environ["ONEDNN_MAX_CPU_ISA"])
+"""
+
+
+@pytest.mark.skipif(platform.machine().lower() not in ("x86_64", "amd64"), reason="x86-64 kernels")
+def test_the_numeric_libraries_run_the_same_kernels_on_every_x86_cpu():
+    """The defect: each library picks its kernels by the CPU it finds, and their last bits differ, so a
+    fresh clone's `dvc repro` on an AMD EPYC (AVX-512) gave other bytes than the dvc.lock made on a Xeon,
+    every output from the frame stage on. Importing the package now pins the AVX2 kernels, which every
+    x86-64 machine here has: torch's own (before: AVX512 on both), numpy's loops (before: X86_V4),
+    OpenBLAS's (before: SkylakeX), MKL's reproducible AVX2 branch and oneDNN's."""
+    env = {k: v for k, v in os.environ.items()
+           if k not in ("ATEN_CPU_CAPABILITY", "NPY_DISABLE_CPU_FEATURES", "OPENBLAS_CORETYPE", "MKL_CBWR",
+                        "ONEDNN_MAX_CPU_ISA")}
+    env["PYTHONPATH"] = str(Path(__file__).resolve().parents[1])
+    out = subprocess.run([sys.executable, "-c", KERNELS], env=env, capture_output=True, text=True, check=True)
+    assert out.stdout.split() == ["AVX2", "False", "False", "False", "Haswell", "AVX2,STRICT", "AVX2"]

@@ -284,3 +284,20 @@ def test_the_criterion_gain_is_the_log_det_increase():
     np.testing.assert_allclose(crit.M, M0 + dense[7].T @ dense[7])
     np.testing.assert_allclose(crit.Minv @ crit.M, np.eye(len(M0)), atol=1e-6)
     assert block.size == 36 and (dense[:, :, crit.Pc:] != 0).sum(-1).max() <= 4      # one joint: 4 knots a pose
+
+
+def test_a_learning_curve_is_extended_only_with_the_settings_it_was_run_with(tmp_path, monkeypatch):
+    """bench plan --curve --extend: the sizes it lacks are added to the curve already in plan.json, its runs
+    kept; other seeds, overrides, epochs or work region are refused (they would mix two curves)."""
+    from pipeline.bench import plan as bench
+    monkeypatch.setattr(bench, "OUT", tmp_path / "plan.json")
+    rec = {"overrides": [], "epochs": None, "seeds": [139, 140], "work_waypoints": 40, "machine": {"cpu": "x"}}
+    with pytest.raises(SystemExit, match="holds no 'learning_curve'"):
+        bench.extended_curve("learning_curve", rec, [700])
+    old = {**rec, "sizes": [25, 400], "runs": {"planned": {"25": {"139": {}}}, "random": {}}, "seconds": 9.0}
+    bench.save("learning_curve", old)
+    got, new = bench.extended_curve("learning_curve", dict(rec), [400, 700])
+    assert new == [700] and got["sizes"] == [25, 400, 700] and got["runs"] == old["runs"]
+    assert got["extensions"] == [{"sizes": [700], "machine": {"cpu": "x"}}] and got["seconds"] == 9.0
+    with pytest.raises(SystemExit, match="seeds"):
+        bench.extended_curve("learning_curve", {**rec, "seeds": [139]}, [700])

@@ -61,6 +61,8 @@ def main(argv=None):
     ap.add_argument("--curve", action="store_true", help="plan: the learning curve instead of the closed loop")
     ap.add_argument("--sizes", type=int, nargs="+", default=[25, 50, 100, 200, 400, 700],
                     help="plan --curve: numbers of measured poses")
+    ap.add_argument("--extend", action="store_true",
+                    help="plan --curve: add --sizes to the curve in plan.json (same seeds, -S, epochs), keeping its runs")
     ap.add_argument("--work", type=int, default=40, help="plan --curve: the front work region's waypoints")
     ap.add_argument("--keep", default=None, help="plan: keep the scratch projects in this folder")
     ap.add_argument("--station", choices=["new", "same"], default="new",
@@ -70,7 +72,7 @@ def main(argv=None):
     if a.what == "plan":
         bench_plan(a.n, a.seeds or [139, 140, 141], a.waypoints, a.variants, a.curve, a.sizes, a.overrides,
                    a.epochs, a.se_check, a.threads, a.work, a.keep,
-                   a.station == "new")
+                   a.station == "new", a.extend)
     elif a.what == "real":
         bench_real(a.seeds or [139], a.epochs, a.sets, a.other_physics, a.overrides, a.engine, a.address, a.threads, a.dnn)
     elif a.what == "serve":

@@ -4,6 +4,7 @@ reports/bench/plan.json, saved as each run finishes.
     python -m pipeline.bench plan [--n 60] [--seeds 139 140 141]                the closed loop
     python -m pipeline.bench plan --curve [--sizes 25 50 100 200 400 700] [--seeds 139 140 141]
                                                                                 the learning curve
+    python -m pipeline.bench plan --curve --sizes 700 --extend                 one more size on it
 
 The closed loop, per seed (the training seed; the planner's candidates, the random poses and every
 measurement's noise are drawn from it too):
@@ -19,7 +20,8 @@ measurement's noise are drawn from it too):
               and driven on the twin (twin.drive_check);
   random      the same, N poses drawn at random in the program's region (twin.sample_poses, side);
   identifiability   the same, N poses chosen by D-optimality alone (`plan --identifiability-only`).
-Reported per variant: the program's driven error (mean 3D, mm), its share inside the trained workspace,
+Reported per variant: the program's driven error (mean 3D, mm; beside it the program's noise floor, what a
+perfect model would still be driven to: the arm's repeatability and the tracker's noise, twin.noise_floor), its share inside the trained workspace,
 the test and the independent campaign's (twin_side) error, the identified parameters; the goals'
 ratios (planned / the drive check inside the default workspace; planned against random); and the
 predicted standard errors against (a) the spread of the identified parameters over the seeds and (b)
@@ -223,6 +225,14 @@ def se_check(train_q: np.ndarray, plan_q: np.ndarray, twin: Twin, station: Twin,
     return out
 
 
+def side_program(twin: Twin, n_wp: int) -> pd.DataFrame:
+    """The engineer's program at the side of the arm (module docstring): point_id, j1_deg..j6_deg."""
+    program = pd.DataFrame(sample_poses(n_wp, np.random.default_rng(PROGRAM_SEED), twin.robot, region="side"),
+                           columns=JOINTS_DEG)
+    program.insert(0, "point_id", [f"W{i + 1:03d}" for i in range(n_wp)])
+    return program
+
+
 def closed_loop_seed(seed: int, n: int, n_wp: int, variants, overrides, epochs, se_runs: int, scratch: Path,
                      new_station: bool = True) -> dict:
     """One seed of the closed loop (module docstring): every variant's record. new_station False: the new
@@ -231,13 +241,11 @@ def closed_loop_seed(seed: int, n: int, n_wp: int, variants, overrides, epochs, 
     R, t, tracker = station_pose("side")
     station = Twin(twin.seed, twin.errors, (R, t)) if new_station else twin
     tracker = tracker if new_station else None
-    program = pd.DataFrame(sample_poses(n_wp, np.random.default_rng(PROGRAM_SEED), twin.robot, region="side"),
-                           columns=JOINTS_DEG)
-    program.insert(0, "point_id", [f"W{i + 1:03d}" for i in range(n_wp)])
+    program = side_program(twin, n_wp)
     program_csv = scratch / "program.csv"
     program.to_csv(program_csv, index=False, float_format="%.6f")
     params = base_params(overrides, epochs, seed)
-    out = {}
+    out = {"program_noise_floor_mm": twin.noise_floor(program[JOINTS_DEG].to_numpy())}
     t0 = time.perf_counter()
     none = scratch / f"none-{seed}"
     out["none"] = run_pipeline(none, params)
@@ -314,6 +322,10 @@ def closed_loop_summary(runs: dict, variants) -> dict:
     if "planned" in V and "random" in V:
         p, r = V["planned"]["program_driven_mm"]["mean"], V["random"]["program_driven_mm"]["mean"]
         out["goal_planned_vs_random"] = {"planned_mm": p, "random_mm": r, "below_random": 1 - p / r, "goal": ">= 0.20"}
+        floor = [runs[s]["program_noise_floor_mm"] for s in seeds if "program_noise_floor_mm" in runs[s]]
+        if floor:     # a perfect model still reads the arm's repeatability and the tracker's noise
+            out["goal_planned_vs_random"].update(
+                program_noise_floor_mm=float(np.mean(floor)), perfect_model_below_random=1 - float(np.mean(floor)) / r)
     if "planned" in V:                               # predicted se against the spread over the seeds
         recs = [runs[s]["planned"] for s in seeds if "planned" in runs[s]]
         pred = {k: np.mean([r["plan"]["predicted_se"][k] for r in recs]) for k in recs[0]["plan"]["predicted_se"]
@@ -400,6 +412,21 @@ def curve_summary(runs: dict) -> dict:
     return out
 
 
+def extended_curve(key: str, rec: dict, sizes) -> tuple[dict, list]:
+    """The curve plan.json holds under key, to be extended by `sizes` (those it lacks); refused unless it
+    was run with rec's seeds, overrides, epochs and work region."""
+    old = read_json(OUT).get(key) if OUT.exists() else None
+    if old is None:
+        raise SystemExit(f"plan --extend: {OUT} holds no '{key}' to extend")
+    for k in ("overrides", "epochs", "seeds", "work_waypoints"):
+        if old.get(k) != rec[k]:
+            raise SystemExit(f"plan --extend: '{key}' was run with {k} {old.get(k)!r}, not {rec[k]!r}")
+    new = [n for n in sizes if n not in old["sizes"]]
+    old["sizes"] = sorted(old["sizes"] + new)
+    old.setdefault("extensions", []).append({"sizes": new, "machine": rec["machine"]})
+    return old, new
+
+
 # ----------------------------------------------------------------------------- the command
 
 def save(key: str, rec: dict) -> None:
@@ -411,9 +438,11 @@ def save(key: str, rec: dict) -> None:
 
 def bench_plan(n: int = 60, seeds=(139, 140, 141), waypoints: int = 20, variants=VARIANTS, curve: bool = False,
                sizes=(25, 50, 100, 200, 400, 700), overrides=(), epochs: int | None = None, se_runs: int = 5,
-               threads: int | None = None, work: int = 40, keep: str | None = None, new_station: bool = True) -> dict:
+               threads: int | None = None, work: int = 40, keep: str | None = None, new_station: bool = True,
+               extend: bool = False) -> dict:
     """The closed loop (or, with curve, the learning curve); merged into reports/bench/plan.json. keep: a
-    folder for the scratch projects, kept (default: a temporary one, removed)."""
+    folder for the scratch projects, kept (default: a temporary one, removed). extend (curve): add `sizes`
+    to the curve plan.json holds for the same seeds, overrides, epochs and work region, keeping its runs."""
     if threads:
         torch.set_num_threads(threads)
     key = ("learning_curve" if curve else "closed_loop" + ("" if new_station else "_same_station")) \
@@ -439,6 +468,9 @@ def bench_plan(n: int = 60, seeds=(139, 140, 141), waypoints: int = 20, variants
             front_check = write_campaign(scratch / "front_check", q_fc, twin,
                                          np.random.default_rng(FRONT_CHECK["seed"] + 1), "F")
             rec.update(sizes=list(sizes), work_waypoints=work, runs={"planned": {}, "random": {}})
+            if extend:
+                rec, sizes = extended_curve(key, rec, sizes)
+            seconds0 = rec.get("seconds", 0.0)
             for size in sizes:
                 for s in seeds:
                     for v in ("random", "planned"):
@@ -448,6 +480,6 @@ def bench_plan(n: int = 60, seeds=(139, 140, 141), waypoints: int = 20, variants
                                  next((x for k, x in r["test_3d_mae"].items() if k.startswith("spi_boter")), np.nan),
                                  r["validation"]["front_check"]["mean_3d_mm"]["model"])
                         rec["summary"] = curve_summary(rec["runs"])
-                        rec["seconds"] = time.perf_counter() - t0
+                        rec["seconds"] = seconds0 + time.perf_counter() - t0
                         save(key, rec)
     return rec

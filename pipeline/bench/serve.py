@@ -13,6 +13,7 @@ import xmlrpc.client
 from pathlib import Path
 
 import numpy as np
+import psutil
 
 from ..lib.columns import JOINTS_DEG, THEORY
 from ..lib.config import load_params, logger, read_json, write_json
@@ -21,9 +22,12 @@ from .common import BENCH, machine, prepared
 log = logger(__name__)
 
 
-def load_test(url: str, q0: list, tgt: list, clients: int, calls: int) -> dict:
+def load_test(url: str, q0: list, tgt: list, clients: int, calls: int, server_pid: int | None = None) -> dict:
     """`clients` threads, each with its own ServerProxy, make calls/clients `compensate` calls on the
-    (q0, target) pairs (cycled); each call's wall latency."""
+    (q0, target) pairs (cycled); each call's wall latency; with server_pid, the CPU time per call of the
+    server's process and of this one (the clients'), and the cores each kept busy."""
+    procs = {"server": psutil.Process(server_pid), "clients": psutil.Process()} if server_pid else {}
+    cpu0 = {k: sum(p.cpu_times()[:2]) for k, p in procs.items()}
     ms, failed, unconverged = [[] for _ in range(clients)], [0] * clients, [0] * clients
 
     def client(k):
@@ -43,10 +47,12 @@ def load_test(url: str, q0: list, tgt: list, clients: int, calls: int) -> dict:
     for t in threads:
         t.join()
     seconds, lat = time.perf_counter() - t0, np.concatenate(ms)
+    cpu = {k: sum(p.cpu_times()[:2]) - cpu0[k] for k, p in procs.items()}
     return {"clients": clients, "calls": len(lat), "failed": sum(failed), "not_converged": sum(unconverged),
             "ms_p50": float(np.percentile(lat, 50)), "ms_p90": float(np.percentile(lat, 90)),
             "ms_p99": float(np.percentile(lat, 99)), "ms_max": float(lat.max()), "calls_per_s": len(lat) / seconds,
-            "seconds": seconds}
+            "seconds": seconds, **{f"{k}_cpu_ms_per_call": 1000 * c / len(lat) for k, c in cpu.items()},
+            **{f"{k}_cores_busy": c / seconds for k, c in cpu.items()}}
 
 
 FLAGS = {"onnx": ["--onnx"], "eager": ["--no-onnx", "--no-compile"], "compiled": ["--no-onnx", "--compile"]}
@@ -85,8 +91,8 @@ def bench_serve(clients: int = 8, calls: int = 10000, paths=("onnx", "eager", "c
                         raise RuntimeError(f"python -m pipeline.serve did not start (exit code {proc.poll()})")
                     time.sleep(0.2)
             out[name] = {"startup_s": time.perf_counter() - t0, "machine": machine(), "project": str(Path.cwd()),
-                         "one_client": load_test(url, q0, tgt, 1, calls // 10),
-                         "concurrent": load_test(url, q0, tgt, clients, calls)}
+                         "one_client": load_test(url, q0, tgt, 1, calls // 10, proc.pid),
+                         "concurrent": load_test(url, q0, tgt, clients, calls, proc.pid)}
             out[name]["concurrent_over_one_client"] = (out[name]["concurrent"]["calls_per_s"]
                                                        / out[name]["one_client"]["calls_per_s"])
         finally:
@@ -95,9 +101,10 @@ def bench_serve(clients: int = 8, calls: int = 10000, paths=("onnx", "eager", "c
         for k in ("one_client", "concurrent"):
             r = out[name][k]
             log.info("serve %s, %d client(s): %d calls in %.1f s (%.0f calls/s), %d failed, %d not converged; "
-                     "latency p50 %.1f ms, p90 %.1f ms, p99 %.1f ms, max %.1f ms", name, r["clients"], r["calls"],
-                     r["seconds"], r["calls_per_s"], r["failed"], r["not_converged"], r["ms_p50"], r["ms_p90"],
-                     r["ms_p99"], r["ms_max"])
+                     "latency p50 %.1f ms, p90 %.1f ms, p99 %.1f ms, max %.1f ms; CPU a call: server %.2f ms, "
+                     "clients %.2f ms", name, r["clients"], r["calls"], r["seconds"], r["calls_per_s"], r["failed"],
+                     r["not_converged"], r["ms_p50"], r["ms_p90"], r["ms_p99"], r["ms_max"],
+                     r["server_cpu_ms_per_call"], r["clients_cpu_ms_per_call"])
         log.info("serve %s: %d clients give %.2fx one client's calls/s", name, clients,
                  out[name]["concurrent_over_one_client"])
     write_json(path, out)
