@@ -18,7 +18,7 @@ os.environ.setdefault("MKL_NUM_THREADS", "1")
 # The same kernels on every x86-64 CPU, Intel or AMD, with or without AVX-512: each numeric library
 # otherwise picks its kernels by the CPU it finds, and their last bits differ, so a fresh clone's
 # `dvc repro` on an AMD EPYC gave other bytes than dvc.lock made on a Xeon (every output from the frame
-# stage on). AVX2 is the widest every x86 machine here has (docs/decisions.md, "Reproducible bytes").
+# stage on). AVX2 is the widest every x86 machine here has (docs/decisions.md, "The same kernels").
 if platform.machine().lower() in ("x86_64", "amd64"):
     os.environ.setdefault("OPENBLAS_CORETYPE", "Haswell")       # numpy's and scipy's OpenBLAS
     os.environ.setdefault("MKL_CBWR", "AVX2,STRICT")            # torch's MKL: its reproducible AVX2 branch

@@ -20,9 +20,10 @@ measurement's noise are drawn from it too):
               and driven on the twin (twin.drive_check);
   random      the same, N poses drawn at random in the program's region (twin.sample_poses, side);
   identifiability   the same, N poses chosen by D-optimality alone (`plan --identifiability-only`).
-Reported per variant: the program's driven error (mean 3D, mm; beside it the program's noise floor, what a
-perfect model would still be driven to: the arm's repeatability and the tracker's noise, twin.noise_floor), its share inside the trained workspace,
-the test and the independent campaign's (twin_side) error, the identified parameters; the goals'
+Reported per variant: the program's driven error (mean 3D, mm; beside it the program's noise floor, where
+a perfect model would drive it: the arm's repeatability and the tracker's noise, twin.noise_floor), its
+share inside the trained workspace, the test and the independent campaign's (twin_side) error, the
+identified parameters; the goals'
 ratios (planned / the drive check inside the default workspace; planned against random); and the
 predicted standard errors against (a) the spread of the identified parameters over the seeds and (b)
 a Monte Carlo: the default campaign's training poses and the planned ones measured again
