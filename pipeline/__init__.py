@@ -19,9 +19,12 @@ os.environ.setdefault("MKL_NUM_THREADS", "1")
 # otherwise picks its kernels by the CPU it finds, and their last bits differ, so a fresh clone's
 # `dvc repro` on an AMD EPYC gave other bytes than dvc.lock made on a Xeon (every output from the frame
 # stage on). AVX2 is the widest every x86 machine here has (docs/decisions.md, "The same kernels").
-if platform.machine().lower() in ("x86_64", "amd64"):
-    os.environ.setdefault("OPENBLAS_CORETYPE", "Haswell")       # numpy's and scipy's OpenBLAS
-    os.environ.setdefault("MKL_CBWR", "AVX2,STRICT")            # torch's MKL: its reproducible AVX2 branch
-    os.environ.setdefault("ATEN_CPU_CAPABILITY", "avx2")        # torch's own vectorised kernels
-    os.environ.setdefault("ONEDNN_MAX_CPU_ISA", "AVX2")         # oneDNN, under torch
-    os.environ.setdefault("NPY_DISABLE_CPU_FEATURES", "X86_V4 AVX512_ICL AVX512_SPR")   # numpy's own loops
+X86 = platform.machine().lower() in ("x86_64", "amd64")
+KERNEL_PINS = {"OPENBLAS_CORETYPE": "Haswell",                 # numpy's and scipy's OpenBLAS
+               "MKL_CBWR": "AVX2,STRICT",                      # torch's MKL: its reproducible AVX2 branch
+               "ATEN_CPU_CAPABILITY": "avx2",                  # torch's own vectorised kernels
+               "ONEDNN_MAX_CPU_ISA": "AVX2",                   # oneDNN, under torch
+               "NPY_DISABLE_CPU_FEATURES": "X86_V4 AVX512_ICL AVX512_SPR"}   # numpy's own loops
+if X86:
+    for name, value in KERNEL_PINS.items():
+        os.environ.setdefault(name, value)

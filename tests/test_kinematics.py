@@ -1,6 +1,5 @@
 """Forward kinematics of the nominal UR5/UR10 at poses checked by hand."""
 import os
-import platform
 import subprocess
 import sys
 from pathlib import Path
@@ -9,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 
+import pipeline
 from conftest import background
 from pipeline.lib.kinematics import DHChain, fk, fk_jacobian, fk_numpy, nominal_geometry
 from pipeline.lib.robots import load_robot, nominal_robot
@@ -129,7 +129,7 @@ def test_the_chain_gives_the_same_bits_in_every_process():
     assert len(hashes) == 1, hashes
 
 
-KERNELS = """
+KERNELS_RUN = """
 import ctypes, glob, os
 import pipeline
 import numpy as np, torch
@@ -141,16 +141,14 @@ print(torch.backends.cpu.get_cpu_capability(), npy["X86_V4"], npy["AVX512_ICL"],
 """
 
 
-@pytest.mark.skipif(platform.machine().lower() not in ("x86_64", "amd64"), reason="x86-64 kernels")
+@pytest.mark.skipif(not pipeline.X86, reason="x86-64 kernels")
 def test_the_numeric_libraries_run_the_same_kernels_on_every_x86_cpu():
     """The defect: each library picks its kernels by the CPU it finds, and their last bits differ, so a
     fresh clone's `dvc repro` on an AMD EPYC (AVX-512) gave other bytes than the dvc.lock made on a Xeon,
     every output from the frame stage on. Importing the package now pins the AVX2 kernels, which every
     x86-64 machine here has: torch's own (before: AVX512 on both), numpy's loops (before: X86_V4),
     OpenBLAS's (before: SkylakeX), MKL's reproducible AVX2 branch and oneDNN's."""
-    env = {k: v for k, v in os.environ.items()
-           if k not in ("ATEN_CPU_CAPABILITY", "NPY_DISABLE_CPU_FEATURES", "OPENBLAS_CORETYPE", "MKL_CBWR",
-                        "ONEDNN_MAX_CPU_ISA")}
+    env = {k: v for k, v in os.environ.items() if k not in pipeline.KERNEL_PINS}
     env["PYTHONPATH"] = str(Path(__file__).resolve().parents[1])
-    out = subprocess.run([sys.executable, "-c", KERNELS], env=env, capture_output=True, text=True, check=True)
+    out = subprocess.run([sys.executable, "-c", KERNELS_RUN], env=env, capture_output=True, text=True, check=True)
     assert out.stdout.split() == ["AVX2", "False", "False", "False", "Haswell", "AVX2,STRICT", "AVX2"]
