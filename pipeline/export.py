@@ -5,6 +5,9 @@
     models/model.onnx            the trained model, q_rad -> p_mm (lib/onnx_model.py)
     models/controller.onnx       the controller path (lib/realtime.py: two chord steps) as one graph,
                                  q0_rad, target_mm, joint limits -> q1, q2, |r0|, |r1| (lib/onnx_model.py)
+    models/controller_physics.onnx   the same on the model's physics branch alone (model.PhysicsOnly:
+                                 the calibration with its error maps, the network left out), for a
+                                 controller whose cycle cannot hold the network
 
 and reports/export.json, what each file was checked against, by libraries the
 pipeline does not use for its own kinematics:
@@ -25,13 +28,14 @@ squares over the campaign's poses); how far it stays from it, and what it leaves
     controller  onnxruntime's answers (OnnxRealtime) vs the PyTorch controller path's (Realtime) on
            every test pose towards its theory position, one call each and all in one batch: the largest
            difference in angles (rad) and residual (mm), and answers whose flags differ
+    controller_physics  the same for controller_physics.onnx against Realtime on PhysicsOnly(model)
 """
 import numpy as np
 import pinocchio as pin
 import torch
 import yaml
 
-from .lib.artifacts import (CALIBRATED_GEOMETRY, CONTROLLER_ONNX, EXPORT_JSON, MODEL_ONNX, MODEL_WEIGHTS, PARTS_JSON, UR_YAML, URDF_FILE,
+from .lib.artifacts import (CALIBRATED_GEOMETRY, CONTROLLER_ONNX, CONTROLLER_PHYSICS_ONNX, EXPORT_JSON, MODEL_ONNX, MODEL_WEIGHTS, PARTS_JSON, UR_YAML, URDF_FILE,
                             load_points)
 from .lib.columns import JOINTS_DEG, THEORY
 from .lib.config import for_stage, load_params, logger, read_json, write_json
@@ -39,6 +43,7 @@ from .lib.geometry import Calibration, with_parts
 from .lib.identify import identify
 from .lib.realtime import Realtime
 from .lib.kinematics import DTYPE, GEOMETRY_KEYS, fk, fk_frames
+from .lib.model import PhysicsOnly
 from .lib.onnx_model import OnnxModel, OnnxRealtime, deviation, export_controller, export_onnx
 from .lib.robots import TABLES, load_robot
 from .lib.training import load_model
@@ -143,15 +148,17 @@ def run(params: dict) -> dict:
              "from the float64 angles", MODEL_ONNX, test.sum(), summary["onnx"]["max_deviation_mm"],
              summary["onnx"]["max_deviation_from_float64_angles_mm"])
 
-    export_controller(model, CONTROLLER_ONNX)
     limits = np.radians(robot.limits_deg)
-    dev = deviation(Realtime(model, limits), OnnxRealtime(CONTROLLER_ONNX, limits), q[test].numpy(),
-                    pts.loc[test, THEORY].to_numpy())
-    dev.update(max_q_rad=size(dev["max_q_rad"]), max_residual_mm=size(dev["max_residual_mm"]))
-    summary["controller"] = {"file": str(CONTROLLER_ONNX), "checked_with": "onnxruntime", **dev}
-    log.info("%s: onnxruntime's answers vs the PyTorch controller path's on %d test poses (alone and in a "
-             "batch): max %.1e rad, residual %.1e mm; flags differ in %d", CONTROLLER_ONNX, test.sum(),
-             dev["max_q_rad"], dev["max_residual_mm"], dev["flags_differ"])
+    for key, path, m in (("controller", CONTROLLER_ONNX, model),
+                         ("controller_physics", CONTROLLER_PHYSICS_ONNX, PhysicsOnly(model))):
+        export_controller(m, path)
+        dev = deviation(Realtime(m, limits), OnnxRealtime(path, limits), q[test].numpy(),
+                        pts.loc[test, THEORY].to_numpy())
+        dev.update(max_q_rad=size(dev["max_q_rad"]), max_residual_mm=size(dev["max_residual_mm"]))
+        summary[key] = {"file": str(path), "checked_with": "onnxruntime", **dev}
+        log.info("%s: onnxruntime's answers vs the PyTorch controller path's on %d test poses (alone and in a "
+                 "batch): max %.1e rad, residual %.1e mm; flags differ in %d", path, test.sum(),
+                 dev["max_q_rad"], dev["max_residual_mm"], dev["flags_differ"])
     write_json(EXPORT_JSON, summary)
     return summary
 

@@ -15,7 +15,7 @@ from conftest import project_points
 from pipeline.lib.columns import JOINTS_DEG, THEORY
 from pipeline.lib.config import load_params, read_json
 from pipeline.lib.kinematics import DTYPE, fk, fk_frames, nominal_geometry
-from pipeline.lib.model import Ensemble
+from pipeline.lib.model import Ensemble, PhysicsOnly
 from pipeline.lib.onnx_model import OnnxModel, OnnxRealtime, export_controller, export_onnx
 from pipeline.lib.realtime import Realtime
 from pipeline.lib.solvers import lm_jacobian, lm_step, predict
@@ -234,13 +234,44 @@ def test_lm_step_on_the_controller_graph_is_lm_in_pytorch(in_trained_project):
 
 
 def test_controller_onnx_is_the_same_bytes_when_exported_again(in_trained_project, tmp_path):
-    """A DVC output: exported again (another process, another directory), the same file, with no source paths."""
-    export_controller(load_model("models/boter.pt"), tmp_path / "controller.onnx")
-    data = (tmp_path / "controller.onnx").read_bytes()
-    assert data == Path("models/controller.onnx").read_bytes()
-    assert b"realtime.py" not in data and b"onnx_model.py" not in data
-    r = json.loads(Path("reports/export.json").read_text())["controller"]
-    assert r["max_q_rad"] < 1e-9 and r["max_residual_mm"] < 1e-6 and r["flags_differ"] == 0
+    """DVC outputs: exported again (another process, another directory), the same files, with no source paths."""
+    model = load_model("models/boter.pt")
+    for name, m in (("controller", model), ("controller_physics", PhysicsOnly(model))):
+        export_controller(m, tmp_path / f"{name}.onnx")
+        data = (tmp_path / f"{name}.onnx").read_bytes()
+        assert data == Path(f"models/{name}.onnx").read_bytes()
+        assert b"realtime.py" not in data and b"onnx_model.py" not in data
+        r = json.loads(Path("reports/export.json").read_text())[name]
+        assert r["max_q_rad"] < 1e-9 and r["max_residual_mm"] < 1e-6 and r["flags_differ"] == 0
+
+
+def test_the_physics_controller_answers_as_the_model_where_its_network_has_faded(in_trained_project):
+    """models/controller_physics.onnx (the controller path on the model's physics branch alone,
+    model.PhysicsOnly) answers every case as the PyTorch path on PhysicsOnly, alone and batched. Far from
+    the training poses, where the network's correction has faded to 0 at both evaluations, its answers are
+    the whole model's (models/controller.onnx); at the test poses they are not (the network's correction)."""
+    params = in_trained_project
+    model, ws = load_model("models/boter.pt"), Workspace.from_dict(read_json("models/workspace.json"))
+    limits, tol = np.radians(load_robot(params["robot"]).limits_deg), params["compensate"]["tol_mm"]
+    q0, tgt = controller_cases(model, params)
+    physics = OnnxRealtime("models/controller_physics.onnx", limits, tol, ws)
+    in_torch = Realtime(PhysicsOnly(model), limits, tol, workspace=ws)
+    single = [physics(a, b) for a, b in zip(q0, tgt)]
+    assert_same_answers(single, [in_torch(a, b) for a, b in zip(q0, tgt)])
+    assert_same_answers(physics.batch(q0, tgt), in_torch.batch(q0, tgt))
+    whole = OnnxRealtime("models/controller.onnx", limits, tol, ws)
+    test = len(q0) // 2 - 3                                      # controller_cases: the test poses come first
+    gaps = [np.abs(a.q - b.q).max() for a, b in zip(single[:test], whole.batch(q0[:test], tgt[:test]))]
+    assert min(gaps) > 0 and max(gaps) > 1e-6                    # at the test poses: the network's correction
+    q = poses(60, seed=11).numpy()                               # random poses, most far from the training ones
+    with torch.no_grad():
+        t = model(torch.as_tensor(q))[0].numpy() + [0.3, 0.0, -0.2]
+        q1 = physics.solve(q, t)[0]
+        faded = ((model.fade(torch.as_tensor(q)) == 0) & (model.fade(torch.as_tensor(q1)) == 0))[:, 0].numpy()
+    assert 10 <= faded.sum() < len(q)
+    for a, b, f in zip(physics.batch(q, t), whole.batch(q, t), faded):
+        gap = np.abs(a.q - b.q).max()
+        assert gap < 1e-12 if f else gap > 0
 
 
 def test_controller_onnx_of_an_ensemble_answers_as_realtime(tmp_path):

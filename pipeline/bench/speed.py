@@ -4,9 +4,11 @@ one pose), `lm` and `adam` compensation (batched and one pose), the controller p
 compiled, and peak memory; writes reports/bench/speed.json. Needs a finished `dvc repro` in the project.
 
 `controller` (issue 24): the controller path in PyTorch (eager, compiled) and on onnxruntime
-(models/controller.onnx, OnnxRealtime), timed alternating in one run on the same poses, so that a load
-beside the benchmark falls on all three alike: call by call (the order rotating), and round by round (a
-round over every pose by one path, then the next: caches warm): p50/p90/p99/p99.9/max and the ratios; then `soak` seconds of the onnxruntime path alone (p50/p99/p99.9/max per window, and the drift:
+(models/controller.onnx, OnnxRealtime), and on the model's physics branch alone (model.PhysicsOnly:
+eager PyTorch, and models/controller_physics.onnx), timed alternating in one run on the same poses, so
+that a load beside the benchmark falls on all five alike: call by call (the order rotating), and round by
+round (a round over every pose by one path, then the next: caches warm): p50/p90/p99/p99.9/max and the
+ratios; then `soak` seconds of each onnxruntime path alone (p50/p99/p99.9/max per window, and the drift:
 the last window's p50 over the first's). `--only controller` runs just that part and replaces just those
 keys of speed.json (each part records its machine).
 """
@@ -19,10 +21,11 @@ import numpy as np
 import pandas as pd
 import torch
 
-from ..lib.artifacts import CONTROLLER_ONNX, MODEL_ONNX, MODEL_WEIGHTS
+from ..lib.artifacts import CONTROLLER_ONNX, CONTROLLER_PHYSICS_ONNX, MODEL_ONNX, MODEL_WEIGHTS
 from ..lib.columns import JOINTS_DEG, TARGET
 from ..lib.config import load_params, logger, read_json, write_json
 from ..lib.loss import SPILoss
+from ..lib.model import PhysicsOnly
 from ..lib.onnx_model import OnnxModel, OnnxRealtime, deviation
 from ..lib.realtime import Realtime, check
 from ..lib.robots import load_robot
@@ -31,7 +34,9 @@ from ..lib.training import fit, load_model, make_model, tensors
 from .common import BENCH, machine, prepared, timed
 
 log = logger(__name__)
-PATHS = ("pytorch_eager", "pytorch_compiled", "onnx")
+PATHS = ("pytorch_eager", "pytorch_compiled", "onnx", "physics_pytorch", "physics_onnx")
+OVER = {"onnx": ("pytorch_eager", "pytorch_compiled"),    # ratio_over_<name>: these paths' over its
+        "physics_onnx": ("physics_pytorch", "onnx")}
 
 
 def latency(ms) -> dict:
@@ -45,7 +50,8 @@ def latency(ms) -> dict:
 def bench_controller(model, q0: np.ndarray, tgt: np.ndarray, limits: np.ndarray, tol_mm: float, rounds: int = 20,
                      soak_s: float = 600.0, torch_threads: int = 1) -> dict:
     """The controller path, one pose per call, in PyTorch eager and compiled and on onnxruntime (the export
-    stage's models/controller.onnx): every call of the three interleaved (pose by pose, the order rotating),
+    stage's models/controller.onnx), and on the physics branch alone (PhysicsOnly: eager, and
+    models/controller_physics.onnx): every call of the five interleaved (pose by pose, the order rotating),
     `rounds` times over the (q0, target) pairs, after one warm-up round; the answers compared; then the
     onnxruntime path alone for soak_s seconds, back to back, cycling the pairs. PyTorch on torch_threads
     threads (1, as onnxruntime: a controller's one core; with 2 on a busy 2-core machine its OpenMP workers
@@ -59,11 +65,16 @@ def bench_controller(model, q0: np.ndarray, tgt: np.ndarray, limits: np.ndarray,
 
 
 def _bench_controller(model, q0, tgt, limits, tol_mm, rounds, soak_s) -> dict:
+    physics = PhysicsOnly(model)
+    make = {"pytorch_eager": lambda: Realtime(model, limits, tol_mm),
+            "pytorch_compiled": lambda: Realtime(model, limits, tol_mm, compile=True),
+            "onnx": lambda: OnnxRealtime(CONTROLLER_ONNX, limits, tol_mm),
+            "physics_pytorch": lambda: Realtime(physics, limits, tol_mm),
+            "physics_onnx": lambda: OnnxRealtime(CONTROLLER_PHYSICS_ONNX, limits, tol_mm)}
     rts, setup = {}, {}
     for name in PATHS:
         t = time.perf_counter()
-        rts[name] = (OnnxRealtime(CONTROLLER_ONNX, limits, tol_mm) if name == "onnx" else
-                     Realtime(model, limits, tol_mm, compile=name == "pytorch_compiled"))
+        rts[name] = make[name]()
         setup[name] = time.perf_counter() - t
     for rt in rts.values():                                            # warm-up
         for a, b in zip(q0, tgt):
@@ -74,12 +85,16 @@ def _bench_controller(model, q0, tgt, limits, tol_mm, rounds, soak_s) -> dict:
     for mode in ("call", "round"):
         ms = interleaved(rts, q0, tgt, rounds, mode)
         r = {name: latency(ms[name]) for name in PATHS}
-        r["ratio_over_onnx"] = {a: {k: r[a][k] / r["onnx"][k] for k in ("ms_p50", "ms_p99", "ms_p99_9")}
-                                for a in PATHS[:2]}
+        for b, over in OVER.items():
+            r[f"ratio_over_{b}"] = {a: {k: r[a][k] / r[b][k] for k in ("ms_p50", "ms_p99", "ms_p99_9")}
+                                    for a in over}
         out[f"by_{mode}"] = r
     out["agreement_onnx_vs_pytorch"] = deviation(rts["pytorch_eager"], rts["onnx"], q0, tgt)
+    out["agreement_physics_onnx_vs_pytorch"] = deviation(rts["physics_pytorch"], rts["physics_onnx"], q0, tgt)
     out["onnx_check"] = check(rts["onnx"], q0, tgt, model)
+    out["physics_onnx_check"] = check(rts["physics_onnx"], q0, tgt, physics)
     out["soak"] = soak(rts["onnx"], q0, tgt, soak_s)
+    out["soak_physics"] = soak(rts["physics_onnx"], q0, tgt, soak_s)
     return out
 
 
@@ -137,17 +152,20 @@ def log_controller(c: dict) -> None:
             log.info("controller path, interleaved by %-5s %-16s p50 %.3f ms, p90 %.3f, p99 %.3f, p99.9 %.3f, "
                      "max %.3f (%d calls)", mode, name, r["ms_p50"], r["ms_p90"], r["ms_p99"], r["ms_p99_9"],
                      r["ms_max"], r["calls"])
-        for a, r in c[f"by_{mode}"]["ratio_over_onnx"].items():
-            log.info("  %s / onnx: p50 %.2fx, p99 %.2fx, p99.9 %.2fx", a, r["ms_p50"], r["ms_p99"], r["ms_p99_9"])
-    d, s = c["agreement_onnx_vs_pytorch"], c["soak"]
-    log.info("onnx vs pytorch answers: max %.1e rad, residual %.1e mm, flags differ %d", d["max_q_rad"],
-             d["max_residual_mm"], d["flags_differ"])
-    log.info("soak %.0f s (%d calls): p50 %.3f ms, p99 %.3f, p99.9 %.3f, max %.3f; drift p50 %.3f, p99 %.3f",
-             s["seconds"], s["all"]["calls"], s["all"]["ms_p50"], s["all"]["ms_p99"], s["all"]["ms_p99_9"],
-             s["all"]["ms_max"], s["drift_p50"], s["drift_p99"])
-    for w in s["windows"]:
-        log.info("  from %5.0f s: p50 %.3f ms, p99 %.3f, p99.9 %.3f, max %.3f", w["from_s"], w["ms_p50"], w["ms_p99"],
-                 w["ms_p99_9"], w["ms_max"])
+        for b in OVER:
+            for a, r in c[f"by_{mode}"][f"ratio_over_{b}"].items():
+                log.info("  %s / %s: p50 %.2fx, p99 %.2fx, p99.9 %.2fx", a, b, r["ms_p50"], r["ms_p99"], r["ms_p99_9"])
+    for name, key, soak_key in (("onnx", "agreement_onnx_vs_pytorch", "soak"),
+                                ("physics_onnx", "agreement_physics_onnx_vs_pytorch", "soak_physics")):
+        d, s = c[key], c[soak_key]
+        log.info("%s vs its pytorch path, answers: max %.1e rad, residual %.1e mm, flags differ %d", name,
+                 d["max_q_rad"], d["max_residual_mm"], d["flags_differ"])
+        log.info("%s soak %.0f s (%d calls): p50 %.3f ms, p99 %.3f, p99.9 %.3f, max %.3f; drift p50 %.3f, p99 %.3f",
+                 name, s["seconds"], s["all"]["calls"], s["all"]["ms_p50"], s["all"]["ms_p99"], s["all"]["ms_p99_9"],
+                 s["all"]["ms_max"], s["drift_p50"], s["drift_p99"])
+        for w in s["windows"]:
+            log.info("  from %5.0f s: p50 %.3f ms, p99 %.3f, p99.9 %.3f, max %.3f", w["from_s"], w["ms_p50"],
+                     w["ms_p99"], w["ms_p99_9"], w["ms_max"])
 
 
 def controller_only(soak_s: float, rounds: int, torch_threads: int) -> dict:

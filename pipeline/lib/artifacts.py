@@ -40,6 +40,7 @@ URDF_FILE = MODELS / "calibrated.urdf"                # export (docs/data-format
 UR_YAML = MODELS / "ur_calibration.yaml"
 MODEL_ONNX = MODELS / "model.onnx"
 CONTROLLER_ONNX = MODELS / "controller.onnx"
+CONTROLLER_PHYSICS_ONNX = MODELS / "controller_physics.onnx"
 EXPORT_JSON = REPORTS / "export.json"
 VALIDATION_DIR = REPORTS / "validation"               # validate@<campaign>: <campaign>.json/.parquet
 VALIDATION_JSON = REPORTS / "validation.json"         # validation (all campaigns)

@@ -244,6 +244,23 @@ def _key(name: str) -> str:
     return "stacked_" + name.replace(".", "__")
 
 
+class PhysicsOnly(nn.Module):
+    """A model's physics branch alone, seen as a model: p_pred = p_theory, Δp = 0. What a BoTER (or an
+    Ensemble) answers wherever its correction has faded (w = 0): for a controller whose cycle cannot hold
+    the network's evaluations (onnx_model.export_controller writes its controller path too)."""
+
+    def __init__(self, model):
+        super().__init__()
+        self.physics = model.physics
+
+    def delta(self, q):                                    # (B, 6) -> (B, 3) zeros
+        return torch.zeros_like(q[:, :3])
+
+    def forward(self, q):
+        p = self.physics(q)
+        return p, p
+
+
 class DNN(nn.Module):
     """The paper's DNN baseline: an MLP from joint angles (rad) to the position error."""
 
