@@ -51,6 +51,23 @@ def sh(cmd, cwd, check=True):
     return r
 
 
+def pytest_collection_modifyitems(items):
+    """The longest work first (a stable sort): the tests on `reproduced` (the first builds it), the other slow
+    tests that need no trained project (the two-station repro, bench real on Ray), the other tests that need
+    none, then those on trained_project (on a fresh clone, `reproduced` too). xdist hands out the "serial"
+    group (the largest scope) and then single tests in this order, so one worker builds `reproduced` from
+    the start while the other runs tests that need nothing of it, rather than one waiting on its lock
+    (docs/results.md, the suite's timeline)."""
+    def rank(item):
+        names = set(item.fixturenames)
+        if "reproduced" in names:
+            return 0
+        if names & {"trained_project", "in_trained_project"}:
+            return 3
+        return 1 if item.get_closest_marker("slow") else 2
+    items.sort(key=rank)
+
+
 def deep_update(d, u):
     for k, v in u.items():
         d[k] = deep_update(d.get(k, {}), v) if isinstance(v, dict) else v

@@ -69,24 +69,6 @@ def small_ablation(trained_project, folder, monkeypatch, epochs: int) -> dict:
 
 @pytest.mark.slow
 @pytest.mark.xdist_group("serial")   # one Ray at a time (a second ray.init could join the first)
-def test_two_run_sweep_on_ray_equals_sequential(trained_project, tmp_path, monkeypatch):
-    """Two training runs (two seeds of one ablation group, a small model) as Ray tasks on a local
-    Ray instance and one after the other: identical test metrics, epoch for epoch."""
-    params = small_ablation(trained_project, tmp_path, monkeypatch, epochs=4)
-    out = {}
-    for engine in ("sequential", "ray"):
-        r = ablation.run_groups(params, ["no_resnet"], engine, threads=1)
-        assert r["timing"]["engine"] == engine and len(r["timing"]["job_seconds"]) == 2
-        out[engine] = json.loads((tmp_path / "reports/ablation/no_resnet.json").read_text())
-    seq, ray = out["sequential"]["runs"], out["ray"]["runs"]
-    assert [x["seed"] for x in ray] == [3, 4]
-    for a, b in zip(seq, ray):
-        assert a["test"] == b["test"] and a["epochs_run"] == b["epochs_run"] == 4
-    assert seq[0]["test"] != seq[1]["test"]                        # two seeds, two different models
-
-
-@pytest.mark.slow
-@pytest.mark.xdist_group("serial")   # one Ray at a time (a second ray.init could join the first)
 def test_bench_real_seeds_on_ray_equal_sequential():
     """`bench real`'s seed sweep (twin, two seeds, a small model, 3 epochs): each seed a job run in
     process, in order or as a Ray task, the same numbers either way, validation included."""
@@ -118,22 +100,25 @@ def two_nodes():
 @pytest.mark.slow
 @pytest.mark.xdist_group("serial")   # one Ray at a time (a second ray.init could join the first)
 def test_sweep_and_fleet_on_a_two_node_cluster(trained_project, tmp_path, monkeypatch, two_nodes):
-    """Issue 24: a two-run ablation sweep on a two-node cluster (ray.cluster_utils.Cluster, the driver
-    connecting by its address), run in a folder that holds nothing of the project: the same numbers as
-    the sequential engine (one torch thread each), one run on each node, the code imported from the
+    """Issue 24: a two-run ablation sweep (a group's two seeds) on a two-node cluster (ray.cluster_utils.Cluster,
+    the driver connecting by its address), run in a folder that holds nothing of the project: the same numbers
+    as the sequential engine (one torch thread each), epoch for epoch, one run on each node, the code imported from the
     package Ray shipped with the tasks, not from the project. Then a two-robot fleet on it, one robot's
     campaign broken (a column the reader needs): it is reported with the stage and the reader's message,
     its folder and logs come back too, and the other (a UR10) is calibrated; each robot's folder goes to
     its task as bytes and comes back as bytes, written here. (This replaced a separate three-robot fleet
-    on a local Ray, 100 s of the suite: the same run_fleet code, ray.init without an address.)"""
+    on a local Ray, 100 s of the suite: the same run_fleet code, ray.init without an address; and a two-run
+    sweep on a local Ray, 58 s: ray.init without an address is test_bench_real_seeds_on_ray_equal_sequential's.)"""
     params = small_ablation(trained_project, tmp_path, monkeypatch, epochs=3)
-    seq = ablation.run_groups(params, ["baseline"], "sequential", threads=1)
-    seq_runs = json.loads((tmp_path / "reports/ablation/baseline.json").read_text())["runs"]
-    ray_ = ablation.run_groups(params, ["baseline"], "ray", address=two_nodes.address, threads=1)
-    ray_runs = json.loads((tmp_path / "reports/ablation/baseline.json").read_text())["runs"]
+    seq = ablation.run_groups(params, ["no_resnet"], "sequential", threads=1)
+    seq_runs = json.loads((tmp_path / "reports/ablation/no_resnet.json").read_text())["runs"]
+    ray_ = ablation.run_groups(params, ["no_resnet"], "ray", address=two_nodes.address, threads=1)
+    ray_runs = json.loads((tmp_path / "reports/ablation/no_resnet.json").read_text())["runs"]
+    assert ray_["timing"]["engine"] == "ray" and len(ray_["timing"]["job_seconds"]) == 2
+    assert [x["seed"] for x in ray_runs] == [3, 4]
     for a, b in zip(seq_runs, ray_runs, strict=True):
         assert a["seed"] == b["seed"] and a["test"] == b["test"] and a["epochs_run"] == b["epochs_run"] == 3
-    assert seq_runs[0]["test"] != seq_runs[1]["test"]
+    assert seq_runs[0]["test"] != seq_runs[1]["test"]                      # two seeds, two different models
     nodes = ray_["timing"]["job_nodes"]
     assert set(nodes) == {n.node_id for n in two_nodes.list_all_nodes()}            # one run on each node
     project = Path(__file__).resolve().parents[1]
