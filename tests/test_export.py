@@ -241,8 +241,9 @@ def test_controller_onnx_is_the_same_bytes_when_exported_again(in_trained_projec
     data = (tmp_path / "controller.onnx").read_bytes()
     assert data == Path("models/controller.onnx").read_bytes()
     assert b"realtime.py" not in data and b"onnx_model.py" not in data
+    export = json.loads(Path("reports/export.json").read_text())
     for name in ("controller", "controller_physics"):          # the export stage's read-back of both
-        r = json.loads(Path("reports/export.json").read_text())[name]
+        r = export[name]
         assert r["max_q_rad"] < 1e-9 and r["max_residual_mm"] < 1e-6 and r["flags_differ"] == 0
 
 

@@ -114,7 +114,8 @@ def test_sweep_and_fleet_on_a_two_node_cluster(trained_project, tmp_path, monkey
     seq_runs = json.loads((tmp_path / "reports/ablation/no_resnet.json").read_text())["runs"]
     ray_ = ablation.run_groups(params, ["no_resnet"], "ray", address=two_nodes.address, threads=1)
     ray_runs = json.loads((tmp_path / "reports/ablation/no_resnet.json").read_text())["runs"]
-    assert ray_["timing"]["engine"] == "ray" and len(ray_["timing"]["job_seconds"]) == 2
+    for r, engine in ((seq, "sequential"), (ray_, "ray")):
+        assert r["timing"]["engine"] == engine and len(r["timing"]["job_seconds"]) == 2
     assert [x["seed"] for x in ray_runs] == [3, 4]
     for a, b in zip(seq_runs, ray_runs, strict=True):
         assert a["seed"] == b["seed"] and a["test"] == b["test"] and a["epochs_run"] == b["epochs_run"] == 3
