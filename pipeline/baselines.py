@@ -16,6 +16,7 @@ import pandas as pd
 
 from .lib.artifacts import (BASELINES_JSON, BASELINES_TABLE, CALIBRATED_GEOMETRY, FRAME_JSON, PARTS_JSON, TIMINGS,
                             load_points)
+from .lib.cli import one_line
 from .lib.columns import JOINTS_DEG
 from .lib.config import for_stage, load_params, logger, read_json, split_timings, write_json
 from .lib.geometry import Calibration, aligned, physics_geometry, theory_geometry, with_parts
@@ -63,4 +64,4 @@ def run(params: dict) -> dict:
 
 
 if __name__ == "__main__":
-    run(load_params())
+    one_line("pipeline.baselines", lambda argv: run(load_params()))

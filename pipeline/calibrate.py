@@ -15,6 +15,7 @@ import numpy as np
 import torch
 
 from .lib.artifacts import CALIBRATED_GEOMETRY, CALIBRATION_JSON, FRAME_JSON, TIMINGS, load_points
+from .lib.cli import one_line
 from .lib.columns import CAMPAIGN, JOINTS_DEG, MEAS, SPLITS, STATION
 from .lib.config import for_stage, load_params, logger, read_json, split_timings, write_json
 from .lib.geometry import Calibration, aligned, theory_geometry
@@ -72,4 +73,4 @@ def run(params: dict) -> dict:
 
 
 if __name__ == "__main__":
-    run(load_params())
+    one_line("pipeline.calibrate", lambda argv: run(load_params()))

@@ -6,7 +6,11 @@ angles (as in the paper). The Δθ table (docs/data-format.md) comes from
 recorded, and so is the controller path (lib/realtime.py: one pose per call,
 two model evaluations) on the same targets. With `compensate.drive_check` the
 twin (`compensate.twin`) is driven to the recorded and to the compensated
-angles and measured (the paper's Table 9).
+angles and measured (the paper's Table 9), when the campaign is the twin's own
+(its files' SHA-256 in reports/ingest.json are those twin.json records); on any
+other campaign (a real robot) compensation.json says why there is none. The
+model solved is the one served (model.served: the physics alone where evaluate
+switched the network off).
 
 Your own targets, outside DVC: `python -m pipeline.compensate --targets my.csv`
 (columns point_id, j1_deg..j6_deg, target_x..z in the base frame) writes
@@ -19,12 +23,15 @@ import numpy as np
 import pandas as pd
 
 from .lib.artifacts import (CALIBRATED_GEOMETRY, COMPENSATION_CSV, COMPENSATION_JSON, COMPENSATION_PARQUET,
-                            CONVERGENCE_CSV, DRIVE_CSV, FRAME_JSON, MODEL_WEIGHTS, REPORTS, TIMINGS,
+                            CONVERGENCE_CSV, DRIVE_CSV, FRAME_JSON, INGEST_JSON, MODEL_WEIGHTS, REPORTS, TIMINGS,
                             WORKSPACE_JSON, load_points)
+from .lib.campaigns import made_by_twin
+from .lib.cli import one_line
 from .lib.columns import JCOMP_DEG, JOINTS_DEG, TARGET, THEORY
 from .lib.compensation import delta_table, solve
 from .lib.config import for_stage, load_params, logger, read_json, split_timings, write_json
 from .lib.geometry import Calibration, aligned, theory_geometry
+from .lib.model import served
 from .lib.realtime import Realtime, check
 from .lib.robots import load_robot
 from .lib.solvers import SOLVERS
@@ -54,7 +61,8 @@ def read_targets(path: str) -> pd.DataFrame:
 
 def solve_all(cfg: dict, robot, df: pd.DataFrame):
     """Both solvers on df's targets -> (the Δθ table of compensate.solver, summary, histories)."""
-    model, workspace = load_model(MODEL_WEIGHTS), Workspace.from_dict(read_json(WORKSPACE_JSON))
+    workspace = Workspace.from_dict(read_json(WORKSPACE_JSON))
+    model = served(load_model(MODEL_WEIGHTS), workspace.network)     # the physics alone where the network is off
     q0, target = df[JOINTS_DEG].to_numpy(), df[TARGET].to_numpy()
     summary, histories = {"solver": cfg["solver"], "n_points": len(df)}, {}
     for solver in SOLVERS:                                  # both, for the comparison; table from cfg
@@ -82,6 +90,13 @@ def solve_all(cfg: dict, robot, df: pd.DataFrame):
     return table, summary, histories
 
 
+def twin_campaign(twin_json: str, files: dict) -> str | None:
+    """Which of the twin's campaigns the ingest section's files are (by their SHA-256 in ingest.json's
+    `files`), or None: the drive check runs only on a campaign the twin made."""
+    sha = {r: files[r if r in files else "table"]["sha256"] for r in ("joints", "tracker")}
+    return made_by_twin(read_json(twin_json), sha)
+
+
 def convergence_table(histories: dict) -> pd.DataFrame:
     """Residual (max and mean over points, mm) per iteration and solver, for the plots."""
     return pd.DataFrame([{"solver": s, "iteration": i, "max_residual_mm": float(h[i].max()),
@@ -97,7 +112,11 @@ def run(params: dict) -> dict:
     table.to_parquet(COMPENSATION_PARQUET, index=False)
     convergence_table(histories).to_csv(CONVERGENCE_CSV, index=False)
     errors = pd.DataFrame(columns=["point_id"] + [f"{w}_{a}" for w in ("before", "after") for a in "xyz"])
-    if cfg["drive_check"]:
+    made = twin_campaign(cfg["twin"], read_json(INGEST_JSON)["files"]) if cfg["drive_check"] else None
+    if cfg["drive_check"] and made != "main":                  # a real robot: no made-up twin result
+        summary["drive_check_skipped"] = f"the campaign is not the twin's ({cfg['twin']}): no drive check"
+        log.info("%s", summary["drive_check_skipped"])
+    if made == "main":
         rng = np.random.default_rng(cfg["drive_seed"])
         summary["drive_check"], e = drive_check(Twin.from_json(cfg["twin"]), frame, rng,
                                                 table[JOINTS_DEG].to_numpy(), table[JCOMP_DEG].to_numpy(),
@@ -132,4 +151,4 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    main()
+    one_line("pipeline.compensate", main)

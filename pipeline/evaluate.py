@@ -13,16 +13,23 @@ model's `uncertainty_mm` and `in_workspace`), reports/baselines.md (the
 test-split table) and models/workspace.json (lib/workspace.py: the training
 poses' coverage and the model's error scale, fitted on the validation split;
 metrics.json["uncertainty"] says how often the actual error stayed within it).
+
+The network is kept only where it lowers the validation split's mean 3D error against the model's
+physics branch alone, as the parts stage keeps the error maps: metrics.json["reported"] says which
+method is reported, served and exported (workspace.json "network"; model.served), and
+reports/headline.json holds the few numbers `dvc metrics show` and `dvc exp show` compare.
 """
 import numpy as np
 import pandas as pd
 
-from .lib.artifacts import (BASELINES_MD, BASELINES_TABLE, CALIBRATED_GEOMETRY, FRAME_JSON, METRICS_JSON,
-                            MODEL_WEIGHTS, PARTS_JSON, PREDICTIONS_TABLE, WORKSPACE_JSON, load_points)
+from .lib.artifacts import (BASELINES_MD, BASELINES_TABLE, CALIBRATED_GEOMETRY, FRAME_JSON, HEADLINE_JSON,
+                            METRICS_JSON, MODEL_WEIGHTS, PARTS_JSON, PREDICTIONS_TABLE, WORKSPACE_JSON, load_points)
+from .lib.cli import one_line
 from .lib.columns import CAMPAIGN, JOINTS_DEG, MEAS, PRED, SPLITS, STATION, THEORY
 from .lib.config import for_stage, load_params, logger, read_json, write_json
 from .lib.geometry import Calibration, aligned, theory_geometry
 from .lib.metrics import split_metrics
+from .lib.model import PhysicsOnly
 from .lib.robots import load_robot
 from .lib.training import load_model, predict
 from .lib.workspace import Workspace
@@ -65,6 +72,25 @@ def campaign_table(campaigns: dict, split: str = "test") -> str:
     return "\n".join(rows) + "\n"
 
 
+def physics_method(physics: str, maps: bool) -> str:
+    """The baseline that is the model's physics branch alone (model.PhysicsOnly)."""
+    return "nominal_dh" if physics == "nominal" else "calibrated_parts" if maps else "calibrated_dh"
+
+
+def headline(metrics: dict) -> dict:
+    """The few numbers an experiment is compared by (reports/headline.json): the reported model and every
+    method's 3D MAE on the val and test splits, and the reported model's test 3D MAE per campaign."""
+    r = metrics["reported"]["method"]
+    out = {"network_kept": metrics["reported"]["network"]}
+    for s in ("val", "test"):
+        if s in metrics["baselines"][r]:
+            out[f"{s}_3d_mae_mm"] = {"reported": metrics["baselines"][r][s]["3d"]["mae"],
+                                     **{k: v[s]["3d"]["mae"] for k, v in metrics["baselines"].items()}}
+    out["campaigns"] = {c: {"test_3d_mae_mm": v[r]["test"]["mae"]} for c, v in metrics["campaigns"].items()
+                        if "test" in v[r]}
+    return out
+
+
 def run(params: dict) -> dict:
     p = for_stage(params, PARAMS)
     cfg = p["workspace"]
@@ -81,11 +107,14 @@ def run(params: dict) -> dict:
         methods.setdefault(stem, base[[f"{stem}_{a}" for a in "xyz"]].to_numpy())
     errors = {k: np.linalg.norm(v - df[MEAS].to_numpy(), axis=1) for k, v in methods.items()}
     err, val = errors[name], (df.split == "val").to_numpy()
+    physics = np.linalg.norm(predict(PhysicsOnly(model), df) - df[MEAS].to_numpy(), axis=1)
+    network = bool(err[val].mean() < physics[val].mean())      # as the error maps: kept where it lowers val
     parts = read_json(PARTS_JSON)
     maps = {"model": err, "calibrated": errors["calibrated_dh"],
             "calibrated_parts": errors.get("calibrated_parts", errors["calibrated_dh"])}
     ws = Workspace.fit(q[(df.split == "train").to_numpy()], {k: v[val] for k, v in maps.items()}, cfg,
-                       model.config["fade_to"], parts["geometry"].get("amap_cover") if parts["enabled"] else None)
+                       model.config["fade_to"], parts["geometry"].get("amap_cover") if parts["enabled"] else None,
+                       network)
     write_json(WORKSPACE_JSON, ws.to_dict())
     out = df[["point_id", CAMPAIGN, STATION, "split"] + JOINTS_DEG + THEORY + MEAS].copy()
     out[PRED] = pred
@@ -103,7 +132,12 @@ def run(params: dict) -> dict:
                                   "uncertainty_mm_mean": float(u[m].mean())}
                               for s in SPLITS if (m := (df.split == s).to_numpy()).any()}
     metrics["uncertainty"]["target_coverage"] = cfg["coverage"]
+    reported = name if network else physics_method(model.config["physics"], parts["enabled"])
+    metrics["reported"] = {"method": reported, "network": network,
+                           "val_3d_mae_mm": {"with_network": float(err[val].mean()),
+                                             "physics_alone": float(physics[val].mean())}}
     write_json(METRICS_JSON, metrics)
+    write_json(HEADLINE_JSON, headline(metrics))
     table = markdown_table(metrics["baselines"])
     if len(metrics["campaigns"]) > 1:
         table += "\n" + campaign_table(metrics["campaigns"])
@@ -118,4 +152,4 @@ def run(params: dict) -> dict:
 
 
 if __name__ == "__main__":
-    run(load_params())
+    one_line("pipeline.evaluate", lambda argv: run(load_params()))

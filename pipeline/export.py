@@ -37,6 +37,7 @@ import yaml
 
 from .lib.artifacts import (CALIBRATED_GEOMETRY, CONTROLLER_ONNX, CONTROLLER_PHYSICS_ONNX, EXPORT_JSON, MODEL_ONNX, MODEL_WEIGHTS, PARTS_JSON, UR_YAML, URDF_FILE,
                             load_points)
+from .lib.cli import one_line
 from .lib.columns import JOINTS_DEG, THEORY
 from .lib.config import for_stage, load_params, logger, read_json, write_json
 from .lib.geometry import Calibration, with_parts
@@ -170,4 +171,4 @@ def size(x) -> float:
 
 
 if __name__ == "__main__":
-    run(load_params())
+    one_line("pipeline.export", lambda argv: run(load_params()))

@@ -13,6 +13,7 @@ import numpy as np
 import pandas as pd
 
 from .lib.artifacts import FRAME_JSON, INGEST_TABLE
+from .lib.cli import one_line
 from .lib.columns import CAMPAIGN, JOINTS_DEG, MEAS, STATION
 from .lib.config import for_stage, load_params, logger, write_json
 from .lib.frames import fit_frames
@@ -62,4 +63,4 @@ def run(params: dict) -> dict:
 
 
 if __name__ == "__main__":
-    run(load_params())
+    one_line("pipeline.frame", lambda argv: run(load_params()))

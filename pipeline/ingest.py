@@ -17,7 +17,8 @@ from collections import Counter
 import pandas as pd
 
 from .lib.artifacts import CAMPAIGNS_DIR, CAMPAIGNS_REPORTS, INGEST_JSON, INGEST_TABLE
-from .lib.campaigns import campaign_entry, campaign_ingest, campaign_stations, point_id
+from .lib.campaigns import campaign_entry, campaign_ingest, campaign_stations, file_sha256, point_id
+from .lib.cli import one_line
 from .lib.columns import CAMPAIGN, STATION
 from .lib.config import for_stage, load_params, logger, read_json, write_json
 from .lib.readers import ingest
@@ -50,6 +51,8 @@ def run(params: dict) -> dict:
     stations = campaign_stations(p["campaigns"])
     first, *more = stations
     df, summary = ingest(p["ingest"], load_robot(p["robot"]))
+    for info in summary["files"].values():             # the campaign's identity (the twin's drive check)
+        info["sha256"] = file_sha256(info["path"])
     parts = [labelled(df, first, stations[first])]
     summary["campaigns"] = {first: {"station": stations[first], "n_kept": len(df),
                                     "n_dropped": len(summary["dropped"])}}
@@ -94,4 +97,4 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    main()
+    one_line("pipeline.ingest", main)

@@ -17,6 +17,7 @@ import torch
 from .lib import errormaps
 from .lib.artifacts import (CALIBRATED_GEOMETRY, CALIBRATION_JSON, FRAME_JSON, INGEST_TABLE, PARTS_JSON, PARTS_REPORT,
                             load_points)
+from .lib.cli import one_line
 from .lib.columns import JOINTS_DEG, MEAS, SPLITS
 from .lib.config import for_stage, load_params, logger, read_json, write_json
 from .lib.geometry import Calibration, aligned, theory_geometry
@@ -125,4 +126,4 @@ def run(params: dict) -> dict:
 
 
 if __name__ == "__main__":
-    run(load_params())
+    one_line("pipeline.parts", lambda argv: run(load_params()))

@@ -39,18 +39,21 @@ import pandas as pd
 from .lib.artifacts import (CALIBRATED_GEOMETRY, CALIBRATION_JSON, FRAME_JSON, PARTS_JSON, PARTS_REPORT,
                             WORKSPACE_JSON)
 from .lib.columns import JOINTS_DEG, TARGET
-from .lib.config import for_stage, load_params, logger, read_json, write_json
+from .lib.config import for_stage, json_text, load_params, logger, read_json
 from .lib.geometry import Calibration
 from .lib.identify import parameter_spec
 from .lib.kinematics import nominal_geometry
 from .lib.planning import Coverage, Identification, MapBlock, candidates, plan, program_joints
 from .lib.robots import load_robot
-from .lib.waypoints import Refused, one_line, read_waypoints
+from .lib.cli import Refused, one_line
+from .lib.waypoints import read_waypoints
 from .lib.workspace import Workspace
+from .lib.writing import check_outputs, write_together
 
 log = logger(__name__)
 PARAMS = ("robot", "calibrate", "parts", "split", "plan")
 FILES = ("poses.csv", "measure.script", "plan.json")
+REACHED_MM = 0.01        # a program's target position is where the calibrated arm goes only when it gets this close
 
 
 def pose_ids(n: int) -> list[str]:
@@ -124,8 +127,7 @@ def run(argv=None) -> dict:
         raise ValueError(f"--out {out}: a file, not a folder")
     if not src.is_file():
         raise ValueError(f"{src}: no such file")
-    if src.resolve() in {(out / f).resolve() for f in FILES}:
-        raise ValueError(f"--out {out}: would overwrite the program {src}")
+    check_outputs([out / f for f in FILES], [src])   # by inode too: a hard link to the program is the program
     p = for_stage(load_params(), PARAMS)
     cfg = p["plan"]
     robot = load_robot(p["robot"])
@@ -139,7 +141,12 @@ def run(argv=None) -> dict:
     cal = Calibration.from_dict(cal_json)
     q_wp = df[JOINTS_DEG].to_numpy()
     if TARGET[0] in df:                                             # positions: where the calibrated arm goes
-        q_wp = program_joints(q_wp, df[TARGET].to_numpy(), cal.geometry, robot.limits_deg)
+        q_wp, miss = program_joints(q_wp, df[TARGET].to_numpy(), cal.geometry, robot.limits_deg)
+        far = miss > REACHED_MM
+        if far.any():
+            raise Refused(f"{src}: {int(far.sum())} target(s) the calibrated arm does not reach from their joints "
+                          "within its limits; nothing written: " + "; ".join(
+                              f"{p}: {m:.1f} mm short" for p, m in zip(df.point_id[far][:10], miss[far][:10])))
     tracker, station = tracker_position(frame, a.station, a.tracker_mm)
     station["new_station"] |= a.new_station
     a_cfg = p["parts"]["angle_map"]
@@ -181,9 +188,9 @@ def run(argv=None) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     poses = pd.DataFrame(result.q_deg, columns=JOINTS_DEG)
     poses.insert(0, "pose_id", ids)
-    poses.to_csv(out / "poses.csv", index=False, float_format="%.6f", lineterminator="\n")
-    (out / "measure.script").write_text(measure_script(result.q_deg, cfg))
-    write_json(out / "plan.json", rep)
+    write_together({out / "poses.csv": poses.to_csv(index=False, float_format="%.6f", lineterminator="\n"),
+                    out / "measure.script": measure_script(result.q_deg, cfg), out / "plan.json": json_text(rep)},
+                   [src])
     c, i, t = rep["coverage"], rep["identifiability"], rep["travel"]
     cond = lambda x: "-" if x is None else f"{x:.1f}"
     print(f"{len(ids)} poses to measure ({rep['n_coverage']} for coverage, {rep['n_d_optimal']} D-optimal) for "

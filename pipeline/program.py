@@ -21,7 +21,9 @@ Safe by construction (docs/robot-cell.md):
     a move: the program is refused (exit 1, those waypoints listed, nothing written), or, with
     --comment-out-unreached, written with each such waypoint as a comment and no move;
   - angles that look like radians in the *_deg columns are refused, as ingest refuses them;
-  - waypoints outside the trained workspace are listed in the summary printed at the end.
+  - waypoints outside the trained workspace are listed in the summary printed at the end;
+  - the CSV and the URScript are written together or not at all, never over the input (whatever the
+    path's spelling: a hard or symbolic link to it is refused).
 Bad input exits 2 with the file, row (the header is row 1) and column. Needs a finished
 `dvc repro` (model, workspace, frame).
 """
@@ -36,20 +38,29 @@ from .lib.columns import JCOMP_DEG
 from .lib.config import for_stage, load_params, logger, read_json
 from .lib.geometry import theory_geometry
 from .lib.robots import load_robot
+from .lib.model import served
 from .lib.training import load_model
-from .lib.waypoints import ID_PATTERN, Refused, compensate_program, one_line, read_waypoints, unreached  # noqa: F401
+from .lib.cli import Refused, one_line
+from .lib.waypoints import ID_PATTERN, compensate_program, read_waypoints, unreached
 from .lib.workspace import Workspace
+from .lib.writing import check_outputs, write_together
 
 log = logger(__name__)
-PARAMS = ("robot", "compensate")
+PARAMS = ("robot", "compensate", "program")
 
 
-def urscript(table: pd.DataFrame, skipped: dict, acc: float = 1.4, vel: float = 1.05) -> str:
-    """A URScript program: one movej per reached waypoint to its compensated joints (rad). Only numbers
-    formatted here and validated ids reach it; a `skipped` waypoint is a comment, never a move."""
+MOVES = {"movej": "rad/s², rad/s", "movel": "m/s², m/s"}     # program.move: the units of its acc, vel
+
+
+def urscript(table: pd.DataFrame, skipped: dict, move: str = "movej", acc: float = 1.4, vel: float = 1.05) -> str:
+    """A URScript program: one `move` (movej: joint interpolation; movel: the TCP on a straight line) per
+    reached waypoint to its compensated joints (rad), at acc, vel (MOVES' units). Only numbers formatted
+    here and validated ids reach it; a `skipped` waypoint is a comment, never a move."""
+    if move not in MOVES:
+        raise ValueError(f"params.yaml program.move: one of {sorted(MOVES)}, got {move!r}")
     lines = [f"# compensated by `python -m pipeline.program`: {len(table)} waypoints, {len(skipped)} not reached "
-             "(commented out, no move)",
-             "def compensated_program():", f"  acc = {acc:.6f}", f"  vel = {vel:.6f}"]
+             f"(commented out, no move); {move}, acc and vel in {MOVES[move]}",
+             "def compensated_program():", f"  acc = {float(acc):.6f}", f"  vel = {float(vel):.6f}"]
     for r in table.itertuples():
         pid = r.point_id if ID_PATTERN.fullmatch(str(r.point_id)) else "?"     # read_waypoints refused others
         if pid in skipped or pid == "?":
@@ -57,14 +68,15 @@ def urscript(table: pd.DataFrame, skipped: dict, acc: float = 1.4, vel: float = 
             continue
         q = ", ".join(f"{v:.9f}" for v in np.radians(np.array([getattr(r, c) for c in JCOMP_DEG], float)))
         flag = "" if r.in_workspace else f", outside the trained workspace (uncertainty {r.uncertainty_mm:.3f} mm)"
-        lines += [f"  # {pid}: residual {r.residual_mm:.4f} mm{flag}", f"  movej([{q}], a=acc, v=vel)"]
+        lines += [f"  # {pid}: residual {r.residual_mm:.4f} mm{flag}", f"  {move}([{q}], a=acc, v=vel)"]
     return "\n".join(lines + ["end", ""])
 
 
 def summary_text(table: pd.DataFrame, skipped: dict, workspace) -> str:
     """What a person reads at the end: counts, the waypoints not reached, those outside the workspace."""
-    out = [f"{len(table)} waypoints: {len(table) - len(skipped)} reached (residual max "
-           f"{table.residual_mm[~table.point_id.isin(list(skipped))].max():.2e} mm), {len(skipped)} not reached"]
+    reached = table.residual_mm[~table.point_id.isin(list(skipped))]
+    worst = f" (residual max {reached.max():.2e} mm)" if len(reached) else ""
+    out = [f"{len(table)} waypoints: {len(reached)} reached{worst}, {len(skipped)} not reached"]
     out += [f"  NOT REACHED {p}: {why}" for p, why in skipped.items()]
     outside = table[~table.in_workspace]
     if len(outside):
@@ -89,9 +101,7 @@ def run(argv=None) -> pd.DataFrame:
     src = Path(a.waypoints)
     out = Path(a.out or src.with_name(src.stem + "_comp.csv"))
     script = Path(a.urscript or src.with_name(src.stem + "_comp.script"))
-    paths = [p.resolve() for p in (src, out, script)]
-    if len(set(paths)) < 3:
-        raise ValueError(f"--out {out} and --urscript {script} must differ from each other and from the input {src}")
+    check_outputs([out, script], [src])              # by inode too: a hard link to the input is the input
     p = for_stage(load_params(), PARAMS)
     robot = load_robot(p["robot"])
     missing = [str(f) for f in (MODEL_WEIGHTS, WORKSPACE_JSON, FRAME_JSON) if not f.exists()]
@@ -99,15 +109,16 @@ def run(argv=None) -> pd.DataFrame:
         raise ValueError(f"missing trained artifact(s) {', '.join(missing)} in {Path.cwd()}; run `dvc repro` first")
     df = read_waypoints(src, robot)
     workspace = Workspace.from_dict(read_json(WORKSPACE_JSON))
-    table = compensate_program(df, load_model(MODEL_WEIGHTS), workspace, robot,
+    table = compensate_program(df, served(load_model(MODEL_WEIGHTS), workspace.network), workspace, robot,
                                theory_geometry(robot, read_json(FRAME_JSON)["tool_mm"]), p["compensate"])
     skipped = unreached(table, robot)
     text = summary_text(table, skipped, workspace)
     if skipped and not a.comment_out_unreached:
         raise Refused(f"{src}: {len(skipped)} waypoint(s) not reached; nothing written (or rerun with "
                       f"--comment-out-unreached to write them as comments, no move)\n{text}")
-    table.to_csv(out, index=False, float_format="%.6f")
-    script.write_text(urscript(table, skipped))
+    c = p["program"]
+    write_together({out: table.to_csv(index=False, float_format="%.6f"),
+                    script: urscript(table, skipped, c["move"], **c[c["move"]])}, [src])
     print(text)
     log.info("wrote %s and %s", out, script)
     return table

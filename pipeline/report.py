@@ -1,9 +1,13 @@
-"""Stage report: figures, a reviewer's index page and a coloured point cloud.
+"""Stage report: figures, a reviewer's index page, a coloured point cloud and a customer's summary.
 
     reports/plots/<name>.png   one PNG per entry of lib/figures.py FIGURES
     reports/index.md           lib/page.py: settings, metrics beside the paper's, data / frame /
                                calibration / compensation summaries, the figures
     reports/points_error.ply   measured points (base frame, mm) coloured by |pred - meas|
+    reports/summary.md, .pdf   lib/summary.py: the one-page calibration summary a customer can be
+                               handed (robot, campaigns, accuracy per campaign, ISO 9283 where
+                               commanded, what the calibration does not cover); one A4 page, the
+                               same bytes for the same inputs
 
 Required inputs: data/interim/predictions.parquet and reports/metrics.json.
 Every other input is optional; a figure or section whose input is missing is
@@ -15,11 +19,14 @@ from pathlib import Path
 
 import pandas as pd
 
-from .lib import figures, page
-from .lib.artifacts import (BASELINES_MD, CALIBRATION_JSON, COMPENSATION_JSON, CONVERGENCE_CSV, DRIVE_CSV,
-                            EXPORT_JSON, FRAME_JSON, INGEST_JSON, LIVE, METRICS_JSON, MODEL_WEIGHTS, PARTS_REPORT,
-                            PREDICTIONS_TABLE,
+import pyarrow.parquet as pq
+
+from .lib import figures, page, summary
+from .lib.artifacts import (BASELINES_MD, BASELINES_TABLE, CALIBRATION_JSON, COMPENSATION_JSON, CONVERGENCE_CSV,
+                            DRIVE_CSV, EXPORT_JSON, FRAME_JSON, INGEST_JSON, INGEST_TABLE, LIVE, METRICS_JSON,
+                            MODEL_WEIGHTS, PARTS_REPORT, PREDICTIONS_TABLE,
                             REPORTS, SPLIT_JSON, THEORY_JSON, TRAIN_JSON, VALIDATION_JSON, VALIDATION_TABLE)
+from .lib.cli import one_line
 from .lib.columns import MEAS, PRED, THEORY
 from .lib.config import for_stage, load_params, logger, read_json
 from .lib.training import load_model
@@ -31,6 +38,7 @@ PARAMS = ("robot", "ingest", "campaigns", "frame", "split", "calibrate", "parts"
 PLOTS = REPORTS / "plots"
 INDEX = REPORTS / "index.md"
 PLY = REPORTS / "points_error.ply"
+SUMMARY_MD, SUMMARY_PDF = REPORTS / "summary.md", REPORTS / "summary.pdf"
 CURVES = LIVE / "plots" / "metrics"          # dvclive's per-epoch curves
 SUMMARIES = {"ingest": INGEST_JSON, "frame": FRAME_JSON, "theory": THEORY_JSON, "parts": PARTS_REPORT,
              "split": SPLIT_JSON, "calibration": CALIBRATION_JSON,
@@ -85,6 +93,35 @@ class Context:
         return pd.read_parquet(VALIDATION_TABLE) if VALIDATION_TABLE.exists() else None
 
     @cached_property
+    def baseline_predictions(self) -> pd.DataFrame | None:
+        """data/interim/baselines.parquet (the calibration's, and with its maps, predictions), None when missing."""
+        return pd.read_parquet(BASELINES_TABLE) if BASELINES_TABLE.exists() else None
+
+    @cached_property
+    def ingest_table(self) -> pd.DataFrame | None:
+        """Of data/interim/ingest.parquet, the columns the summary shows: campaign, the temperature
+        (parts.thermal.column) and a time column; None when missing. attrs["all_columns"]: every header."""
+        if not INGEST_TABLE.exists():
+            return None
+        names = pq.read_schema(INGEST_TABLE).names
+        temperature = self.params["parts"]["thermal"]["column"]
+        want = [c for c in dict.fromkeys(["campaign", temperature, summary.time_column(names)]) if c in names]
+        df = pd.read_parquet(INGEST_TABLE, columns=want)
+        df.attrs["all_columns"] = names
+        return df
+
+    def write_summary(self) -> dict:
+        """reports/summary.md and reports/summary.pdf (lib/summary.py)."""
+        table = self.ingest_table
+        names = table.attrs.get("all_columns", []) if table is not None else []
+        blocks = summary.blocks(self.params, self.metrics, self.summaries,
+                                summary.split_accuracy(self.pred, self.baseline_predictions),
+                                summary.conditions(table, self.params["parts"]["thermal"]["column"]),
+                                summary.orientation_columns(names), summary.split_counts(self.pred))
+        SUMMARY_MD.write_text(summary.markdown(blocks))
+        return summary.write_pdf(blocks, SUMMARY_PDF)
+
+    @cached_property
     def model(self):
         return load_model(MODEL_WEIGHTS) if MODEL_WEIGHTS.exists() else None
 
@@ -102,12 +139,14 @@ def run(params: dict) -> dict:
     figs = figures.render_figures(ctx, PLOTS)
     ply = figures.write_ply(ctx, PLY)
     INDEX.write_text(page.write_index(ctx, figs, ply))
+    sheet = ctx.write_summary()
     made = [n for n, (s, _) in figs.items() if s == "ok"]
-    log.info("wrote %d figures to %s (%d skipped), %s, %s (%d points, colour 0-%.3f mm)",
-             len(made), PLOTS, len(figs) - len(made), INDEX, PLY, ply["n"], ply["hi"])
+    log.info("wrote %d figures to %s (%d skipped), %s, %s (%d points, colour 0-%.3f mm), %s and %s (%.2f pt)",
+             len(made), PLOTS, len(figs) - len(made), INDEX, PLY, ply["n"], ply["hi"], SUMMARY_MD, SUMMARY_PDF,
+             sheet["font_pt"])
     return {"figures": {n: s for n, (s, _) in figs.items()}, "ply_points": ply["n"],
-            "ply_scale_mm": [ply["lo"], ply["hi"]]}
+            "ply_scale_mm": [ply["lo"], ply["hi"]], "summary": sheet}
 
 
 if __name__ == "__main__":
-    run(load_params())
+    one_line("pipeline.report", lambda argv: run(load_params()))

@@ -16,12 +16,16 @@ XML-RPC at http://HOST:PORT/RPC2 (only that path, only POST; default 127.0.0.1:5
 
 What a request costs and when it is answered, refused or unreachable: lib/service.py (the logic: a
 worker thread owning the model batches concurrent requests; each has a budget, serve.max_iter and
-serve.budget_ms). The controller path runs on onnxruntime, from the export stage's models/controller.onnx
+serve.budget_ms, a compensate_many call one in all, serve.call_budget_ms, and at most serve.lm_per_call
+of its items in lm at a time). The controller path runs on onnxruntime, from the export stage's models/controller.onnx
 (serve.onnx; checked against the PyTorch model at start-up), else in PyTorch. A bad or unreachable request gets a Fault (code -32602) naming the field; the
-server keeps serving. This module is the transport: the HTTP limits (serve.max_body_bytes: 413;
-serve.timeout_s: an idle or half-sent request is dropped; malformed HTTP or a body that is not an
-XML-RPC call: 400; other methods than POST: 405; HTTP/1.1 keep-alive), messages and log lines cut to
-serve.echo_chars, and loading the artifacts and params. It listens on 127.0.0.1 unless told otherwise (--host
+server keeps serving. This module is the transport: the HTTP limits (serve.max_body_bytes, on the body
+as sent and as gzip-decoded: 413; serve.timeout_s: a request not fully sent that long after it began, or
+after the previous answer on a keep-alive connection, is closed, and so is an answer not taken that
+long; serve.max_connections open at once, beyond: 503 at once, no thread; malformed HTTP, a body that
+is not an XML-RPC call, or has a DOCTYPE or entity declaration (refused before any expansion): 400;
+other methods than POST: 405; HTTP/1.1 keep-alive), messages and log lines cut to serve.echo_chars (a
+connection's error: one line), and loading the artifacts and params. It listens on 127.0.0.1 unless told otherwise (--host
 0.0.0.0 to serve a robot on the network; XML-RPC has no authentication). docs/robot-cell.md: the
 protocol and a URScript example.
 """
@@ -29,18 +33,23 @@ import argparse
 import inspect
 import socket
 import socketserver
+import sys
+import threading
 import time
 import xmlrpc.client
+import zlib
 from pathlib import Path
+from xml.parsers import expat
 from xmlrpc.client import Fault
 from xmlrpc.server import SimpleXMLRPCRequestHandler, SimpleXMLRPCServer
 
 import numpy as np
 import torch
 
-from .lib.artifacts import CONTROLLER_ONNX, MODEL_WEIGHTS, WORKSPACE_JSON
+from .lib.artifacts import CONTROLLER_ONNX, CONTROLLER_PHYSICS_ONNX, MODEL_WEIGHTS, WORKSPACE_JSON
 from .lib.compensation import reach_mm
 from .lib.config import PARAMS as PARAMS_YAML, ParamsError, for_stage, load_params, logger, read_json
+from .lib.model import served
 from .lib.onnx_model import OnnxRealtime, deviation
 from .lib.realtime import Realtime
 from .lib.robots import load_robot
@@ -57,7 +66,8 @@ PARAMS = ("robot", "compensate", "serve")
 REQUIRED = [MODEL_WEIGHTS, WORKSPACE_JSON]                # the trained artifacts it reads (the checkpoint
                                                           # carries its config and physics geometry)
 SERVICE_KEYS = ("unreachable_mm", "max_iter", "budget_ms", "stall_iter", "stall_ratio", "max_batch",
-                "batch_wait_ms", "max_items", "compile")  # the serve: keys lib/service.py takes
+                "batch_wait_ms", "max_items", "call_budget_ms", "lm_per_call", "compile")   # lib/service.py's
+LIMIT_KEYS = ("max_body_bytes", "timeout_s", "max_connections", "echo_chars")          # the transport's
 
 
 def check_artifacts() -> None:
@@ -72,6 +82,31 @@ def clip(text: str, n: int) -> str:
     return text if len(text) <= n else text[:n - 3] + "..."
 
 
+class Declared(ValueError):
+    """A DOCTYPE or entity declaration in a request body."""
+
+
+def refuse_declaration(*args):
+    raise Declared("a DOCTYPE or entity declaration: refused (an XML-RPC call has none)")
+
+
+def parse_call(data: bytes, use_builtin_types: bool) -> tuple[tuple, str]:
+    """(params, method name) of an XML-RPC call, as xmlrpc.client.loads reads it, but a Declared at the
+    first DOCTYPE or entity declaration, before any entity is expanded (in any encoding expat reads)."""
+    target = xmlrpc.client.Unmarshaller(use_builtin_types=use_builtin_types)
+    parser = expat.ParserCreate(None, None)
+    parser.StartElementHandler, parser.EndElementHandler = target.start, target.end
+    parser.CharacterDataHandler = target.data
+    parser.StartDoctypeDeclHandler = parser.EntityDeclHandler = refuse_declaration
+    parser.buffer_text = True
+    target.xml(None, None)
+    parser.Parse(data, True)
+    params, method = target.close(), target.getmethodname()
+    if method is None:
+        raise ValueError("a methodResponse")
+    return params, method
+
+
 class Handler(SimpleXMLRPCRequestHandler):
     """POST /RPC2 only, within the server's limits; every refusal a 4xx, the connection then closed."""
     rpc_paths = (PATH,)                                   # any other path: 404
@@ -80,8 +115,12 @@ class Handler(SimpleXMLRPCRequestHandler):
                                                           # and one server thread (HTTP/1.0 clients: closed)
 
     def setup(self):
-        self.timeout = self.server.limits["timeout_s"]    # each read and write: idle or slow clients dropped
+        self.timeout = self.server.limits["timeout_s"]    # each read and write; the whole request: Server.watch
         super().setup()
+
+    def handle_one_request(self):
+        self.server.watch(self.connection)                # from here (or the answer before) to its body read
+        super().handle_one_request()
 
     def parse_request(self):
         if not super().parse_request():                   # a malformed request line or headers: 400 sent
@@ -104,27 +143,50 @@ class Handler(SimpleXMLRPCRequestHandler):
                                            f"{limit} (serve.max_body_bytes)")
         data = self.rfile.read(int(length))               # a TimeoutError: handle_one_request drops it
         if len(data) < int(length):
-            self.close_connection = True                  # the client went away
+            self.close_connection = True                  # the client went away, or its deadline passed
             return
-        data = self.decode_request_content(data)          # gzip: decoded, up to 20 MB (xmlrpc.server)
+        self.server.watch(self.connection, None)          # read: the worker's time is not the client's
+        data = self.decode_request_content(data)
         if data is None:
             return
         try:
-            params, method = xmlrpc.client.loads(data, use_builtin_types=self.server.use_builtin_types)
-            if method is None:
-                raise ValueError("a methodResponse")
+            params, method = parse_call(data, self.server.use_builtin_types)
+        except Declared as e:
+            return self.send_error(400, str(e))
         except Exception as e:
             return self.send_error(400, f"not an XML-RPC call ({type(e).__name__})")
         body = self.server.respond(method, params)
+        self.server.watch(self.connection)                # the answer taken within timeout_s
         self.send_response(200)
         self.send_header("Content-Type", "text/xml")
         self.send_header("Content-Length", str(len(body)))
         self.end_headers()
         self.wfile.write(body)
 
+    def decode_request_content(self, data: bytes) -> bytes | None:
+        """The body, gzip-decoded when so sent, up to serve.max_body_bytes decoded (beyond: a 413, the rest
+        never inflated); None when refused (the answer sent)."""
+        encoding = self.headers.get("content-encoding", "identity").strip().lower()
+        if encoding == "identity":
+            return data
+        if encoding != "gzip":
+            return self.send_error(501, f"Content-Encoding {clip(repr(encoding), 40)} not supported (gzip, identity)")
+        limit, inflate = self.server.limits["max_body_bytes"], zlib.decompressobj(16 + zlib.MAX_WBITS)
+        try:
+            out = inflate.decompress(data, limit + 1)
+        except zlib.error:
+            return self.send_error(400, "bad gzip content")
+        if len(out) > limit:
+            return self.send_error(413, f"request body inflating to more than the limit of {limit} bytes "
+                                        f"(serve.max_body_bytes)")
+        if not inflate.eof:
+            return self.send_error(400, "bad gzip content (truncated)")
+        return out
+
     def refuse_unread(self, code: int, message: str) -> None:
         """Answer code without reading the body; then discard what the client still sends (at most
         timeout_s), so that it reads the answer rather than a reset connection."""
+        self.server.watch(self.connection, None)          # bounded here
         self.send_error(code, message)
         self.wfile.flush()
         try:
@@ -140,10 +202,74 @@ class Handler(SimpleXMLRPCRequestHandler):
 
 
 class Server(socketserver.ThreadingMixIn, SimpleXMLRPCServer):
-    """SimpleXMLRPCServer, one thread per connection; faults logged, never fatal. `limits`: the transport's
-    (max_body_bytes, timeout_s, echo_chars); `service`: lib/service.Service."""
+    """SimpleXMLRPCServer, one thread per connection, at most max_connections; faults logged, never fatal.
+    `limits`: the transport's (LIMIT_KEYS); `service`: lib/service.Service. A reaper thread shuts down each
+    connection whose deadline (watch) has passed."""
     daemon_threads = True
     request_queue_size = 64                               # listen backlog: socketserver's 5 drops concurrent connects
+
+    def __init__(self, address, limits: dict, service):
+        self.limits, self.service = limits, service
+        self.lock, self.open, self.closing = threading.Lock(), {}, threading.Event()   # open: socket -> deadline
+        self.refused, self.refused_logged = 0, 0.0
+        super().__init__(address, requestHandler=Handler, allow_none=False, logRequests=False)
+        tick = max(0.01, min(0.1, limits["timeout_s"] / 20))
+        threading.Thread(target=self._reap, args=(tick,), name="connection reaper", daemon=True).start()
+
+    def watch(self, conn, deadline: float | None = ...) -> None:
+        """conn's deadline: timeout_s from now (the default), or None (none: the worker has the request)."""
+        with self.lock:
+            if conn in self.open:
+                self.open[conn] = time.monotonic() + self.limits["timeout_s"] if deadline is ... else deadline
+
+    def _reap(self, tick: float) -> None:
+        while not self.closing.wait(tick):
+            now = time.monotonic()
+            with self.lock:
+                for conn, deadline in self.open.items():
+                    if deadline is not None and deadline <= now:
+                        self.open[conn] = None
+                        self._cut(conn)
+
+    @staticmethod
+    def _cut(conn) -> None:
+        try:
+            conn.shutdown(socket.SHUT_RDWR)               # its thread's read or write returns, the thread ends
+        except OSError:
+            pass
+
+    def process_request(self, request, client_address):
+        with self.lock:
+            full = len(self.open) >= self.limits["max_connections"]
+            if not full:
+                self.open[request] = time.monotonic() + self.limits["timeout_s"]
+        if not full:
+            return super().process_request(request, client_address)
+        n = self.limits["max_connections"]             # refused here, in the accepting thread: no thread
+        body = f"{n} connections open, the limit (serve.max_connections): try again later\n".encode()
+        try:
+            request.settimeout(0.1)
+            request.sendall(b"HTTP/1.1 503 Service Unavailable\r\nContent-Type: text/plain\r\nConnection: close\r\n"
+                            b"Retry-After: 1\r\nContent-Length: %d\r\n\r\n%s" % (len(body), body))
+        except OSError:
+            pass
+        self.shutdown_request(request)
+        self.refused += 1
+        if time.monotonic() - self.refused_logged > 10:
+            self.refused_logged = time.monotonic()
+            log.warning("%s: refused (503): %d connection(s) beyond serve.max_connections (%d) so far",
+                        client_address[0], self.refused, n)
+
+    def shutdown_request(self, request):
+        with self.lock:
+            self.open.pop(request, None)
+        super().shutdown_request(request)
+
+    def handle_error(self, request, client_address):
+        """One line: the client and the exception (a reset connection is no bug of the server's)."""
+        e = sys.exc_info()[1]
+        log.warning("%s", clip(f"{client_address[0]}:{client_address[1]}: {type(e).__name__}: {e}",
+                               self.limits["echo_chars"]))
 
     def respond(self, method: str, params: tuple) -> bytes:
         """The XML-RPC response (answer or Fault) to a parsed call."""
@@ -178,20 +304,25 @@ class Server(socketserver.ThreadingMixIn, SimpleXMLRPCServer):
             raise Fault(INTERNAL, clip(f"{method}: internal error ({type(e).__name__}: {e})", n)) from None
 
     def server_close(self):
+        self.closing.set()
+        with self.lock:
+            for conn in self.open:                        # their threads end, so closing waits for none
+                self._cut(conn)
         super().server_close()
         self.service.close()
 
 
-def fast_path(model, workspace: Workspace, limits_deg, tol_mm: float) -> OnnxRealtime | None:
-    """The controller path on onnxruntime from models/controller.onnx, when it is there and answers as the
-    PyTorch model does (on 8 training poses, 0.5 mm off: an export of another model would not); else None,
-    with a warning saying why (the service then runs it in PyTorch)."""
-    if not CONTROLLER_ONNX.exists():
-        log.warning("no %s (run `dvc repro`): the controller path runs in PyTorch", CONTROLLER_ONNX)
+def fast_path(model, workspace: Workspace, limits_deg, tol_mm: float, graph=CONTROLLER_ONNX) -> OnnxRealtime | None:
+    """The controller path on onnxruntime from `graph` (the export stage's models/controller.onnx, or
+    controller_physics.onnx for the physics alone), when it is there and answers as the PyTorch model does
+    (on 8 training poses, 0.5 mm off: an export of another model would not); else None, with a warning
+    saying why (the service then runs it in PyTorch)."""
+    if not graph.exists():
+        log.warning("no %s (run `dvc repro`): the controller path runs in PyTorch", graph)
         return None
     limits = np.radians(limits_deg)
     try:
-        fast = OnnxRealtime(CONTROLLER_ONNX, limits, tol_mm, workspace)
+        fast = OnnxRealtime(graph, limits, tol_mm, workspace)
     except ValueError as e:
         log.warning("%s; run `dvc repro`: the controller path runs in PyTorch", e)
         return None
@@ -201,7 +332,7 @@ def fast_path(model, workspace: Workspace, limits_deg, tol_mm: float) -> OnnxRea
     d = deviation(Realtime(model, limits, tol_mm, workspace=workspace), fast, q0, target)
     if d["max_q_rad"] > 1e-6 or d["max_residual_mm"] > 1e-4:
         log.warning("%s does not answer as %s (%.1e rad, %.1e mm apart: exported from another model?); run "
-                    "`dvc repro`: the controller path runs in PyTorch", CONTROLLER_ONNX, MODEL_WEIGHTS,
+                    "`dvc repro`: the controller path runs in PyTorch", graph, MODEL_WEIGHTS,
                     d["max_q_rad"], d["max_residual_mm"])
         return None
     return fast
@@ -217,22 +348,22 @@ def make_server(params: dict, host: str | None = None, port: int | None = None,
     host, port = cfg["host"] if host is None else host, cfg["port"] if port is None else port
     check_artifacts()
     torch.set_num_threads(cfg["torch_threads"])             # process-wide
-    model = load_model(MODEL_WEIGHTS)
     workspace, limits_deg = Workspace.from_dict(read_json(WORKSPACE_JSON)), load_robot(params["robot"]).limits_deg
+    model = served(load_model(MODEL_WEIGHTS), workspace.network)     # evaluate's verdict on the network
+    graph = CONTROLLER_ONNX if workspace.network else CONTROLLER_PHYSICS_ONNX
     tol = params["compensate"]["tol_mm"]
-    controller = fast_path(model, workspace, limits_deg, tol) if cfg["onnx"] else None
-    log.info("the controller path on %s", f"onnxruntime ({CONTROLLER_ONNX})" if controller is not None else
-             "PyTorch" + (", compiled" if cfg["compile"] else ""))
+    controller = fast_path(model, workspace, limits_deg, tol, graph) if cfg["onnx"] else None
+    log.info("serving %s; the controller path on %s", "the whole model" if workspace.network else
+             "the physics alone (the network did not lower the validation error)",
+             f"onnxruntime ({graph})" if controller is not None else "PyTorch" + (", compiled" if cfg["compile"] else ""))
     service = Service(model, workspace, limits_deg, reach_mm(model.physics.geometry()), tol_mm=tol,
                       jacobian_of=params["compensate"]["jacobian_of"], controller=controller,
                       **{k: cfg[k] for k in SERVICE_KEYS})
     try:
-        server = Server((host, port), requestHandler=Handler, allow_none=False, logRequests=False)
+        server = Server((host, port), {k: cfg[k] for k in LIMIT_KEYS}, service)
     except OSError as e:
         service.close()
         raise SystemExit(f"pipeline.serve: cannot listen on {host}:{port}: {e}") from None
-    server.limits = {k: cfg[k] for k in ("max_body_bytes", "timeout_s", "echo_chars")}
-    server.service = service
     server.register_introspection_functions()
     for name in METHODS:
         server.register_function(getattr(service, name), name)

@@ -14,9 +14,11 @@ import numpy as np
 import pandas as pd
 
 from .lib.artifacts import POINTS_TABLE, SPLIT_JSON, SPLIT_TABLE
+from .lib.cli import one_line
 from .lib.columns import CAMPAIGN, JOINTS_DEG, SPLITS
-from .lib.config import for_stage, load_params, logger, write_json
+from .lib.config import for_stage, json_text, load_params, logger
 from .lib.splits import region, split_indices
+from .lib.writing import write_together
 
 log = logger(__name__)
 PARAMS = ("split",)
@@ -36,15 +38,16 @@ def run(params: dict) -> dict:
         for name, r in idx.items():
             split.iloc[rows[r]] = name
         per[campaign] = {**{k: len(v) for k, v in idx.items()}, "holdout": int(held.sum())}
-    SPLIT_TABLE.parent.mkdir(parents=True, exist_ok=True)
-    pd.DataFrame({"point_id": pts["point_id"], "split": split}).to_parquet(SPLIT_TABLE, index=False)
     summary = {"seed": cfg["seed"], "fractions": cfg["fractions"], "holdout": cfg["holdout"],
                "counts": {k: sum(c[k] for c in per.values()) for k in SPLITS},
                "per_campaign": per}
-    write_json(SPLIT_JSON, summary)
+    for path in (SPLIT_TABLE, SPLIT_JSON):
+        path.parent.mkdir(parents=True, exist_ok=True)
+    table = pd.DataFrame({"point_id": pts["point_id"], "split": split}).to_parquet(None, index=False)
+    write_together({SPLIT_TABLE: table, SPLIT_JSON: json_text(summary)})     # both, or neither
     log.info("split %d points with seed %d: %s", len(pts), cfg["seed"], summary["counts"])
     return summary
 
 
 if __name__ == "__main__":
-    run(load_params())
+    one_line("pipeline.split", lambda argv: run(load_params()))

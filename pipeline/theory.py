@@ -11,6 +11,7 @@ import numpy as np
 import pandas as pd
 
 from .lib.artifacts import FRAME_JSON, INGEST_TABLE, POINTS_TABLE, THEORY_JSON
+from .lib.cli import one_line
 from .lib.columns import CAMPAIGN, ERR, JOINTS_DEG, MEAS, STATION, THEORY
 from .lib.config import for_stage, load_params, logger, read_json, write_json
 from .lib.frames import to_base
@@ -53,4 +54,4 @@ def run(params: dict) -> dict:
 
 
 if __name__ == "__main__":
-    run(load_params())
+    one_line("pipeline.theory", lambda argv: run(load_params()))

@@ -10,10 +10,12 @@ from dvclive import Live
 
 from .lib.artifacts import (CALIBRATED_GEOMETRY, FRAME_JSON, LIVE, MODEL_WEIGHTS, PARTS_JSON, TIMINGS, TRAIN_JSON,
                             load_points)
+from .lib.cli import one_line
 from .lib.config import for_stage, load_params, logger, read_json, split_timings, write_json
 from .lib.geometry import Calibration, aligned, physics_geometry, theory_geometry, with_parts
 from .lib.robots import load_robot
-from .lib.training import save_model, train_boter
+from .lib.model import check_config
+from .lib.training import resolve_device, save_model, train_boter
 
 log = logger(__name__)
 PARAMS = ("robot", "model", "loss", "train", "workspace")
@@ -21,6 +23,8 @@ PARAMS = ("robot", "model", "loss", "train", "workspace")
 
 def run(params: dict) -> dict:
     p = for_stage(params, PARAMS)
+    check_config(p["model"])                       # before dvclive resets reports/live: a bad setting
+    resolve_device(p["train"]["device"])           # leaves the last run's curves as they were
     calibration = Calibration.from_dict(read_json(CALIBRATED_GEOMETRY))
     nominal = theory_geometry(load_robot(p["robot"]), read_json(FRAME_JSON)["tool_mm"])
     df = aligned(load_points(), calibration, nominal)
@@ -43,4 +47,4 @@ def run(params: dict) -> dict:
 
 
 if __name__ == "__main__":
-    run(load_params())
+    one_line("pipeline.train", lambda argv: run(load_params()))

@@ -5,10 +5,13 @@
 
 A campaign is read by the ingest rules (lib/readers.py, bad rows listed,
 fatal errors naming file, row and column) with its own `ingest` overrides,
-and judged `same` or `refit` (lib/validation.py). Writes
+and judged `same` or `refit` (lib/validation.py). A campaign the twin made (its files' SHA-256 in
+`compensate.twin`'s record) is judged only when the robot was calibrated on the twin's campaign too;
+otherwise it is listed under "skipped" with the reason, never read. Writes
 reports/validation/NAME.json and .parquet; the summary stage writes
 reports/validation.json and reports/validation.parquet (docs/data-format.md), an
-empty summary when there are no campaigns.
+empty summary when there are no campaigns, and reports/validation_headline.json (each campaign's
+mean 3D error per method, for `dvc metrics show` and `dvc exp show`).
 """
 import argparse
 
@@ -18,8 +21,9 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from .lib.artifacts import (CALIBRATED_GEOMETRY, FRAME_JSON, MODEL_WEIGHTS, PARTS_JSON, VALIDATION_DIR,
-                            VALIDATION_JSON, VALIDATION_TABLE, WORKSPACE_JSON)
-from .lib.campaigns import named_campaign
+                            INGEST_JSON, VALIDATION_HEADLINE, VALIDATION_JSON, VALIDATION_TABLE, WORKSPACE_JSON)
+from .lib.cli import one_line
+from .lib.campaigns import file_sha256, made_by_twin, named_campaign
 from .lib.columns import JOINTS_DEG, MEAS
 from .lib.config import check_keys, for_stage, load_params, logger, read_json, write_json
 from .lib.errormaps import angle_covered
@@ -33,7 +37,7 @@ from .lib.validation import METHODS, judge, position_accuracy, summary
 from .lib.workspace import Workspace
 
 log = logger(__name__)
-PARAMS = {"campaign": ("robot", "ingest", "frame", "validate"),      # validate@NAME
+PARAMS = {"campaign": ("robot", "ingest", "frame", "validate", "compensate"),      # validate@NAME
           "summary": ("validate",)}                                # validation
 
 
@@ -86,10 +90,31 @@ def per_joint_coverage(ws: Workspace, q: np.ndarray, table: pd.DataFrame) -> dic
     return out
 
 
+def twin_only(name: str, c: dict, files: dict, twin_json: str) -> str | None:
+    """Why campaign `name` is not judged, or None: the twin made it (its files' SHA-256 are in the twin's
+    record) but not the campaign trained on (ingest.json `files`), so it says nothing of this robot."""
+    record = read_json(twin_json)
+    joints, tracker = c["ingest"]["joints"], c["ingest"]["tracker"]
+    if made_by_twin(record, {"joints": file_sha256(joints), "tracker": file_sha256(tracker)}) is None:
+        return None
+    trained = {r: files[r if r in files else "table"]["sha256"] for r in ("joints", "tracker")}
+    if made_by_twin(record, trained) is not None:
+        return None
+    return (f"validate.campaigns.{name} is the twin's campaign ({joints}, {tracker}; {twin_json}) and the robot "
+            "was calibrated on another: not judged (remove it from validate.campaigns to silence this)")
+
+
 def run_campaign(params: dict, name: str) -> dict:
     p = for_stage(params, PARAMS["campaign"])
     frame_cfg, cfg = p["frame"], p["validate"]
     c = named_campaign(cfg["campaigns"], name, "validate.campaigns", "validate.campaign")
+    skipped = twin_only(name, c, read_json(INGEST_JSON)["files"], p["compensate"]["twin"])
+    if skipped:                                      # before reading it: it may not fit the user's ingest settings
+        VALIDATION_DIR.mkdir(parents=True, exist_ok=True)
+        empty_table().to_parquet(VALIDATION_DIR / f"{name}.parquet", index=False)
+        write_json(VALIDATION_DIR / f"{name}.json", {"skipped": skipped})
+        log.info("%s", skipped)
+        return {"skipped": skipped}
     robot, frame = load_robot(p["robot"]), read_json(FRAME_JSON)
     cal, parts = Calibration.from_dict(read_json(CALIBRATED_GEOMETRY)), read_json(PARTS_JSON)
     df, ingested = ingest(deep_merge(p["ingest"], c["ingest"]), robot)
@@ -140,18 +165,29 @@ def run_campaign(params: dict, name: str) -> dict:
     return out
 
 
+def empty_table() -> pd.DataFrame:
+    """A validation table with no rows, its columns typed."""
+    return pd.DataFrame({"point_id": pd.Series(dtype=str), "campaign": pd.Series(dtype=str),
+                         "registered": pd.Series(dtype=bool),
+                         **{f"error_{m}_mm": pd.Series(dtype=float) for m in METHODS},
+                         "uncertainty_mm": pd.Series(dtype=float), "in_workspace": pd.Series(dtype=bool),
+                         "in_range_angle_map": pd.Series(dtype=bool)})
+
+
 def run_summary(params: dict) -> dict:
-    """reports/validation.json and .parquet from the campaigns params.yaml lists now."""
+    """reports/validation.json and .parquet from the campaigns params.yaml lists now (those not judged
+    under "skipped", with the reason)."""
     names = sorted(for_stage(params, PARAMS["summary"])["validate"]["campaigns"] or {})
-    out = {"campaigns": {n: read_json(VALIDATION_DIR / f"{n}.json") for n in names}}
-    tables = [pd.read_parquet(VALIDATION_DIR / f"{n}.parquet") for n in names]
-    empty = pd.DataFrame({"point_id": pd.Series(dtype=str), "campaign": pd.Series(dtype=str),
-                          "registered": pd.Series(dtype=bool),
-                          **{f"error_{m}_mm": pd.Series(dtype=float) for m in METHODS},
-                          "uncertainty_mm": pd.Series(dtype=float), "in_workspace": pd.Series(dtype=bool),
-                          "in_range_angle_map": pd.Series(dtype=bool)})
-    pd.concat(tables or [empty], ignore_index=True).to_parquet(VALIDATION_TABLE, index=False)
+    each = {n: read_json(VALIDATION_DIR / f"{n}.json") for n in names}
+    judged = [n for n in names if "skipped" not in each[n]]
+    out = {"campaigns": {n: each[n] for n in judged}}
+    if len(judged) < len(names):
+        out["skipped"] = {n: each[n]["skipped"] for n in names if n not in judged}
+    tables = [pd.read_parquet(VALIDATION_DIR / f"{n}.parquet") for n in judged]
+    pd.concat(tables or [empty_table()], ignore_index=True).to_parquet(VALIDATION_TABLE, index=False)
     write_json(VALIDATION_JSON, out)
+    write_json(VALIDATION_HEADLINE, {n: {"n_judged": c["n_judged"], "mean_3d_mm": c["mean_3d_mm"]}
+                                     for n, c in out["campaigns"].items()})
     log.info("validation summary: %d campaign(s) %s", len(names), names)
     return out
 
@@ -170,4 +206,4 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    main()
+    one_line("pipeline.validate", main)

@@ -43,7 +43,7 @@ def campaign(n=30, seed=0):
 
 
 def params(**ingest_cfg):
-    cfg = {"joints": "joints.csv", "tracker": "tracker.csv", "sep": "auto",
+    cfg = {"joints": "joints.csv", "tracker": "tracker.csv", "skip_lines": 0, "sep": "auto",
            "decimal": "auto", "angle_unit": "deg", "length_unit": "mm",
            "columns": {"point_id": None, "joints": None, "position": None}, "gross_outlier_mm": 50.0}
     if "table" in ingest_cfg:                         # one table: the same file in both
@@ -373,7 +373,7 @@ def test_unbalanced_quote_stops(tmp_path):
     lines = Path(tracker).read_text().splitlines()
     lines[4] = lines[4].replace(",", ',"', 1)
     Path(tracker).write_text("\n".join(lines) + "\n")
-    raises([tracker, "row 5", "unbalanced quote"], ingest, params(joints=joints, tracker=tracker))
+    raises([tracker, "row 5", "a quote opened on this line is never closed"], ingest, params(joints=joints, tracker=tracker))
 
 
 def test_wrong_length_unit_is_an_error(tmp_path):
@@ -601,3 +601,28 @@ def test_real_ipa_ur10(monkeypatch):
     assert df.j1_deg.iloc[0] == pytest.approx(np.degrees(-3.14159))
     assert df.meas_y.iloc[0] == -3240.7562 and df["measurement_temperature"].iloc[0] == 21.68000031
     assert s["gross_outlier"]["max_mm"] < 20.0
+
+
+# Issue 32 (minor) and 33: a preamble, UTF-16, a line break inside quotes
+def test_a_preamble_line_is_named_and_skipped_with_the_file_line_numbers_kept(tmp_path, monkeypatch):
+    ids, q, m = campaign(20, seed=5)
+    monkeypatch.chdir(tmp_path)
+    j, t = write_pair(tmp_path, ids, q, m)
+    Path(t).write_text("// Exported by SpatialAnalyzer 2024.1\n" + Path(t).read_text().replace(
+        num(m[4, 1]), "n/a", 1))
+    Path(j).write_text("# controller log, robot 3\n" + Path(j).read_text())      # skip_lines: every file
+    raises(["joints.csv", "a comment or preamble line above the header? set ingest.skip_lines"], run, params())
+    summary = run(params(skip_lines=1))
+    assert summary["n_kept"] == 19
+    assert [(d["file"], d["row"], d["reason"]) for d in summary["dropped"]] == [("joints.csv", 7, "partner_dropped"),
+                                                                                 ("tracker.csv", 7, "nan")]
+
+
+def test_utf16_is_read_and_a_quoted_line_break_is_said_as_such(tmp_path, monkeypatch):
+    ids, q, m = campaign(20, seed=6)
+    monkeypatch.chdir(tmp_path)
+    j, t = write_pair(tmp_path, ids, q, m)
+    Path(t).write_bytes(Path(t).read_text().encode("utf-16"))              # a spreadsheet's "Unicode text"
+    assert run(params())["n_kept"] == 20
+    Path(t).write_text(Path(t).read_text(encoding="utf-16").replace(f"{ids[3]},", f'"{ids[3]}\nx",', 1))
+    raises(["tracker.csv, row 5", "a quoted cell holds a line break"], run, params())

@@ -68,8 +68,8 @@ def test_custom_robot_and_bad_tables():
                                                     "alpha_deg": [90, 0, 0, 90, -90, 0], "offset_deg": [0] * 6},
                          "joint_limits_deg": None, "tool_mm": [0, 0, 0]})
     np.testing.assert_allclose(fk_numpy(np.zeros((1, 6)), custom), fk_numpy(np.zeros((1, 6)), UR5))
-    with pytest.raises(ValueError, match="unknown robot 'ur3'"):
-        nominal_robot("ur3")
+    with pytest.raises(ValueError, match="unknown robot 'ur4'"):
+        nominal_robot("ur4")
     with pytest.raises(ValueError, match=r"custom robot needs \['alpha_deg', 'offset_deg'\]"):
         load_robot({"model": "custom", "dh": {"d": [0] * 6, "a": [0] * 6}, "joint_limits_deg": None,
                     "tool_mm": [0, 0, 0]})

@@ -8,6 +8,7 @@ import json
 import shutil
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 import pytest
 import yaml
@@ -56,6 +57,28 @@ def test_repro_produces_contract_outputs_and_is_idempotent(reproduced):
 
     again = sh("dvc repro", repo).stdout
     assert "up to date" in again and "Running stage" not in again
+
+
+@pytest.mark.slow
+def test_metrics_show_is_the_headline_and_plots_show_works_offline(reproduced, tmp_path):
+    """Issue 33: `dvc metrics show` printed one row of ~800 columns under "DVC failed to load some metrics"
+    (the opt-in ablation.json and fleet.json); `dvc plots show` drew the training curves with a renderer
+    loaded from a CDN (blank offline) into a dvc_plots/ that git did not ignore."""
+    repo = repo_copy(reproduced, tmp_path / "repo")
+    shown = sh("dvc metrics show", repo)
+    assert "failed" not in shown.stdout + shown.stderr
+    head = json.loads((repo / "reports/headline.json").read_text())
+    metrics = json.loads((repo / "reports/metrics.json").read_text())
+    reported = metrics["reported"]["method"]
+    assert head["test_3d_mae_mm"]["reported"] == metrics["baselines"][reported]["test"]["3d"]["mae"]
+    assert head["network_kept"] == metrics["reported"]["network"] == (reported == "spi_boter_calibrated")
+    columns = sh("dvc metrics show --json", repo).stdout
+    assert len(json.loads(columns)["workspace"]["data"]) == 2, columns[:500]       # the two headline files
+    assert f'{head["test_3d_mae_mm"]["reported"]:.5f}'[:6] in sh("dvc metrics show", repo).stdout
+    html = sh("dvc plots show", repo)
+    page = (repo / "dvc_plots/index.html").read_text()
+    assert "<img" in page and "cdn" not in page.lower() and "<script src=\"http" not in page, page[:2000]
+    assert sh("git status --porcelain", repo).stdout == ""
     shown = sh("dvc metrics show --json", repo).stdout
     assert "reports/metrics.json" in shown
 
@@ -99,8 +122,16 @@ def test_exp_run_set_param_and_invalid_combination(reproduced, tmp_path):
     out = bad.stdout + bad.stderr
     assert "n_head=5 does not divide d_model=12" in out and "n_head could be [1, 2, 3, 4, 6, 12]" in out
     assert "SPI-BoTER:" not in out                                            # stopped before training
-    shown = sh("dvc exp show --json", repo).stdout
-    assert "d_model" in shown
+    assert sh("dvc exp run -S train.seed=140 evaluate", repo).returncode == 0
+    shown = json.loads(sh("dvc exp show --json", repo).stdout)          # issue 33: every row has its metrics
+    rows = [r for r in shown if r["rev"] != "workspace"]
+    exps = [e for r in rows for e in (r.get("experiments") or [])]
+    mae = []
+    for row in rows + [run for e in exps for run in e["revs"]]:
+        data = row["data"]
+        assert "d_model" in json.dumps(data["params"])
+        mae.append(data["metrics"]["reports/headline.json"]["data"]["test_3d_mae_mm"]["reported"])
+    assert len(mae) == 3 and len(set(mae)) == 3, mae                  # the baseline and two experiments
 
 
 @pytest.mark.slow
@@ -130,3 +161,39 @@ def test_repro_from_two_tracker_stations(tmp_path):
     status = json.loads(sh("dvc status --json", repo).stdout)
     changed = [k for k in status if not k.startswith(("ablation/", "fleet/"))]   # the opt-in ones never ran
     assert changed == ["ingest_campaign@station_b"]             # and what follows it, once it re-runs
+
+
+@pytest.mark.slow
+def test_own_data_in_another_dialect_runs_to_a_report_with_an_edit_of_ingest_only(tmp_path):
+    """Issue 33: a user's campaign (a preamble line, `;`, decimal commas, metres, UR's actual_q_* in radians,
+    a few bad rows) with only `ingest:` pointed at it. Before: ~4 min, then a traceback in validate@twin_side
+    (the twin's campaign read with the user's settings), and a twin drive check reported for a real robot."""
+    repo = project_copy(tmp_path)
+    j = pd.read_csv(repo / "data/raw/joints.csv")
+    t = pd.read_csv(repo / "data/raw/tracker.csv").set_index("Name").loc[j.point_id]
+    rows = [";".join([pid, *(f"{np.radians(v):.9f}" for v in q), *(f"{v / 1000:.7f}" for v in m)]).replace(".", ",")
+            for pid, q, m in zip(j.point_id, j[[f"j{i}_deg" for i in range(1, 7)]].to_numpy(), t[["X", "Y", "Z"]].to_numpy())]
+    rows[10] = rows[10].replace(";", ";abc;", 1).rsplit(";", 1)[0]          # a word in a cell: non_numeric
+    rows[20] = rows[20].rsplit(";", 1)[0]                                   # a cell short: field_count
+    header = "Name;" + ";".join(f"actual_q_{i}" for i in range(6)) + ";X;Y;Z"
+    (repo / "data/own").mkdir()
+    (repo / "data/own/campaign.csv").write_text("// Exported by SpatialAnalyzer, job 17\n" + header + "\n"
+                                                + "\n".join(rows) + "\n")
+    params = yaml.safe_load((repo / "params.yaml").read_text())
+    params["ingest"].update(joints="data/own/campaign.csv", tracker="data/own/campaign.csv", skip_lines=1,
+                            length_unit="m")
+    (repo / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+    sh("git add -A && git commit -qm 'my campaign'", repo)
+    r = sh("dvc repro", repo)
+    assert "Traceback" not in r.stdout + r.stderr
+    ingest = json.loads((repo / "reports/ingest.json").read_text())
+    assert {(d["row"], d["reason"]) for d in ingest["dropped"]} >= {(13, "non_numeric"), (23, "field_count")}
+    assert ingest["units"]["position"]["to_mm"] == 1000.0 and ingest["n_kept"] > 700
+    comp = json.loads((repo / "reports/compensation.json").read_text())
+    assert "drive_check" not in comp and "not the twin's" in comp["drive_check_skipped"]
+    assert pd.read_csv(repo / "reports/drive_check.csv").empty
+    val = json.loads((repo / "reports/validation.json").read_text())
+    assert val["campaigns"] == {} and "twin's campaign" in val["skipped"]["twin_side"]
+    index = (repo / "reports/index.md").read_text()
+    assert "`twin_side` not judged" in index and "No drive check (the campaign is not the twin's" in index
+    assert sh("git status --porcelain", repo).stdout == ""

@@ -67,7 +67,7 @@ def test_apply_rewrites_params_keeping_comments(tmp_path, capsys):
     for line in text.splitlines():                                # comments survive
         if line.lstrip().startswith("#"):
             assert line in new
-    assert "# ur5 | ur10 | custom" in new and "dh: null" in new
+    assert "# ur3 | ur5 | ur10 | ur3e | ur5e | ur10e | ur16e | ur20 | ur30 | custom" in new and "dh: null" in new
     assert apply_preset("gtpn-ur5", path) == []                   # idempotent
     assert apply_preset("ipa-ur10", path) != []
     assert yaml.safe_load(path.read_text())["robot"]["model"] == "ur10"

@@ -1,4 +1,5 @@
 """The program compensator: a program's waypoints in, a compensated CSV and URScript out."""
+import os
 import re
 from pathlib import Path
 
@@ -8,11 +9,13 @@ import pytest
 import torch
 
 from conftest import exit_code
-from pipeline import program
+from pipeline import plan, program
 from pipeline.lib.artifacts import load_points
 from pipeline.lib.columns import JCOMP_DEG, JOINTS_DEG, TARGET, THEORY
 from pipeline.lib.kinematics import DTYPE
+from pipeline.lib.robots import load_robot
 from pipeline.lib.training import load_model
+from pipeline.lib.waypoints import read_waypoints
 
 
 def model_at(params, q_deg):
@@ -148,7 +151,7 @@ def test_empty_files_separators_and_outputs_over_the_input(in_trained_project, t
     table = program.run([str(semi)])
     np.testing.assert_allclose(table[JOINTS_DEG].to_numpy(), pts[JOINTS_DEG].to_numpy(), atol=1e-6)
     code, said = exit_code(program.main, [str(semi), "--out", str(semi)], capsys)
-    assert code == 2 and "must differ" in said
+    assert code == 2 and "is the input" in said
 
 
 def test_waypoints_outside_the_workspace_are_in_the_summary(in_trained_project, tmp_path, capsys):
@@ -161,3 +164,113 @@ def test_waypoints_outside_the_workspace_are_in_the_summary(in_trained_project, 
     code, said = exit_code(program.main, [str(src)], capsys)
     assert code == 0 and "outside the trained workspace" in said
     assert re.search(r"  FAR: [0-9.]+ workspace radii from the nearest training pose", said)
+
+
+# Issue 32: the second hostile probe
+ROW_30 = "P0030,-52,25,-65.691726,126.231097,-67.745261,125.018231,179.796810"   # a decimal comma: 8 cells
+
+
+def test_a_row_with_one_cell_too_many_is_refused_not_shifted(tmp_path):
+    """Critical 1: the row was read with its columns shifted (joint 2 at +25° instead of -65.7°) and became
+    a move. A waypoint row is judged by ingest's field_count rule: refused with its file and row."""
+    src = tmp_path / "prog.csv"
+    src.write_text("point_id," + ",".join(JOINTS_DEG) + "\nP0029,-52.1,-65.6,126.2,-67.7,125.0,179.7\n" + ROW_30 + "\n")
+    with pytest.raises(ValueError, match=r"prog.csv, row 3: 8 cells but the header has 7"):
+        read_waypoints(src, load_robot({"model": "ur5", "dh": None, "joint_limits_deg": None, "tool_mm": [0, 0, 0]}))
+
+
+def test_a_row_with_one_cell_too_many_is_refused_by_program_and_plan(in_trained_project, tmp_path, capsys):
+    src = program_file(tmp_path, n=3)
+    src.write_text(src.read_text() + ROW_30.split(",", 1)[1] + "\n")          # no id column: 7 cells for 6
+    code, said = exit_code(program.main, [str(src)], capsys)
+    assert code == 2 and "row 5: 7 cells but the header has 6" in said and "Traceback" not in said, said
+    assert not (tmp_path / "prog_comp.script").exists() and not (tmp_path / "prog_comp.csv").exists()
+    code, said = exit_code(plan.main, [str(src), "--n", "3", "--out", str(tmp_path / "o")], capsys)
+    assert code == 2 and "row 5: 7 cells but the header has 6" in said and not (tmp_path / "o").exists(), said
+
+
+def test_duplicate_ids_are_refused_naming_both_rows(in_trained_project, tmp_path, capsys):
+    """Major 7: two waypoints D1 were accepted; with --comment-out-unreached both were commented out."""
+    src = program_file(tmp_path, n=4, point_id=["A", "D1", "B", "D1"])
+    code, said = exit_code(program.main, [str(src), "--comment-out-unreached"], capsys)
+    assert code == 2 and "row 5, column 'point_id': point id 'D1' already on row 3" in said, said
+    assert not (tmp_path / "prog_comp.script").exists()
+
+
+def test_no_waypoint_reached_says_so_without_nan():
+    table = pd.DataFrame({"point_id": ["A", "B"], "residual_mm": [3.0, 4.0], "in_workspace": [True, True]})
+    text = program.summary_text(table, {"A": "residual 3 mm", "B": "residual 4 mm"}, None)
+    assert text.startswith("2 waypoints: 0 reached, 2 not reached") and "nan" not in text
+
+
+@pytest.mark.parametrize("link", ["hard", "symbolic"])
+def test_an_output_linked_to_the_input_is_refused_and_the_input_kept(tmp_path, capsys, link):
+    """Critical 2: `ln in.csv in_hard.csv; program in.csv --out in_hard.csv` replaced the input with the
+    Δθ table. Refused before any work (no trained project needed), by inode, for either output."""
+    src = tmp_path / "in.csv"
+    src.write_text(",".join(JOINTS_DEG) + "\n" + ",".join(["10.0"] * 6) + "\n")
+    before = src.read_bytes()
+    alias = tmp_path / "alias.csv"
+    (os.link if link == "hard" else os.symlink)(src, alias)
+    for flag in ("--out", "--urscript"):
+        code, said = exit_code(program.main, [str(src), flag, str(alias)], capsys)
+        assert code == 2 and "is the input" in said and "Traceback" not in said, said
+        assert src.read_bytes() == before
+    plan_dir = tmp_path / "plan"
+    plan_dir.mkdir()
+    (os.link if link == "hard" else os.symlink)(src, plan_dir / "poses.csv")
+    code, said = exit_code(plan.main, [str(src), "--n", "3", "--out", str(plan_dir)], capsys)
+    assert code == 2 and "is the input" in said and src.read_bytes() == before, said
+
+
+def test_an_unwritable_urscript_leaves_no_csv(in_trained_project, tmp_path, capsys):
+    """Minor: `--urscript` to a bad path wrote the CSV and then failed (exit 2). Both or neither."""
+    src = program_file(tmp_path, n=3)
+    code, said = exit_code(program.main, [str(src), "--urscript", str(tmp_path / "no" / "such" / "dir.script")], capsys)
+    assert code == 2 and "nothing written" in said and "Traceback" not in said, said
+    assert not (tmp_path / "prog_comp.csv").exists() and not list(tmp_path.glob(".*tmp"))
+
+
+def test_the_planner_refuses_a_target_the_arm_cannot_reach(in_trained_project, tmp_path, capsys):
+    """Minor: a program target the calibrated arm could not reach was planned silently ("50% -> 50%")."""
+    pts = load_points().query("split == 'test'").head(2)
+    target = pts[THEORY].to_numpy().copy()
+    target[1] = [0.0, 0.0, 1.0]                                        # inside the reach bound, unreachable
+    src = tmp_path / "prog.csv"
+    pts[JOINTS_DEG].assign(point_id=["A", "B"], **dict(zip(TARGET, target.T))).to_csv(src, index=False)
+    code, said = exit_code(plan.main, [str(src), "--n", "3", "--out", str(tmp_path / "o")], capsys)
+    assert code == 1 and re.search(r"B: \d+\.\d mm short", said) and "A:" not in said, said
+    assert not (tmp_path / "o" / "poses.csv").exists()
+
+
+def test_radian_columns_are_read_as_radians(tmp_path):
+    """Issue 33: the program took degrees only, where ingest reads j*_rad and UR's actual_q_*."""
+    robot = load_robot({"model": "ur5", "dh": None, "joint_limits_deg": None, "tool_mm": [0, 0, 0]})
+    q = np.array([[13.5, -54.6, 121.7, 85.0, 148.9, 55.6], [-29.9, -84.9, 105.6, -209.9, 114.0, -48.9]])
+    for names in ([f"j{i}_rad" for i in range(1, 7)], [f"actual_q_{i}" for i in range(6)]):
+        src = tmp_path / "rad.csv"
+        pd.DataFrame(np.radians(q), columns=names).to_csv(src, index=False)
+        np.testing.assert_allclose(read_waypoints(src, robot)[JOINTS_DEG].to_numpy(), q, atol=1e-9)
+    src.write_text("j1_deg,j2_deg\n1,2\n")
+    with pytest.raises(ValueError, match=r"column 'j3_deg': missing waypoint column 'j3_deg' \(or j1_rad"):
+        read_waypoints(src, robot)
+
+
+def test_the_move_and_its_speeds_are_settings(in_trained_project, tmp_path, capsys, monkeypatch):
+    """Issue 33: every move was a movej with acceleration and speed written into the code."""
+    src = program_file(tmp_path, n=3)
+    p = in_trained_project
+    p["program"] = {"move": "movel", "movej": {"acc": 1.4, "vel": 1.05}, "movel": {"acc": 0.5, "vel": 0.1}}
+    monkeypatch.setattr(program, "load_params", lambda: p)
+    assert exit_code(program.main, [str(src)], capsys)[0] == 0
+    script = (tmp_path / "prog_comp.script").read_text()
+    assert script.count("  movel([") == 3 and "movej" not in script.split("\n", 1)[1]
+    assert "  acc = 0.500000" in script and "  vel = 0.100000" in script and "m/s², m/s" in script
+
+
+def test_the_example_program_in_the_readme_runs(in_trained_project, tmp_path, capsys):
+    example = Path("data/examples/waypoints.csv")
+    code, said = exit_code(program.main, [str(example), "--out", str(tmp_path / "c.csv"),
+                                          "--urscript", str(tmp_path / "c.script")], capsys)
+    assert code == 0 and said.startswith("10 waypoints: 10 reached"), said
+    assert (tmp_path / "c.script").read_text().count("movej(") == 10

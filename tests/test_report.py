@@ -1,6 +1,11 @@
-"""The report stage on small synthetic inputs: every figure, index.md's links, the PLY."""
+"""The report stage on small synthetic inputs: every figure, index.md's links, the PLY; the customer's
+summary page on the project's own artifacts."""
 import json
 import re
+import shutil
+import subprocess
+import sys
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -10,8 +15,10 @@ import yaml
 
 from pipeline import report
 from pipeline.lib import figures, page
+from pipeline.lib.errormaps import as_geometry
+from pipeline.lib import summary as sheet
 from pipeline.lib.columns import AXES, JOINTS_DEG, MEAS, PRED, THEORY
-from pipeline.lib.config import load_params, write_json
+from pipeline.lib.config import for_stage, load_params, read_json, write_json
 from pipeline.lib.kinematics import nominal_geometry
 from pipeline.lib.metrics import drive_table, regression_metrics
 from pipeline.lib.robots import nominal_robot
@@ -61,7 +68,10 @@ def write_inputs(root: Path, params: dict, optional: bool = True) -> pd.DataFram
         return df
 
     (root / "models").mkdir()                              # physics "nominal": geometry from frame.json's tool
-    model = make_model(params["model"], nominal_geometry(nominal_robot("ur5")))
+    cover = np.zeros((6, 360))
+    cover[:, 90:270] = 1.0                                  # every joint measured over half a turn
+    maps = {"amap_coef": 1e-4 * np.sin(np.arange(360) / 20.0)[None] * np.arange(1, 7)[:, None], "amap_cover": cover}
+    model = make_model(params["model"], {**nominal_geometry(nominal_robot("ur5")), **as_geometry(maps)})
     save_model(model, root / "models/boter.pt", params["model"])
     live = root / "reports/live/plots/metrics"
     live.mkdir(parents=True)
@@ -168,7 +178,7 @@ def test_missing_optional_inputs_are_skipped_with_a_note(tmp_path, monkeypatch):
 
     skipped = {n for n, s in out["figures"].items() if s != "ok"}
     assert skipped == {"training_curves", "attention_maps", "compensation_convergence", "drive_check",
-                       "validation"}
+                       "validation", "error_maps"}
     for name in figures.FIGURES:
         assert (plots / f"{name}.png").exists() == (name not in skipped)
     index = tmp_path / "reports/index.md"
@@ -233,3 +243,151 @@ def test_figures_are_one_registry_with_captions():
         assert re.fullmatch(r"[a-z0-9_]+", name)
         assert len(figures.caption(fn)) > 20, name
     assert len(figures.caption(figures.fig_ablation)) > 20
+
+
+# ---------------------------------------------------------------- the customer's summary (issue 33)
+
+SUMMARY_INPUTS = ["params.yaml", "data/interim/predictions.parquet", "data/interim/baselines.parquet",
+                  "data/interim/ingest.parquet"] + [f"reports/{n}.json" for n in (
+                      "metrics", "ingest", "frame", "theory", "split", "calibration", "parts", "validation")]
+WRITE_SUMMARY = ("from pipeline import report; from pipeline.lib.config import for_stage, load_params; "
+                 "report.Context(for_stage(load_params(), report.PARAMS)).write_summary()")
+
+
+def md_table(text: str, heading: str) -> tuple[list, dict]:
+    """The header and {first cell: row} of the first table under the `## heading...` line."""
+    lines = text[text.index("## " + heading):].splitlines()
+    rows = [[c.strip() for c in ln.strip().strip("|").split("|")] for ln in lines if ln.startswith("|")]
+    head, body = rows[0], rows[2:]
+    end = next((k for k, ln in enumerate(lines[1:], 1) if ln.startswith("## ")), len(lines))
+    body = body[:sum(1 for ln in lines[:end] if ln.startswith("|")) - 2]
+    return head, {r[0]: r for r in body}
+
+
+def pdf_text(data: bytes) -> str:
+    """The PDF's text: pypdf's when it is installed; else every literal string of each text object
+    (BT ... ET) of its Flate content streams, joined (matplotlib writes ASCII text as strings)."""
+    try:
+        import io
+        import pypdf
+        reader = pypdf.PdfReader(io.BytesIO(data))
+        assert len(reader.pages) == 1
+        return reader.pages[0].extract_text()
+    except ImportError:
+        pass
+    out = []
+    for m in re.finditer(rb"stream\r?\n(.*?)\r?\nendstream", data, re.S):
+        try:
+            s = zlib.decompress(m.group(1))
+        except zlib.error:
+            continue
+        for bt in re.findall(rb"BT(.*?)ET", s, re.S):
+            parts = re.findall(rb"\(((?:\\.|[^\\)])*)\)", bt)
+            out.append(b"".join(re.sub(rb"\\(.)", rb"\1", p) for p in parts).decode("latin-1"))
+    return "\n".join(out)
+
+
+def test_summary_page_numbers_are_the_artifacts_and_one_reproducible_a4_page(trained_project, tmp_path,
+                                                                               monkeypatch):
+    for f in SUMMARY_INPUTS:                               # the project's artifacts, read only: a copy
+        if (trained_project / f).exists():
+            (tmp_path / f).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy(trained_project / f, tmp_path / f)
+    monkeypatch.chdir(tmp_path)
+    params = for_stage(load_params(), report.PARAMS)
+    assert report.Context(params).write_summary()["pages"] == 1
+    md = (tmp_path / "reports/summary.md").read_text()
+    m, v, sp = (read_json(f"reports/{n}.json") for n in ("metrics", "validation", "split"))
+    cal, parts = read_json("reports/calibration.json"), read_json("reports/parts.json")
+    campaigns = v["campaigns"]
+
+    _, rows = md_table(md, "Campaigns")                    # points per campaign
+    for c, n in sp["per_campaign"].items():
+        assert f"test {n['test']}" in rows[f"`{c}`"][1] and rows[f"`{c}`"][2].startswith(f"{sum(n.values())} / ")
+    for c, val in campaigns.items():
+        assert rows[f"`{c}`"][2] == f"{val['ingest']['n_kept']} / {len(val['ingest']['dropped'])}"
+
+    head, rows = md_table(md, "Accuracy")                  # mean / p95 / max per method
+    col = {name: head.index(label) for name, label in sheet.METHODS.items()}
+    cells = lambda row, name: [float(x) for x in row[col[name]].split(" / ")]
+    r3 = lambda x: round(x, 3)
+    pred = pd.read_parquet("data/interim/predictions.parquet").merge(
+        pd.read_parquet("data/interim/baselines.parquet"), on="point_id", how="left")
+    for c in sp["per_campaign"]:
+        row, mc, cc = rows[f"`{c}`, test split"], m["campaigns"][c], cal["campaigns"][c]["test"]
+        test = pred[(pred.split == "test") & (pred.campaign == c)]
+        assert int(row[1]) == sp["per_campaign"][c]["test"] == cc["n"]
+        errors = {"nominal": test[THEORY].to_numpy(), "calibrated": test[[f"calibrated_dh_{a}" for a in AXES]].to_numpy(),
+                  "calibrated_parts": test[[f"calibrated_parts_{a}" for a in AXES]].to_numpy(),
+                  "model": test[PRED].to_numpy()}
+        for name, key in (("nominal", "nominal_dh"), ("calibrated", "calibrated_dh"),
+                          ("calibrated_parts", "calibrated_parts"), ("model", m["model"])):
+            mean, p95, mx = cells(row, name)
+            e = np.linalg.norm(errors[name] - test[MEAS].to_numpy(), axis=1)
+            assert mean == r3(mc[key]["test"]["mae"]) and p95 == r3(np.percentile(e, 95)) and mx == r3(e.max())
+        assert cells(row, "nominal")[2] == r3(cc["nominal"]["max_mm"])
+        assert cells(row, "calibrated")[2] == r3(cc["calibrated"]["max_mm"])
+        if len(sp["per_campaign"]) == 1:
+            assert cells(row, "calibrated_parts")[2] == r3(parts["splits"]["test"]["calibrated_parts"]["max_mm"])
+    for c, val in campaigns.items():
+        row = rows[f"`{c}`"]
+        assert int(row[1]) == val["n_judged"]
+        for name in sheet.METHODS:
+            assert cells(row, name) == [r3(val[k][name]) for k in ("mean_3d_mm", "p95_3d_mm", "max_3d_mm")]
+        assert f"{round(100 * (1 - val['in_workspace_share']))}% of `{c}`" in md     # outside the workspace
+        if val["frame"] != "same":
+            assert f"`{c}` ({val['n_register']} points" in md                        # registered on its own points
+    assert f"{round(100 * (1 - m['uncertainty']['test']['in_workspace_share']))}% of the test split" in md
+    assert "**Instrument:** not recorded (set `summary.instrument`)" in md
+    if not any(val.get("position_accuracy") for val in campaigns.values()):
+        assert "**ISO 9283 AP_P / RP:**" in md
+
+    pdf = (tmp_path / "reports/summary.pdf").read_bytes()
+    assert pdf.startswith(b"%PDF-") and len(re.findall(rb"/Type\s*/Page\b", pdf)) == 1
+    assert re.search(rb"/MediaBox\s*\[\s*0 0 595\.44 841\.68\s*\]", pdf)            # A4, in points
+    assert b"CreationDate" not in pdf and b"ModDate" not in pdf
+    text = pdf_text(pdf)
+    for row in rows.values():                               # every accuracy number is on the page
+        for name in sheet.METHODS:
+            assert row[col[name]] in text, row[col[name]]
+
+    md_bytes = (tmp_path / "reports/summary.md").read_bytes()  # another process, the same bytes
+    subprocess.run([sys.executable, "-c", WRITE_SUMMARY], cwd=tmp_path, check=True, capture_output=True,
+                   env={**__import__("os").environ, "PYTHONPATH": str(ROOT)})
+    assert (tmp_path / "reports/summary.pdf").read_bytes() == pdf
+    assert (tmp_path / "reports/summary.md").read_bytes() == md_bytes
+
+
+def test_summary_shows_dates_temperatures_and_iso_9283_where_recorded():
+    assert sheet.date_range(np.array([2.02011e13, 2.02011e13])) == "2020-11"        # a spreadsheet kept the month
+    assert sheet.date_range(np.array([20201103.0, 20201105.0])) == "2020-11-03 – 2020-11-05"
+    assert sheet.date_range(["2021-03-02T10:00", "2021-03-04 09:00"]) == "2021-03-02 – 2021-03-04"
+    assert sheet.date_range(np.array([1.5, 2.5])) is None and sheet.time_column(["j1_deg", "Timestamp"]) == "Timestamp"
+    table = pd.DataFrame({"campaign": ["c"] * 3, "Timestamp": [2.02011e13] * 3, "temp": [21.68, 22.0, 22.24]})
+    cond = sheet.conditions(table, "temp")
+    assert cond["c"]["dates"] == "2020-11" and sheet.temperature_text(cond["c"]) == "21.7–22.2 °C"
+    assert sheet.conditions(table, None)["c"]["t_mean"] is None
+
+    params = load_params(ROOT / "params.yaml")
+    params["validate"]["campaigns"] = {"cubes": {"commanded": {"columns": ["x", "y", "z"]}, "frame": "refit_tool"}}
+    stats = {"n": 5, "mean": 0.5, "p95": 0.9, "max": 1.0}
+    val = {"n": 40, "n_judged": 30, "frame": "refit_tool", "n_register": 10, "in_workspace_share": 0.25,
+           **{k: {mm: 0.5 for mm in sheet.METHODS} for k in ("mean_3d_mm", "p95_3d_mm", "max_3d_mm")},
+           "angle_map": {"in_range_share": 0.9}, "ingest": {"n_kept": 40, "dropped": []},
+           "thermal": {"temperature_c": 20.75, "dT_k": -1.25},
+           "position_accuracy": {mm: {"positions": 12, "positions_repeated": 0, "ap_measured_mm": 0.8123,
+                                      "rp_measured_mm": None, "bar_error_mm": 0.1 * k}
+                                 for k, mm in enumerate(sheet.METHODS)}}
+    metrics = {"model": "spi_boter_calibrated", "uncertainty": {"test": {"in_workspace_share": 0.9}}}
+    s = {"validation": {"campaigns": {"cubes": val}}, "split": {"per_campaign": {"c": {"train": 8, "test": 2}}},
+         "frame": {"tool_mm": [0.0, 0.0, 109.0]}, "ingest": {"campaigns": {"c": {"n_kept": 11, "n_dropped": 1}}}}
+    test = {"c": {"n": 2, **{mm: stats for mm in sheet.METHODS}}}
+    md = sheet.markdown(sheet.blocks(params, metrics, s, test, cond, ["measurement_rx", "measurement_ry"]))
+    head, rows = md_table(md, "ISO 9283")
+    assert rows["`cubes`"][1:4] == ["12 (0 repeated)", "0.812", "–"]              # Series_D's cubes: no RP
+    assert rows["`cubes`"][4:] == ["0.000", "0.100", "0.200", "0.300"]
+    _, rows = md_table(md, "Campaigns")
+    assert rows["`c`"][2:] == ["10 / 2 (1 at ingest, 1 frame outliers)", "2020-11", "21.7–22.2 °C"]
+    assert rows["`cubes`"][4] == "20.8 °C (mean; -1.2 K)"
+    assert "judged outside that range: `cubes` at 20.8 °C" in md and "`measurement_rx`" in md
+    assert "(0.000, 0.000, 109.000) mm" in md and "75% of `cubes`" in md and "probe offset too" in md

@@ -5,6 +5,7 @@ size, socket timeout, echo length), and the server keeps serving.
 On the trained artifacts of conftest's `trained_project` (the project's own after `dvc repro`).
 """
 import copy
+import json
 import socket
 import subprocess
 import sys
@@ -23,6 +24,7 @@ from pipeline.lib.config import load_params
 from pipeline.lib.training import load_model
 from conftest import ENV, project_points
 from pipeline import serve as serve_module
+from pipeline.lib.model import PhysicsOnly
 from pipeline.lib.onnx_model import OnnxRealtime
 from pipeline.lib.realtime import Realtime
 from pipeline.serve import make_server, url
@@ -497,3 +499,247 @@ def test_without_the_controller_file_or_with_a_stale_one_the_service_runs_pytorc
             server.shutdown()
             server.server_close()
         caplog.clear()
+
+
+# Issue 25: a hostile client's cost to the others (entities, gzip, batches, slow connections), measured
+# residuals, one-line errors
+LAUGHS = ("<?xml version='1.0'?><!DOCTYPE m [<!ENTITY a \"aaaaaaaaaa\">"
+          + "".join(f"<!ENTITY {c} \"{('&' + p + ';') * 10}\">" for p, c in zip("abcdefgh", "bcdefghi"))
+          + "]><methodCall><methodName>compensate</methodName><params><param><value>&i;</value></param>"
+            "</params></methodCall>")
+
+
+def post(body: bytes, headers: str = "") -> bytes:
+    return f"POST /RPC2 HTTP/1.0\r\nContent-Length: {len(body)}\r\n{headers}\r\n".encode() + body
+
+
+@pytest.mark.parametrize("encoding", ["utf-8", "utf-16"])
+def test_an_entity_declaration_is_refused_before_any_expansion(server, client, poses, encoding):
+    """A billion laughs (1.2 KB, 10^9 characters expanded) is a 400 at its DOCTYPE, at once (before: expat's
+    amplification limit refused it after 0.6-1.5 s of the server's CPU), whatever its encoding."""
+    body = LAUGHS.encode() if encoding == "utf-8" else LAUGHS.replace("'1.0'?", "'1.0' encoding='utf-16'?").encode(
+        "utf-16")
+    times = []
+    for _ in range(3):
+        t = time.perf_counter()
+        answer = raw(server, post(body))
+        times.append(time.perf_counter() - t)
+        assert status(answer) == 400 and b"DOCTYPE" in answer, answer[:300]
+    assert min(times) < 0.05, times
+    assert client.compensate(poses[0][0].tolist(), poses[1][0].tolist())["converged"]
+
+
+def gzip_call(n_items: int) -> bytes:
+    """A compensate_many call of n_items origin targets, gzip-compressed (~1000x smaller)."""
+    import gzip
+    item = ("<value><array><data><value><array><data>" + "<value><double>0</double></value>" * 6
+            + "</data></array></value><value><array><data>" + "<value><double>0</double></value>" * 3
+            + "</data></array></value></data></array></value>")
+    xml = ("<?xml version='1.0'?><methodCall><methodName>compensate_many</methodName><params><param><value><array>"
+           "<data>" + item * n_items + "</data></array></value></param></params></methodCall>")
+    return gzip.compress(xml.encode(), 9)
+
+
+def test_a_gzip_body_inflating_beyond_max_body_bytes_is_a_413_unparsed(server, client, params, poses):
+    """serve.max_body_bytes bounds the body as decoded: ~10 KB of gzip inflating to 4 MB of XML is a 413,
+    at once (before: inflated and parsed, ~1 s, then a Fault for max_items); within the limit, a gzip
+    request is answered; a truncated one is a 400."""
+    bomb = gzip_call(8000)
+    assert len(bomb) < 0.05 * params["serve"]["max_body_bytes"]
+    t = time.perf_counter()
+    answer = raw(server, post(bomb, "Content-Encoding: gzip\r\n"))
+    assert status(answer) == 413 and b"serve.max_body_bytes" in answer, answer[:300]
+    assert time.perf_counter() - t < 0.3
+    small = gzip_call(3)
+    assert status(raw(server, post(small[:len(small) // 2], "Content-Encoding: gzip\r\n"))) == 400
+    transport = xmlrpc.client.Transport()
+    transport.encode_threshold = 0                             # a real client, gzipping its requests
+    gz = xmlrpc.client.ServerProxy(url(server), transport=transport)
+    assert gz.compensate(poses[0][0].tolist(), poses[1][0].tolist())["converged"]
+    assert client.compensate(poses[0][0].tolist(), poses[1][0].tolist())["converged"]
+
+
+def test_a_batch_of_unreachable_targets_ends_at_the_call_budget(params, poses):
+    """compensate_many of 200 origin targets after 3 good ones: answered at serve.call_budget_ms (+ 0.5 s),
+    not after each item's budget in turn (before: 13 rounds of 16, ~2 s); the good items solved, the
+    unsolved ones an error naming the setting; never more than serve.lm_per_call of its items in lm."""
+    server = serving(with_serve(params, call_budget_ms=300, lm_per_call=2))
+    try:
+        q, t = poses[0][:3].tolist(), poses[1][:3].tolist()
+        items = [[a, b] for a, b in zip(q, t)] + [[q[0], [0.0, 0.0, 0.0]]] * 200
+        out, most, stop = [], [0], threading.Event()
+
+        def watch():
+            while not stop.is_set():
+                most[0] = max(most[0], len(list(server.service.active)))
+                time.sleep(0.001)
+        watcher = threading.Thread(target=watch)
+        watcher.start()
+        t0 = time.perf_counter()
+        try:
+            out = xmlrpc.client.ServerProxy(url(server)).compensate_many(items)
+        finally:
+            stop.set()
+            watcher.join()
+        assert 0.3 <= time.perf_counter() - t0 < 0.8
+        assert len(out) == 203 and all(r.get("converged") for r in out[:3])
+        errors = [r["error"] for r in out[3:]]
+        assert all(e.startswith(f"requests[{i}].target_mm: ") for i, e in enumerate(errors, 3))
+        budget = [e for e in errors if "the call's budget of 300 ms (serve.call_budget_ms) was spent" in e]
+        assert len(budget) > 150, errors[-1]
+        assert 1 <= most[0] <= 2
+    finally:
+        server.shutdown()
+        server.server_close()
+
+
+def test_every_converged_answer_is_measured_within_tol(server, client, params, poses):
+    """The controller path answers a pose it did not verify with a predicted residual (realtime.answers):
+    the service sends such poses on to lm, so `converged` is always a residual the model gives. Targets a
+    little off the model's positions, where prediction says converged and the model does not."""
+    tol = params["compensate"]["tol_mm"]
+    model = load_model("models/boter.pt")
+    q0 = poses[0]
+    with torch.no_grad():
+        at = model(torch.tensor(q0))[0].numpy()
+    rng = np.random.default_rng(0)
+    cases = []
+    for scale in (0.05, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0):
+        target = at + scale * rng.normal(size=at.shape)
+        for a, b, r in zip(q0, target, server.service.realtime.batch(q0, target)):
+            if not r.verified and r.residual_mm < tol:
+                cases.append((a, b, r.q))
+    with torch.no_grad():
+        claimed = np.linalg.norm(model(torch.tensor(np.array([c[2] for c in cases])))[0].numpy()
+                                 - np.array([c[1] for c in cases]), axis=1)
+    assert (claimed >= tol).any(), "no case of a prediction claiming convergence the model does not give"
+    answers = client.compensate_many([[a.tolist(), b.tolist()] for a, b, _ in cases[:params["serve"]["max_items"]]])
+    ok = [(r["q_rad"], b) for r, (_, b, _) in zip(answers, cases) if "error" not in r and r["converged"]]
+    assert len(ok) > 0.9 * len(answers)
+    with torch.no_grad():
+        true = np.linalg.norm(model(torch.tensor([a for a, _ in ok]))[0].numpy() - np.array([b for _, b in ok]), axis=1)
+    assert true.max() < tol, (true.max(), int((true >= tol).sum()), len(ok))
+
+
+def closed_within(s: socket.socket, seconds: float, every: float = 0.2) -> float | None:
+    """Send one byte every `every` s on s until the server closes it (its time, s) or `seconds` pass (None)."""
+    t0 = time.perf_counter()
+    s.settimeout(every)
+    while time.perf_counter() - t0 < seconds:
+        try:
+            s.sendall(b"x")
+            if s.recv(1024) == b"":
+                return time.perf_counter() - t0
+        except socket.timeout:
+            continue
+        except OSError:
+            return time.perf_counter() - t0
+    return None
+
+
+def test_a_dribbling_request_is_closed_at_timeout_s(params):
+    """One byte every 0.2 s, each read within the socket timeout: the request is still closed at
+    serve.timeout_s (0.5 s) from its start (before: held open as long as the client kept sending)."""
+    server = serving(with_serve(params, timeout_s=0.5))
+    try:
+        with socket.create_connection(server.server_address[:2]) as s:
+            s.sendall(b"POST /RPC2 HTTP/1.1\r\nContent-Length: 100\r\n\r\n")
+            took = closed_within(s, 3.0)
+        assert took is not None and took < 0.5 + 0.5, took
+        c = xmlrpc.client.ServerProxy(url(server))            # a keep-alive client: idle between its calls
+        for _ in range(2):
+            assert c.system.listMethods()
+            time.sleep(0.3)
+    finally:
+        server.shutdown()
+        server.server_close()
+
+
+def test_connections_beyond_max_connections_get_a_503_without_a_thread(params, poses):
+    """serve.max_connections (4) open: a 5th connection is a 503 at once, closed, no thread started for it;
+    once they close, a client is served again."""
+    server = serving(with_serve(params, max_connections=4, timeout_s=5.0))
+    try:
+        held = [socket.create_connection(server.server_address[:2]) for _ in range(4)]
+        time.sleep(0.2)
+        before = threading.active_count()
+        t = time.perf_counter()
+        answers = [raw(server, b"", timeout=2.0, close_write=False) for _ in range(3)]
+        assert all(a.startswith(b"HTTP/1.1 503") and b"serve.max_connections" in a for a in answers), answers
+        assert time.perf_counter() - t < 0.5 and threading.active_count() <= before
+        for s in held:
+            s.close()
+        deadline = time.monotonic() + 3
+        while True:
+            try:
+                assert xmlrpc.client.ServerProxy(url(server)).compensate(poses[0][0].tolist(), poses[1][0].tolist())
+                break
+            except xmlrpc.client.ProtocolError:
+                assert time.monotonic() < deadline
+                time.sleep(0.05)
+    finally:
+        server.shutdown()
+        server.server_close()
+
+
+def test_a_reset_connection_is_one_log_line(server, client, poses, capfd, caplog):
+    """A client resetting its connection mid-request: one line naming it, no traceback."""
+    import struct
+    with caplog.at_level("WARNING"):
+        for _ in range(3):
+            s = socket.create_connection(server.server_address[:2])
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
+            s.sendall(b"POST /RPC2 HTTP/1.1\r\nContent-Length: 100\r\n\r\n<?xml")
+            time.sleep(0.05)
+            s.close()                                          # an RST, the server in its read
+        assert client.compensate(poses[0][0].tolist(), poses[1][0].tolist())["converged"]
+        time.sleep(0.2)
+    err = capfd.readouterr().err
+    assert "Traceback" not in err, err
+    lines = [r.getMessage() for r in caplog.records if "ConnectionResetError" in r.getMessage()]
+    assert lines and all(len(m) <= 200 and "\n" not in m for m in lines), caplog.text
+
+
+@pytest.mark.xdist_group("serial")   # not beside the Ray tests (conftest: the long subprocesses are niced)
+def test_good_clients_keep_their_calls_beside_any_one_hostile_client(server, poses):
+    """4 good clients beside one hostile client of each class of bench.serve.HOSTILE (a process of its own:
+    entity expansion, a gzip bomb, compensate_many of 1000 unreachable targets, 100 dribbling connections,
+    unreachable single targets; each in a loop), 3 s each, alternating with as long alone: they keep at least
+    half their calls/s and their p99 stays within 4x (bench serve --hostile: docs/robot-cell.md; here server
+    and good clients share one process, and CI the cores with another worker)."""
+    from pipeline.bench.serve import HOSTILE, hostile_load
+    r = hostile_load(url(server), poses[0].tolist(), poses[1].tolist(), seconds=3.0, clients=4)
+    assert set(r["beside"]) == set(HOSTILE)
+    shares = {k: (round(v["calls_per_s_share"], 2), round(v["p99_ratio"], 1)) for k, v in r["beside"].items()}
+    assert all(v["failed_or_not_converged"] == 0 for v in r["beside"].values()), r
+    assert all(s >= 0.5 and p <= 4.0 for s, p in shares.values()), shares
+
+
+def test_a_target_in_metres_is_told_so(client, poses):
+    """Issue 33: a target sent in metres got "unreachable" with no hint of the units."""
+    with pytest.raises(xmlrpc.client.Fault, match=r"unreachable \(residual .*\)\. target_mm is in millimetres"):
+        client.compensate(poses[0][0].tolist(), (poses[1][0] / 1000).tolist())
+
+
+def test_where_the_network_is_off_the_physics_alone_is_served(project, params, poses, tmp_path, monkeypatch):
+    """Issue 33: the network is kept only where it lowers the validation error (evaluate: workspace.json
+    `network`); where it is off, the service answers with the physics branch and its own graph."""
+    for f in ("models/boter.pt", "models/controller.onnx", "models/controller_physics.onnx"):
+        (tmp_path / f).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / f).write_bytes((project / f).read_bytes())
+    ws = json.loads((project / "models/workspace.json").read_text())
+    (tmp_path / "models/workspace.json").write_text(json.dumps({**ws, "network": False}))
+    monkeypatch.chdir(tmp_path)
+    server = serving(params)
+    try:
+        q, t = poses[0][:5], poses[1][:5] + [0.3, -0.2, 0.1]
+        answers = xmlrpc.client.ServerProxy(url(server)).compensate_many([[a.tolist(), b.tolist()] for a, b in zip(q, t)])
+        physics = PhysicsOnly(load_model("models/boter.pt"))
+        with torch.no_grad():
+            p = physics(torch.as_tensor(np.array([a["q_rad"] for a in answers])))[0].numpy()
+        assert all(a["converged"] for a in answers)
+        assert np.linalg.norm(p - t, axis=1).max() < params["compensate"]["tol_mm"]       # the physics lands
+        assert isinstance(server.service.realtime, OnnxRealtime)                        # on its own graph
+    finally:
+        server.shutdown()
+        server.server_close()

@@ -14,6 +14,7 @@ import torch
 from pipeline.lib.columns import ERR, JOINTS_DEG, MEAS, THEORY
 from pipeline.lib.kinematics import fk_numpy, nominal_geometry
 from pipeline.lib.robots import load_robot
+from pipeline import train as train_stage
 from pipeline.lib import config
 from pipeline.lib.config import load_params
 from pipeline.lib.loss import SPILoss, data_loss
@@ -285,3 +286,21 @@ def test_cuda_graph_replays_the_eager_steps(points):
     for _ in range(3):
         rows = steps(torch.randperm(len(train_t[0])))
     assert steps.graph is not None and len(rows) == 3 and all(np.isfinite(r[0]) for r in rows)
+
+
+def test_a_bad_setting_stops_train_before_it_resets_the_last_curves(trained_project, tmp_path, monkeypatch):
+    """Issue 32 (minor): a failed direct run of the stage blanked reports/live/metrics.json and deleted
+    its plots (dvclive resets its folder on start). The model's settings and device are checked first."""
+    for f in ("models/calibration.json", "models/parts.json", "reports/frame.json", "data/interim/points.parquet",
+              "data/interim/split.parquet"):
+        (tmp_path / f).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / f).write_bytes((trained_project / f).read_bytes())
+    live = tmp_path / "reports/live/metrics.json"
+    live.parent.mkdir(parents=True)
+    live.write_text('{"step": 254}\n')
+    monkeypatch.chdir(tmp_path)
+    p = load_params(trained_project / "params.yaml")
+    p["model"].update(d_model=128, n_head=9)                     # 9 heads do not divide 128
+    with pytest.raises(ValueError, match="n_head=9 does not divide d_model=128"):
+        train_stage.run(p)
+    assert live.read_text() == '{"step": 254}\n'

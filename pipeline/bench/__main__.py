@@ -6,16 +6,20 @@
                                                             controller path (PyTorch vs onnxruntime, alternating) and a soak
     python -m pipeline.bench speed --only controller        the controller path's part alone
     python -m pipeline.bench serve [--clients 8 --calls 10000]   the compensation service under load
+    python -m pipeline.bench serve --hostile [--seconds 10]   4 good clients beside each class of hostile client
     python -m pipeline.bench sweep                          a reduced ablation, in order vs on a local Ray
     python -m pipeline.bench plan [--n 60 --seeds 139 140 141]   the measurement planner's loop closed on the twin
     python -m pipeline.bench plan --curve [--sizes 25 50 100 200 400 700]   error against the poses measured
+    python -m pipeline.bench scale [--rows 10000 30000 300000 --programs 200000]   ingest and the program
+                                                            compensator at scale: time and peak memory
 """
 import argparse
 
 from ..lib.sweep import ENGINES
 from .plan import VARIANTS, bench_plan
 from .real import REAL_SETS, bench_real
-from .serve import bench_serve
+from .scale import bench_scale
+from .serve import bench_hostile, bench_serve
 from .speed import bench_speed
 from .sweep import bench_sweep
 
@@ -23,7 +27,7 @@ from .sweep import bench_sweep
 def main(argv=None):
     ap = argparse.ArgumentParser(prog="python -m pipeline.bench", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("what", choices=["real", "speed", "serve", "sweep", "plan"])
+    ap.add_argument("what", choices=["real", "speed", "serve", "sweep", "plan", "scale"])
     ap.add_argument("--seeds", type=int, nargs="+", default=None,
                     help="training seeds (real: 139; plan: 139 140 141, each also the seed of its measurements)")
     ap.add_argument("--epochs", type=int, default=None, help="override train.max_epochs (real, plan)")
@@ -45,6 +49,9 @@ def main(argv=None):
     ap.add_argument("--calls", type=int, default=10000, help="compensate calls in all (serve)")
     ap.add_argument("--paths", nargs="+", choices=["onnx", "eager", "compiled"], default=["onnx", "eager", "compiled"],
                     help="serve: the controller paths to start the service with, one after the other")
+    ap.add_argument("--hostile", action="store_true",
+                    help="serve: 4 good clients alone, then beside each class of hostile client (serve_hostile.json)")
+    ap.add_argument("--seconds", type=float, default=10.0, help="serve --hostile: seconds of each phase")
     ap.add_argument("--soak", type=float, default=600.0, help="speed: seconds of the onnxruntime controller path alone")
     ap.add_argument("--rounds", type=int, default=20,
                     help="speed: rounds over the test targets, the controller paths interleaved call by call")
@@ -54,6 +61,10 @@ def main(argv=None):
                     help="speed: only the controller path's part (replaces that part of speed.json)")
     ap.add_argument("--n", type=int, default=60, help="plan: poses planned (and drawn at random) per variant")
     ap.add_argument("--waypoints", type=int, default=20, help="plan: the side program's waypoints")
+    ap.add_argument("--rows", type=int, nargs="+", default=[10_000, 30_000, 300_000],
+                    help="scale: the synthetic campaigns' sizes (0: none)")
+    ap.add_argument("--programs", type=int, nargs="+", default=[200_000],
+                    help="scale: the synthetic programs' waypoints (0: none)")
     ap.add_argument("--variants", nargs="+", choices=list(VARIANTS), default=list(VARIANTS),
                     help="plan: the variants beside today's project (closed loop)")
     ap.add_argument("--se-check", type=int, default=5, help="plan: Monte Carlo identifications of the planned "
@@ -64,17 +75,21 @@ def main(argv=None):
     ap.add_argument("--extend", action="store_true",
                     help="plan --curve: add --sizes to the curve in plan.json (same seeds, -S, epochs), keeping its runs")
     ap.add_argument("--work", type=int, default=40, help="plan --curve: the front work region's waypoints")
-    ap.add_argument("--keep", default=None, help="plan: keep the scratch projects in this folder")
+    ap.add_argument("--keep", default=None, help="plan, scale: keep the scratch projects in this folder")
     ap.add_argument("--station", choices=["new", "same"], default="new",
                     help="plan: measure the new poses from a tracker station of their own (facing the side), "
                          "or from the default campaign's")
     a = ap.parse_args(argv)
-    if a.what == "plan":
+    if a.what == "scale":
+        bench_scale([n for n in a.rows if n], [n for n in a.programs if n], a.keep)
+    elif a.what == "plan":
         bench_plan(a.n, a.seeds or [139, 140, 141], a.waypoints, a.variants, a.curve, a.sizes, a.overrides,
                    a.epochs, a.se_check, a.threads, a.work, a.keep,
                    a.station == "new", a.extend)
     elif a.what == "real":
         bench_real(a.seeds or [139], a.epochs, a.sets, a.other_physics, a.overrides, a.engine, a.address, a.threads, a.dnn)
+    elif a.what == "serve" and a.hostile:
+        bench_hostile(a.seconds)
     elif a.what == "serve":
         bench_serve(a.clients, a.calls, a.paths)
     elif a.what == "sweep":

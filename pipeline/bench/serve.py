@@ -3,7 +3,15 @@ port) under load, its controller path on onnxruntime (models/controller.onnx, th
 PyTorch and compiled (`--paths`): startup time, then one client and `--clients` concurrent clients
 calling `compensate` on the test points; latency percentiles, calls per second, failed calls, and the
 concurrent clients' throughput over one client's. Writes reports/bench/serve.json (the paths run
-replace theirs, the others kept). Needs a finished `dvc repro` in the project."""
+replace theirs, the others kept). Needs a finished `dvc repro` in the project.
+
+`bench serve --hostile`: 4 good clients beside one hostile client of each class (HOSTILE, a subprocess
+of its own, stopped and let go on in turn) on the same server, and alone between: the share of their
+calls/s they keep and their p99 latency over theirs alone. Writes reports/bench/serve_hostile.json."""
+import gzip
+import os
+import select
+import signal
 import socket
 import subprocess
 import sys
@@ -17,7 +25,7 @@ import psutil
 
 from ..lib.columns import JOINTS_DEG, THEORY
 from ..lib.config import load_params, logger, read_json, write_json
-from .common import BENCH, machine, prepared
+from .common import BENCH, ROOT, machine, prepared
 
 log = logger(__name__)
 
@@ -108,4 +116,210 @@ def bench_serve(clients: int = 8, calls: int = 10000, paths=("onnx", "eager", "c
         log.info("serve %s: %d clients give %.2fx one client's calls/s", name, clients,
                  out[name]["concurrent_over_one_client"])
     write_json(path, out)
+    return out
+
+
+# hostile clients: each a loop, run by hostile_client in a process of its own until killed
+ORIGIN = [[0.0] * 6, [0.0, 0.0, 0.0]]                      # within the joint limits and the reach, unreachable
+HOSTILE = {
+    "entity_expansion": "a billion laughs (0.5 KB: 10^9 characters once expanded), one after the other",
+    "gzip_bomb": "87 KB of gzip inflating to 20 MB of XML-RPC (compensate_many), one after the other",
+    "many_unreachable": "compensate_many of 1000 unreachable targets (the origin), one call after the other",
+    "dribbling": "100 connections sending one byte a second each, reconnecting when closed",
+    "unreachable": "compensate of one unreachable target (the origin), one call after the other",
+}
+
+
+def laughs() -> bytes:
+    entities = "".join(f"<!ENTITY {c} \"{('&' + p + ';') * 10}\">" for p, c in zip("abcdefgh", "bcdefghi"))
+    return (f"<?xml version='1.0'?><!DOCTYPE m [<!ENTITY a \"{'a' * 10}\">{entities}]><methodCall><methodName>"
+            "compensate</methodName><params><param><value>&i;</value></param></params></methodCall>").encode()
+
+
+def bomb(mb: float = 20.0) -> bytes:
+    item = xmlrpc.client.dumps((ORIGIN,))[len("<params>\n<param>\n"):-len("</param>\n</params>\n")]
+    n = int(mb * 1e6 / len(item))
+    xml = xmlrpc.client.dumps((ORIGIN,) * 0, "compensate_many").replace(
+        "<params>\n</params>", "<params><param><value><array><data>" + item * n + "</data></array></value></param></params>")
+    return gzip.compress(xml.encode(), 9)
+
+
+def post(host: str, port: int, body: bytes, headers: str = "") -> bytes:
+    """body POSTed to /RPC2 on a fresh connection; what the server answers until it closes."""
+    with socket.create_connection((host, port), timeout=30) as s:
+        s.sendall(f"POST /RPC2 HTTP/1.0\r\nContent-Length: {len(body)}\r\n{headers}\r\n".encode() + body)
+        out = b""
+        while chunk := s.recv(65536):
+            out += chunk
+    return out
+
+
+def dribble(host: str, port: int, n: int = 100, every: float = 1.0) -> None:
+    """n connections, each sending one byte of a request every `every` s, a new one when the server closes it."""
+    conns, due = {}, {}
+    def fresh(k):
+        try:
+            s = socket.create_connection((host, port), timeout=5)
+            s.setblocking(False)
+            conns[k], due[k] = s, time.monotonic() + every
+            s.send(b"P")
+        except OSError:
+            conns.pop(k, None)
+            due[k] = time.monotonic() + every                # refused: retry later
+    for k in range(n):
+        fresh(k)
+    print("ready", flush=True)
+    while True:
+        readable = select.select(list(conns.values()), [], [], 0.05)[0]
+        for k, s in list(conns.items()):
+            closed = False
+            if s in readable:
+                try:
+                    s.recv(4096)                           # an answer (a refusal) or the close
+                except OSError:
+                    pass
+                closed = True
+            if not closed and time.monotonic() >= due[k]:
+                try:
+                    s.send(b"x")
+                    due[k] = time.monotonic() + every
+                except OSError:
+                    closed = True
+            if closed:
+                s.close()
+                del conns[k]
+        for k in range(n):
+            if k not in conns and time.monotonic() >= due.get(k, 0):
+                fresh(k)
+
+
+def hostile_client(kind: str, url: str) -> None:
+    """One hostile client of HOSTILE's `kind` against the service at url, until killed."""
+    host, port = url.split("//")[1].split("/")[0].rsplit(":", 1)
+    port = int(port)
+    if kind == "dribbling":
+        return dribble(host, port)
+    proxy = xmlrpc.client.ServerProxy(url)
+    body = {"entity_expansion": laughs, "gzip_bomb": bomb}.get(kind, bytes)()
+    print("ready", flush=True)
+    while True:
+        try:
+            if kind == "entity_expansion":
+                post(host, port, body)
+            elif kind == "gzip_bomb":
+                post(host, port, body, "Content-Encoding: gzip\r\n")
+            elif kind == "many_unreachable":
+                proxy.compensate_many([ORIGIN] * 1000)
+            else:
+                proxy.compensate(*ORIGIN)
+        except (xmlrpc.client.Error, OSError):
+            pass
+
+
+def start_hostile(kind: str, url: str) -> subprocess.Popen:
+    """hostile_client(kind, url) in a process of its own, once it is ready (its preparation done)."""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
+    proc = subprocess.Popen([sys.executable, "-c", "import sys; from pipeline.bench.serve import hostile_client; "
+                             "hostile_client(*sys.argv[1:])", kind, url], stdout=subprocess.PIPE, text=True, env=env)
+    if proc.stdout.readline().strip() != "ready":
+        proc.kill()
+        raise RuntimeError(f"the hostile client {kind} did not start (exit code {proc.wait()})")
+    return proc
+
+
+def good_calls(url: str, q0: list, tgt: list, clients: int, seconds: float) -> tuple[list, int, float]:
+    """`clients` threads calling compensate on the (q0, target) pairs for `seconds`: each call's latency
+    (ms), the calls failed or not converged, the seconds taken."""
+    stop, ms, bad = threading.Event(), [[] for _ in range(clients)], [0] * clients
+
+    def client(k):
+        proxy = xmlrpc.client.ServerProxy(url)
+        for i in range(k, 10 ** 9, clients):
+            if stop.is_set():
+                return
+            t = time.perf_counter()
+            try:
+                bad[k] += not proxy.compensate(q0[i % len(q0)], tgt[i % len(tgt)])["converged"]
+            except Exception:
+                bad[k] += 1
+            ms[k].append(1000 * (time.perf_counter() - t))
+    threads = [threading.Thread(target=client, args=(k,)) for k in range(clients)]
+    t0 = time.perf_counter()
+    for t in threads:
+        t.start()
+    time.sleep(seconds)
+    stop.set()
+    for t in threads:
+        t.join()
+    return [v for m in ms for v in m], sum(bad), time.perf_counter() - t0
+
+
+def summary(runs: list) -> dict:
+    lat = np.array([v for r in runs for v in r[0]])
+    return {"calls_per_s": len(lat) / sum(r[2] for r in runs), "ms_p50": float(np.percentile(lat, 50)),
+            "ms_p99": float(np.percentile(lat, 99)), "calls": len(lat), "failed_or_not_converged": sum(r[1] for r in runs)}
+
+
+def hostile_load(url: str, q0: list, tgt: list, seconds: float = 10.0, clients: int = 4, kinds=tuple(HOSTILE),
+                 rounds: int = 3) -> dict:
+    """`clients` good clients beside one hostile client of each kind in turn, `seconds` in all, in `rounds`
+    rounds each, alternating with as long alone (the hostile process stopped, SIGSTOP, then let go on: a
+    drift of the machine, busy with other work, falls on both alike): for each kind the good clients' calls/s
+    beside it over theirs alone, and their p99 over theirs alone."""
+    out, part = {"alone": {}, "beside": {}}, seconds / rounds
+    for kind in kinds:
+        proc, alone, beside = start_hostile(kind, url), [], []
+        try:
+            for _ in range(rounds):
+                proc.send_signal(signal.SIGSTOP)
+                time.sleep(0.2)
+                alone.append(good_calls(url, q0, tgt, clients, part))
+                proc.send_signal(signal.SIGCONT)
+                time.sleep(0.2)                            # its loop going again
+                beside.append(good_calls(url, q0, tgt, clients, part))
+        finally:
+            proc.kill()
+            proc.wait()
+        a, b = summary(alone), summary(beside)
+        out["alone"][kind], out["beside"][kind] = a, {**b, "calls_per_s_share": b["calls_per_s"] / a["calls_per_s"],
+                                                      "p99_ratio": b["ms_p99"] / a["ms_p99"]}
+        time.sleep(0.5)
+    return out
+
+
+def bench_hostile(seconds: float = 10.0, clients: int = 4) -> dict:
+    """The compensation service beside hostile clients: `python -m pipeline.serve` in a subprocess on a free
+    loopback port (the defaults of the serve: section), `clients` good clients on the test points alone and
+    beside each class of HOSTILE (`seconds` each, and as long alone). Writes reports/bench/serve_hostile.json."""
+    df = prepared(load_params())[0]
+    test = df[df.split == "test"]
+    q0, tgt = np.radians(test[JOINTS_DEG].to_numpy()).tolist(), test[THEORY].to_numpy().tolist()
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    url, t0 = f"http://127.0.0.1:{port}/RPC2", time.perf_counter()
+    proc = subprocess.Popen([sys.executable, "-m", "pipeline.serve", "--port", str(port)], stderr=subprocess.DEVNULL)
+    try:
+        while True:
+            try:
+                xmlrpc.client.ServerProxy(url).system.listMethods()
+                break
+            except OSError:
+                if proc.poll() is not None or time.perf_counter() - t0 > 120:
+                    raise RuntimeError(f"python -m pipeline.serve did not start (exit code {proc.poll()})")
+                time.sleep(0.2)
+        r = hostile_load(url, q0, tgt, seconds, clients)
+    finally:
+        proc.terminate()
+        proc.wait(timeout=30)
+    out = {"machine": machine(), "project": str(Path.cwd()),
+           "server": "python -m pipeline.serve, a subprocess on 127.0.0.1 (the clients on the same machine)",
+           "good_clients": clients, "seconds_beside_each": seconds, "rounds": 3, "n_test_points": len(q0), "hostile": HOSTILE, **r}
+    write_json(BENCH / "serve_hostile.json", out)
+    for k, v in r["beside"].items():
+        a = r["alone"][k]
+        log.info("serve, %d good clients alone: %.0f calls/s, p99 %.1f ms; beside %s: %.0f calls/s (%.0f%%), p99 "
+                 "%.1f ms (%.1fx), %d failed or not converged", clients, a["calls_per_s"], a["ms_p99"], k,
+                 v["calls_per_s"], 100 * v["calls_per_s_share"], v["ms_p99"], v["p99_ratio"],
+                 v["failed_or_not_converged"])
     return out

@@ -29,6 +29,7 @@ BASELINES_TABLE = INTERIM / "baselines.parquet"       # baselines
 BASELINES_JSON = REPORTS / "baselines_train.json"
 PREDICTIONS_TABLE = INTERIM / "predictions.parquet"   # evaluate
 METRICS_JSON = REPORTS / "metrics.json"
+HEADLINE_JSON = REPORTS / "headline.json"             #   the few numbers `dvc metrics show` / `dvc exp show` list
 BASELINES_MD = REPORTS / "baselines.md"
 WORKSPACE_JSON = MODELS / "workspace.json"           #   the trained workspace, the error scale
 COMPENSATION_CSV = REPORTS / "compensation.csv"       # compensate (the Δθ table, and as parquet)
@@ -45,6 +46,7 @@ EXPORT_JSON = REPORTS / "export.json"
 VALIDATION_DIR = REPORTS / "validation"               # validate@<campaign>: <campaign>.json/.parquet
 VALIDATION_JSON = REPORTS / "validation.json"         # validation (all campaigns)
 VALIDATION_TABLE = REPORTS / "validation.parquet"
+VALIDATION_HEADLINE = REPORTS / "validation_headline.json"   #   its mean errors, for `dvc metrics show`
 TIMINGS = REPORTS / "timings"                         # every stage: <stage>.json, wall-clock times; not a
                                                       #   DVC output (git-ignored), so outputs hash the same
 

@@ -8,8 +8,25 @@ of a `more` campaign get ids "<campaign>:<id>", unique across campaigns. The
 first station (the ingest section's) is the one whose frame is reports/frame.json's
 top-level R, t: the base frame everything downstream works in.
 """
+import hashlib
+from pathlib import Path
+
 from .config import check_keys
 from .presets import deep_merge
+
+
+def file_sha256(path) -> str:
+    """The SHA-256 of a file's bytes: a campaign's identity (ingest.json `files`, the twin's record)."""
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def made_by_twin(record: dict, sha256: dict) -> str | None:
+    """The name of the twin campaign ("main", "validation", "station_b") whose files have the SHA-256s
+    `sha256` {"joints": .., "tracker": ..} (a campaign of one table: both the same), per the twin's
+    record (twin.json); None: the twin did not make it."""
+    made = {"main": record.get("campaign_sha256")} | {k: record[k].get("campaign_sha256")
+                                                       for k in ("validation", "station_b") if k in record}
+    return next((k for k, v in made.items() if v == sha256), None)
 
 
 def named_campaign(campaigns: dict | None, name: str, where: str, keys: str) -> dict:

@@ -16,13 +16,15 @@ class Solved:
     pred: np.ndarray         # (n, 3) mm, the model at them
     iterations: np.ndarray   # (n,)
     converged: np.ndarray    # (n,) bool
-    history: np.ndarray      # (iterations + 1, n) residual mm
+    history: np.ndarray | None   # (iterations + 1, n) residual mm; None when not asked for
     seconds: float
 
 
-def solve(model, q0_deg: np.ndarray, target: np.ndarray, cfg: dict, robot, solver: str | None = None) -> Solved:
-    """Compensate every (q0, target) with `solver` (default cfg["solver"]) within the robot's limits."""
-    return Solved(*compensate(model, q0_deg, target, cfg, robot, solver))
+def solve(model, q0_deg: np.ndarray, target: np.ndarray, cfg: dict, robot, solver: str | None = None,
+          history: bool = True) -> Solved:
+    """Compensate every (q0, target) with `solver` (default cfg["solver"]) within the robot's limits (the
+    model evaluated solvers.CHUNK points at a time: one batch's numbers, bounded memory)."""
+    return Solved(*compensate(model, q0_deg, target, cfg, robot, solver, history=history))
 
 
 def delta_table(point_id, q0_deg: np.ndarray, target: np.ndarray, solved: Solved, workspace) -> pd.DataFrame:

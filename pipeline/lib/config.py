@@ -6,6 +6,7 @@ that lists the valid keys. The code never falls back to a default of its own.
 """
 import json
 import logging
+import math
 import sys
 from pathlib import Path
 
@@ -17,7 +18,7 @@ PARAMS = Path("params.yaml")
 # The keys of every section (names only; the values live in params.yaml).
 SECTIONS = {
     "robot": ("model", "dh", "joint_limits_deg", "tool_mm"),
-    "ingest": ("joints", "tracker", "sep", "decimal", "angle_unit", "length_unit", "columns",
+    "ingest": ("joints", "tracker", "skip_lines", "sep", "decimal", "angle_unit", "length_unit", "columns",
                "gross_outlier_mm"),
     "ingest.columns": ("point_id", "joints", "position"),
     "campaigns": ("name", "station", "more"),
@@ -44,16 +45,74 @@ SECTIONS = {
     "compensate": ("solver", "lr", "max_iter", "tol_mse", "tol_mm", "jacobian_of", "drive_check",
                    "twin", "drive_seed"),
     "ablation": ("seeds", "max_epochs"),
+    "program": ("move", "movej", "movel"),
+    "program.movej": ("acc", "vel"),
+    "program.movel": ("acc", "vel"),
     "plan": ("cover_k", "per_waypoint", "region", "region_margin_deg", "seed", "rules", "settle_s", "handshake_io",
              "acc", "vel"),
     "plan.rules": ("radius_mm", "height_mm", "elbow_up", "elbow_min_mm", "table_mm", "column_mm", "sin_elbow",
                    "sin_wrist", "tracker_side_deg"),
     "serve": ("host", "port", "unreachable_mm", "onnx", "torch_threads", "compile", "max_iter", "budget_ms", "stall_iter",
-              "stall_ratio", "max_batch", "batch_wait_ms", "max_items", "max_body_bytes", "timeout_s", "echo_chars"),
+              "stall_ratio", "max_batch", "batch_wait_ms", "max_items", "call_budget_ms", "lm_per_call", "max_body_bytes", "timeout_s",
+              "max_connections", "echo_chars"),
 }
 
 
 OPTIONAL = ("holdout",)        # nested sections that may be null (off)
+
+
+# The allowed values of the settings a typo in would otherwise surface deep in NumPy, torch or a server
+# thread: "section.key" -> (check, what it must be). Checked with the keys, by `section`.
+def _int(lo, hi=None):
+    return lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= lo and (hi is None or v <= hi)
+
+
+def _num(lo, hi=None, open_lo=False):
+    return lambda v: (isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+                      and (v > lo if open_lo else v >= lo) and (hi is None or v <= hi))
+
+
+def _fractions(v):
+    return (isinstance(v, list) and len(v) == 3 and all(_num(0, 1, open_lo=True)(x) for x in v)
+            and abs(sum(v) - 1) < 1e-9)
+
+
+def _joints(v):
+    return isinstance(v, list) and len(v) > 0 and all(_int(1, 6)(j) for j in v) and len(set(v)) == len(v)
+
+
+RULES = {
+    "split.seed": (_int(0), "an integer >= 0"),
+    "split.fractions": (_fractions, "three fractions > 0 (train, val, test) that sum to 1"),
+    "split.holdout.joints": (_joints, "a list of distinct joint numbers 1-6"),
+    "split.holdout.quantile": (_num(0, 1, open_lo=True), "a quantile in (0, 1]"),
+    "train.batch_size": (_int(1), "an integer >= 1"),
+    "train.max_epochs": (_int(1), "an integer >= 1"),
+    "train.patience": (_int(1), "an integer >= 1"),
+    "train.seed": (_int(0), "an integer >= 0"),
+    "train.members": (_int(1), "an integer >= 1"),
+    "train.lr": (_num(0, open_lo=True), "a learning rate > 0"),
+    "compensate.max_iter": (_int(1), "an integer >= 1"),
+    "compensate.tol_mm": (_num(0, open_lo=True), "a tolerance > 0 mm"),
+    "program.move": (lambda v: v in ("movej", "movel"), "movej or movel"),
+    "program.movej.acc": (_num(0, open_lo=True), "an acceleration > 0 rad/s²"),
+    "program.movej.vel": (_num(0, open_lo=True), "a speed > 0 rad/s"),
+    "program.movel.acc": (_num(0, open_lo=True), "an acceleration > 0 m/s²"),
+    "program.movel.vel": (_num(0, open_lo=True), "a speed > 0 m/s"),
+    "serve.port": (_int(0, 65535), "a TCP port 0-65535 (0: any free port)"),
+    "serve.torch_threads": (_int(1), "an integer >= 1"),
+    "serve.unreachable_mm": (_num(0, open_lo=True), "a distance > 0 mm"),
+    "serve.max_iter": (_int(1), "an integer >= 1"),
+    "serve.budget_ms": (_num(0, open_lo=True), "a time > 0 ms"),
+    "serve.stall_iter": (_int(1), "an integer >= 1"),
+    "serve.stall_ratio": (_num(0, 1, open_lo=True), "a ratio in (0, 1]"),
+    "serve.max_batch": (_int(1), "an integer >= 1"),
+    "serve.batch_wait_ms": (_num(0), "a time >= 0 ms"),
+    "serve.max_items": (_int(1), "an integer >= 1"),
+    "serve.max_body_bytes": (_int(1), "an integer >= 1"),
+    "serve.timeout_s": (_num(0, open_lo=True), "a time > 0 s"),
+    "serve.echo_chars": (_int(20), "an integer >= 20"),
+}
 
 
 class ParamsError(ValueError):
@@ -74,15 +133,29 @@ def check_keys(cfg, name: str) -> dict:
     return cfg
 
 
+def check_values(cfg: dict, name: str) -> None:
+    """A ParamsError naming the key for a value of the section `name` that breaks its RULES."""
+    for key, (ok, what) in RULES.items():
+        path = key.split(".")
+        if ".".join(path[:-1]) != name:
+            continue
+        if not ok(cfg[path[-1]]):
+            raise ParamsError(f"params.yaml {key}: {what}, got {cfg[path[-1]]!r}")
+
+
 def section(params: dict, name: str) -> dict:
-    """params[name], its keys checked (and those of its nested sections)."""
+    """params[name], its keys checked (and those of its nested sections), and their values (RULES)."""
+    if not isinstance(params, dict):
+        raise ParamsError(f"params.yaml: expected a mapping of sections, got {params!r}")
     if name not in params:
         raise ParamsError(f"params.yaml: missing section {name!r} (keys: {', '.join(SECTIONS[name])})")
     cfg = check_keys(params[name], name)
+    check_values(cfg, name)
     for sub in SECTIONS:                               # nested sections (not validate.campaign / campaigns.campaign: one per entry)
         key = sub.split(".", 1)[1] if sub.startswith(name + ".") else None
         if key in SECTIONS[name] and not (key in OPTIONAL and cfg[key] is None):
             check_keys(cfg[key], sub)
+            check_values(cfg[key], sub)
     return cfg
 
 
@@ -98,9 +171,29 @@ def for_stage(params: dict, names) -> dict:
     return {n: section(params, n) for n in names}
 
 
+class _UniqueKeys(yaml.SafeLoader):
+    """YAML's safe loader, refusing a key given twice in one mapping (YAML would keep the last)."""
+
+    def construct_mapping(self, node, deep=False):
+        seen = set()
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=deep)
+            if key in seen:
+                raise ParamsError(f"params.yaml line {key_node.start_mark.line + 1}: the key {key!r} is given "
+                                  "twice in one section (one would silently win)")
+            seen.add(key)
+        return super().construct_mapping(node, deep)
+
+
+
 def load_params(path: Path | str = PARAMS) -> dict:
+    """params.yaml as a dict of sections (each section's keys and values are checked by `section`)."""
     with open(path) as f:
-        return yaml.safe_load(f)
+        params = yaml.load(f, Loader=_UniqueKeys)
+    if not isinstance(params, dict):
+        raise ParamsError(f"{path}: expected a mapping of sections ({', '.join(s for s in SECTIONS if '.' not in s)}), "
+                          f"got {'an empty file' if params is None else repr(params)[:80]}")
+    return params
 
 
 def _jsonable(o):
@@ -113,10 +206,15 @@ def _jsonable(o):
     raise TypeError(f"not JSON-serialisable: {type(o)}")
 
 
+def json_text(obj) -> str:
+    """obj as the project's JSON files hold it (indented, numpy values as Python's)."""
+    return json.dumps(obj, indent=2, default=_jsonable) + "\n"
+
+
 def write_json(path: Path | str, obj) -> None:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(obj, indent=2, default=_jsonable) + "\n")
+    path.write_text(json_text(obj))
 
 
 TIMING_KEYS = ("seconds", "seconds_per_epoch", "ms_per_point")   # wall-clock: never in a hashed output

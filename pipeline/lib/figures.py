@@ -14,6 +14,7 @@ import torch
 
 from .columns import AXES, JOINTS_DEG, MEAS, PRED, THEORY
 from .config import logger
+from .errormaps import ARCSEC, angle_terms
 from .loss import sq_distance_matrix
 from .paper import PAPER_ABLATION, PAPER_METHOD_OF, PAPER_METHODS
 
@@ -158,7 +159,6 @@ def fig_distance_matrices(ctx):
 LIVE_PANELS = [  # (title, [(tsv name, legend)], y label, log y)
     ("3D MAE per epoch, mm", [("train_mae_3d_mm", "train (train mode, over the epoch)"),
                               ("val_mae_3d_mm", "validation")], "3D MAE (mm)", True),
-    ("Total loss (eq. 18, loss.weighting)", [("loss", "loss")], "weighted loss", None),
     ("Data loss L_data (eq. 10), mm²", [("data_loss", "L_data")], "mean |pred − meas|² (mm²)", True),
     ("Physics loss L_physics (eq. 16)", [("physics_loss", "L_physics")],
      "MSE of normalised D (dimensionless)", True),
@@ -429,7 +429,42 @@ def _equal_3d(ax, P: np.ndarray) -> None:
     ax.set_box_aspect(np.maximum(hi - lo, 1e-9 + 0.02 * (hi - lo).max()))
 
 
-# name -> function; the PNG is <out_dir>/<name>.png, the order is index.md's.
+def fig_error_maps(ctx):
+    """Per-joint error maps (parts stage): each joint's angle error, in arcsec, as a function of its own
+    angle (solid where training measured that joint, dashed where the map fades out and says nothing),
+    the part of the correction that carries to poses the network never saw."""
+    plt = _plt()
+    g = ctx.model.physics.geometry() if ctx.model is not None else {}
+    if "amap_coef" not in g or not g["amap_coef"].abs().sum():
+        return "no per-joint angle maps (parts stage off, or they did not lower the validation error)"
+    coef, cover = g["amap_coef"].double(), g["amap_cover"].double()
+    joints = [j for j in range(6) if coef[j].abs().sum() > 0]
+    a = torch.arange(-180.0, 180.0, 0.25, dtype=torch.float64)
+    q = a[:, None].expand(len(a), 6)                                     # every joint at the same angle
+    out = {}
+    for c in (cover, torch.ones_like(cover)):                            # with its coverage, and without
+        idx, w = angle_terms(q, coef, c)                                 # (B, 6, 4)
+        out[c is cover] = (coef[torch.arange(6)[None, :, None], idx] * w).sum(-1) / ARCSEC   # (B, 6) arcsec
+    ncol = min(3, len(joints))
+    fig, axs = plt.subplots(math.ceil(len(joints) / ncol), ncol, figsize=(5 * ncol, 3.4 * math.ceil(len(joints) / ncol)),
+                            squeeze=False, constrained_layout=True)
+    for ax, j in zip(axs.flat, joints):
+        covered = cover[j, a.floor().long() % 360].numpy() > 0
+        ax.plot(a, np.where(covered, out[True][:, j], np.nan), color="tab:blue", lw=1.2, label="measured range")
+        ax.plot(a, np.where(covered, np.nan, out[False][:, j]), color="tab:blue", lw=0.8, ls="--",
+                label="not measured (faded out)")
+        ax.axhline(0, color="k", lw=0.5)
+        ax.set(title=f"J{j + 1}: angle error, rms {float(out[True][covered, j].pow(2).mean().sqrt()):.1f}″",
+               xlabel=f"joint {j + 1} angle (deg)", ylabel="error (arcsec)", xlim=(-180, 180))
+        ax.grid(alpha=0.3)
+    axs.flat[0].legend(fontsize=8)
+    for ax in list(axs.flat)[len(joints):]:
+        ax.axis("off")
+    fig.suptitle("Per-joint error maps: what the calibration does not hold, as each joint's own angle error")
+    return fig
+
+
+# name -> function; the PNG is <out_dir>/<name>.png, the order is index.md's (what a reader needs first).
 # (fig_ablation is not here: `python -m pipeline.ablation` draws it from its own summary.)
 def fig_validation(ctx):
     """Independent campaigns (validate stage): each judged point's 3D error per method, and the
@@ -440,8 +475,8 @@ def fig_validation(ctx):
         return "no validation campaign (validate.campaigns is empty)"
     v = v[~v.registered]
     names = list(dict.fromkeys(v.campaign))
-    methods = ("nominal", "calibrated", "model")
-    fig, axes = plt.subplots(len(names), 2, figsize=(12, 3.8 * len(names)), squeeze=False,
+    methods = ("nominal", "calibrated", "calibrated_parts", "model")
+    fig, axes = plt.subplots(len(names), 2, figsize=(14, 4.2 * len(names)), squeeze=False,
                              constrained_layout=True)
     for (a1, a2), name in zip(axes, names):
         c = v[v.campaign == name].reset_index(drop=True)
@@ -454,14 +489,14 @@ def fig_validation(ctx):
         a1.plot(c.uncertainty_mm.to_numpy(), color="k", lw=0.8, label="model's uncertainty_mm")
         a1.set(yscale="log", xlabel="judged point (campaign order)", ylabel="3D error (mm)",
                title=f"{name}: error per point ({inside.mean():.0%} in the trained workspace)")
-        a1.legend(fontsize=7, ncol=2)
+        a1.legend(fontsize=7, ncol=1, loc="upper left", bbox_to_anchor=(1.01, 1.0))
         a1.grid(alpha=0.3)
         data, labels = [], []
         for m in methods:
             for w, sel in (("in", inside), ("out", ~inside)):
                 if sel.any():
                     data.append(c.loc[sel, f"error_{m}_mm"].to_numpy())
-                    labels.append(f"{m}\n{w}")
+                    labels.append(f"{m.replace('_', ' + ').replace('parts', 'maps')}\n{w}")
         a2.boxplot(data, whis=(5, 95), showfliers=False)
         a2.set_xticks(range(1, len(labels) + 1), labels, fontsize=8)
         a2.set(ylabel="3D error (mm)", title=f"{name}: distribution (box: quartiles, whiskers 5-95 %)")
@@ -470,17 +505,18 @@ def fig_validation(ctx):
 
 
 FIGURES = {
+    "methods": fig_methods,
+    "error_maps": fig_error_maps,
+    "validation": fig_validation,
     "error_scatter": fig_error_scatter,
     "error_hist": fig_error_hist,
-    "distance_matrices": fig_distance_matrices,
-    "training_curves": fig_training_curves,
-    "attention_maps": fig_attention_maps,
+    "drive_check": fig_drive_check,
     "compensation_convergence": fig_compensation_convergence,
+    "training_curves": fig_training_curves,
     "sample_distribution": fig_sample_distribution,
     "points_error": fig_points_error,
-    "drive_check": fig_drive_check,
-    "methods": fig_methods,
-    "validation": fig_validation,
+    "distance_matrices": fig_distance_matrices,
+    "attention_maps": fig_attention_maps,
 }
 
 

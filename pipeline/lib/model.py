@@ -261,6 +261,12 @@ class PhysicsOnly(nn.Module):
         return p, p
 
 
+def served(model, network: bool):
+    """What the robot cell gets: the whole model, or its physics branch alone when its network did not
+    lower the validation error (evaluate's verdict, Workspace.network)."""
+    return model if network else PhysicsOnly(model)
+
+
 class DNN(nn.Module):
     """The paper's DNN baseline: an MLP from joint angles (rad) to the position error."""
 

@@ -331,8 +331,9 @@ def section_compensation(comp: dict | None, drive) -> str:
                 table(["axis", "before std", "before max", "before min", "after std", "after max",
                        "after min", "paper std", "paper max", "paper min"], drive_rows(dc))]
     else:
-        out += ["_No drive check (reports/drive_check.csv missing or empty: real data, or "
-                "compensate.twin off); the compensation is then only checked against the model._", ""]
+        why = (comp or {}).get("drive_check_skipped") or ("reports/drive_check.csv missing or empty: real data, "
+                                                          "or compensate.drive_check off")
+        out += [f"_No drive check ({why}); the compensation is then only checked against the model._", ""]
     return "\n".join(out)
 
 
@@ -377,9 +378,15 @@ def section_validation(v: dict | None, uncertainty: dict | None) -> str:
                 f"{uncertainty['target_coverage']:.0%} of the poses inside the trained workspace; measured "
                 "on the campaign it trained on:", "",
                 table(["split", "in workspace", "error ≤ uncertainty", "mean uncertainty mm"], rows), ""]
+        short = [r[0] for r in rows if r[2] < uncertainty["target_coverage"] - 0.02]
+        if short:
+            out += [f"**On the {', '.join(short)} split(s) the uncertainty covers fewer poses than the "
+                    f"{uncertainty['target_coverage']:.0%} it targets: there it is optimistic** (it is fitted on the "
+                    "validation split's errors; few poses make its quantile coarse).", ""]
     campaigns = (v or {}).get("campaigns") or {}
+    out += [f"_`{n}` not judged: {why}._\n" for n, why in ((v or {}).get("skipped") or {}).items()]
     if not campaigns:
-        return "\n".join(out + ["_No validation campaign (`validate.campaigns` is empty)._", ""])
+        return "\n".join(out + ["_No validation campaign judged._", ""])
     for name, c in campaigns.items():
         frame = ("the training campaign's frame (tracker not moved)" if c["frame"] == "same" else
                  f"each method's own rigid frame fitted on {c['n_register']} registration points")

@@ -331,9 +331,10 @@ class DCriterion:
 
 # ----------------------------------------------------------------------------- candidates
 
-def program_joints(q0_deg, target, geometry: dict, limits_deg, iterations: int = 30) -> np.ndarray:
+def program_joints(q0_deg, target, geometry: dict, limits_deg, iterations: int = 30) -> tuple:
     """Joints (n, 6) deg near q0 that put the chain `geometry` on the targets (n, 3) mm (damped
-    minimum-norm steps, joint limits kept): where a program given as positions will actually go."""
+    minimum-norm steps, joint limits kept): where a program given as positions will actually go; and
+    how far (n,) mm each stays from its target there (a target it cannot reach stays far)."""
     q = torch.as_tensor(np.radians(np.asarray(q0_deg, float)), dtype=DTYPE)
     t = torch.as_tensor(np.asarray(target, float), dtype=DTYPE)
     lim = torch.as_tensor(np.radians(np.asarray(limits_deg, float)), dtype=DTYPE)
@@ -341,7 +342,8 @@ def program_joints(q0_deg, target, geometry: dict, limits_deg, iterations: int =
         for _ in range(iterations):
             p, J = fk_jacobian(q, geometry)
             q = (q + min_norm_step(J, p - t, 1e-6)).clamp(lim[:, 0], lim[:, 1])
-    return np.degrees(q.numpy())
+        miss = (fk_jacobian(q, geometry)[0] - t).norm(dim=1)
+    return np.degrees(q.numpy()), miss.numpy()
 
 
 def candidates(q_wp, rng: np.random.Generator, geometry: dict, rules: dict, limits_deg, cov: Coverage,

@@ -45,7 +45,10 @@ A per-row problem drops the row and lists it; `reason` is one of
                      points are that far (a wrong length_unit), none is dropped: the scale check
                      judges them all and stops, as it did before this rule
     gross_outlier    for point i, median_j | |m_i-m_j| - |t_i-t_j| | > gross_outlier_mm,
-                     t = nominal FK with tool (frame-free: rigid-motion invariant)
+                     t = nominal FK with tool (frame-free: rigid-motion invariant); j runs over
+                     every other point up to REFERENCE_POINTS = 4096 points, beyond that over
+                     4096 reference points drawn with a fixed seed (the same for the same count;
+                     gross_outlier.reference_points in the summary), so the check stays linear
 A dropped point lists its row in every file it has one in, so for each file
 n_kept + (dropped rows of that file) == n_read.
 
@@ -62,9 +65,12 @@ Fatal problems raise IngestError, whose message names file, row and column:
     tool or units); fewer than 10 points left; measured points (nearly)
     collinear or coincident. Nearly coplanar points only warn (geometry.coplanar).
 """
+import codecs
 import csv
 import io
+import math
 import re
+import time
 from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -95,6 +101,9 @@ POSITION_FAR = 5.0          # x (reach + |tool|): real points lie within (1 + sq
 NUMBER = re.compile(r"[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?")
 COMMA_DECIMAL = re.compile(r"[+-]?\d*,\d+([eE][+-]?\d+)?")
 DOT_DECIMAL = re.compile(r"[+-]?\d*\.\d+([eE][+-]?\d+)?")
+REFERENCE_POINTS = 4096       # the gross-outlier check scores a point against at most this many others
+REFERENCE_SEED = 0            # which, when there are more points (reference_points)
+PROGRESS_POINTS = 50_000      # a log line per this many points scored (more than REFERENCE_POINTS only)
 SEPARATORS = {",": ",", ";": ";", "\t": "\t", "tab": "\t", "\\t": "\t"}
 
 
@@ -137,11 +146,17 @@ class Rows:
 
 
 def read_text(path: str) -> str:
-    """File contents as text (UTF-8, with or without BOM; else Latin-1)."""
+    """File contents as text (UTF-16 with its BOM, as spreadsheet programs export "Unicode text"; UTF-8,
+    with or without BOM; else Latin-1)."""
     try:
         data = Path(path).read_bytes()
     except OSError as e:
         raise IngestError(f"cannot read the file ({e.strerror})", file=path) from None
+    if data[:2] in (codecs.BOM_UTF16_LE, codecs.BOM_UTF16_BE):
+        try:
+            return data.decode("utf-16")
+        except UnicodeDecodeError as e:
+            raise IngestError(f"starts as UTF-16 but byte {e.start} is not ({e.reason})", file=path) from None
     try:
         return data.decode("utf-8-sig")
     except UnicodeDecodeError:
@@ -173,8 +188,11 @@ def split_records(text: str, sep: str, path: str):
         for rec in reader:
             line = reader.line_num
             if line - last > 1:
-                raise IngestError(f"a quoted cell runs over lines {last + 1}..{line} "
-                                  "(unbalanced quote?)", file=path, row=last + 1)
+                closed = rec and not rec[-1].endswith("\n") and line < text.count("\n") + 1
+                raise IngestError((f"a quoted cell holds a line break (the record runs over lines {last + 1}.."
+                                   f"{line}): one record per line" if closed else
+                                   f"a quote opened on this line is never closed (the cell runs to line {line})"),
+                                  file=path, row=last + 1)
             last = line
             if rec and any(c.strip() for c in rec):
                 records.append((line, rec))
@@ -183,9 +201,13 @@ def split_records(text: str, sep: str, path: str):
     return records
 
 
-def read_table(path: str, sep: str, decimal: str):
-    """A delimited text table -> (header, cells per row, line numbers, sep, decimal)."""
+def read_table(path: str, sep: str, decimal: str, skip_lines: int = 0):
+    """A delimited text table, its first `skip_lines` lines (a preamble) left out -> (header, cells per row,
+    line numbers in the file, sep, decimal)."""
     text = read_text(path)
+    if skip_lines:                                   # blanked, not cut: line numbers stay the file's
+        lines = text.split("\n")
+        text = "\n" * min(skip_lines, len(lines)) + "\n".join(lines[skip_lines:])
     header_line = next((ln for ln in text.splitlines() if ln.strip()), None)
     if header_line is None:
         raise IngestError("the file is empty", file=path)
@@ -203,28 +225,30 @@ def read_table(path: str, sep: str, decimal: str):
 def parse_number(cell: str, decimal: str):
     """(value, None) or (nan, (reason, message)) for one cell."""
     s = cell.strip()
+    t = s.replace(",", ".") if decimal == "," else s
+    if NUMBER.fullmatch(t) and not (decimal == "," and "." in s):
+        return float(t), None
     if not s:
         return np.nan, ("empty", "empty cell")
     if s.lower() in NAN_WORDS:
         return np.nan, ("nan", f"{s!r} (missing value)")
     if s.lower() in INF_WORDS:
         return float(s), None
-    t = s.replace(",", ".") if decimal == "," else s
-    if NUMBER.fullmatch(t) and not (decimal == "," and "." in s):
-        return float(t), None
     return np.nan, ("non_numeric", f"{s!r} is not a number")
 
 
 def parse_finite(cell: str, decimal: str):
     """parse_number, and a non-finite value (inf, 1e999) is the `non_finite` problem."""
     v, err = parse_number(cell, decimal)
-    if err is None and not np.isfinite(v):
+    if err is None and not math.isfinite(v):
         return np.nan, ("non_finite", f"{cell.strip()!r} reads as {v} (a mistyped number?)")
     return v, err
 
 
 def headers_found(header: list) -> str:
-    hint = " (a single column: is ingest.sep right?)" if len(header) == 1 else ""
+    preamble = len(header) >= 1 and header[0].lstrip().startswith(("//", "#"))
+    hint = (" (a comment or preamble line above the header? set ingest.skip_lines)" if preamble else
+            " (a single column: is ingest.sep right?)" if len(header) == 1 else "")
     return "headers found: " + ", ".join(repr(h) for h in header) + hint
 
 
@@ -280,25 +304,33 @@ def row_ids(n: int) -> list:
     return [f"R{r + 1:0{width}d}" for r in range(n)]
 
 
+def shape_problems(cells: list, width: int) -> list:
+    """Per row: None, or why its cell count does not fit a header of `width` (the `field_count` rule of
+    every table read here: ingest's files and a program's waypoints). Empty cells after the last column
+    are a trailing separator when most rows have them (an export's style); on a few rows they mean a
+    cell split in two by a stray separator or a decimal comma."""
+    padded = [len(row) > width and not any(c.strip() for c in row[width:]) for row in cells]
+    trailing_ok = 2 * sum(padded) > len(cells)
+    return [f"{len(row)} cells but the header has {width} (a separator or decimal comma inside a cell?)"
+            if len(row) < width or (len(row) > width and not (trailing_ok and pad)) else None
+            for row, pad in zip(cells, padded)]
+
+
 def read_rows(path: str, role: str, cfg: dict, id_setting, groups: list) -> Rows:
     """Read a text table and check every row; groups = [(setting, candidates, what)] of required columns."""
-    header, cells, lines, sep, decimal = read_table(path, cfg["sep"], cfg["decimal"])
+    header, cells, lines, sep, decimal = read_table(path, cfg["sep"], cfg["decimal"], cfg["skip_lines"])
     id_col = pick_id(header, id_setting, role, path)
     cols = [c for setting, cands, what in groups for c in pick_columns(header, setting, cands, what, path)]
     width, n = len(header), len(cells)
     ids = row_ids(n) if id_col is None else [""] * n
     values = np.full((n, len(cols)), np.nan)
     problem = [None] * n
-    # empty cells after the last column are a trailing separator when most rows have them (an
-    # export's style); on a few rows they mean a cell split in two by a stray separator
-    padded = [len(row) > width and not any(c.strip() for c in row[width:]) for row in cells]
-    trailing_ok = 2 * sum(padded) > n
+    shape = shape_problems(cells, width)
     for r, row in enumerate(cells):
         if id_col is not None:
             ids[r] = row[id_col].strip() if id_col < len(row) else ""
-        if len(row) < width or (len(row) > width and not (trailing_ok and padded[r])):
-            problem[r] = ("field_count", f"{len(row)} cells but the header has {width} "
-                          "(a separator or decimal comma inside a cell?)", None)
+        if shape[r]:
+            problem[r] = ("field_count", shape[r], None)
             continue
         if id_col is not None:
             if not ids[r]:
@@ -460,11 +492,11 @@ def drop_joint_limits(pts: Points, robot, headers: list, dropped: list) -> Point
                           f"{robot.name} limits (e.g. {pts.q[k, j]:.6g} deg): degrees read as "
                           "radians? check ingest.angle_unit", file=rows.path,
                           row=rows.lines[idx[k]], column=headers[j])
-    details = []
-    for k in range(len(pts)):
-        j = np.flatnonzero(out[k])
-        details.append("; ".join(f"column '{headers[i]}' = {pts.q[k, i]:.6g} deg outside "
-                                 f"[{robot.limits_deg[i, 0]:g}, {robot.limits_deg[i, 1]:g}]" for i in j))
+    details = [""] * len(pts)
+    for k in np.flatnonzero(bad):
+        details[k] = "; ".join(f"column '{headers[i]}' = {pts.q[k, i]:.6g} deg outside "
+                               f"[{robot.limits_deg[i, 0]:g}, {robot.limits_deg[i, 1]:g}]"
+                               for i in np.flatnonzero(out[k]))
     return pts.drop(bad, "joint_limit", details, dropped)
 
 
@@ -529,35 +561,78 @@ def check_angle_scale(pts: Points, units: list, headers: list, path: str) -> Non
                           "+-6.29: these look like radians; set ingest.angle_unit: rad", file=path)
 
 
-def consistency_scores(m: np.ndarray, t: np.ndarray, chunk: int = 256) -> np.ndarray:
-    """Per point: median over the others of | |m_i - m_j| - |t_i - t_j| | (mm)."""
+def reference_points(n: int) -> np.ndarray:
+    """The gross-outlier check's reference points (indices, ascending): every point when n <=
+    REFERENCE_POINTS, else REFERENCE_POINTS of them drawn without replacement (seed REFERENCE_SEED)."""
+    if n <= REFERENCE_POINTS:
+        return np.arange(n)
+    return np.sort(np.random.default_rng(REFERENCE_SEED).choice(n, REFERENCE_POINTS, replace=False))
+
+
+def distances(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(c, 3), (r, 3) -> (c, r) Euclidean distances, summed x, y, z in that order (as np.linalg.norm)."""
+    d = np.square(a[:, None, 0] - b[None, :, 0])
+    d += np.square(a[:, None, 1] - b[None, :, 1])
+    d += np.square(a[:, None, 2] - b[None, :, 2])
+    return np.sqrt(d, out=d)
+
+
+def consistency_scores(m: np.ndarray, t: np.ndarray, chunk: int = 128) -> np.ndarray:
+    """Per point i: median over the reference points j != i (`reference_points`: all of them up to
+    REFERENCE_POINTS) of | |m_i - m_j| - |t_i - t_j| | (mm); m, t (n, 3). Chunks of `chunk` points,
+    one log line per PROGRESS_POINTS points scored when the references are a subset."""
     n = len(m)
+    ref = reference_points(n)
+    col = np.full(n, -1)
+    col[ref] = np.arange(len(ref))                          # (n,) each point's column among the references
+    mr, tr = m[ref], t[ref]                                 # (r, 3)
     out = np.empty(n)
+    t0, shown = time.perf_counter(), 0
     for a in range(0, n, chunk):
         b = min(a + chunk, n)
-        dm = np.linalg.norm(m[a:b, None] - m[None], axis=-1)
-        dt = np.linalg.norm(t[a:b, None] - t[None], axis=-1)
-        e = np.abs(dm - dt)
-        e[np.arange(b - a), np.arange(a, b)] = np.nan          # not against itself
-        out[a:b] = np.nanmedian(e, axis=1)
+        e = distances(m[a:b], mr)
+        e -= distances(t[a:b], tr)
+        np.abs(e, out=e)                                    # (c, r)
+        own = np.flatnonzero(col[a:b] >= 0)
+        e[own, col[a:b][own]] = np.inf                      # not against itself: sorted last, left out
+        for rows, k in ((own, len(ref) - 1), (np.flatnonzero(col[a:b] < 0), len(ref))):
+            if len(rows):                                   # the median of the k smallest of each row
+                lo, hi = (k - 1) // 2, k // 2
+                part = e if len(rows) == b - a else e[rows]
+                part.partition(hi, axis=1)                  # one selection, then the max below it
+                lower = part[:, hi] if lo == hi else part[:, :hi].max(axis=1)
+                out[a + rows] = (lower + part[:, hi]) / 2
+        if n > REFERENCE_POINTS and (b - shown >= PROGRESS_POINTS or b == n):
+            shown = b
+            log.info("gross-outlier check: %d of %d points scored against %d reference points (%.0f s)",
+                     b, n, len(ref), time.perf_counter() - t0)
     return out
+
+
+def nominal_positions(q_deg: np.ndarray, robot, chunk: int = 32768) -> np.ndarray:
+    """Nominal FK with tool, (n, 6) deg -> (n, 3) mm, `chunk` poses at a time (FK's intermediates are
+    large)."""
+    return np.concatenate([fk_numpy(q_deg[a:a + chunk], robot) for a in range(0, len(q_deg), chunk)] or
+                          [np.empty((0, 3))])
 
 
 def drop_gross_outliers(pts: Points, robot, limit, dropped: list, path: str):
     """Drop points whose distances to the others disagree with nominal FK by more than `limit` mm."""
     if limit is None:
         return pts, None
-    s = consistency_scores(pts.m, fk_numpy(pts.q, robot))
+    s = consistency_scores(pts.m, nominal_positions(pts.q, robot))
     bad = s > float(limit)
     info = {"limit_mm": float(limit), "median_mm": float(np.median(s)), "max_mm": float(s.max()),
             "n_dropped": int(bad.sum())}
+    if len(pts) > REFERENCE_POINTS:                         # scored against a subset (reference_points)
+        info["reference_points"] = REFERENCE_POINTS
     if 2 * bad.sum() > len(pts):
         raise IngestError(f"{int(bad.sum())} of {len(pts)} points fail the distance check against nominal "
                           f"{robot.name} kinematics (median disagreement {np.median(s):.1f} mm > "
                           f"gross_outlier_mm {limit:g}): robot model, tool_mm, angle or length units "
                           "probably don't match the measurements", file=path)
     details = [f"distances to the other points disagree with nominal FK by {v:.2f} mm (median), "
-               f"limit {float(limit):g} mm" for v in s]
+               f"limit {float(limit):g} mm" if b else "" for v, b in zip(s, bad)]
     return pts.drop(bad, "gross_outlier", details, dropped), info
 
 
@@ -630,6 +705,9 @@ def settings(ingest_cfg: dict) -> dict:
             raise IngestError(f"ingest.sep must be auto, ',', ';' or tab, got {cfg['sep']!r}",
                               file="params.yaml")
         cfg["sep"] = SEPARATORS[cfg["sep"]]
+    if isinstance(cfg["skip_lines"], bool) or not isinstance(cfg["skip_lines"], int) or cfg["skip_lines"] < 0:
+        raise IngestError(f"ingest.skip_lines must be a whole number of lines >= 0, got {cfg['skip_lines']!r}",
+                          file="params.yaml")
     allowed = {"decimal": ("auto", ".", ","), "angle_unit": ("deg", "rad"), "length_unit": ("mm", "m")}
     for key, ok in allowed.items():
         if cfg[key] not in ok:
@@ -699,7 +777,11 @@ def ingest(ingest_cfg: dict, robot):
     -> (table, summary). Writes nothing."""
     cfg = settings(ingest_cfg)
     dropped = []
+    t0 = time.perf_counter()
     pts, files, path = read_inputs(cfg, dropped)
+    if len(pts) > REFERENCE_POINTS:                         # a large campaign: say where it is
+        log.info("read %s: %d points paired (%.0f s); checking them", ", ".join(f"{len(f.lines)} rows of {f.path}"
+                                                                        for f in files), len(pts), time.perf_counter() - t0)
     joints, positions = files[0], files[-1]
     jh, ph = joints.headers[:6], positions.headers[-3:]
     units = convert_units(pts, joints, cfg)

@@ -8,15 +8,20 @@ worker, in a loop:
      many as its last round took: a lone client never waits) and runs the controller path
      (two model evaluations) on all of them at once: on onnxruntime when given the exported graph
      (onnx_model.OnnxRealtime, the fast path), else in PyTorch (realtime.Realtime); each converged one
-     is answered at once;
-  2. the others join the lm set, solved by `lm` from their start (solvers.lm_step, the residual
+     is answered at once: converged only on a measured residual (an answer the controller path did
+     not verify, whose residual is a prediction, goes on to lm);
+  2. the others join the lm set, at most `lm_per_call` of one call's at a time (the rest of a
+     compensate_many's wait for its slots, so one call's many unreachable items cannot crowd out the
+     others' requests), solved by `lm` from their start (solvers.lm_step, the residual
      then measured on the model; on the exported graph when the controller path runs there and lm
      steps with the DH branch's Jacobian, OnnxRealtime.lm_step, an iteration 2.5x cheaper than in
      PyTorch at batch 1): one iteration for the whole set per loop, so requests arriving
      meanwhile wait for one iteration, never for another request's solve. A request leaves the set
      converged (within tol_mm), stalled (its residual above `unreachable_mm` and not cut by
      `stall_ratio` in `stall_iter` iterations: the target cannot be reached), or at its budget
-     (`max_iter` iterations or `budget_ms` from when the worker took it).
+     (`max_iter` iterations or `budget_ms` from when it joined the lm set), or when its call's budget
+     is spent (`call_budget_ms` from the call's start: compensate_many queues no more items then, and
+     answers those not solved with an error in their place).
 Left above `unreachable_mm`, a request is a RequestError "unreachable"; within it, an answer with
 converged False.
 """
@@ -33,6 +38,9 @@ import torch
 from .kinematics import DTYPE
 from .realtime import Realtime, answers
 from .solvers import LAM0, lm_jacobian, lm_step, predict
+
+
+METRES_MM = 5.0              # an unreachable target nearer the base origin than this was likely sent in metres
 
 
 class RequestError(ValueError):
@@ -73,8 +81,11 @@ class Job:
     q: np.ndarray                  # (6,) rad, the start
     target: np.ndarray             # (3,) mm
     where: str                     # the field prefix of its messages ("" or "requests[3].")
+    call: object = None            # its call (compensate_many's items share one); None: a call of its own
+    call_deadline: float = math.inf   # time.monotonic() at which its call's budget ends
     future: Future = field(default_factory=Future)
-    deadline: float = 0.0          # time.monotonic() at which its budget ends (set when taken)
+    deadline: float = 0.0          # time.monotonic() at which its budget ends (set when it joins lm)
+    err0: float = math.inf         # |r| at its start, mm (the controller path's)
     iters: int = 0
     history: list = field(default_factory=list)   # |r| (mm) after each lm iteration, the start first
 
@@ -110,7 +121,8 @@ class Service:
 
     def __init__(self, model, workspace, limits_deg, reach_mm: float, *, tol_mm: float, jacobian_of: str,
                  unreachable_mm: float, max_iter: int, budget_ms: float, stall_iter: int, stall_ratio: float,
-                 max_batch: int, batch_wait_ms: float, max_items: int, compile: bool, controller=None):
+                 max_batch: int, batch_wait_ms: float, max_items: int, call_budget_ms: float, lm_per_call: int,
+                 compile: bool, controller=None):
         self.model, self.workspace, self.reach = model, workspace, float(reach_mm)
         self.limits_deg = np.asarray(limits_deg, float)
         self.limits = torch.as_tensor(np.radians(self.limits_deg), dtype=DTYPE)
@@ -118,7 +130,7 @@ class Service:
         self.max_iter, self.budget = int(max_iter), float(budget_ms) / 1000
         self.stall_iter, self.stall_ratio = int(stall_iter), float(stall_ratio)
         self.max_batch, self.batch_wait = int(max_batch), float(batch_wait_ms) / 1000
-        self.max_items = int(max_items)
+        self.max_items, self.call_budget_ms, self.lm_per_call = int(max_items), float(call_budget_ms), int(lm_per_call)
         self.realtime = controller if controller is not None else Realtime(
             model, np.radians(self.limits_deg), self.tol, workspace=workspace, compile=compile)
         self.graph = controller if controller is not None and jacobian_of == "physics" else None
@@ -126,6 +138,8 @@ class Service:
         self.queue: queue.Queue[Job] = queue.Queue()
         self.active: list[Job] = []                       # the lm set, and its state (A rows)
         self.state: LMSet | None = None
+        self.waiting: list[Job] = []                      # unconverged, waiting for a slot of their call's
+        self.in_lm: dict[int, int] = {}                   # id(call): its jobs in the lm set
         self.last_round = 0                               # requests in the worker's last round
         self.closed = threading.Event()
         self.worker = threading.Thread(target=self._run, name="compensation worker", daemon=True)
@@ -135,7 +149,7 @@ class Service:
         """Stop the worker; requests still waiting get a RequestError."""
         self.closed.set()
         self.worker.join()
-        for job in self.active + [self.queue.get_nowait() for _ in range(self.queue.qsize())]:
+        for job in self.active + self.waiting + [self.queue.get_nowait() for _ in range(self.queue.qsize())]:
             job.future.set_exception(RequestError(f"{job.where}target_mm: the service stopped"))
 
     # the service's methods
@@ -156,9 +170,10 @@ class Service:
                                f"reach of {self.reach:.1f} mm)")
         return q, target
 
-    def submit(self, q: np.ndarray, target: np.ndarray, where: str = "") -> Future:
+    def submit(self, q: np.ndarray, target: np.ndarray, where: str = "", call=None,
+               call_deadline: float = math.inf) -> Future:
         """Queue a checked request for the worker; its future holds the answer or a RequestError."""
-        job = Job(q, target, where)
+        job = Job(q, target, where, call, call_deadline)
         if self.closed.is_set():
             raise RequestError(f"{where}target_mm: the service stopped")
         self.queue.put(job)
@@ -175,21 +190,25 @@ class Service:
 
     def compensate_many(self, requests) -> list:
         """Each [q_rad, target_mm] answered in its place: compensate's struct, or {"error": message} for a
-        bad or unreachable item. At most `max_items`; queued `max_batch` at a time, so other clients'
-        requests are taken between them."""
+        bad, unreachable or unsolved item. At most `max_items`; queued `max_batch` at a time, so other
+        clients' requests are taken between them; within `call_budget_ms` from now: the items not solved by
+        then are an error naming it."""
         if not isinstance(requests, (list, tuple)):
             raise RequestError(f"requests: expected a list of [q_rad, target_mm], got {describe(requests)}")
         if len(requests) > self.max_items:
             raise RequestError(f"requests: {len(requests)} items, more than the limit of {self.max_items} "
                                f"(serve.max_items): split the batch")
-        out = []
+        out, call = [], object()
+        deadline = time.monotonic() + self.call_budget_ms / 1000
         for start in range(0, len(requests), self.max_batch):
-            chunk = []
+            chunk, spent = [], time.monotonic() >= deadline
             for i, item in enumerate(requests[start:start + self.max_batch], start):
                 try:
                     if not isinstance(item, (list, tuple)) or len(item) != 2:
                         raise RequestError(f"requests[{i}]: expected [q_rad, target_mm], got {describe(item)}")
-                    chunk.append(self.submit(*self.check(*item, where=f"requests[{i}]."), f"requests[{i}]."))
+                    q, target = self.check(*item, where=f"requests[{i}].")
+                    chunk.append(self._unsolved(f"requests[{i}].") if spent else
+                                 self.submit(q, target, f"requests[{i}].", call, deadline))
                 except RequestError as e:
                     chunk.append(str(e))
             for f in chunk:
@@ -198,6 +217,10 @@ class Service:
                 except RequestError as e:
                     out.append({"error": str(e)})
         return out
+
+    def _unsolved(self, where: str, residual: str = "") -> str:
+        return (f"{where}target_mm: not solved{residual}: the call's budget of {self.call_budget_ms:g} ms "
+                f"(serve.call_budget_ms) was spent")
 
     # the worker
     def _run(self) -> None:
@@ -209,10 +232,10 @@ class Service:
                 if self.active:
                     self._lm_iteration()
             except Exception as e:                        # a bug: fail these requests, keep serving
-                for job in jobs + self.active:
+                for job in jobs + self.active + self.waiting:
                     if not job.future.done():
                         job.future.set_exception(e)
-                self.active, self.state = [], None
+                self.active, self.state, self.waiting, self.in_lm = [], None, [], {}
 
     def _take(self, wait: bool) -> list[Job]:
         """What is queued, up to max_batch; wait (the worker is idle): block for the first, then wait up to
@@ -235,33 +258,58 @@ class Service:
         return jobs
 
     def _chord(self, jobs: list[Job]) -> None:
-        """The controller path for every job at once; the unconverged join the lm set from their start."""
+        """The controller path for every job at once; the converged (on a measured residual) answered, the
+        others on to lm from their start (`_admit`). Jobs whose call's budget is spent: answered so."""
         start = time.monotonic()
-        for job in jobs:
-            job.deadline = start + self.budget
+        for job in [j for j in jobs if start >= j.call_deadline]:
+            job.future.set_exception(RequestError(self._unsolved(job.where)))
+        jobs = [j for j in jobs if start < j.call_deadline]
+        if not jobs:
+            return
         q0, target = np.array([j.q for j in jobs]), np.array([j.target for j in jobs])
         if self.graph is not None:
             out = self.graph.solve(q0, target)             # q1, q2, |r0|, |r1|
-            results, err0 = answers(*out, self.tol, self.workspace), out[2]
+            results = answers(*out, self.tol, self.workspace)
+            for job, e in zip(jobs, out[2].tolist()):
+                job.err0 = e
         else:
-            results, err0 = self.realtime.batch(q0, target), None
-        rest = [i for i, r in enumerate(results) if not r.converged]
+            results = self.realtime.batch(q0, target)
         for job, r in zip(jobs, results):
-            if r.converged:
+            if r.converged and r.verified:                 # unverified: a predicted residual, lm measures it
                 job.future.set_result(self._answer(r.q, r.residual_mm, True, r.in_workspace))
-        if not rest:
+            else:
+                self.waiting.append(job)
+        self._admit()
+
+    def _admit(self) -> None:
+        """Move waiting jobs into the lm set, in order, as their calls have slots (lm_per_call); those whose
+        call's budget is spent are answered so."""
+        now, admit, wait = time.monotonic(), [], []
+        for job in self.waiting:
+            n = self.in_lm.get(id(job.call), 0)
+            if now >= job.call_deadline:
+                job.future.set_exception(RequestError(self._unsolved(job.where)))
+            elif job.call is None or n < self.lm_per_call:
+                if job.call is not None:
+                    self.in_lm[id(job.call)] = n + 1
+                job.deadline = now + self.budget
+                admit.append(job)
+            else:
+                wait.append(job)
+        self.waiting = wait
+        if not admit:
             return
-        q0, target = q0[rest], target[rest]                # (A, 6), (A, 3): lm starts where they started
+        q0, target = np.array([j.q for j in admit]), np.array([j.target for j in admit])   # lm from their start
         if self.graph is not None:
-            new = LMSet(q0, None, err0[rest], np.full(len(rest), LAM0), target)
+            new = LMSet(q0, None, np.array([j.err0 for j in admit]), np.full(len(admit), LAM0), target)
         else:
             q, t = torch.tensor(q0, dtype=DTYPE), torch.tensor(target, dtype=DTYPE)
             with torch.no_grad():
                 r = predict(self.model, q) - t
-            new = LMSet(q, r, r.norm(dim=1), torch.full((len(rest),), LAM0, dtype=DTYPE), t)
-        for i, e in zip(rest, new.err.tolist()):
-            jobs[i].history.append(e)
-        self.active += [jobs[i] for i in rest]
+            new = LMSet(q, r, r.norm(dim=1), torch.full((len(admit),), LAM0, dtype=DTYPE), t)
+        for job, e in zip(admit, new.err.tolist()):
+            job.history.append(e)
+        self.active += admit
         self.state = new if self.state is None else self.state.join(new)
         self._finish()
 
@@ -277,16 +325,25 @@ class Service:
         self._finish()
 
     def _finish(self) -> None:
-        """Answer the jobs of the lm set that converged, stalled or spent their budget; keep the rest."""
+        """Answer the jobs of the lm set that converged, stalled or spent their budget or their call's; keep
+        the rest, and let waiting jobs into the slots freed."""
         q = self.state.q
         now, keep = time.monotonic(), []
         for i, job in enumerate(self.active):
             e, h = job.history[-1], job.history
             stalled = (e > self.unreachable and len(h) > self.stall_iter
                        and e > self.stall_ratio * h[-1 - self.stall_iter])
-            spent = job.iters >= self.max_iter or now >= job.deadline
+            spent = job.iters >= self.max_iter or now >= job.deadline or now >= job.call_deadline
             if not (e < self.tol or stalled or spent):
                 keep.append(i)
+                continue
+            if job.call is not None:
+                self.in_lm[id(job.call)] -= 1
+                if not self.in_lm[id(job.call)]:
+                    del self.in_lm[id(job.call)]
+            if e >= self.tol and e > self.unreachable and not stalled and now >= job.call_deadline:
+                job.future.set_exception(RequestError(self._unsolved(
+                    job.where, f" (residual {e:.1f} mm after {job.iters} iterations)")))
                 continue
             if e < self.tol or e <= self.unreachable:
                 q_rad = (q[i].numpy() if isinstance(q, torch.Tensor) else q[i]).astype(float)   # a copy
@@ -295,12 +352,16 @@ class Service:
                 continue
             why = (f"no progress in {self.stall_iter} iterations" if stalled else
                    f"the budget: {job.iters} iterations, {1000 * (now - job.deadline + self.budget):.0f} ms")
+            units = (" target_mm is in millimetres: a target this close to the base looks like metres."
+                     if np.linalg.norm(job.target) < METRES_MM else "")
             job.future.set_exception(RequestError(
                 f"{job.where}target_mm: unreachable (residual {e:.1f} mm after compensation, tolerance "
-                f"{self.tol:g} mm; {why})"))
+                f"{self.tol:g} mm; {why}).{units}"))
         if len(keep) < len(self.active):
             self.active = [self.active[i] for i in keep]
             self.state = self.state.rows(keep) if keep else None
+            if self.waiting:
+                self._admit()
 
     @staticmethod
     def _answer(q_rad, residual: float, converged: bool, in_workspace: bool) -> dict:

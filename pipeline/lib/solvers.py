@@ -19,7 +19,10 @@ import time
 import numpy as np
 import torch
 
+from .config import logger
 from .kinematics import DTYPE, cross, fk_jacobian
+
+log = logger(__name__)
 
 
 def min_norm_step(J, r, lam):
@@ -64,31 +67,56 @@ def jacobian(f, q):
     return torch.stack(rows, 1)
 
 
-def solve_adam(model, q0, target, cfg: dict, limits=None):
-    """The paper's procedure (sec. 2.3): cfg lr, max_iter, tol_mse (the `compensate:` section).
-    Returns q, prediction, iterations, converged, history. (Joint limits are not enforced.)"""
+def slices(n: int, chunk: int) -> list:
+    """0..n in ceil(n / chunk) near-equal consecutive slices (one when n <= chunk). Never a slice of a few
+    rows beside big ones: the model's float32 layers give a batch of 1-3 rows other last bits, so a row's
+    numbers would depend on where the cut fell."""
+    k = max(1, -(-n // chunk))
+    cuts = [n * i // k for i in range(k + 1)]
+    return [slice(cuts[i], cuts[i + 1]) for i in range(k)]
+
+
+def progress(solver: str, it: int, left: int, n: int, t0: float) -> None:
+    log.info("%s: iteration %d, %d of %d points still solving (%.0f s)", solver, it, left, n, time.perf_counter() - t0)
+
+
+def solve_adam(model, q0, target, cfg: dict, limits=None, chunk: int | None = None, history: bool = True):
+    """The paper's procedure (sec. 2.3): cfg lr, max_iter, tol_mse (the `compensate:` section), the model
+    evaluated `chunk` points at a time (`slices`; None: all at once). Returns q, prediction, iterations,
+    converged, history (None when not asked for). (Joint limits are not enforced.)"""
     lr, max_iter, tol_mse = cfg["lr"], cfg["max_iter"], cfg["tol_mse"]
+    n = len(q0)
+    parts = slices(n, chunk or max(n, 1))
     q = q0.clone().requires_grad_(True)
     opt = torch.optim.Adam([q], lr=lr)
-    q_final, iters = q0.clone(), torch.full((len(q0),), max_iter)
-    done = torch.zeros(len(q0), dtype=torch.bool)
-    history = []
+    q_final, iters = q0.clone(), torch.full((n,), max_iter)
+    done = torch.zeros(n, dtype=torch.bool)
+    hist, t0 = [], time.perf_counter()
     for it in range(max_iter + 1):
-        r = predict(model, q) - target
-        mse = (r ** 2).mean(1)                              # (B,) per-point MSE, mm²
-        history.append(r.detach().norm(dim=1))
-        new = (mse < tol_mse).detach() & ~done
+        opt.zero_grad()
+        rs, ms = [], []
+        for s in parts:                                     # each part's graph freed after its backward
+            r = predict(model, q[s]) - target[s]
+            mse = (r ** 2).mean(1)                          # (B,) per-point MSE, mm²
+            if it < max_iter:
+                mse.sum().backward()                        # rows apart: each its own gradient
+            rs.append(r.detach())
+            ms.append(mse.detach())
+        r, mse = (torch.cat(x) if len(x) > 1 else x[0] for x in (rs, ms))
+        if history:
+            hist.append(r.norm(dim=1))
+        new = (mse < tol_mse) & ~done
         q_final[new], iters[new] = q.detach()[new], it
         done |= new
         if done.all() or it == max_iter:
             break
-        opt.zero_grad()
-        mse.sum().backward()
         opt.step()
+        if len(parts) > 1 and it % 50 == 0:
+            progress("adam", it, int((~done).sum()), n, t0)
     q_final[~done] = q.detach()[~done]
     with torch.no_grad():
-        pred = predict(model, q_final)
-    return q_final, pred, iters, done, torch.stack(history)
+        pred = torch.cat([predict(model, q_final[s]) for s in parts])
+    return q_final, pred, iters, done, torch.stack(hist) if history else None
 
 
 LAM0 = 1e-3                                                 # lm's starting damping
@@ -127,41 +155,54 @@ def lm_keep(ok, q_try, err_try, q, err, lam):
     return where(ok[:, None], q_try, q), where(ok, err_try, err), where(ok, lam / 3, lam * 10)
 
 
-def solve_lm(model, q0, target, cfg: dict, limits=None, lam0=LAM0):
+def solve_lm(model, q0, target, cfg: dict, limits=None, lam0=LAM0, chunk: int | None = None,
+             history: bool = True):
     """Batched Levenberg-Marquardt on the frozen model (`lm_step` until every point is within tol_mm):
-    cfg max_iter, tol_mm, jacobian_of (`lm_jacobian`). Returns q, prediction, iterations, converged,
-    history."""
+    cfg max_iter, tol_mm, jacobian_of (`lm_jacobian`); each step on the points still solving, `chunk` at a
+    time (`slices`; None: all at once). Returns q, prediction, iterations, converged, history (None when
+    not asked for)."""
     max_iter, tol_mm = cfg["max_iter"], cfg["tol_mm"]
     jac = lm_jacobian(model, cfg["jacobian_of"])
+    n = len(q0)
+    chunk = chunk or max(n, 1)
     q = q0.clone()
-    lam = torch.full((len(q0),), lam0, dtype=DTYPE)
-    iters = torch.full((len(q0),), max_iter)
-    done = torch.zeros(len(q0), dtype=torch.bool)
+    lam = torch.full((n,), lam0, dtype=DTYPE)
+    iters = torch.full((n,), max_iter)
+    done = torch.zeros(n, dtype=torch.bool)
     with torch.no_grad():
-        r = predict(model, q) - target                      # (B, 3) residual, mm
+        r = torch.cat([predict(model, q[s]) for s in slices(n, chunk)]) - target    # (B, 3) residual, mm
     err = r.norm(dim=1)
-    history = [err.clone()]
+    hist, t0 = [err.clone()] if history else None, time.perf_counter()
     for it in range(max_iter):
         new = (err < tol_mm) & ~done
         iters[new] = it
         done |= new
         if done.all():
             break
-        a = (~done).nonzero().squeeze(1)                    # active points
-        q[a], r[a], err[a], lam[a] = lm_step(model, jac, q[a], r[a], err[a], lam[a], target[a], limits)
-        history.append(err.clone())
+        active = (~done).nonzero().squeeze(1)               # active points
+        if n > chunk:
+            progress("lm", it, len(active), n, t0)
+        for s in slices(len(active), chunk):
+            a = active[s]
+            q[a], r[a], err[a], lam[a] = lm_step(model, jac, q[a], r[a], err[a], lam[a], target[a], limits)
+        if history:
+            hist.append(err.clone())
     else:
         new = (err < tol_mm) & ~done
         iters[new] = max_iter
         done |= new
-    return q, r + target, iters, done, torch.stack(history)
+    return q, r + target, iters, done, torch.stack(hist) if history else None
 
 
 SOLVERS = {"adam": solve_adam, "lm": solve_lm}
+CHUNK = 4096                        # points the model evaluates at once (compensate): bounds the memory
 
 
-def compensate(model, q0_deg: np.ndarray, target: np.ndarray, cfg: dict, robot=None, solver=None):
-    """Solve for every point; returns (q_deg (n, 6), pred (n, 3), iterations, converged, history, seconds)."""
+def compensate(model, q0_deg: np.ndarray, target: np.ndarray, cfg: dict, robot=None, solver=None,
+               chunk: int = CHUNK, history: bool = True):
+    """Solve for every point, the model evaluated `chunk` points at a time (memory; a log line per
+    iteration when there are more points); returns (q_deg (n, 6), pred (n, 3), iterations, converged,
+    history (iterations + 1, n) or None when not asked for, seconds)."""
     solver = solver or cfg["solver"]
     if solver not in SOLVERS:
         raise ValueError(f"params.yaml compensate.solver: unknown {solver!r}; use one of {sorted(SOLVERS)}")
@@ -172,6 +213,7 @@ def compensate(model, q0_deg: np.ndarray, target: np.ndarray, cfg: dict, robot=N
     q0 = torch.as_tensor(np.radians(q0_deg), dtype=DTYPE)
     tgt = torch.as_tensor(target, dtype=DTYPE)
     t0 = time.perf_counter()
-    q, pred, iters, ok, hist = SOLVERS[solver](model, q0, tgt, cfg, limits)
+    q, pred, iters, ok, hist = SOLVERS[solver](model, q0, tgt, cfg, limits, chunk=chunk, history=history)
     seconds = time.perf_counter() - t0
-    return np.degrees(q.numpy()), pred.numpy(), iters.numpy(), ok.numpy(), hist.numpy(), seconds
+    return (np.degrees(q.numpy()), pred.numpy(), iters.numpy(), ok.numpy(), None if hist is None else hist.numpy(),
+            seconds)

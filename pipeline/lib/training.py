@@ -240,7 +240,9 @@ def fit(model, loss_fn, train, val, cfg: dict, live=None, desc="train", progress
         opt, factor=cfg["lr_drop"], patience=cfg["lr_patience"], threshold=0.0))
     steps = EpochGraph(model, loss_fn, opt, ema, q, p, cfg["batch_size"], cfg["grad_clip"]) if graphed else None
     best, best_epoch, best_state, t0 = np.inf, -1, None, time.perf_counter()
-    bar = tqdm(range(cfg["max_epochs"]), desc=desc, disable=not progress, mininterval=1.0)
+    # early stopping ends most runs long before max_epochs: no time left to guess, the patience shown instead
+    bar = tqdm(range(cfg["max_epochs"]), desc=desc, disable=not progress, mininterval=1.0, unit="epoch",
+               bar_format="{desc}: epoch {n_fmt} (at most {total_fmt}), {elapsed}, {rate_fmt}{postfix}")
     for epoch in bar:
         model.train()
         perm = torch.randperm(len(q), generator=gen)
@@ -251,7 +253,9 @@ def fit(model, loss_fn, train, val, cfg: dict, live=None, desc="train", progress
             best, best_epoch, best_state = val_mae, epoch, copy.deepcopy(judged.state_dict())
         if sched is not None:
             sched.step(val_mae)
-        bar.set_postfix(val_mae=f"{val_mae:.4f}", best=f"{best:.4f}@{best_epoch}", refresh=False)
+        bar.set_postfix(val_mae=f"{val_mae:.4f}", best=f"{best:.4f}@{best_epoch}",
+                        stops_in=f"{cfg['patience'] - (epoch - best_epoch)} epochs without a better val",
+                        refresh=False)
         if live is not None:
             row = {"loss": float(np.mean([l[0] for l in losses])),
                    "data_loss": float(np.mean([l[1]["data"] for l in losses])),

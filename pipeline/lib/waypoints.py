@@ -2,55 +2,58 @@
 for the program compensator (`python -m pipeline.program`), the measurement planner (`python -m
 pipeline.plan`) and the benchmarks.
 
-    read_waypoints(path, robot)      point_id, j1_deg..j6_deg and, if given, target_x..z; bad input is an
-                                     IngestError naming file, row (the header is row 1) and column
+    read_waypoints(path, robot)      point_id, j1_deg..j6_deg (or j1_rad.., actual_q_0..: radians) and, if
+                                     given, target_x..z; bad input is an
+                                     IngestError naming file, row (the header is row 1) and column: a
+                                     row whose cell count does not fit the header (ingest's field_count
+                                     rule, readers.shape_problems), a bad number, a duplicate id
     compensate_program(df, ...)      the Δθ table of the waypoints (compensation.delta_table)
     unreached(table, robot)          the waypoints that must not become moves, and why
     ID_PATTERN                       what a point id may be: it reaches a URScript comment
 """
 import re
-import sys
 
 import numpy as np
 import pandas as pd
 
+from .cli import Refused
 from .columns import JCOMP_DEG, JOINTS_DEG, TARGET
 from .compensation import delta_table, reach_mm, solve
 from .config import logger
 from .kinematics import fk_numpy
-from .readers import IngestError, find_column, looks_like_radians, parse_number, read_table
+from .readers import (AUTO_JOINTS, IngestError, find_column, headers_found, looks_like_radians, parse_number,
+                      read_table, shape_problems, unit_of)
 
 log = logger(__name__)
 ID_PATTERN = re.compile(r"[A-Za-z0-9_.:-]{1,64}")          # what a point id may be, to reach a URScript comment
 
 
-class Refused(Exception):
-    """What a command was asked cannot be done safely (waypoints that must not become moves, nothing to
-    plan); the message says why."""
-
-
-def one_line(command: str, run, argv=None):
-    """run(argv), with bad input (exit 2) and a refusal (exit 1) said in one message, no traceback."""
-    try:
-        return run(argv)
-    except Refused as e:
-        print(f"{command}: refused: {e}", file=sys.stderr)
-        raise SystemExit(1) from None
-    except (ValueError, OSError) as e:                   # IngestError is a ValueError
-        print(f"{command}: error: {e}", file=sys.stderr)
-        raise SystemExit(2) from None
+def joint_columns(header: list, path) -> tuple[list, list]:
+    """The six joint columns' indices and units: j1_deg..j6_deg (degrees), j1_rad..j6_rad or actual_q_0..5
+    (radians, as ingest reads them and a UR controller logs them); else an IngestError."""
+    have = {h.lower() for h in header}
+    for names in AUTO_JOINTS[:3]:
+        if all(n in have for n in names):
+            return [find_column(header, n, "waypoint", str(path)) for n in names], [unit_of(n, "deg") for n in names]
+    missing = next(n for n in JOINTS_DEG if n not in have)
+    raise IngestError(f"missing waypoint column '{missing}' (or j1_rad..j6_rad, or actual_q_0..actual_q_5 in "
+                      f"radians); {headers_found(header)}", file=path, column=missing)
 
 
 def read_waypoints(path, robot) -> pd.DataFrame:
-    """The waypoints file, checked: point_id, j1_deg..j6_deg and, if given, target_x..z; every bad
-    cell is an IngestError naming file, row (the header is row 1) and column."""
+    """The waypoints file, checked: point_id, the joints (degrees, or radians by their names) and, if given,
+    target_x..z; every bad cell is an IngestError naming file, row (the header is row 1) and column."""
     header, cells, lines, _, decimal = read_table(str(path), "auto", "auto")
     lower = {h.lower() for h in header}
     targets = [c for c in TARGET if c in lower]
     if 0 < len(targets) < 3:
         raise IngestError(f"target columns need all of {TARGET}; found {targets}", file=path)
-    names = JOINTS_DEG + (TARGET if targets else [])
-    cols = [find_column(header, c, "waypoint", str(path)) for c in names]
+    jcols, units = joint_columns(header, path)
+    cols = jcols + [find_column(header, c, "waypoint", str(path)) for c in (TARGET if targets else [])]
+    names = [header[c] for c in cols]
+    for r, problem in enumerate(shape_problems(cells, len(header))):
+        if problem:                                  # its cells would be read shifted: a wrong move
+            raise IngestError(problem, file=path, row=lines[r])
     values = np.empty((len(cells), len(cols)))
     for r, row in enumerate(cells):
         for k, c in enumerate(cols):
@@ -58,7 +61,8 @@ def read_waypoints(path, robot) -> pd.DataFrame:
             if err or not np.isfinite(values[r, k]):
                 raise IngestError(f"not a finite number ({err[1] if err else row[c]})", file=path, row=lines[r],
                                   column=names[k])
-    df = pd.DataFrame(values, columns=names)
+    values[:, :6] = np.where(np.array(units) == "rad", np.degrees(values[:, :6]), values[:, :6])
+    df = pd.DataFrame(values, columns=JOINTS_DEG + (TARGET if targets else []))
     if "point_id" in lower:
         c = find_column(header, "point_id", "point id", str(path))
         ids = [row[c].strip() if c < len(row) else "" for row in cells]
@@ -67,6 +71,11 @@ def read_waypoints(path, robot) -> pd.DataFrame:
                 raise IngestError(f"point id {pid[:40]!r} is not 1-64 of the characters A-Z a-z 0-9 _ . : - "
                                   "(ids reach the robot program's comments)", file=path, row=lines[r],
                                   column=header[c])
+        first = {}
+        for r, pid in enumerate(ids):
+            if first.setdefault(pid, r) != r:        # each waypoint's answer is keyed by its id
+                raise IngestError(f"point id {pid!r} already on row {lines[first[pid]]}", file=path,
+                                  row=lines[r], column=header[c])
     else:
         ids = [f"W{i + 1:03d}" for i in range(len(df))]
     df.insert(0, "point_id", ids)
@@ -75,8 +84,8 @@ def read_waypoints(path, robot) -> pd.DataFrame:
         i, j = map(int, np.argwhere(out)[0])
         lo, hi = robot.limits_deg[j]
         raise IngestError(f"{df[JOINTS_DEG[j]].iloc[i]}° beyond the joint limits [{lo:g}, {hi:g}]°", file=path,
-                          row=lines[i], column=JOINTS_DEG[j])
-    if looks_like_radians(df[JOINTS_DEG].to_numpy()):
+                          row=lines[i], column=header[jcols[j]])
+    if units[0] == "deg" and looks_like_radians(df[JOINTS_DEG].to_numpy()):
         raise IngestError("every joint angle lies within ±6.29: these look like radians in *_deg columns; "
                           "convert them to degrees", file=path)
     return df
@@ -92,7 +101,7 @@ def compensate_program(df: pd.DataFrame, model, workspace, robot, nominal: dict,
         raise Refused("unreachable: " + "; ".join(
             f"{p}: target {np.linalg.norm(t):.1f} mm from the base, beyond the arm's reach of {reach:.1f} mm"
             for p, t in zip(df.point_id[far], target[far])))
-    solved = solve(model, q0, target, cfg, robot)
+    solved = solve(model, q0, target, cfg, robot, history=False)
     table = delta_table(df["point_id"], q0, target, solved, workspace)
     log.info("%d waypoints compensated in %.2f s: %d converged (residual max %.2e mm), %d outside the "
              "trained workspace", len(table), solved.seconds, table.converged.sum(), table.residual_mm.max(),

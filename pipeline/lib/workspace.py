@@ -101,24 +101,28 @@ class Workspace:
     the error scale of what holds at the pose: u_model (the whole model, validation split) where the
     network is in full, u_parts (the calibration with the error maps) where it has faded, u_calibrated
     (the calibration alone) where a mapped joint lies outside its coverage, blended by the network's
-    fade weight (Fade) between its radius and fade_to radii.
+    fade weight (Fade) between its radius and fade_to radii. `network` False (it did not lower the
+    validation error, evaluate's verdict): the network holds nowhere, the physics' scale everywhere, and
+    what is served, compensated and exported is the physics alone (model.served).
     """
 
     def __init__(self, train_q_deg, radius_deg: float, u_model_mm: float, u_parts_mm: float,
-                 u_calibrated_mm: float, fade_to: float | None, angle_cover=None):
+                 u_calibrated_mm: float, fade_to: float | None, angle_cover=None, network: bool = True):
         self.train_q = np.asarray(train_q_deg, float)          # (m, 6)
         self.radius, self.u0 = float(radius_deg), float(u_model_mm)
         self.u_parts, self.u_cal, self.fade_to = float(u_parts_mm), float(u_calibrated_mm), fade_to
         self.angle_cover = None if angle_cover is None else np.asarray(angle_cover, float)   # (6, 360)
+        self.network = bool(network)     # kept: it lowered the validation error; else it holds nowhere
 
     @classmethod
-    def fit(cls, train_q_deg, val_errors_mm: dict, cfg: dict, fade_to, angle_cover=None) -> "Workspace":
+    def fit(cls, train_q_deg, val_errors_mm: dict, cfg: dict, fade_to, angle_cover=None,
+            network: bool = True) -> "Workspace":
         """From the training poses (m, 6) deg, the validation split's 3D errors (mm) of "model",
         "calibrated_parts" and "calibrated", the `workspace:` section (radius_quantile, coverage), the
-        model's fade_to and the angle maps' coverage (None: no maps)."""
+        model's fade_to, the angle maps' coverage (None: no maps) and whether the network is kept."""
         q = lambda k: float(np.quantile(val_errors_mm[k], cfg["coverage"]))
         return cls(train_q_deg, workspace_radius(train_q_deg, cfg["radius_quantile"]), q("model"),
-                   q("calibrated_parts"), q("calibrated"), fade_to, angle_cover)
+                   q("calibrated_parts"), q("calibrated"), fade_to, angle_cover, network)
 
     def distance(self, q_deg) -> np.ndarray:
         return nearest_distance(np.atleast_2d(q_deg), self.train_q)
@@ -141,6 +145,7 @@ class Workspace:
         q = np.atleast_2d(np.asarray(q_deg, float))
         d = self.distance(q) / self.radius                     # radii
         w = np.ones(len(q)) if self.fade_to is None else np.clip((self.fade_to - d) / (self.fade_to - 1.0), 0, 1)
+        w = w if self.network else np.zeros(len(q))
         u_phys = np.where(self.angle_map(q), self.u_parts, self.u_cal)
         return w * self.u0 + (1 - w) * u_phys, d <= 1.0
 
@@ -148,9 +153,9 @@ class Workspace:
         return {"joints": [j + 1 for j in JOINTS], "radius_deg": self.radius, "u_model_mm": self.u0,
                 "u_parts_mm": self.u_parts, "u_calibrated_mm": self.u_cal, "fade_to": self.fade_to,
                 "angle_cover": None if self.angle_cover is None else self.angle_cover.round(6).tolist(),
-                "train_q_deg": self.train_q.round(6).tolist()}
+                "train_q_deg": self.train_q.round(6).tolist(), "network": self.network}
 
     @classmethod
     def from_dict(cls, d: dict) -> "Workspace":
         return cls(d["train_q_deg"], d["radius_deg"], d["u_model_mm"], d["u_parts_mm"], d["u_calibrated_mm"],
-                   d["fade_to"], d["angle_cover"])
+                   d["fade_to"], d["angle_cover"], d.get("network", True))

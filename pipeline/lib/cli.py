@@ -1,0 +1,23 @@
+"""How a stage or a command ends on bad input: one line, no traceback.
+
+    one_line(command, run, argv)   run(argv); a Refused exits 1, bad input (ValueError: IngestError,
+                                   ParamsError; OSError) exits 2, each said in one message on stderr
+"""
+import sys
+
+
+class Refused(Exception):
+    """What a command was asked cannot be done safely (waypoints that must not become moves, nothing to
+    plan); the message says why."""
+
+
+def one_line(command: str, run, argv=None):
+    """run(argv), with bad input (exit 2) and a refusal (exit 1) said in one message, no traceback."""
+    try:
+        return run(argv)
+    except Refused as e:
+        print(f"{command}: refused: {e}", file=sys.stderr)
+        raise SystemExit(1) from None
+    except (ValueError, OSError) as e:                   # IngestError and ParamsError are ValueErrors
+        print(f"{command}: error: {e}", file=sys.stderr)
+        raise SystemExit(2) from None
