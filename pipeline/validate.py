@@ -14,6 +14,7 @@ empty summary when there are no campaigns, and reports/validation_headline.json 
 mean 3D error per method, for `dvc metrics show` and `dvc exp show`).
 """
 import argparse
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -90,13 +91,16 @@ def per_joint_coverage(ws: Workspace, q: np.ndarray, table: pd.DataFrame) -> dic
     return out
 
 
-def twin_only(name: str, c: dict, files: dict, twin_json: str) -> str | None:
+def twin_only(name: str, c: dict, twin_json: str) -> str | None:
     """Why campaign `name` is not judged, or None: the twin made it (its files' SHA-256 are in the twin's
     record) but not the campaign trained on (ingest.json `files`), so it says nothing of this robot."""
+    if not Path(twin_json).exists():                 # no twin here: it made nothing
+        return None
     record = read_json(twin_json)
     joints, tracker = c["ingest"]["joints"], c["ingest"]["tracker"]
     if made_by_twin(record, {"joints": file_sha256(joints), "tracker": file_sha256(tracker)}) is None:
         return None
+    files = read_json(INGEST_JSON)["files"]
     trained = {r: files[r if r in files else "table"]["sha256"] for r in ("joints", "tracker")}
     if made_by_twin(record, trained) is not None:
         return None
@@ -108,7 +112,7 @@ def run_campaign(params: dict, name: str) -> dict:
     p = for_stage(params, PARAMS["campaign"])
     frame_cfg, cfg = p["frame"], p["validate"]
     c = named_campaign(cfg["campaigns"], name, "validate.campaigns", "validate.campaign")
-    skipped = twin_only(name, c, read_json(INGEST_JSON)["files"], p["compensate"]["twin"])
+    skipped = twin_only(name, c, p["compensate"]["twin"])
     if skipped:                                      # before reading it: it may not fit the user's ingest settings
         VALIDATION_DIR.mkdir(parents=True, exist_ok=True)
         empty_table().to_parquet(VALIDATION_DIR / f"{name}.parquet", index=False)

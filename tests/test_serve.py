@@ -617,7 +617,7 @@ def test_every_converged_answer_is_measured_within_tol(server, client, params, p
     ok = [(r["q_rad"], b) for r, (_, b, _) in zip(answers, cases) if "error" not in r and r["converged"]]
     assert len(ok) > 0.9 * len(answers)
     with torch.no_grad():
-        true = np.linalg.norm(model(torch.tensor([a for a, _ in ok]))[0].numpy() - np.array([b for _, b in ok]), axis=1)
+        true = np.linalg.norm(model(torch.tensor([a for a, _ in ok], dtype=torch.float64))[0].numpy() - np.array([b for _, b in ok]), axis=1)
     assert true.max() < tol, (true.max(), int((true >= tol).sum()), len(ok))
 
 

@@ -66,6 +66,7 @@ def absolute_paths(params: dict) -> dict:
         for k in ("joints", "tracker"):
             ingest[k] = str((ROOT / ingest[k]).resolve())
     p["compensate"]["drive_check"] = False
+    p["compensate"]["twin"] = str((ROOT / p["compensate"]["twin"]).resolve())     # validate reads its record
     return p
 
 
