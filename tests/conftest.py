@@ -22,7 +22,10 @@ from filelock import FileLock
 from pipeline.lib.artifacts import load_points
 from pipeline.lib.config import load_params, read_json
 from pipeline.lib.geometry import Calibration, aligned, theory_geometry
+from pipeline.lib.model import served
 from pipeline.lib.robots import load_robot
+from pipeline.lib.training import load_model
+from pipeline.lib.workspace import Workspace
 
 ROOT = Path(__file__).resolve().parents[1]
 ENV = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
@@ -116,6 +119,12 @@ def reproduced(tmp_path_factory) -> Path:
         sh("dvc repro", repo)
         return repo
     return Path(once(tmp_path_factory, "reproduced", make))
+
+
+def served_model():
+    """The model the project in the working directory serves (model.served: its physics alone where
+    evaluate switched the network off, as with the suite's small model)."""
+    return served(load_model("models/boter.pt"), Workspace.from_dict(read_json("models/workspace.json")).network)
 
 
 def project_points(params: dict) -> pd.DataFrame:

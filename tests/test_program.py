@@ -8,19 +8,18 @@ import pandas as pd
 import pytest
 import torch
 
-from conftest import exit_code
+from conftest import exit_code, served_model
 from pipeline import plan, program
 from pipeline.lib.artifacts import load_points
 from pipeline.lib.columns import JCOMP_DEG, JOINTS_DEG, TARGET, THEORY
 from pipeline.lib.kinematics import DTYPE
 from pipeline.lib.robots import load_robot
-from pipeline.lib.training import load_model
 from pipeline.lib.waypoints import read_waypoints
 
 
 def model_at(params, q_deg):
     with torch.no_grad():
-        return load_model("models/boter.pt")(torch.as_tensor(np.radians(q_deg), dtype=DTYPE))[0].numpy()
+        return served_model()(torch.as_tensor(np.radians(q_deg), dtype=DTYPE))[0].numpy()
 
 
 def test_offline_waypoints_land_where_the_nominal_program_meant(in_trained_project, tmp_path):
