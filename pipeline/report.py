@@ -33,7 +33,7 @@ from .lib.training import load_model
 
 log = logger(__name__)
 PARAMS = ("robot", "ingest", "campaigns", "frame", "split", "calibrate", "parts", "model", "loss", "train", "baselines",
-          "workspace", "compensate", "validate", "ablation")      # the settings the page shows, and compensate's
+          "workspace", "compensate", "validate", "ablation", "summary")      # the settings the page shows, and compensate's
 
 PLOTS = REPORTS / "plots"
 INDEX = REPORTS / "index.md"

@@ -391,3 +391,14 @@ def test_summary_shows_dates_temperatures_and_iso_9283_where_recorded():
     assert rows["`cubes`"][4] == "20.8 °C (mean; -1.2 K)"
     assert "judged outside that range: `cubes` at 20.8 °C" in md and "`measurement_rx`" in md
     assert "(0.000, 0.000, 109.000) mm" in md and "75% of `cubes`" in md and "probe offset too" in md
+
+
+def test_the_summary_names_the_instrument_when_it_is_set(tmp_path, monkeypatch):
+    params = small_params()
+    monkeypatch.chdir(tmp_path)
+    write_inputs(tmp_path, params)
+    report.run(params)
+    assert "**Instrument:** not recorded (set `summary.instrument`)." in (tmp_path / "reports/summary.md").read_text()
+    params["summary"]["instrument"] = "Leica AT960 laser tracker, T-Mac probe"
+    report.run(params)
+    assert "**Instrument:** Leica AT960 laser tracker, T-Mac probe." in (tmp_path / "reports/summary.md").read_text()

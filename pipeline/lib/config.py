@@ -45,6 +45,7 @@ SECTIONS = {
     "compensate": ("solver", "lr", "max_iter", "tol_mse", "tol_mm", "jacobian_of", "drive_check",
                    "twin", "drive_seed"),
     "ablation": ("seeds", "max_epochs"),
+    "summary": ("instrument",),
     "program": ("move", "movej", "movel"),
     "program.movej": ("acc", "vel"),
     "program.movel": ("acc", "vel"),

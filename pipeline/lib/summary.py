@@ -33,7 +33,7 @@ TIME_NAMES = ("timestamp", "time", "datetime", "date")        # a time column, u
 ORIENTATION = re.compile(r"(^|[_ ])(rx|ry|rz|roll|pitch|yaw)$", re.I)     # a measured orientation's headers ...
 NOT_MEASURED = re.compile(r"goal|command|target|planned|std", re.I)     # ... not a commanded one's, nor its spread
 NOT_RECORDED = "not recorded"
-INSTRUMENT_SETTING = "summary.instrument"                       # proposed; see report.py
+INSTRUMENT_SETTING = "summary.instrument"                       # params.yaml: what measured
 A4_IN = (8.27, 11.69)
 PDF_METADATA = {"Title": "Calibration summary", "Creator": "SPI-BoTER pipeline (python -m pipeline.report)",
                 "Producer": None, "CreationDate": None, "ModDate": None}   # nothing that changes between runs
@@ -292,7 +292,9 @@ def blocks(params: dict, metrics: dict, s: dict, test: dict, cond: dict, orienta
     tool = (frame or {}).get("tool_mm", params["robot"]["tool_mm"])
     out = [("h1", f"Calibration summary: {ROBOTS.get(params['robot']['model'], params['robot']['model'])}")]
     out += [("p", x) for x in robot_text(params["robot"], frame, params["frame"]["estimate_tool"])]
-    out += [("p", f"**Instrument:** {NOT_RECORDED} (set `{INSTRUMENT_SETTING}`)."),
+    instrument = params["summary"]["instrument"]
+    out += [("p", f"**Instrument:** {instrument}." if instrument else
+             f"**Instrument:** {NOT_RECORDED} (set `{INSTRUMENT_SETTING}`)."),
             ("p", method_text(metrics, s.get("calibration"), s.get("parts"))),
             ("h2", "Campaigns"),
             ("table", ["campaign", "role", "points kept / dropped", "dates", "temperature"],
