@@ -25,7 +25,7 @@ import pandas as pd
 from .lib.artifacts import (CALIBRATED_GEOMETRY, COMPENSATION_CSV, COMPENSATION_JSON, COMPENSATION_PARQUET,
                             CONVERGENCE_CSV, DRIVE_CSV, FRAME_JSON, INGEST_JSON, MODEL_WEIGHTS, REPORTS, TIMINGS,
                             WORKSPACE_JSON, load_points)
-from .lib.campaigns import made_by_twin
+from .lib.campaigns import ingested_sha256, made_by_twin
 from .lib.cli import one_line
 from .lib.columns import JCOMP_DEG, JOINTS_DEG, TARGET, THEORY
 from .lib.compensation import delta_table, solve
@@ -93,8 +93,7 @@ def solve_all(cfg: dict, robot, df: pd.DataFrame):
 def twin_campaign(twin_json: str, files: dict) -> str | None:
     """Which of the twin's campaigns the ingest section's files are (by their SHA-256 in ingest.json's
     `files`), or None: the drive check runs only on a campaign the twin made."""
-    sha = {r: files[r if r in files else "table"]["sha256"] for r in ("joints", "tracker")}
-    return made_by_twin(read_json(twin_json), sha)
+    return made_by_twin(read_json(twin_json), ingested_sha256(files))
 
 
 def convergence_table(histories: dict) -> pd.DataFrame:

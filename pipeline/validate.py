@@ -24,7 +24,7 @@ from scipy.spatial.transform import Rotation
 from .lib.artifacts import (CALIBRATED_GEOMETRY, FRAME_JSON, MODEL_WEIGHTS, PARTS_JSON, VALIDATION_DIR,
                             INGEST_JSON, VALIDATION_HEADLINE, VALIDATION_JSON, VALIDATION_TABLE, WORKSPACE_JSON)
 from .lib.cli import one_line
-from .lib.campaigns import file_sha256, made_by_twin, named_campaign
+from .lib.campaigns import ingested_sha256, made_by_twin, named_campaign, pair_sha256
 from .lib.columns import JOINTS_DEG, MEAS
 from .lib.config import check_keys, for_stage, load_params, logger, read_json, write_json
 from .lib.errormaps import angle_covered
@@ -98,11 +98,9 @@ def twin_only(name: str, c: dict, twin_json: str) -> str | None:
         return None
     record = read_json(twin_json)
     joints, tracker = c["ingest"]["joints"], c["ingest"]["tracker"]
-    if made_by_twin(record, {"joints": file_sha256(joints), "tracker": file_sha256(tracker)}) is None:
+    if made_by_twin(record, pair_sha256(joints, tracker)) is None:
         return None
-    files = read_json(INGEST_JSON)["files"]
-    trained = {r: files[r if r in files else "table"]["sha256"] for r in ("joints", "tracker")}
-    if made_by_twin(record, trained) is not None:
+    if made_by_twin(record, ingested_sha256(read_json(INGEST_JSON)["files"])) is not None:
         return None
     return (f"validate.campaigns.{name} is the twin's campaign ({joints}, {tracker}; {twin_json}) and the robot "
             "was calibrated on another: not judged (remove it from validate.campaigns to silence this)")

@@ -30,6 +30,42 @@ from .common import BENCH, ROOT, machine, prepared
 log = logger(__name__)
 
 
+def test_targets() -> tuple[list, list]:
+    """The project's test points: recorded angles (rad) and their theory positions (mm), as lists."""
+    df = prepared(load_params())[0]
+    test = df[df.split == "test"]
+    return np.radians(test[JOINTS_DEG].to_numpy()).tolist(), test[THEORY].to_numpy().tolist()
+
+
+def start_server(flags=(), stderr=None) -> tuple[subprocess.Popen, str, float]:
+    """`python -m pipeline.serve` (with `flags`) in a subprocess on a free loopback port, once it answers:
+    (the process, its URL, the seconds it took to start); stop it with terminate()."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    url, t0 = f"http://127.0.0.1:{port}/RPC2", time.perf_counter()
+    proc = subprocess.Popen([sys.executable, "-m", "pipeline.serve", "--port", str(port), *flags], stderr=stderr)
+    while True:                                           # until it answers
+        try:
+            xmlrpc.client.ServerProxy(url).system.listMethods()
+            return proc, url, time.perf_counter() - t0
+        except OSError:
+            if proc.poll() is not None or time.perf_counter() - t0 > 120:
+                proc.kill()
+                raise RuntimeError(f"python -m pipeline.serve did not start (exit code {proc.wait()})") from None
+            time.sleep(0.2)
+
+
+def timed_call(proxy, q0: list, target: list) -> tuple[float, bool | None]:
+    """One `compensate` call: its wall latency (ms), and whether it converged (None: it failed)."""
+    t = time.perf_counter()
+    try:
+        converged = bool(proxy.compensate(q0, target)["converged"])
+    except Exception:
+        converged = None
+    return 1000 * (time.perf_counter() - t), converged
+
+
 def load_test(url: str, q0: list, tgt: list, clients: int, calls: int, server_pid: int | None = None) -> dict:
     """`clients` threads, each with its own ServerProxy, make calls/clients `compensate` calls on the
     (q0, target) pairs (cycled); each call's wall latency; with server_pid, the CPU time per call of the
@@ -41,13 +77,10 @@ def load_test(url: str, q0: list, tgt: list, clients: int, calls: int, server_pi
     def client(k):
         proxy = xmlrpc.client.ServerProxy(url)
         for i in range(k, calls, clients):
-            j = i % len(q0)
-            t = time.perf_counter()
-            try:
-                unconverged[k] += not proxy.compensate(q0[j], tgt[j])["converged"]
-            except Exception:
-                failed[k] += 1
-            ms[k].append(1000 * (time.perf_counter() - t))
+            latency, converged = timed_call(proxy, q0[i % len(q0)], tgt[i % len(tgt)])
+            failed[k] += converged is None
+            unconverged[k] += converged is False
+            ms[k].append(latency)
     threads = [threading.Thread(target=client, args=(k,)) for k in range(clients)]
     t0 = time.perf_counter()
     for t in threads:
@@ -71,9 +104,7 @@ def bench_serve(clients: int = 8, calls: int = 10000, paths=("onnx", "eager", "c
     port, for each controller path of `paths` (FLAGS); for each, one client (calls/10 calls: a call's own
     latency) then `clients` concurrent clients (calls in all), on the test points (recorded angles ->
     theory position, cycled). Needs a finished `dvc repro` in the project."""
-    df = prepared(load_params())[0]
-    test = df[df.split == "test"]
-    q0, tgt = np.radians(test[JOINTS_DEG].to_numpy()).tolist(), test[THEORY].to_numpy().tolist()
+    q0, tgt = test_targets()
     path = BENCH / "serve.json"
     old = read_json(path) if path.exists() else {}
     for v in old.values():                                # earlier runs' paths keep their machine
@@ -83,22 +114,9 @@ def bench_serve(clients: int = 8, calls: int = 10000, paths=("onnx", "eager", "c
            "server": "python -m pipeline.serve, a subprocess on 127.0.0.1 (the clients on the same machine)",
            "n_test_points": len(q0)}
     for name in paths:
-        with socket.socket() as s:
-            s.bind(("127.0.0.1", 0))
-            port = s.getsockname()[1]
-        url = f"http://127.0.0.1:{port}/RPC2"
-        t0 = time.perf_counter()
-        proc = subprocess.Popen([sys.executable, "-m", "pipeline.serve", "--port", str(port), *FLAGS[name]])
+        proc, url, startup = start_server(FLAGS[name])
         try:
-            while True:                                   # until it answers
-                try:
-                    xmlrpc.client.ServerProxy(url).system.listMethods()
-                    break
-                except OSError:
-                    if proc.poll() is not None or time.perf_counter() - t0 > 120:
-                        raise RuntimeError(f"python -m pipeline.serve did not start (exit code {proc.poll()})")
-                    time.sleep(0.2)
-            out[name] = {"startup_s": time.perf_counter() - t0, "machine": machine(), "project": str(Path.cwd()),
+            out[name] = {"startup_s": startup, "machine": machine(), "project": str(Path.cwd()),
                          "one_client": load_test(url, q0, tgt, 1, calls // 10, proc.pid),
                          "concurrent": load_test(url, q0, tgt, clients, calls, proc.pid)}
             out[name]["concurrent_over_one_client"] = (out[name]["concurrent"]["calls_per_s"]
@@ -237,12 +255,9 @@ def good_calls(url: str, q0: list, tgt: list, clients: int, seconds: float) -> t
         for i in range(k, 10 ** 9, clients):
             if stop.is_set():
                 return
-            t = time.perf_counter()
-            try:
-                bad[k] += not proxy.compensate(q0[i % len(q0)], tgt[i % len(tgt)])["converged"]
-            except Exception:
-                bad[k] += 1
-            ms[k].append(1000 * (time.perf_counter() - t))
+            latency, converged = timed_call(proxy, q0[i % len(q0)], tgt[i % len(tgt)])
+            bad[k] += not converged
+            ms[k].append(latency)
     threads = [threading.Thread(target=client, args=(k,)) for k in range(clients)]
     t0 = time.perf_counter()
     for t in threads:
@@ -291,23 +306,9 @@ def bench_hostile(seconds: float = 10.0, clients: int = 4) -> dict:
     """The compensation service beside hostile clients: `python -m pipeline.serve` in a subprocess on a free
     loopback port (the defaults of the serve: section), `clients` good clients on the test points alone and
     beside each class of HOSTILE (`seconds` each, and as long alone). Writes reports/bench/serve_hostile.json."""
-    df = prepared(load_params())[0]
-    test = df[df.split == "test"]
-    q0, tgt = np.radians(test[JOINTS_DEG].to_numpy()).tolist(), test[THEORY].to_numpy().tolist()
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-    url, t0 = f"http://127.0.0.1:{port}/RPC2", time.perf_counter()
-    proc = subprocess.Popen([sys.executable, "-m", "pipeline.serve", "--port", str(port)], stderr=subprocess.DEVNULL)
+    q0, tgt = test_targets()
+    proc, url, _ = start_server(stderr=subprocess.DEVNULL)
     try:
-        while True:
-            try:
-                xmlrpc.client.ServerProxy(url).system.listMethods()
-                break
-            except OSError:
-                if proc.poll() is not None or time.perf_counter() - t0 > 120:
-                    raise RuntimeError(f"python -m pipeline.serve did not start (exit code {proc.poll()})")
-                time.sleep(0.2)
         r = hostile_load(url, q0, tgt, seconds, clients)
     finally:
         proc.terminate()

@@ -20,6 +20,16 @@ def file_sha256(path) -> str:
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
+def pair_sha256(joints, tracker) -> dict:
+    """A campaign's identity from its two files (the same path twice for one table)."""
+    return {"joints": file_sha256(joints), "tracker": file_sha256(tracker)}
+
+
+def ingested_sha256(files: dict) -> dict:
+    """The same identity from ingest.json's `files` (its "table" entry for one table)."""
+    return {r: files[r if r in files else "table"]["sha256"] for r in ("joints", "tracker")}
+
+
 def made_by_twin(record: dict, sha256: dict) -> str | None:
     """The name of the twin campaign ("main", "validation", "station_b") whose files have the SHA-256s
     `sha256` {"joints": .., "tracker": ..} (a campaign of one table: both the same), per the twin's

@@ -44,7 +44,7 @@ import pandas as pd
 import torch
 from scipy.spatial.transform import Rotation
 
-from .campaigns import file_sha256
+from .campaigns import pair_sha256
 from .columns import JOINTS_DEG
 from .config import read_json, write_json
 from .frames import robust_kabsch, to_base
@@ -432,7 +432,7 @@ def generate(out_dir: Path | str = RAW, seed: int = SEED, params: dict | None = 
     joints.to_csv(out_dir / "joints.csv", index=False, float_format="%.6f", lineterminator="\n")
     tracker.to_csv(out_dir / "tracker.csv", index=False, float_format="%.4f", lineterminator="\n")
     record = twin_record(twin, misreads)
-    record["campaign_sha256"] = {k: file_sha256(out_dir / f"{k}.csv") for k in ("joints", "tracker")}
+    record["campaign_sha256"] = pair_sha256(out_dir / "joints.csv", out_dir / "tracker.csv")
     record["noise_floor_mm"] = round(twin.noise_floor_mm, 6)
     record["noise_floor_method"] = ("Monte Carlo: 64 drives of each campaign pose, stream "
                                     "'floor'; tracker-only analytic value 1.5958 * sigma")
@@ -446,7 +446,7 @@ def generate(out_dir: Path | str = RAW, seed: int = SEED, params: dict | None = 
         record[key] = {"seed": spec["seed"], "n": spec["n"], "files": spec["dir"],
                        "regions": {k: REGIONS[k] for k in spec["n"]},
                        "tracker_pose": {"R": R.round(12).tolist(), "t": t.round(9).tolist()},
-                       "campaign_sha256": {k: file_sha256(sub / f"{k}.csv") for k in ("joints", "tracker")}}
+                       "campaign_sha256": pair_sha256(sub / "joints.csv", sub / "tracker.csv")}
     if params is not None:
         # measured from the files as written (rounded), as the pipeline will see them
         joints = pd.read_csv(out_dir / "joints.csv")
