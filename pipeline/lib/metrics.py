@@ -46,3 +46,11 @@ def split_metrics(df: pd.DataFrame, pred: np.ndarray) -> dict:
     """{split: regression_metrics} of predictions `pred` (rows aligned with df: split, meas, theory)."""
     return {s: regression_metrics(pred[m], df.loc[m, MEAS].to_numpy(), df.loc[m, THEORY].to_numpy())
             for s in SPLITS if (m := (df.split == s).to_numpy()).any()}
+
+
+def stats(e: np.ndarray) -> dict:
+    """n, mean, p95 (numpy's linear percentile) and max of 3D errors e (mm); None where there are none."""
+    e = np.asarray(e, float)
+    if not len(e):
+        return {"n": 0, "mean": None, "p95": None, "max": None}
+    return {"n": int(len(e)), "mean": float(e.mean()), "p95": float(np.percentile(e, 95)), "max": float(e.max())}

@@ -24,6 +24,8 @@ import numpy as np
 import pandas as pd
 
 from .columns import AXES, CAMPAIGN, MEAS, PRED, THEORY
+from .metrics import stats
+from .page import table
 
 METHODS = {"nominal": "nominal", "calibrated": "calibration", "calibrated_parts": "calibration + error maps",
            "model": "model"}                                   # validation.json's names -> the page's
@@ -53,14 +55,6 @@ def pct(share) -> str:
 def triple(st: dict | None) -> str:
     """mean / p95 / max (mm) of a stats dict."""
     return "–" if not st or st.get("mean") is None else " / ".join(mm(st[k]) for k in ("mean", "p95", "max"))
-
-
-def stats(e: np.ndarray) -> dict:
-    """As lib/validation.py's stats: n, mean, p95 (numpy's linear percentile), max."""
-    e = np.asarray(e, float)
-    if not len(e):
-        return {"n": 0, "mean": None, "p95": None, "max": None}
-    return {"n": int(len(e)), "mean": float(e.mean()), "p95": float(np.percentile(e, 95)), "max": float(e.max())}
 
 
 def split_accuracy(pred: pd.DataFrame, baselines: pd.DataFrame | None, split: str = "test") -> dict:
@@ -338,8 +332,7 @@ def markdown(bl: list) -> str:
         elif kind == "p":
             out += [b[1], ""]
         elif kind == "table":
-            out += ["| " + " | ".join(b[1]) + " |", "|" + "---|" * len(b[1])]
-            out += ["| " + " | ".join(r) + " |" for r in b[2]] + [""]
+            out += [table(b[1], b[2]).rstrip("\n"), ""]
         elif kind == "list":
             out += [f"- {x}" for x in b[1]] + [""]
     return "\n".join(out).rstrip() + "\n"

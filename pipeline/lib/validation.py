@@ -39,6 +39,7 @@ from scipy.spatial.transform import Rotation
 
 from .frames import check_fit, robust_kabsch, to_base
 from .identify import identifiability
+from .metrics import stats
 
 METHODS = ("nominal", "calibrated", "calibrated_parts", "model")
 
@@ -121,12 +122,6 @@ def judge(pred: dict, P_world: np.ndarray, mode: str, frame: dict, n_register: i
         dof = max(3 * len(k) - (6 + 3 - len(frames[m].get("tool_held", ["x"] * 3))), 1)
         frames[m]["registration_rms_mm"] = float(np.sqrt((errors[m][k] ** 2).sum() / dof * 3))
     return errors, reg, frames
-
-
-def stats(e: np.ndarray) -> dict:
-    if not len(e):
-        return {"n": 0, "mean": None, "p95": None, "max": None}
-    return {"n": int(len(e)), "mean": float(e.mean()), "p95": float(np.percentile(e, 95)), "max": float(e.max())}
 
 
 def summary(table: pd.DataFrame, mode: str) -> dict:
