@@ -18,9 +18,10 @@ from .lib.artifacts import CALIBRATED_GEOMETRY, CALIBRATION_JSON, FRAME_JSON, TI
 from .lib.cli import one_line
 from .lib.columns import CAMPAIGN, JOINTS_DEG, MEAS, SPLITS, STATION
 from .lib.config import for_stage, load_params, logger, read_json, split_timings, write_json
+from .lib.frames import measured_rotations
 from .lib.geometry import Calibration, aligned, theory_geometry
-from .lib.identify import errors_3d, identify
-from .lib.kinematics import DTYPE, fk, save_geometry
+from .lib.identify import errors_3d, identify, orientation_errors
+from .lib.kinematics import DTYPE, fk_pose, save_geometry
 from .lib.robots import load_robot
 
 log = logger(__name__)
@@ -35,23 +36,28 @@ def run(params: dict) -> dict:
     q = np.radians(pts[JOINTS_DEG].to_numpy())
     stations = list(pts[STATION].unique())            # theory keeps the ingest order: the first station first
     train = (pts["split"] == "train").to_numpy()
-    g0 = theory_geometry(load_robot(params["robot"]), frame["tool_mm"])
+    g0 = theory_geometry(load_robot(params["robot"]), frame["tool_mm"], frame.get("tool_rot"))
+    R_meas = measured_rotations(pts)                  # the probe's measured orientations (base frame), or None
     station = pts[STATION].map({s: k for k, s in enumerate(stations)}).to_numpy()
     tools0 = None                                     # frame.tool_per_station: each station's tool - the first's
     if params["frame"]["tool_per_station"]:
         fr = frame["stations"]
         tools0 = np.array([fr[s]["tool_mm"] for s in stations]) - np.asarray(fr[stations[0]]["tool_mm"])
     geometry, report = identify(q[train], pts[MEAS].to_numpy()[train], g0, cfg, station[train], stations,
-                                tools0)
+                                tools0, None if R_meas is None else R_meas[train])
     corrections = {k: report[k] for k in ("stations", "station_tools")}
-    p = aligned(pts, Calibration(geometry, **corrections), g0)[MEAS].to_numpy()
+    at_first = aligned(pts, Calibration(geometry, **corrections), g0)
+    p, R_first = at_first[MEAS].to_numpy(), measured_rotations(at_first)
     qt = torch.as_tensor(q, dtype=DTYPE)
     with torch.no_grad():
-        p_cal, p_nom = fk(qt, geometry).numpy(), fk(qt, g0).numpy()
+        (p_cal, R_cal), (p_nom, R_nom) = ((v.numpy() for v in fk_pose(qt, g)) for g in (geometry, g0))
+
+    def judged(pp, RR, k):
+        e = errors_3d(pp[k], p[k])
+        return e if R_first is None else {**e, "orientation": orientation_errors(RR[k], R_first[k])}
 
     def errors(m):                                    # per split of the points m
-        return {s: {"n": int(k.sum()), "calibrated": errors_3d(p_cal[k], p[k]),
-                    "nominal": errors_3d(p_nom[k], p[k])}
+        return {s: {"n": int(k.sum()), "calibrated": judged(p_cal, R_cal, k), "nominal": judged(p_nom, R_nom, k)}
                 for s in SPLITS if (k := m & (pts["split"] == s).to_numpy()).any()}
     report["splits"] = errors(np.ones(len(pts), bool))
     report["campaigns"] = {c: errors((pts[CAMPAIGN] == c).to_numpy()) for c in pts[CAMPAIGN].unique()}

@@ -6,7 +6,10 @@ angles (as in the paper). The Δθ table (docs/data-format.md) comes from
 recorded, and so is the controller path (lib/realtime.py: one pose per call,
 two model evaluations) on the same targets. With `compensate.drive_check` the
 twin (`compensate.twin`) is driven to the recorded and to the compensated
-angles and measured (the paper's Table 9), when the campaign is the twin's own
+angles and measured (the paper's Table 9) and, for every `robot.tcp` where the campaign measures
+orientation, the TCP's nominal positions at the test poses are solved for (lib/tcp.py AtTcp) and the
+twin driven there and measured through its probe's pose (compensation.json `tcp_drive_check`), when
+the campaign is the twin's own
 (its files' SHA-256 in reports/ingest.json are those twin.json records); on any
 other campaign (a real robot) compensation.json says why there is none. The
 model solved is the one served (model.served: the physics alone where evaluate
@@ -33,10 +36,12 @@ from .lib.config import for_stage, load_params, logger, read_json, split_timings
 from .lib.geometry import Calibration, aligned, theory_geometry
 from .lib.model import served
 from .lib.realtime import Realtime, check
+from .lib.kinematics import fk_numpy
 from .lib.robots import load_robot
 from .lib.solvers import SOLVERS
 from .lib.training import load_model
-from .lib.twin import Twin, drive_check
+from .lib.tcp import AtTcp, probe_offsets
+from .lib.twin import Twin, drive_check, tcp_drive_check
 from .lib.workspace import Workspace
 
 log = logger(__name__)
@@ -96,6 +101,29 @@ def twin_campaign(twin_json: str, files: dict) -> str | None:
     return made_by_twin(read_json(twin_json), ingested_sha256(files))
 
 
+def tcp_checks(cfg: dict, robot, tcp: dict, table: pd.DataFrame, frame: dict) -> dict:
+    """Per `robot.tcp`: the test poses' nominal TCP positions solved for through the served model (AtTcp)
+    and driven on the twin (lib/twin.py tcp_drive_check): Table 9 before (recorded angles) and after."""
+    workspace = Workspace.from_dict(read_json(WORKSPACE_JSON))
+    model = served(load_model(MODEL_WEIGHTS), workspace.network)
+    twin, out = Twin.from_json(cfg["twin"]), {}
+    q0 = table[JOINTS_DEG].to_numpy()
+    for k, (name, o) in enumerate(probe_offsets(tcp, model.physics.geometry()).items()):
+        at = AtTcp(model, o)
+        target = fk_numpy(q0, robot, theory_geometry(robot, tcp[name]["xyz_mm"]))   # offline-programmed TCP
+        s = solve(at, q0, target, cfg, robot, history=False)
+        rng = np.random.default_rng([cfg["drive_seed"], k + 1])
+        out[name], _ = tcp_drive_check(twin, frame, rng, np.random.default_rng([cfg["drive_seed"], k + 1, 1]),
+                                       q0, s.q_deg, target, o)
+        out[name]["converged_share"] = float(s.converged.mean())
+        b, a = out[name]["before"], out[name]["after"]
+        log.info("twin drive check at TCP %s (%s mm in the flange) on %d points: 3D error mean %.4f -> %.4f mm, "
+                 "max %.4f -> %.4f mm, within ±%.1f mm %.0f%% -> %.0f%%", name, tcp[name]["xyz_mm"], a["n"],
+                 b["3d"]["mean"], a["3d"]["mean"], b["3d"]["max"], a["3d"]["max"], a["tol_mm"],
+                 100 * b["within_tol_share"], 100 * a["within_tol_share"])
+    return out
+
+
 def convergence_table(histories: dict) -> pd.DataFrame:
     """Residual (max and mean over points, mm) per iteration and solver, for the plots."""
     return pd.DataFrame([{"solver": s, "iteration": i, "max_residual_mm": float(h[i].max()),
@@ -122,6 +150,8 @@ def run(params: dict) -> dict:
                                                 table[TARGET].to_numpy())
         errors = pd.DataFrame(e, columns=errors.columns[1:])
         errors.insert(0, "point_id", table["point_id"])
+        if p["robot"]["tcp"] and "tool_rot" in frame:
+            summary["tcp_drive_check"] = tcp_checks(cfg, robot, p["robot"]["tcp"], table, frame)
         b, a = summary["drive_check"]["before"], summary["drive_check"]["after"]
         log.info("twin drive check on %d points: 3D error mean %.4f -> %.4f mm, max %.4f -> %.4f mm, "
                  "within ±%.1f mm %.0f%% -> %.0f%%", a["n"], b["3d"]["mean"], a["3d"]["mean"],

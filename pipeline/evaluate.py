@@ -18,6 +18,10 @@ The network is kept only where it lowers the validation split's mean 3D error ag
 physics branch alone, as the parts stage keeps the error maps: metrics.json["reported"] says which
 method is reported, served and exported (workspace.json "network"; model.served), and
 reports/headline.json holds the few numbers `dvc metrics show` and `dvc exp show` compare.
+
+Where the campaign measures the probe's orientation, metrics.json["pose"] holds per method and split
+the flange orientation error (arcsec) and the position error at every `robot.tcp` point (lib/tcp.py);
+the model's orientation is its physics branch's (the network corrects the marker's position).
 """
 import numpy as np
 import pandas as pd
@@ -26,11 +30,13 @@ from .lib.artifacts import (BASELINES_MD, BASELINES_TABLE, CALIBRATED_GEOMETRY, 
                             METRICS_JSON, MODEL_WEIGHTS, PARTS_JSON, PREDICTIONS_TABLE, WORKSPACE_JSON, load_points)
 from .lib.cli import one_line
 from .lib.columns import CAMPAIGN, JOINTS_DEG, MEAS, PRED, SPLITS, STATION, THEORY
+from .lib.frames import measured_rotations
 from .lib.config import for_stage, load_params, logger, read_json, write_json
-from .lib.geometry import Calibration, aligned, theory_geometry
+from .lib.geometry import Calibration, aligned, theory_geometry, with_parts
 from .lib.metrics import split_metrics
 from .lib.model import PhysicsOnly
 from .lib.robots import load_robot
+from .lib.tcp import pose_errors, pose_of, probe_offsets
 from .lib.training import load_model, predict
 from .lib.workspace import Workspace
 
@@ -88,14 +94,33 @@ def headline(metrics: dict) -> dict:
                                      **{k: v[s]["3d"]["mae"] for k, v in metrics["baselines"].items()}}
     out["campaigns"] = {c: {"test_3d_mae_mm": v[r]["test"]["mae"]} for c, v in metrics["campaigns"].items()
                         if "test" in v[r]}
+    pose = metrics.get("pose", {}).get(r, {}).get("test")
+    if pose:                                             # where orientation is measured
+        out["test_orientation_arcsec"] = pose["orientation"]["mean_arcsec"]
+        out["test_tcp_mm"] = {k: v["mean_mm"] for k, v in pose["tcp"].items()}
     return out
+
+
+def pose_metrics(df: pd.DataFrame, R_meas: np.ndarray, geometries: dict, model_pred: tuple, tcp: dict | None,
+                 calibrated: dict) -> dict:
+    """Per method and split: marker, orientation and TCP errors (lib/tcp.py) where orientation is measured.
+    geometries: {method: geometry}; model_pred: (its name, positions, its physics geometry)."""
+    q, p_meas = df[JOINTS_DEG].to_numpy(), df[MEAS].to_numpy()
+    offsets = probe_offsets(tcp, calibrated)
+    poses = {k: pose_of(q, g) for k, g in geometries.items()}
+    name, pred, physics = model_pred
+    poses[name] = (pred, pose_of(q, physics)[1])
+    return {k: {s: pose_errors(p[m], R[m], p_meas[m], R_meas[m], offsets)
+                for s in SPLITS if (m := (df.split == s).to_numpy()).any()} for k, (p, R) in poses.items()}
 
 
 def run(params: dict) -> dict:
     p = for_stage(params, PARAMS)
     cfg = p["workspace"]
-    nominal = theory_geometry(load_robot(p["robot"]), read_json(FRAME_JSON)["tool_mm"])
-    df = aligned(load_points(), Calibration.from_dict(read_json(CALIBRATED_GEOMETRY)), nominal)
+    frame = read_json(FRAME_JSON)
+    nominal = theory_geometry(load_robot(p["robot"]), frame["tool_mm"])
+    cal = Calibration.from_dict(read_json(CALIBRATED_GEOMETRY))
+    df = aligned(load_points(), cal, nominal)
     model = load_model(MODEL_WEIGHTS)
     pred = predict(model, df)
     q = df[JOINTS_DEG].to_numpy()
@@ -136,6 +161,17 @@ def run(params: dict) -> dict:
     metrics["reported"] = {"method": reported, "network": network,
                            "val_3d_mae_mm": {"with_network": float(err[val].mean()),
                                              "physics_alone": float(physics[val].mean())}}
+    R_meas = measured_rotations(df)
+    if R_meas is not None:
+        geometries = {"nominal_dh": theory_geometry(load_robot(p["robot"]), frame["tool_mm"], frame["tool_rot"]),
+                      "calibrated_dh": cal.geometry, "calibrated_parts": with_parts(cal.geometry, parts)}
+        metrics["pose"] = pose_metrics(df, R_meas, geometries, (name, pred, model.physics.geometry()),
+                                       p["robot"]["tcp"], cal.geometry)
+        r = metrics["pose"].get(reported, metrics["pose"][name]).get("test")
+        if r:
+            log.info("test split, %s: orientation %.0f arcsec mean (p95 %.0f); TCP mean %s mm", reported,
+                     r["orientation"]["mean_arcsec"], r["orientation"]["p95_arcsec"],
+                     {k: round(v["mean_mm"], 4) for k, v in r["tcp"].items()})
     write_json(METRICS_JSON, metrics)
     write_json(HEADLINE_JSON, headline(metrics))
     table = markdown_table(metrics["baselines"])

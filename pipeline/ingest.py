@@ -9,7 +9,8 @@ file); pairing, units, checks and the dropped-row list are lib/readers.py's.
 A `more` campaign is read the same way with its own overrides (lib/campaigns.py)
 into data/interim/campaigns/NAME.parquet and reports/campaigns/NAME.json.
 Writes the table (with each point's campaign and station) and reports/ingest.json:
-every dropped row, of every campaign, with its reason.
+every dropped row, of every campaign, with its reason. Where a campaign measures the probe's
+orientation (meas_qw..meas_qz), those columns follow meas_z, NaN for a campaign that does not.
 """
 import argparse
 from collections import Counter
@@ -19,7 +20,7 @@ import pandas as pd
 from .lib.artifacts import CAMPAIGNS_DIR, CAMPAIGNS_REPORTS, INGEST_JSON, INGEST_TABLE
 from .lib.campaigns import campaign_entry, campaign_ingest, campaign_stations, file_sha256, point_id
 from .lib.cli import one_line
-from .lib.columns import CAMPAIGN, STATION
+from .lib.columns import CAMPAIGN, MEAS, MEAS_Q, STATION
 from .lib.config import for_stage, load_params, logger, read_json, write_json
 from .lib.readers import ingest
 from .lib.robots import load_robot
@@ -31,6 +32,16 @@ PARAMS = ("robot", "ingest", "campaigns")
 def labelled(df: pd.DataFrame, campaign: str, station: str) -> pd.DataFrame:
     """df with its campaign and station columns (last)."""
     return df.assign(**{CAMPAIGN: campaign, STATION: station})
+
+
+def joined(parts: list) -> pd.DataFrame:
+    """The campaigns' tables as one; meas_q* (where any campaign has them) right after meas_z."""
+    out = pd.concat(parts, ignore_index=True)
+    if MEAS_Q[0] not in out.columns:
+        return out
+    rest = [c for c in out.columns if c not in MEAS_Q]
+    k = rest.index(MEAS[-1]) + 1
+    return out[rest[:k] + MEAS_Q + rest[k:]]
 
 
 def run_campaign(params: dict, name: str) -> dict:
@@ -69,7 +80,7 @@ def run(params: dict) -> dict:
         summary["dropped"] += [{**d, "campaign": name} for d in rep["dropped"]]
         summary["campaigns"][name] = {"station": stations[name], "n_kept": len(part),
                                       "n_dropped": len(rep["dropped"]), "files": rep["files"]}
-    out = pd.concat(parts, ignore_index=True)
+    out = joined(parts)
     if more:
         summary["n_kept"] = len(out)
         summary["dropped_counts"] = dict(Counter(d["reason"] for d in summary["dropped"]))

@@ -21,8 +21,10 @@ from .lib.cli import one_line
 from .lib.columns import JOINTS_DEG, MEAS, SPLITS
 from .lib.config import for_stage, load_params, logger, read_json, write_json
 from .lib.geometry import Calibration, aligned, theory_geometry
-from .lib.identify import corrected, errors_3d, geometry_jacobian, in_units
-from .lib.kinematics import DTYPE, fk, fk_jacobian, gravity_torques, save_geometry
+from .lib.frames import measured_rotations
+from .lib.identify import corrected, errors_3d, geometry_jacobian, in_units, orientation_errors, orientation_weight
+from .lib.kinematics import (DTYPE, angular_jacobian, fk, fk_jacobian, fk_pose, gravity_torques, rotation_error,
+                             save_geometry)
 from .lib.robots import load_robot
 
 log = logger(__name__)
@@ -52,26 +54,42 @@ def thermal_reference(train: pd.DataFrame, cfg: dict) -> dict | None:
             "cte_per_k": cfg["cte_per_k"]}
 
 
+def chain_residual(q: torch.Tensor, g: dict, meas: np.ndarray, R_meas: np.ndarray | None, weight: float):
+    """What the chain g leaves at poses q, with its Jacobian in the joint angles: r (n, 3) mm and J (n, 3, 6),
+    or with measured orientations R_meas (n, 6) and (n, 6, 6): the weighted (mm/rad) orientation rows below
+    (identify.residual_rows' layout, measured minus modelled)."""
+    with torch.no_grad():
+        p_g, J = (v.numpy() for v in fk_jacobian(q, g))
+        if R_meas is None:
+            return meas - p_g, J
+        R_g = fk_pose(q, g)[1]
+        e = rotation_error(torch.as_tensor(R_meas, dtype=DTYPE), R_g).numpy()
+        Jw = angular_jacobian(q, g).numpy()
+    return np.hstack([meas - p_g, weight * e]), np.concatenate([J, weight * Jw], 1)
+
+
 def fit_parts(df: pd.DataFrame, g: dict, identified: list, cfg: dict, calibrate_cfg: dict, passes: int = 2):
     """The error maps and the corrections of the calibration's identified parameters, fitted jointly on
-    df's train split (Gauss-Newton passes about the corrected geometry). Returns (geometry with the
-    maps, maps, report, {parameter: correction})."""
+    df's train split (Gauss-Newton passes about the corrected geometry), on positions and, where the
+    table has them, orientations. Returns (geometry with the maps, maps, report, {parameter: correction})."""
     tr = (df.split == "train").to_numpy()
     q_deg = df[JOINTS_DEG].to_numpy()[tr]
     q = torch.as_tensor(np.radians(q_deg), dtype=DTYPE)
     meas = df[MEAS].to_numpy()[tr]
+    R_meas = measured_rotations(df[tr])
+    weight = None if R_meas is None else orientation_weight(calibrate_cfg["pose_noise"])
     total = None
     for _ in range(passes):
+        r, J = chain_residual(q, g, meas, R_meas, weight)
         with torch.no_grad():
-            p_g, J = (v.numpy() for v in fk_jacobian(q, g))
             tau = gravity_torques(q, g).numpy()
-        Jg, spec = geometry_jacobian(q, g, calibrate_cfg, identified)
-        maps, report, dx = errormaps.fit(q_deg, tau, J, meas - p_g, cfg, Jg)
+        Jg, spec = geometry_jacobian(q, g, calibrate_cfg, identified, weight)
+        maps, report, dx = errormaps.fit(q_deg, tau, J, r, cfg, Jg)
         g = corrected(g, spec, dx)
         total = dx if total is None else total + dx
     report["relearned_share"] = {}
     X, _ = errormaps.design(q_deg, tau, J, maps)
-    Jall, _ = geometry_jacobian(q, g, calibrate_cfg)
+    Jall, _ = geometry_jacobian(q, g, calibrate_cfg, None, weight)
     o = 0
     for b in report["blocks"]:
         m = b["coefficients"]
@@ -96,6 +114,13 @@ def run(params: dict) -> dict:
     split = {s: (df.split == s).to_numpy() for s in SPLITS}
     report["splits"] = {s: {"n": int(m.sum()), "calibrated": errors_3d(p_cal[m], meas[m]),
                             "calibrated_parts": errors_3d(p_parts[m], meas[m])} for s, m in split.items() if m.any()}
+    R_meas = measured_rotations(df)
+    if R_meas is not None:                             # the orientation's error too, where measured
+        R_cal, R_parts = (fk_pose(q, gg)[1].numpy() for gg in (cal.geometry, g))
+        for s, m in split.items():
+            if m.any():
+                report["splits"][s]["calibrated"]["orientation"] = orientation_errors(R_cal[m], R_meas[m])
+                report["splits"][s]["calibrated_parts"]["orientation"] = orientation_errors(R_parts[m], R_meas[m])
     val = report["splits"].get("val", report["splits"]["train"])
     report["enabled"] = bool(maps) and val["calibrated_parts"]["mean_mm"] < val["calibrated"]["mean_mm"]
     if maps and not report["enabled"]:

@@ -3,7 +3,8 @@
 theory = nominal DH + tool (tool from reports/frame.json: fixed or estimated; the point's
          station's own with frame.tool_per_station),
 meas   = R^T (P_world - t) with the fitted frame of the point's station (inverse of eq. 20),
-err    = meas - theory, what the network learns.
+err    = meas - theory, what the network learns;
+meas_q* = the measured orientation in the base frame, R^T R_world (where the campaign has it).
 Points the frame fit rejected as gross outliers are dropped here and listed
 in reports/theory.json with their residual.
 """
@@ -12,9 +13,9 @@ import pandas as pd
 
 from .lib.artifacts import FRAME_JSON, INGEST_TABLE, POINTS_TABLE, THEORY_JSON
 from .lib.cli import one_line
-from .lib.columns import CAMPAIGN, ERR, JOINTS_DEG, MEAS, STATION, THEORY
+from .lib.columns import CAMPAIGN, ERR, JOINTS_DEG, MEAS, MEAS_Q, STATION, THEORY
 from .lib.config import for_stage, load_params, logger, read_json, write_json
-from .lib.frames import to_base
+from .lib.frames import measured_rotations, quaternions, to_base
 from .lib.geometry import theory_geometry
 from .lib.kinematics import fk_numpy
 from .lib.robots import load_robot
@@ -35,6 +36,13 @@ def run(params: dict) -> dict:
         meas[m] = to_base(df.loc[m, MEAS].to_numpy(), f)
     out[THEORY], out[MEAS] = theo, meas
     out[ERR] = out[MEAS].to_numpy() - out[THEORY].to_numpy()
+    R_world = measured_rotations(df)
+    if R_world is not None:
+        R_base = np.empty_like(R_world)
+        for s, f in frame["stations"].items():
+            m = (df[STATION] == s).to_numpy()
+            R_base[m] = np.einsum("ji,njk->nik", np.asarray(f["R"]), R_world[m])
+        out[MEAS_Q] = quaternions(R_base)
     bad = out["point_id"].isin(frame["outliers"])
     dropped = [{"point_id": p, "reason": "frame outlier",
                 "residual_mm": frame["outlier_residual_mm"][p]} for p in out.loc[bad, "point_id"]]

@@ -29,16 +29,19 @@ from .lib.columns import JOINTS_DEG, MEAS
 from .lib.config import check_keys, for_stage, load_params, logger, read_json, write_json
 from .lib.errormaps import angle_covered
 from .lib.geometry import Calibration, at_temperature, theory_geometry, with_parts
-from .lib.kinematics import DTYPE, fk_numpy, flange_rotations
+from .lib.frames import measured_rotations
+from .lib.identify import orientation_weight
+from .lib.kinematics import DTYPE, TOOL_ROT, fk_numpy, fk_pose, flange_rotations
 from .lib.presets import deep_merge
 from .lib.readers import ingest
 from .lib.robots import load_robot
 from .lib.training import load_model, predict
-from .lib.validation import METHODS, judge, position_accuracy, summary
+from .lib.tcp import probe_offsets
+from .lib.validation import METHODS, judge, judge_poses, position_accuracy, summary
 from .lib.workspace import Workspace
 
 log = logger(__name__)
-PARAMS = {"campaign": ("robot", "ingest", "frame", "validate", "compensate"),      # validate@NAME
+PARAMS = {"campaign": ("robot", "ingest", "frame", "calibrate", "validate", "compensate"),      # validate@NAME
           "summary": ("validate",)}                                # validation
 
 
@@ -134,9 +137,11 @@ def run_campaign(params: dict, name: str) -> dict:
     qt = torch.as_tensor(np.radians(q), dtype=DTYPE)
     with torch.no_grad():
         flange = {m: flange_rotations(qt, g).numpy() for m, g in geometries.items()}
+        R_world = measured_rotations(df) if TOOL_ROT in cal.geometry else None    # where trained with orientation
+        probe = None if R_world is None else {m: fk_pose(qt, g)[1].numpy() for m, g in geometries.items()}
     P = df[MEAS].to_numpy()
     errors, registered, frames = judge(pred, P, c["frame"], frame, cfg["register_points"], frame_cfg, flange,
-                                       cfg["tool_rank_tol"])
+                                       cfg["tool_rank_tol"], probe, R_world, orientation_weight(p["calibrate"]["pose_noise"]))
     ws = Workspace.from_dict(read_json(WORKSPACE_JSON))
     u, inside = ws(q)
     u = np.sqrt(u ** 2 + frames["model"].get("registration_rms_mm", 0.0) ** 2)     # validation.py: the campaign's own
@@ -149,6 +154,17 @@ def run_campaign(params: dict, name: str) -> dict:
     out["registration"] = {m: {"tool_offset_mm": f["tool_offset_mm"], "tool_held": f.get("tool_held"),
                                "rms_mm": f.get("registration_rms_mm")} for m, f in frames.items()}
     out["thermal"] = thermal
+    if R_world is not None:                          # the orientation and the tools, where measured
+        out["pose"] = judge_poses(pred, probe, flange, frames, P, R_world, probe_offsets(p["robot"]["tcp"], cal.geometry),
+                                  ~registered)
+        for m, f in frames.items():
+            if "probe_rotation" in f:
+                out["registration"][m]["probe_rotation_arcsec"] = float(
+                    Rotation.from_matrix(f["probe_rotation"]).magnitude() * 206264.806)
+        r = out["pose"]["model"]
+        log.info("%s: model orientation %.0f arcsec mean (p95 %.0f); TCP mean %s mm", name,
+                 r["orientation"]["mean_arcsec"], r["orientation"]["p95_arcsec"],
+                 {k: round(v["mean_mm"], 4) for k, v in r["tcp"].items()})
     if c["commanded"]:                               # each method's base frame, the marker back on the training tool
         measured = {m: (P - frames[m]["t"]) @ frames[m]["R"] - np.einsum("mij,j->mi", flange[m],
                                                                           frames[m]["tool_offset_mm"])

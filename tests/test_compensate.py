@@ -70,7 +70,7 @@ def test_adam_reaches_the_papers_stop_criterion(model):
 
 def test_lm_respects_joint_limits(model):
     q0, tgt = targets(model, n=5)
-    tight = load_robot({"model": "ur5", "joint_limits_deg": [[lo - 0.01, lo + 0.01] for lo in q0[0]], "dh": None, "tool_mm": [0.0, 0.0, 0.0]})
+    tight = load_robot({"model": "ur5", "joint_limits_deg": [[lo - 0.01, lo + 0.01] for lo in q0[0]], "dh": None, "tool_mm": [0.0, 0.0, 0.0], "tcp": None})
     q, *_ = compensate(model, q0[:1], tgt[:1], CFG, tight, "lm")
     assert (np.abs(q[0] - q0[0]) <= 0.01 + 1e-9).all()
 

@@ -75,7 +75,7 @@ def test_frame_with_tool_estimation_recovers_tool():
     rng = np.random.default_rng(3)
     q = rng.uniform([-60, -120, -120, -180, 30, -180], [60, -30, 120, 0, 150, 180], (150, 6))
     tool_true = np.array([1.5, -2.0, 108.0])
-    true = load_robot({"model": "ur5", "tool_mm": tool_true, "dh": None, "joint_limits_deg": None})
+    true = load_robot({"model": "ur5", "tool_mm": tool_true, "dh": None, "joint_limits_deg": None, "tcp": None})
     P = world(fk_numpy(q, true), rng, noise=0.02)
     cfg = {"outlier_k": 5.0, "outlier_min_mm": 3.0, "estimate_tool": True, "tool_per_station": False,
            "robust_loss": "soft_l1", "robust_scale_mm": 0.5, "max_rms_mm": 50.0}
@@ -99,7 +99,7 @@ def run_stages(tmp_path, monkeypatch, header="Name,X,Y,Z", scale=1.0, **ingest_c
     scaled; returns ingest's summary (frame's exception propagates)."""
     t = pd.read_csv(ROOT / "data" / "raw" / "tracker.csv")
     t[["X", "Y", "Z"]] *= scale
-    t.columns = header.split(",")
+    t.columns = header.split(",") + list(t.columns[4:])          # the probe orientation QW..QZ kept
     t.to_csv(tmp_path / "tracker.csv", index=False, float_format="%.4f")
     p = copy.deepcopy(PARAMS)
     p["ingest"].update(joints=str(ROOT / "data" / "raw" / "joints.csv"), tracker=str(tmp_path / "tracker.csv"),

@@ -1,17 +1,21 @@
 """Ingest stage: formats, units, pairing, dropped rows, fatal errors, real datasets."""
+import hashlib
 import json
 import re
+import shutil
 import tempfile
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pytest
+import yaml
 from hypothesis import HealthCheck, event, example, given, settings
 from hypothesis import strategies as st
+from scipy.spatial.transform import Rotation
 
-from pipeline.lib.columns import JOINTS_DEG, MEAS
-from pipeline.lib.config import load_params
+from pipeline.lib.columns import JOINTS_DEG, MEAS, MEAS_Q
+from pipeline.lib.config import ParamsError, load_params
 from pipeline.ingest import run
 from pipeline.lib import readers
 from pipeline.lib.readers import IngestError
@@ -35,7 +39,7 @@ def campaign(n=30, seed=0):
     """ids, joint angles (deg) and marker positions in a tracker frame (mm) of a noiseless UR5."""
     rng = np.random.default_rng(seed)
     q = rng.uniform(-170.0, 170.0, (n, 6))
-    p = fk_numpy(q, load_robot({"model": "ur5", "tool_mm": TOOL, "dh": None, "joint_limits_deg": None}))
+    p = fk_numpy(q, load_robot({"model": "ur5", "tool_mm": TOOL, "dh": None, "joint_limits_deg": None, "tcp": None}))
     R, _ = np.linalg.qr(rng.normal(size=(3, 3)))
     R *= np.sign(np.linalg.det(R))
     m = p @ R.T + np.array([1500.0, -300.0, 800.0])
@@ -44,13 +48,17 @@ def campaign(n=30, seed=0):
 
 def params(**ingest_cfg):
     cfg = {"joints": "joints.csv", "tracker": "tracker.csv", "skip_lines": 0, "sep": "auto",
-           "decimal": "auto", "angle_unit": "deg", "length_unit": "mm",
-           "columns": {"point_id": None, "joints": None, "position": None}, "gross_outlier_mm": 50.0}
+           "decimal": "auto", "angle_unit": "deg", "length_unit": "mm", "columns": {}, "gross_outlier_mm": 50.0,
+           "orientation": {"kind": "euler", "sequence": "XYZ", "angle_unit": "deg", "scalar_first": True},
+           "target": None, "target_residual_mm": 0.5}
     if "table" in ingest_cfg:                         # one table: the same file in both
         ingest_cfg["joints"] = ingest_cfg["tracker"] = ingest_cfg.pop("table")
-    cfg.update(ingest_cfg)
-    cfg["columns"] = {"point_id": None, "joints": None, "position": None, **cfg["columns"]}
-    return {"robot": {"model": "ur5", "tool_mm": TOOL, "dh": None, "joint_limits_deg": None}, "ingest": cfg,
+    orientation = {**cfg["orientation"], **ingest_cfg.pop("orientation", {})}
+    cfg.update(ingest_cfg, orientation=orientation)
+    cfg["columns"] = {"point_id": None, "joints": None, "position": None, "orientation": None, "marker": None,
+                      **cfg["columns"]}
+    return {"robot": {"model": "ur5", "tool_mm": TOOL, "dh": None, "joint_limits_deg": None, "tcp": None},
+            "ingest": cfg,
             "campaigns": {"name": "main", "station": "main", "more": {}}}
 
 
@@ -626,3 +634,293 @@ def test_utf16_is_read_and_a_quoted_line_break_is_said_as_such(tmp_path, monkeyp
     assert run(params())["n_kept"] == 20
     Path(t).write_text(Path(t).read_text(encoding="utf-16").replace(f"{ids[3]},", f'"{ids[3]}\nx",', 1))
     raises(["tracker.csv, row 5", "a quoted cell holds a line break"], run, params())
+
+
+# ---------------------------------------------------------------- issue 34: the probe's orientation
+
+def write_oriented(d, ids, q, m, headers, cells, table=False):
+    """joints.csv and tracker.csv with orientation columns `headers` (cells (n, k)) after X, Y, Z; table:
+    one file holding both."""
+    joints, tracker = write_pair(d, ids, q, m)
+    text = [[c if isinstance(c, str) else num(c) for c in row] for row in cells]
+    if table:
+        rows = [[ids[k], *map(num, q[k]), *map(num, m[k]), *text[k]] for k in range(len(ids))]
+        return write(Path(d) / "table.csv", ["point_id", *JOINTS_DEG, "X", "Y", "Z", *headers], rows)
+    rows = [[ids[k], *map(num, m[k]), *text[k]] for k in range(len(ids))]
+    return joints, write(Path(d) / "tracker.csv", ["Name", "X", "Y", "Z", *headers], rows)
+
+
+def rotations(q: np.ndarray) -> np.ndarray:
+    """(n, 4) w, x, y, z -> (n, 3, 3)."""
+    return Rotation.from_quat(q, scalar_first=True).as_matrix()
+
+
+def max_angle(R1, R2) -> float:
+    """The largest angle (rad) between two stacks of rotations."""
+    return float((Rotation.from_matrix(R1).inv() * Rotation.from_matrix(R2)).magnitude().max())
+
+
+EULER = ["rx", "ry", "rz"]
+
+
+@pytest.mark.parametrize("kind, headers, orient", [
+    ("euler", EULER, {"kind": "euler", "sequence": "XYZ", "angle_unit": "deg"}),
+    ("euler", EULER, {"kind": "euler", "sequence": "xyz", "angle_unit": "rad"}),
+    ("quaternion", ["qx", "qy", "qz", "qw"], {"kind": "quaternion", "scalar_first": False}),
+    ("matrix", [f"r{i}{j}" for i in (1, 2, 3) for j in (1, 2, 3)], {"kind": "matrix"}),
+])
+def test_orientation_columns_become_unit_quaternions(tmp_path, kind, headers, orient):
+    ids, q, m = campaign(20, seed=11)
+    truth = Rotation.random(20, random_state=3)
+    if kind == "euler":
+        cells = truth.as_euler(orient["sequence"], degrees=orient["angle_unit"] == "deg")
+        if orient["sequence"] == "XYZ":    # row 0: intrinsic XYZ (90, 0, 90) = Rx(90) Rz(90), by hand
+            cells[0] = [90.0, 0.0, 90.0]
+            truth = Rotation.concatenate([Rotation.from_matrix([[0, -1, 0], [0, 0, -1], [1, 0, 0]]), truth[1:]])
+    elif kind == "quaternion":
+        cells = truth.as_quat() * np.where(np.arange(20) % 2, -1.0, 1.0)[:, None]   # scalar last, either sign
+    else:
+        cells = truth.as_matrix().reshape(20, 9)
+    joints, tracker = write_oriented(tmp_path, ids, q, m, headers, cells)
+    df, s = ingest(params(joints=joints, tracker=tracker, columns={"orientation": headers}, orientation=orient))
+    assert list(df.columns[:14]) == ["point_id", *JOINTS_DEG, *MEAS, *MEAS_Q] and s["n_kept"] == 20
+    Q = df[MEAS_Q].to_numpy()
+    assert np.allclose(np.linalg.norm(Q, axis=1), 1.0, atol=1e-12) and (Q[:, 0] >= 0).all()
+    assert max_angle(rotations(Q), truth.as_matrix()) < 1e-9
+    if kind == "euler" and orient["sequence"] == "XYZ":
+        assert np.allclose(rotations(Q[:1])[0], [[0, -1, 0], [0, 0, -1], [1, 0, 0]], atol=1e-12)
+    assert not set(headers) & set(df.columns)                               # read, not kept as extras
+    assert s["units"]["orientation"] == {"columns": headers, "kind": kind, **{k: v for k, v in orient.items()
+                                                                               if k != "kind"},
+                                         "to": "meas_qw, meas_qx, meas_qy, meas_qz: unit quaternion (w >= 0) "
+                                               "of the probe -> tracker rotation"}
+    assert s["files"]["tracker"]["columns"] == ["X", "Y", "Z", *headers]
+
+
+@pytest.mark.parametrize("table", [False, True])
+def test_a_bad_quaternion_is_dropped_with_its_row_and_reason(tmp_path, table):
+    ids, q, m = campaign(20, seed=12)
+    cells = [[num(v) for v in row] for row in Rotation.random(20, random_state=4).as_quat(scalar_first=True)]
+    cells[4] = ["1.1", "0", "0", "0"]                                       # norm 1.1: no rotation
+    cells[6] = ["0.9995", "0", "0", "0"]                                    # within 1e-3: kept
+    cells[9][2] = ""                                                        # an empty cell, named like a position's
+    headers = ["qw", "qx", "qy", "qz"]
+    files = write_oriented(tmp_path, ids, q, m, headers, cells, table=table)
+    cfg = dict(table=files) if table else dict(joints=files[0], tracker=files[1])
+    df, s = ingest(params(**cfg, columns={"orientation": headers}, orientation={"kind": "quaternion"}))
+    path = files if table else files[1]
+    own = {(d["row"], d["reason"]): d for d in by_file(s, path)}
+    assert sorted(own) == [(6, "bad_rotation"), (11, "empty")]
+    assert own[(6, "bad_rotation")]["point_id"] == "P0005"
+    assert own[(6, "bad_rotation")]["detail"] == ("columns 'qw', 'qx', 'qy', 'qz': quaternion norm 1.1, not 1 "
+                                                  "(tolerance 0.001)")
+    assert own[(11, "empty")]["detail"] == "column 'qy': empty cell"
+    if not table:
+        assert sorted((d["row"], d["reason"]) for d in by_file(s, files[0])) == [(6, "partner_dropped"),
+                                                                                 (11, "partner_dropped")]
+    assert s["n_kept"] == len(df) == 18 and "P0005" not in set(df.point_id)
+    assert np.allclose(df.loc[df.point_id == "P0007", MEAS_Q].to_numpy(), [[1, 0, 0, 0]])
+    assert s["dropped_counts"]["bad_rotation"] == 1
+    twice = write_oriented(tmp_path, ids, q, m, headers, 2 * Rotation.random(20, random_state=4).as_quat(), table=table)
+    raises([twice if table else twice[1], "row 2", "column 'qw'", "quaternion norm 2", "20 of 20 rows are no rotation",
+            "check ingest.orientation (kind quaternion)"], ingest,
+           params(**(dict(table=twice) if table else dict(joints=twice[0], tracker=twice[1])),
+                  columns={"orientation": headers}, orientation={"kind": "quaternion"}))
+
+
+def test_orientation_settings_are_checked_naming_the_key(tmp_path):
+    ids, q, m = campaign(12)
+    joints, tracker = write_oriented(tmp_path, ids, q, m, EULER, np.zeros((12, 3)))
+    base = dict(joints=joints, tracker=tracker)
+    for key, value, message in [("sequence", "XYW", "ingest.orientation.sequence: three axes"),
+                                ("sequence", "XXY", "ingest.orientation.sequence"),
+                                ("sequence", "XyZ", "ingest.orientation.sequence"),
+                                ("kind", "euler_angles", "ingest.orientation.kind: euler, quaternion or matrix"),
+                                ("angle_unit", "grad", "ingest.orientation.angle_unit: deg or rad"),
+                                ("scalar_first", "yes", "ingest.orientation.scalar_first")]:
+        with pytest.raises(ParamsError, match=re.escape(f"params.yaml {message}")):
+            ingest(params(**base, columns={"orientation": EULER}, orientation={key: value}))
+    with pytest.raises(ParamsError, match=r"params.yaml ingest.columns.orientation: null, or 3"):
+        ingest(params(**base, columns={"orientation": ["rx", "ry"]}))
+    with pytest.raises(ParamsError, match=r"params.yaml ingest.target: .* at least 3 markers"):
+        ingest(params(**base, columns={"marker": "Name"}, target={"markers": {"a": [0, 0, 0], "b": [1, 0, 0]}}))
+    with pytest.raises(ParamsError, match=r"params.yaml ingest.target_residual_mm: a distance > 0 mm"):
+        ingest(params(**base, target_residual_mm=0))
+    raises(["params.yaml", "ingest.columns.orientation has 3 headers but ingest.orientation.kind quaternion "
+            "reads 4"], ingest, params(**base, columns={"orientation": EULER}, orientation={"kind": "quaternion"}))
+    raises(["ingest.target is a multi-marker target's geometry: set ingest.columns.marker"], ingest,
+           params(**base, target={"markers": {"a": [0, 0, 0], "b": [1, 0, 0], "c": [0, 1, 0]}}))
+    raises(["set one of the two"], ingest, params(**base, columns={"orientation": EULER, "marker": "Name"}))
+    raises([tracker, "missing orientation column 'rw'"], ingest,
+           params(**base, columns={"orientation": ["rx", "ry", "rw"]}))
+    cloud = tmp_path / "points.xyz"
+    cloud.write_text("\n".join(" ".join(map(num, p)) for p in m) + "\n")
+    raises([str(cloud), "a point cloud holds positions only", "ingest.columns.orientation needs a tracker table"],
+           ingest, params(joints=joints, tracker=str(cloud), columns={"orientation": EULER}))
+    table = write_oriented(tmp_path, ids, q, m, EULER, np.zeros((12, 3)), table=True)
+    raises(["ingest.columns.marker", "needs its own tracker file"], ingest,
+           params(table=table, columns={"marker": "rx"}))
+
+
+def test_rotation_columns_are_never_guessed(tmp_path):
+    """Orientation is read only when columns.orientation names it: rotation columns stay extras, no meas_q*,
+    no units.orientation."""
+    ids, q, m = campaign(15, seed=13)
+    joints, tracker = write_oriented(tmp_path, ids, q, m, ["Rx", "Ry", "Rz"], np.ones((15, 3)))
+    df, s = ingest(params(joints=joints, tracker=tracker))
+    assert list(df.columns) == ["point_id", *JOINTS_DEG, *MEAS, "Rx", "Ry", "Rz"]
+    assert "orientation" not in s["units"] and "target" not in s
+
+
+def test_the_bundled_campaign_ingests_to_the_bytes_dvc_lock_records(tmp_path, monkeypatch):
+    """A campaign without orientation: the ingest stage writes the same table and ingest.json, byte for
+    byte, as before the orientation settings (dvc.lock's md5 of both)."""
+    p = load_params(ROOT / "params.yaml")
+    files = [p["ingest"][k] for k in ("joints", "tracker")]
+    if p["campaigns"]["more"] or not all(str(f).startswith("data/raw/") for f in files):
+        pytest.skip("params.yaml is not on the bundled campaign (a preset or experiment applied)")
+    monkeypatch.chdir(tmp_path)
+    for f in files:
+        (tmp_path / f).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy(ROOT / f, tmp_path / f)
+    run(p)
+    lock = {o["path"]: o["md5"] for o in ingest_lock()["outs"]}
+    for path in ("data/interim/ingest.parquet", "reports/ingest.json"):
+        assert hashlib.md5(Path(path).read_bytes()).hexdigest() == lock[path], path
+
+
+def test_a_campaign_with_orientation_joins_one_without(tmp_path, monkeypatch):
+    """campaigns.more: the further campaign measures orientation, the ingest section's does not: meas_q*
+    follow meas_z, NaN on the points without."""
+    from pipeline.ingest import run_campaign
+    monkeypatch.chdir(tmp_path)
+    ids, q, m = campaign(15, seed=14)
+    write_pair(tmp_path, ids, q, m)
+    (tmp_path / "b").mkdir()
+    quat = Rotation.random(15, random_state=5).as_quat(scalar_first=True)
+    joints, tracker = write_oriented(tmp_path / "b", ids, q, m, ["qw", "qx", "qy", "qz"], quat)
+    p = params()
+    p["campaigns"]["more"] = {"b": {"station": "main", "ingest": {
+        "joints": joints, "tracker": tracker, "columns": {"orientation": ["qw", "qx", "qy", "qz"]},
+        "orientation": {"kind": "quaternion"}}}}
+    run_campaign(p, "b")
+    run(p)
+    df = pd.read_parquet("data/interim/ingest.parquet")
+    assert list(df.columns) == ["point_id", *JOINTS_DEG, *MEAS, *MEAS_Q, "campaign", "station"]
+    assert df.loc[df.campaign == "main", MEAS_Q].isna().all().all()
+    assert max_angle(rotations(df.loc[df.campaign == "b", MEAS_Q].to_numpy()),
+                     Rotation.from_quat(quat, scalar_first=True).as_matrix()) < 1e-12
+
+
+def ingest_lock() -> dict:
+    """dvc.lock's entry of the ingest stage."""
+    return yaml.safe_load((ROOT / "dvc.lock").read_text())["stages"]["ingest"]
+
+
+# ---------------------------------------------------------------- issue 34: a rigid multi-marker target
+
+TARGET = {"A": [60.0, 0.0, 10.0], "B": [0.0, 70.0, -5.0], "C": [-50.0, -40.0, 20.0], "D": [10.0, 20.0, 80.0]}
+
+
+def marker_campaign(n=30, noise=0.02, seed=8, unit=1.0):
+    """A 4-marker target (TARGET, mm in its frame) at n poses: its origin at the robot's marker position,
+    turned at random; tracker rows (Name, Marker, X, Y, Z, Time, Std), one per marker, noise in mm,
+    positions in mm times `unit` -> (ids, joint angles, origins, rotations, rows)."""
+    ids, q, m = campaign(n, seed)
+    R = Rotation.random(n, random_state=seed).as_matrix()
+    rng = np.random.default_rng(seed)
+    rows = [[ids[k], name, *map(num, (R[k] @ g + m[k] + rng.normal(0, noise, 3)) * unit), f"t{k}",
+             num(rng.uniform())] for k in range(n) for name, g in TARGET.items()]
+    return ids, q, m, R, rows
+
+
+@pytest.mark.parametrize("given, unit", [(True, "mm"), (False, "mm"), (True, "m")])
+def test_a_multi_marker_target_gives_each_pose(tmp_path, given, unit):
+    """TrackScan style: four rows per pose, one per marker; the pose by Kabsch against ingest.target (its
+    origin) or against the geometry estimated from the poses (the markers' centroid)."""
+    scale = 1e-3 if unit == "m" else 1.0
+    ids, q, m, R, rows = marker_campaign(unit=scale)
+    at = lambda pid, name: next(i for i, r in enumerate(rows) if r[:2] == [pid, name])   # noqa: E731
+    del rows[at("P0008", "B"): at("P0008", "D")]                            # P0008: 2 markers left (A, D)
+    rows[at("P0013", "C")][4] = num(float(rows[at("P0013", "C")][4]) + 2.0 * scale)   # P0013's C: 2 mm off in Z
+    rows.append(list(rows[at("P0021", "D")]))                               # P0021's D again
+    assert (at("P0008", "A"), at("P0013", "C"), at("P0021", "D")) == (28, 48, 81)   # file lines: + 2
+    joints, _ = write_pair(tmp_path, ids, q, m)
+    tracker = write(tmp_path / "targets.csv", ["Name", "Marker", "X", "Y", "Z", "Time", "Std"], rows)
+    cfg = params(joints=joints, tracker=tracker, columns={"marker": "marker"}, length_unit=unit,
+                 target={"markers": TARGET} if given else None)
+    df, s = ingest(cfg)
+
+    got = sorted((d["file"] == tracker, d["row"], d["reason"], d["point_id"]) for d in s["dropped"])
+    assert got == [(False, 9, "partner_dropped", "P0008"),
+                   (True, 30, "too_few_markers", "P0008"), (True, 31, "too_few_markers", "P0008"),
+                   (True, 50, "marker_residual", "P0013"), (True, 120, "duplicate", "P0021")]
+    detail = {(d["row"], d["reason"]): d["detail"] for d in by_file(s, tracker)}
+    assert detail[(30, "too_few_markers")] == "2 usable marker(s), need 3"
+    off = detail[(50, "marker_residual")]
+    assert off.startswith("marker 'C' is ") and float(off.split()[3]) > 1.0 and "limit 0.5 mm" in off
+    assert detail[(120, "duplicate")] == "id 'P0021' marker 'D' already on row 83"
+    assert s["n_read"] == {"joints": 30, "tracker": 119} and s["n_kept"] == len(df) == 29
+    assert s["files"]["tracker"]["n_rows"] == 119
+    assert 29 * 4 - 1 + len(by_file(s, tracker)) == 119                     # every row: in a kept pose or listed
+
+    keep = [k for k in range(30) if k != 7]
+    assert list(df.point_id) == [ids[k] for k in keep]
+    Q, origin = rotations(df[MEAS_Q].to_numpy()), df[MEAS].to_numpy()
+    if given:                                          # the target frame: ingest.target's origin and axes
+        expect_origin, expect_R = m[keep], R[keep]
+    else:                                              # the markers' centroid; the first pose's axes (C)
+        centroid = np.mean(list(TARGET.values()), axis=0)
+        expect_origin = m[keep] + R[keep] @ centroid
+        C = (Rotation.from_matrix(R[keep]).inv() * Rotation.from_matrix(Q)).mean().as_matrix()
+        expect_R = R[keep] @ C
+        assert max_angle(C[None], R[:1].transpose(0, 2, 1)) < 1e-3            # = R_0ᵀ: the tracker's axes at pose 0
+    assert np.abs(origin - expect_origin).max() < 0.05
+    assert max_angle(Q, expect_R) < 1e-3
+    assert list(df.columns[14:]) == ["Time"]                                # per pose kept, per marker (Std) not
+    assert list(df["Time"]) == [f"t{k}" for k in keep]
+    t = s["target"]
+    assert (t["marker_column"], t["geometry"], t["n_poses_fitted"], t["residual_limit_mm"]) == (
+        "Marker", "given" if given else "estimated", 29, 0.5)
+    assert t["residual_mm"]["max"] < 0.2 and sorted(t["markers_mm"]) == ["A", "B", "C", "D"]
+    assert s["units"]["orientation"]["kind"] == "target"
+
+
+def test_a_target_marker_not_in_the_geometry_stops(tmp_path):
+    ids, q, m, R, rows = marker_campaign(12, seed=9)
+    rows[5][1] = "E"
+    joints, _ = write_pair(tmp_path, ids, q, m)
+    tracker = write(tmp_path / "targets.csv", ["Name", "Marker", "X", "Y", "Z", "Time", "Std"], rows)
+    raises([tracker, "row 7", "column 'Marker'", "marker 'E' is not in ingest.target.markers (A, B, C, D)"],
+           ingest, params(joints=joints, tracker=tracker, columns={"marker": "Marker"}, target={"markers": TARGET}))
+    line = {"A": [0, 0, 0], "B": [10, 0, 0], "C": [30, 0, 0], "D": [40, 0, 0], "E": [50, 0, 0]}
+    raises(["params.yaml", "ingest.target.markers: the markers lie on a line"], ingest,
+           params(joints=joints, tracker=tracker, columns={"marker": "Marker"}, target={"markers": line}))
+    for r in range(0, len(rows), 8):
+        rows[r][1] = "E"                                                   # A -> E every other pose: none holds all
+    tracker = write(tmp_path / "targets.csv", ["Name", "Marker", "X", "Y", "Z", "Time", "Std"], rows)
+    raises([tracker, "no pose holds all 5 markers", "give it in ingest.target"], ingest,
+           params(joints=joints, tracker=tracker, columns={"marker": "Marker"}))
+
+
+def test_real_ipa_ur10_orientation(monkeypatch):
+    """Series_C with the preset: the T-Mac's measurement_rx/ry/rz (degrees, intrinsic XYZ) as unit
+    quaternions; the first row's is scipy's from_euler('XYZ', its three cells, degrees=True)."""
+    p = real("ipa-ur10", "ipa-ur10/Series_C/measurements_random_poses.csv")
+    monkeypatch.chdir(ROOT)
+    df, s = ingest(p)
+    assert s["n_kept"] == 2773 and s["dropped"] == []
+    Q = df[MEAS_Q].to_numpy()
+    assert np.abs(np.linalg.norm(Q, axis=1) - 1).max() < 1e-12 and (Q[:, 0] >= 0).all()
+    header, first = (ln.split(";") for ln in (DATASETS / "ipa-ur10/Series_C/measurements_random_poses.csv")
+                     .read_text().splitlines()[:2])
+    angles = [float(first[header.index(h)].replace(",", ".")) for h in ("measurement_rx", "measurement_ry",
+                                                                          "measurement_rz")]
+    assert angles == [-90.179563, -20.112975, -90.157388]
+    expect = Rotation.from_euler("XYZ", angles, degrees=True)
+    assert max_angle(rotations(Q[:1]), expect.as_matrix()[None]) < 1e-12
+    assert max_angle(rotations(Q[:1]), Rotation.from_euler("xyz", angles, degrees=True).as_matrix()[None]) > 0.1
+    assert s["units"]["orientation"] == {"columns": ["measurement_rx", "measurement_ry", "measurement_rz"],
+                                         "kind": "euler", "sequence": "XYZ", "angle_unit": "deg",
+                                         "to": s["units"]["orientation"]["to"]}
+    assert "measurement_rx" not in df.columns and "measurement_std_rx" in df.columns

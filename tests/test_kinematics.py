@@ -41,7 +41,7 @@ def test_ur10_zero_pose():
 
 def test_tool_offset_follows_the_flange():
     # zero pose: flange z axis is base -y, flange x is base -x (checked by hand: R = Rx(π/2)·Rx(π/2)·Rx(-π/2))
-    tool = load_robot({"model": "ur5", "tool_mm": [0, 0, 100], "dh": None, "joint_limits_deg": None})
+    tool = load_robot({"model": "ur5", "tool_mm": [0, 0, 100], "dh": None, "joint_limits_deg": None, "tcp": None})
     p0, p1 = fk_numpy(np.zeros((1, 6)), UR5)[0], fk_numpy(np.zeros((1, 6)), tool)[0]
     np.testing.assert_allclose(p1 - p0, [0, -100, 0], atol=1e-9)
 
@@ -66,19 +66,19 @@ def test_chain_is_differentiable_in_joints_and_geometry():
 def test_custom_robot_and_bad_tables():
     custom = load_robot({"model": "custom", "dh": {"d": list(UR5.d), "a": list(UR5.a),
                                                     "alpha_deg": [90, 0, 0, 90, -90, 0], "offset_deg": [0] * 6},
-                         "joint_limits_deg": None, "tool_mm": [0, 0, 0]})
+                         "joint_limits_deg": None, "tcp": None, "tool_mm": [0, 0, 0]})
     np.testing.assert_allclose(fk_numpy(np.zeros((1, 6)), custom), fk_numpy(np.zeros((1, 6)), UR5))
     with pytest.raises(ValueError, match="unknown robot 'ur4'"):
         nominal_robot("ur4")
     with pytest.raises(ValueError, match=r"custom robot needs \['alpha_deg', 'offset_deg'\]"):
-        load_robot({"model": "custom", "dh": {"d": [0] * 6, "a": [0] * 6}, "joint_limits_deg": None,
+        load_robot({"model": "custom", "dh": {"d": [0] * 6, "a": [0] * 6}, "joint_limits_deg": None, "tcp": None,
                     "tool_mm": [0, 0, 0]})
     with pytest.raises(ValueError, match=r"robot: unknown key\(s\) \['tool'\]; missing key\(s\) \['tool_mm'\]"):
-        load_robot({"model": "ur5", "dh": None, "joint_limits_deg": None, "tool": [0, 0, 0]})
+        load_robot({"model": "ur5", "dh": None, "joint_limits_deg": None, "tcp": None, "tool": [0, 0, 0]})
 
 
 def test_geometric_jacobian_equals_autograd_with_every_error_term():
-    g = nominal_geometry(load_robot({"model": "ur5", "tool_mm": [1.0, -2.0, 100.0], "dh": None, "joint_limits_deg": None}))
+    g = nominal_geometry(load_robot({"model": "ur5", "tool_mm": [1.0, -2.0, 100.0], "dh": None, "joint_limits_deg": None, "tcp": None}))
     gen = torch.Generator().manual_seed(3)
     rigid = {k: v + 1e-2 * torch.randn(v.shape, generator=gen, dtype=torch.float64)
              if k not in ("compliance", "mass", "com") else v for k, v in g.items()}
@@ -99,7 +99,7 @@ def test_geometric_jacobian_equals_autograd_with_every_error_term():
     J_auto = torch.func.vmap(torch.func.jacrev(lambda x: fk(x[None], elastic)[0]))(qk.detach())
     assert (J - J_auto).norm() < 0.01 * J_auto.norm()
     # nominal UR5: joint 6 turns the tool (1, -2, 100) about the flange z axis, on a radius of √5 mm
-    p, J = fk_jacobian(q, nominal_geometry(load_robot({"model": "ur5", "tool_mm": [1.0, -2.0, 100.0], "dh": None, "joint_limits_deg": None})))
+    p, J = fk_jacobian(q, nominal_geometry(load_robot({"model": "ur5", "tool_mm": [1.0, -2.0, 100.0], "dh": None, "joint_limits_deg": None, "tcp": None})))
     torch.testing.assert_close(J[:, :, 5].norm(dim=1), torch.full((8,), 5 ** 0.5, dtype=torch.float64))
 
 

@@ -175,7 +175,7 @@ def test_a_row_with_one_cell_too_many_is_refused_not_shifted(tmp_path):
     src = tmp_path / "prog.csv"
     src.write_text("point_id," + ",".join(JOINTS_DEG) + "\nP0029,-52.1,-65.6,126.2,-67.7,125.0,179.7\n" + ROW_30 + "\n")
     with pytest.raises(ValueError, match=r"prog.csv, row 3: 8 cells but the header has 7"):
-        read_waypoints(src, load_robot({"model": "ur5", "dh": None, "joint_limits_deg": None, "tool_mm": [0, 0, 0]}))
+        read_waypoints(src, load_robot({"model": "ur5", "dh": None, "joint_limits_deg": None, "tcp": None, "tool_mm": [0, 0, 0]}))
 
 
 def test_a_row_with_one_cell_too_many_is_refused_by_program_and_plan(in_trained_project, tmp_path, capsys):
@@ -244,7 +244,7 @@ def test_the_planner_refuses_a_target_the_arm_cannot_reach(in_trained_project, t
 
 def test_radian_columns_are_read_as_radians(tmp_path):
     """Issue 33: the program took degrees only, where ingest reads j*_rad and UR's actual_q_*."""
-    robot = load_robot({"model": "ur5", "dh": None, "joint_limits_deg": None, "tool_mm": [0, 0, 0]})
+    robot = load_robot({"model": "ur5", "dh": None, "joint_limits_deg": None, "tcp": None, "tool_mm": [0, 0, 0]})
     q = np.array([[13.5, -54.6, 121.7, 85.0, 148.9, 55.6], [-29.9, -84.9, 105.6, -209.9, 114.0, -48.9]])
     for names in ([f"j{i}_rad" for i in range(1, 7)], [f"actual_q_{i}" for i in range(6)]):
         src = tmp_path / "rad.csv"

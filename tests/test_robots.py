@@ -77,7 +77,7 @@ def mdh_flange(q_rad, alpha_prev, a_prev, d, offset):
 
 
 def custom(dh: dict, tool=(0.0, 0.0, 0.0)):
-    return load_robot({"model": "custom", "dh": dh, "joint_limits_deg": None, "tool_mm": list(tool)})
+    return load_robot({"model": "custom", "dh": dh, "joint_limits_deg": None, "tcp": None, "tool_mm": list(tool)})
 
 
 # Craig's PUMA 560 (Introduction to Robotics, table 3.4), rows alpha_{i-1}, a_{i-1}, d_i (mm), with a

@@ -13,7 +13,7 @@ from pipeline.lib.robots import load_robot, nominal_robot
 from pipeline.lib.solvers import compensate
 
 ROOT = Path(__file__).resolve().parents[1]
-ROBOT_CFG = {"model": "ur5", "tool_mm": [10.0, -5.0, 120.0], "dh": None, "joint_limits_deg": None}
+ROBOT_CFG = {"model": "ur5", "tool_mm": [10.0, -5.0, 120.0], "dh": None, "joint_limits_deg": None, "tcp": None}
 
 
 def all_pairs_scores(m, t):
@@ -74,7 +74,8 @@ def ingest_cfg(folder) -> dict:
     """The project's ingest settings for the campaign in `folder`."""
     cfg = load_params(ROOT / "params.yaml")["ingest"]
     return {**cfg, "joints": str(folder / "joints.csv"), "tracker": str(folder / "tracker.csv"),
-            "columns": {"point_id": None, "joints": None, "position": None}, "gross_outlier_mm": 50.0}
+            "columns": {"point_id": None, "joints": None, "position": None, "orientation": None, "marker": None},
+            "gross_outlier_mm": 50.0}
 
 
 def test_a_gross_outlier_among_6000_points_is_found_and_progress_is_logged(tmp_path, caplog):

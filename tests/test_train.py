@@ -24,7 +24,7 @@ from pipeline.lib.training import (EpochGraph, fit, load_model, make_model, mae_
 CUDA = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU (torch sees none)")
 
 PARAMS = {
-    "robot": {"model": "ur5", "tool_mm": [0.0, 0.0, 0.0], "dh": None, "joint_limits_deg": None},
+    "robot": {"model": "ur5", "tool_mm": [0.0, 0.0, 0.0], "dh": None, "joint_limits_deg": None, "tcp": None},
     "model": {"d_model": 12, "n_layer": 1, "n_head": 2, "d_hidden": 16, "mask": "spi", "head": "resnet",
               "encoder": True, "physics": "nominal", "alpha0": 0.1, "dropout": 0.1, "fade_to": None, "init_seed": 3},
     "workspace": {"radius_quantile": 0.99, "coverage": 0.9},

@@ -46,13 +46,16 @@ def test_twin_from_json_is_the_generator_twin(twin):
 def test_files_follow_the_data_contract():
     j, t = pd.read_csv(RAW / "joints.csv"), pd.read_csv(RAW / "tracker.csv")
     assert list(j.columns) == ["point_id"] + [f"j{i}_deg" for i in range(1, 7)]
-    assert list(t.columns) == ["Name", "X", "Y", "Z"]
+    assert list(t.columns) == ["Name", "X", "Y", "Z", "QW", "QX", "QY", "QZ"]       # the probe orientation: a 6-DoF tracker
     assert len(j) == len(t) == 724 and (j["point_id"] == t["Name"]).all()
     assert j["point_id"].iloc[0] == "P0001" and j["point_id"].is_unique
     line = (RAW / "joints.csv").read_text().splitlines()[1]
     assert all(len(v.split(".")[1]) == 6 for v in line.split(",")[1:])
     line = (RAW / "tracker.csv").read_text().splitlines()[1]
-    assert all(len(v.split(".")[1]) == 4 for v in line.split(",")[1:])
+    cells = line.split(",")[1:]
+    assert all(len(v.split(".")[1]) == 4 for v in cells[:3]) and all(len(v.split(".")[1]) == 10 for v in cells[3:])
+    q = np.array(cells[3:], float)                                           # a unit quaternion, scalar first
+    assert abs(np.linalg.norm(q) - 1) < 1e-9 and q[0] >= 0
     # frontal workspace: flange in front of the robot, above the table; robot ≈3 m from the tracker
     p = fk_numpy(j.iloc[:, 1:].to_numpy(), T.ur5())
     assert (p[:, 0] < 0).all() and (p[:, 2] > 0).all()

@@ -2,6 +2,8 @@
 
 JOINTS_DEG = [f"j{i}_deg" for i in range(1, 7)]          # recorded joint angles, degrees
 MEAS = ["meas_x", "meas_y", "meas_z"]                     # measured marker position, mm
+MEAS_Q = ["meas_qw", "meas_qx", "meas_qy", "meas_qz"]     # measured probe orientation (unit quaternion, scalar
+                                                          # first; tracker frame in ingest, base frame from theory on)
 THEORY = ["theory_x", "theory_y", "theory_z"]             # nominal DH + tool, base frame, mm
 ERR = ["err_x", "err_y", "err_z"]                         # meas - theory, base frame, mm
 PRED = ["pred_x", "pred_y", "pred_z"]                     # model prediction, base frame, mm

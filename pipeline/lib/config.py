@@ -7,6 +7,7 @@ that lists the valid keys. The code never falls back to a default of its own.
 import json
 import logging
 import math
+import re
 import sys
 from pathlib import Path
 
@@ -17,17 +18,19 @@ PARAMS = Path("params.yaml")
 
 # The keys of every section (names only; the values live in params.yaml).
 SECTIONS = {
-    "robot": ("model", "dh", "joint_limits_deg", "tool_mm"),
+    "robot": ("model", "dh", "joint_limits_deg", "tool_mm", "tcp"),
     "ingest": ("joints", "tracker", "skip_lines", "sep", "decimal", "angle_unit", "length_unit", "columns",
-               "gross_outlier_mm"),
-    "ingest.columns": ("point_id", "joints", "position"),
+               "gross_outlier_mm", "orientation", "target", "target_residual_mm"),
+    "ingest.columns": ("point_id", "joints", "position", "orientation", "marker"),
+    "ingest.orientation": ("kind", "sequence", "angle_unit", "scalar_first"),
     "campaigns": ("name", "station", "more"),
     "campaigns.campaign": ("ingest", "station"),
     "frame": ("outlier_k", "outlier_min_mm", "estimate_tool", "tool_per_station", "robust_loss", "robust_scale_mm",
               "max_rms_mm"),
     "split": ("seed", "fractions", "holdout"),
     "split.holdout": ("joints", "quantile"),
-    "calibrate": ("loss", "loss_scale_mm", "params", "tilt_joints", "rank_tol", "tol", "max_nfev"),
+    "calibrate": ("loss", "loss_scale_mm", "params", "tilt_joints", "pose_noise", "rank_tol", "tol", "max_nfev"),
+    "calibrate.pose_noise": ("mm", "arcsec"),
     "parts": ("noise_mm", "angle_map", "load_map", "thermal"),
     "parts.thermal": ("column", "cte_per_k"),
     "parts.angle_map": ("joints", "knot_deg", "prior_arcsec", "smooth_arcsec", "reach_deg", "fade_deg"),
@@ -82,7 +85,22 @@ def _joints(v):
     return isinstance(v, list) and len(v) > 0 and all(_int(1, 6)(j) for j in v) and len(set(v)) == len(v)
 
 
+def _vec3(v):
+    return isinstance(v, list) and len(v) == 3 and all(_num(-math.inf)(x) for x in v)
+
+
+def _tcps(v):
+    return (isinstance(v, dict) and len(v) > 0 and all(
+        isinstance(k, str) and re.fullmatch(r"[A-Za-z0-9_-]{1,40}", k) and isinstance(t, dict)
+        and set(t) <= {"xyz_mm", "rxyz_deg"} and _vec3(t.get("xyz_mm")) and _vec3(t.get("rxyz_deg", [0, 0, 0]))
+        for k, t in v.items()))
+
+
 RULES = {
+    "robot.tcp": (lambda v: v is None or _tcps(v), "null, or name: {xyz_mm: [x, y, z], rxyz_deg: [rx, ry, rz]} "
+                  "(a tool centre point in the flange frame; rxyz_deg optional), names of letters, digits, _ or -"),
+    "calibrate.pose_noise.mm": (_num(0, open_lo=True), "a position noise > 0 mm"),
+    "calibrate.pose_noise.arcsec": (_num(0, open_lo=True), "an orientation noise > 0 arcsec"),
     "split.seed": (_int(0), "an integer >= 0"),
     "split.fractions": (_fractions, "three fractions > 0 (train, val, test) that sum to 1"),
     "split.holdout.joints": (_joints, "a list of distinct joint numbers 1-6"),
@@ -113,6 +131,24 @@ RULES = {
     "serve.max_body_bytes": (_int(1), "an integer >= 1"),
     "serve.timeout_s": (_num(0, open_lo=True), "a time > 0 s"),
     "serve.echo_chars": (_int(20), "an integer >= 20"),
+    "ingest.columns.orientation": (lambda v: v is None or (isinstance(v, list) and len(v) in (3, 4, 9) and all(
+        isinstance(h, (str, int)) and not isinstance(h, bool) for h in v) and len({str(h) for h in v}) == len(v)),
+        "null, or 3 (Euler angles), 4 (quaternion) or 9 (rotation matrix, row-major) distinct headers"),
+    "ingest.columns.marker": (lambda v: v is None or (isinstance(v, (str, int)) and not isinstance(v, bool)
+                                                      and str(v).strip() != ""), "null, or the header naming each row's marker"),
+    "ingest.orientation.kind": (lambda v: v in ("euler", "quaternion", "matrix"), "euler, quaternion or matrix"),
+    "ingest.orientation.sequence": (lambda v: isinstance(v, str) and len(v) == 3 and (set(v) <= set("XYZ") or set(v) <= set("xyz"))
+                                    and v[0] != v[1] and v[1] != v[2],
+                                    "three axes as scipy's Rotation.from_euler: XYZ, ZYX, ZXZ, ... upper case intrinsic "
+                                    "(about the turning probe's axes), lower case extrinsic (about the tracker's); "
+                                    "no axis twice in a row, no mixed case"),
+    "ingest.orientation.angle_unit": (lambda v: v in ("deg", "rad"), "deg or rad"),
+    "ingest.orientation.scalar_first": (lambda v: isinstance(v, bool), "true (w x y z) or false (x y z w)"),
+    "ingest.target": (lambda v: v is None or (isinstance(v, dict) and set(v) == {"markers"} and isinstance(v["markers"], dict)
+                                              and len(v["markers"]) >= 3 and all(isinstance(k, (str, int)) and _vec3(p)
+                                                                                 for k, p in v["markers"].items())),
+                      "null (estimated from the poses), or {markers: {name: [x, y, z] mm}} with at least 3 markers"),
+    "ingest.target_residual_mm": (_num(0, open_lo=True), "a distance > 0 mm"),
 }
 
 

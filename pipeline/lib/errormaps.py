@@ -126,7 +126,8 @@ def in_range(q_deg: np.ndarray, tau: np.ndarray, maps: dict) -> dict:
 def design(q_deg: np.ndarray, tau: np.ndarray, J: np.ndarray, maps: dict) -> tuple[np.ndarray, list]:
     """The linear model of the residual: X (3n, P) with r ≈ X c, c every map's coefficients (rad) in the
     order [angle maps of joints on, load maps of joints on], and the blocks [(part, joint, columns)].
-    J (n, 3, 6) mm/rad: the chain's Jacobian at the poses."""
+    J (n, k, 6) mm/rad: the chain's Jacobian at the poses (k = 3 position rows, or 6 with the weighted
+    orientation rows), X then (k·n, P)."""
     q, t = torch.as_tensor(q_deg, dtype=torch.float64), torch.as_tensor(tau, dtype=torch.float64)
     cols, blocks = [], []
     parts = []
@@ -143,7 +144,7 @@ def design(q_deg: np.ndarray, tau: np.ndarray, J: np.ndarray, maps: dict) -> tup
             np.add.at(B, (np.arange(len(q))[:, None], idx[:, i].numpy()), w[:, i].numpy())   # (n, m)
             cols.append((J[:, :, i][:, :, None] * B[:, None, :]).reshape(-1, m))
             blocks.append((name, int(i) + 1, m))
-    return (np.hstack(cols) if cols else np.zeros((3 * len(q), 0))), blocks
+    return (np.hstack(cols) if cols else np.zeros((J.shape[1] * len(q), 0))), blocks
 
 
 def second_difference(m: int, periodic: bool) -> np.ndarray:
@@ -184,11 +185,12 @@ def fit(q_deg: np.ndarray, tau: np.ndarray, J: np.ndarray, r: np.ndarray, cfg: d
     """Identify the maps of the `parts:` section on the residual r (n, 3) mm at poses q (n, 6) deg with
     gravity torques tau (n, 6) and chain Jacobian J (n, 3, 6), jointly with unpenalised corrections dx
     of the parameters whose Jacobian is `extra` (3n, k): the calibration's, re-estimated beside the
-    maps. Returns (maps as numpy arrays, a report: each block's rms (arcsec) over the poses and its
+    maps. With measured orientations, r (n, 6) and J (n, 6, 6) carry the weighted orientation rows too
+    (identify.residual_rows' layout) and extra is (6n, k). Returns (maps as numpy arrays, a report: each block's rms (arcsec) over the poses and its
     coefficients' posterior standard error, dx (k,))."""
     maps = layout(q_deg, tau, cfg)
     X, blocks = design(q_deg, tau, J, maps)
-    E = np.zeros((3 * len(q_deg), 0)) if extra is None else extra
+    E = np.zeros((J.shape[1] * len(q_deg), 0)) if extra is None else extra
     if not blocks:
         return {}, {"blocks": [], "n_coefficients": 0}, np.zeros(E.shape[1])
     noise = cfg["noise_mm"]
@@ -215,7 +217,7 @@ def fit(q_deg: np.ndarray, tau: np.ndarray, J: np.ndarray, r: np.ndarray, cfg: d
     for name, joint, m in blocks:
         key = "amap_coef" if name == "angle_map" else "lmap_coef"
         maps[key][joint - 1] = c[o:o + m]
-        contrib = (X[:, o:o + m] @ c[o:o + m]).reshape(-1, 3)
+        contrib = (X[:, o:o + m] @ c[o:o + m]).reshape(len(q_deg), -1)[:, :3]     # its position part
         report["blocks"].append({"part": name, "joint": joint, "coefficients": m,
                                  "displacement_rms_mm": float(np.sqrt((contrib ** 2).sum(1).mean())),
                                  "coef_rms_arcsec": float(np.sqrt((c[o:o + m] ** 2).mean()) / ARCSEC),

@@ -15,12 +15,18 @@ no rotation undoes them), or an rms above `frame.max_rms_mm` (a wrong unit,
 robot model or tool). `fit_frames` checks every station.
 
 `to_base` maps tracker points back into the base frame (inverse of eq. 20).
+
+Where the campaign measures the probe's orientation (the ingest table's meas_q*), `probe_rotation`
+finds the probe's rotation in the flange: R_meas = R_frame R_flange(q) R_tool (the rotation half of
+the hand-eye problem AX = YB, with the frame's rotation from the positions), as the robust mean of
+R_flangeᵀ R_frameᵀ R_meas over the poses (poses beyond median + k·MAD of the scatter left out).
 """
 import numpy as np
 import torch
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
+from .columns import MEAS_Q
 from .kinematics import DTYPE, fk_poses, nominal_geometry
 
 MIRROR_RATIO = 3.0          # a reflection this many times better than the best rotation: mirrored axes
@@ -203,3 +209,38 @@ def to_base(P_world: np.ndarray, frame: dict) -> np.ndarray:
     """Map world (tracker) points into the base frame: Q = R^T (P - t). frame: {"R", "t"}."""
     R, t = np.asarray(frame["R"]), np.asarray(frame["t"])
     return (P_world - t) @ R
+
+
+# ----------------------------------------------------------------------------- orientation
+
+ARCSEC = np.pi / (180 * 3600)
+
+
+def measured_rotations(df) -> np.ndarray | None:
+    """The table's measured orientations (n, 3, 3) from its meas_q* columns; None where it has none."""
+    if not set(MEAS_Q) <= set(df.columns):
+        return None
+    return Rotation.from_quat(df[MEAS_Q].to_numpy(float), scalar_first=True).as_matrix()
+
+
+def quaternions(R: np.ndarray) -> np.ndarray:
+    """Rotations (n, 3, 3) as unit quaternions (n, 4), scalar first, qw >= 0 (the meas_q* columns)."""
+    qt = Rotation.from_matrix(R).as_quat(scalar_first=True)
+    return qt * np.where(qt[:, :1] < 0, -1.0, 1.0)
+
+
+def probe_rotation(Rf: np.ndarray, R_meas: np.ndarray, k: float = 5.0, max_iter: int = 10):
+    """The probe's rotation in the flange from flange rotations Rf (n, 3, 3) and measured orientations R_meas
+    (n, 3, 3), both in the base frame: the robust mean of Rfᵀ R_meas. Returns (R_tool (3, 3), its
+    [rx, ry, rz] rad (kinematics.rotation_xyz), inlier mask (n,), each pose's scatter about it (n,) arcsec)."""
+    each = Rotation.from_matrix(np.einsum("nji,njk->nik", Rf, R_meas))
+    inl = np.ones(len(Rf), bool)
+    for _ in range(max_iter):
+        mean = each[inl].mean()
+        dev = (mean.inv() * each).magnitude() / ARCSEC
+        med = np.median(dev[inl])
+        new = dev <= med + k * 1.4826 * np.median(np.abs(dev[inl] - med))
+        if (new == inl).all():
+            break
+        inl = new
+    return mean.as_matrix(), mean.as_euler("xyz"), inl, dev

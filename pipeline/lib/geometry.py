@@ -15,17 +15,20 @@ import numpy as np
 import pandas as pd
 import torch
 
-from .columns import ERR, JOINTS_DEG, MEAS, STATION, THEORY
+from .columns import ERR, JOINTS_DEG, MEAS, MEAS_Q, STATION, THEORY
 from .errormaps import MAP_KEYS
-from .kinematics import DTYPE, GEOMETRY_KEYS, fk, nominal_geometry, rigid_xyz
+from .frames import measured_rotations, quaternions
+from .kinematics import DTYPE, RIGID_KEYS, TOOL_ROT, fk, nominal_geometry, rigid_xyz
 from .robots import Robot
 
 PHYSICS = ("calibrated", "nominal")
 
 
-def theory_geometry(robot: Robot, tool_mm) -> dict:
-    """Nominal DH geometry of `robot` with the tool offset the frame stage settled on (tool_mm)."""
-    return {**nominal_geometry(robot), "tool": torch.as_tensor(np.asarray(tool_mm, float), dtype=DTYPE)}
+def theory_geometry(robot: Robot, tool_mm, tool_rot=None) -> dict:
+    """Nominal DH geometry of `robot` with the tool offset the frame stage settled on (tool_mm) and, where
+    the campaign measures orientation, the probe's rotation in the flange (tool_rot, [rx, ry, rz] rad)."""
+    g = {**nominal_geometry(robot), "tool": torch.as_tensor(np.asarray(tool_mm, float), dtype=DTYPE)}
+    return g if tool_rot is None else {**g, TOOL_ROT: torch.as_tensor(np.asarray(tool_rot, float), dtype=DTYPE)}
 
 
 @dataclass
@@ -39,7 +42,7 @@ class Calibration:
     @classmethod
     def from_dict(cls, d: dict) -> "Calibration":
         """From the saved JSON (kinematics.save_geometry's layout)."""
-        g = {k: torch.tensor(d["geometry"][k], dtype=DTYPE) for k in GEOMETRY_KEYS + MAP_KEYS if k in d["geometry"]}
+        g = {k: torch.tensor(d["geometry"][k], dtype=DTYPE) for k in RIGID_KEYS + MAP_KEYS if k in d["geometry"]}
         return cls(g, d.get("stations", {}), d.get("station_tools", {}))
 
 
@@ -90,4 +93,6 @@ def aligned(df: pd.DataFrame, calibration: Calibration, nominal: dict) -> pd.Dat
                 out.loc[m, THEORY] = fk(q, nominal).numpy()
         out.loc[m, MEAS] = meas
         out.loc[m, ERR] = meas - out.loc[m, THEORY].to_numpy()
+        if set(MEAS_Q) <= set(df.columns):             # orientations too: R^T R_station
+            out.loc[m, MEAS_Q] = quaternions(np.einsum("ji,njk->nik", R, measured_rotations(df.loc[m])))
     return out

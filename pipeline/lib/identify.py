@@ -5,6 +5,7 @@ measured positions in the base frame:
     d, a, alpha, offset   per joint (standard DH, eq. 1)
     beta                  Ry tilt of the parallel axes (`tilt_joints`)
     tool                  marker offset in the flange frame
+    tool_rot              the probe's rotation in the flange frame (where orientation is measured)
     base                  base-frame correction [rx, ry, rz, tx, ty, tz]
     compliance            joint compliance under the links' gravity torques (kinematics.deflected):
                           the configuration-dependent sag of the arm, reported also as stiffness
@@ -13,7 +14,11 @@ measured positions in the base frame:
                           jointly with the robot, so one geometry explains every station
     <station>_tool_x..z   with a tool per station (frame.tool_per_station): each further station's
                           tool minus the first's, started at the frame stage's estimate
-by robust trust-region least squares (scipy `least_squares`, Jacobian from
+Where the campaign measures the probe's orientation, each pose gives six residuals: position (mm)
+and orientation (rad, rotation_error), weighted by their noises (`calibrate.pose_noise`: the
+orientation rows in mm-equivalents, noise_mm / noise_rad), so joint 6's angle and the wrist's
+tilts, invisible to a marker on the last axis, become identifiable.
+Solved by robust trust-region least squares (scipy `least_squares`, Jacobian from
 torch autograd of `fk`). Before solving, parameters the data cannot tell
 apart are found by column-pivoted QR of the column-scaled Jacobian and kept
 at nominal (delta 0): e.g. d1 vs base tz, offset1 vs base rz, d2/d3/d4 on
@@ -28,9 +33,11 @@ import numpy as np
 import scipy.linalg
 import torch
 from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
 
-from .kinematics import DTYPE, GEOMETRY_KEYS, fk, rigid_xyz
-GROUPS = ("d", "a", "alpha", "offset", "beta", "tool", "base", "compliance")
+from .kinematics import DTYPE, RIGID_KEYS, TOOL_ROT, fk, fk_pose, rigid_xyz, rotation_error
+GROUPS = ("d", "a", "alpha", "offset", "beta", "tool", "base", "compliance", "tool_rot")
+ARCSEC = np.pi / (180 * 3600)
 BASE_NAMES = ["rx", "ry", "rz", "tx", "ty", "tz"]
 TOOL_NAMES = ["x", "y", "z"]
 
@@ -54,6 +61,8 @@ def parameter_spec(cfg: dict) -> list[tuple[str, str, int]]:
             spec += [(f"beta{j}", "beta", j - 1) for j in tilt]
         elif grp == "tool":
             spec += [(f"tool_{c}", "tool", i) for i, c in enumerate(TOOL_NAMES)]
+        elif grp == "tool_rot":
+            spec += [(f"tool_r{c}", TOOL_ROT, i) for i, c in enumerate(TOOL_NAMES)]
         else:
             spec += [(f"base_{c}", "base", i) for i, c in enumerate(BASE_NAMES)]
     return spec
@@ -61,7 +70,7 @@ def parameter_spec(cfg: dict) -> list[tuple[str, str, int]]:
 
 def is_angular(key: str, index: int) -> bool:
     """Angles are rad internally and reported in degrees (compliance in deg/(N·m)); lengths in mm."""
-    return key in ("alpha", "offset", "beta", "compliance") or (key in ("base", "station") and index % 6 < 3)
+    return key in ("alpha", "offset", "beta", "compliance", TOOL_ROT) or (key in ("base", "station") and index % 6 < 3)
 
 
 def station_spec(stations: list[str], tools: bool = False) -> list[tuple[str, str, int]]:
@@ -76,7 +85,7 @@ def station_spec(stations: list[str], tools: bool = False) -> list[tuple[str, st
 def selectors(spec, n_stations: int = 1) -> dict:
     """Per geometry key (and "station", "station_tool"), a (size, P) 0/1 matrix placing the
     parameter vector's deltas."""
-    sizes = {"d": 6, "a": 6, "alpha": 6, "offset": 6, "beta": 6, "tool": 3, "base": 6, "compliance": 6,
+    sizes = {"d": 6, "a": 6, "alpha": 6, "offset": 6, "beta": 6, "tool": 3, "base": 6, "compliance": 6, TOOL_ROT: 3,
              "station": 6 * n_stations, "station_tool": 3 * n_stations}
     S = {k: torch.zeros(n, len(spec), dtype=DTYPE) for k, n in sizes.items()}
     for p, (_, key, i) in enumerate(spec):
@@ -85,8 +94,21 @@ def selectors(spec, n_stations: int = 1) -> dict:
 
 
 def apply_deltas(x: torch.Tensor, g0: dict, S: dict) -> dict:
-    """Geometry g0 + deltas x (mm / rad), differentiable in x (masses are never identified)."""
-    return {k: g0[k] + S[k] @ x if k in S else g0[k] for k in GEOMETRY_KEYS}
+    """Geometry g0 (its rigid keys) + deltas x (mm / rad), differentiable in x (masses are never identified).
+    A tool_rot delta on a geometry without one starts from the identity."""
+    g0 = {**g0, TOOL_ROT: g0.get(TOOL_ROT, torch.zeros(3, dtype=DTYPE))} if TOOL_ROT in S and TOOL_ROT not in g0 \
+        and bool(S[TOOL_ROT].any()) else g0
+    return {k: g0[k] + S[k] @ x if k in S else g0[k] for k in RIGID_KEYS if k in g0}
+
+
+def rigid(geometry: dict) -> dict:
+    """The rigid keys of a geometry as float64 tensors (its error maps left out)."""
+    return {k: torch.as_tensor(geometry[k], dtype=DTYPE) for k in RIGID_KEYS if k in geometry}
+
+
+def orientation_weight(noise: dict) -> float:
+    """mm per rad: the orientation rows' weight, `calibrate.pose_noise` {mm, arcsec} (noise_mm / noise_rad)."""
+    return noise["mm"] / (noise["arcsec"] * ARCSEC)
 
 
 def station_tools(x: torch.Tensor, S: dict, tools0: torch.Tensor | None) -> torch.Tensor:
@@ -95,40 +117,67 @@ def station_tools(x: torch.Tensor, S: dict, tools0: torch.Tensor | None) -> torc
     return d if tools0 is None else d + tools0
 
 
-def positions(q: torch.Tensor, x: torch.Tensor, g0: dict, S: dict, station: torch.Tensor | None,
-              tools0: torch.Tensor | None = None):
-    """Measured-position model (n, 3): fk of g0 + deltas (with each point's station tool), then
-    each point's station correction."""
+def predicted(q: torch.Tensor, x: torch.Tensor, g0: dict, S: dict, station: torch.Tensor | None,
+              tools0: torch.Tensor | None = None, orientation: bool = False):
+    """Measured-pose model: fk of g0 + deltas (with each point's station tool), then each point's
+    station correction: positions (n, 3) mm and, with orientation, the probe's rotations (n, 3, 3) (else None)."""
     g = apply_deltas(x, g0, S)
+    if station is not None:
+        g = {**g, "tool": g["tool"] + station_tools(x, S, tools0)[station]}   # tool (n, 3)
+    p, R = fk_pose(q, g) if orientation else (fk(q, g), None)
     if station is None:
-        return fk(q, g)
-    p = fk(q, {**g, "tool": g["tool"] + station_tools(x, S, tools0)[station]})   # tool (n, 3)
-    R, t = rigid_xyz((S["station"] @ x).reshape(-1, 6))                   # (S, 3, 3), (S, 3)
-    return torch.einsum("nij,nj->ni", R[station], p) + t[station]
+        return p, R
+    Rs, t = rigid_xyz((S["station"] @ x).reshape(-1, 6))                   # (S, 3, 3), (S, 3)
+    p = torch.einsum("nij,nj->ni", Rs[station], p) + t[station]
+    return p, (None if R is None else Rs[station] @ R)
 
 
-def jacobian(q: torch.Tensor, x: torch.Tensor, g0: dict, S: dict, station=None, tools0=None) -> torch.Tensor:
-    """d positions / d x, flattened: (3n, P), by forward-mode autograd (P << 3n)."""
-    return torch.func.jacfwd(lambda v: positions(q, v, g0, S, station, tools0).reshape(-1))(x)
+def positions(q, x, g0, S, station, tools0=None) -> torch.Tensor:
+    """The measured-position model (n, 3) mm (predicted without orientation)."""
+    return predicted(q, x, g0, S, station, tools0)[0]
 
 
-def geometry_jacobian(q: torch.Tensor, geometry: dict, cfg: dict, names: list[str] | None = None):
-    """d positions / d the candidate parameters of the `calibrate:` section's groups (those in `names`,
-    default all), at `geometry` (its error maps, if any, kept in the chain): (3n, P) by the jacobian
-    identification uses, and the parameters' spec."""
+def residual_rows(q, x, g0, S, station, tools0, p_meas: torch.Tensor, R_meas: torch.Tensor | None,
+                  weight: float) -> torch.Tensor:
+    """Model minus measurement per pose: (n, 3) mm, or with measured orientations R_meas (n, 3, 3)
+    (n, 6): position, then weight (mm/rad) times the rotation error."""
+    p, R = predicted(q, x, g0, S, station, tools0, R_meas is not None)
+    if R_meas is None:
+        return p - p_meas
+    return torch.cat([p - p_meas, weight * rotation_error(R, R_meas)], 1)
+
+
+def jacobian(q, x, g0, S, station=None, tools0=None, p_meas=None, R_meas=None, weight=1.0) -> torch.Tensor:
+    """d residual_rows / d x, flattened: (3n or 6n, P), by forward-mode autograd (P << 3n); p_meas does not
+    enter it (None: zeros)."""
+    p_meas = torch.zeros(len(q), 3, dtype=DTYPE) if p_meas is None else p_meas
+    return torch.func.jacfwd(lambda v: residual_rows(q, v, g0, S, station, tools0, p_meas, R_meas,
+                                                     weight).reshape(-1))(x)
+
+
+def geometry_jacobian(q: torch.Tensor, geometry: dict, cfg: dict, names: list[str] | None = None,
+                      weight: float | None = None):
+    """d (positions, and with weight (mm/rad) the weighted probe orientation) / d the candidate parameters of
+    the `calibrate:` section's groups (those in `names`, default all), at `geometry` (its error maps, if any,
+    kept in the chain): (3n or 6n, P), rows per pose as residual_rows', and the parameters' spec."""
     spec = [s for s in parameter_spec(cfg) if names is None or s[0] in names]
-    maps = {k: v for k, v in geometry.items() if k not in GEOMETRY_KEYS}
-    g0 = {k: torch.as_tensor(geometry[k], dtype=DTYPE) for k in GEOMETRY_KEYS}
-    S = selectors(spec)
-    J = torch.func.jacfwd(lambda v: fk(q, {**apply_deltas(v, g0, S), **maps}).reshape(-1))(
-        torch.zeros(len(spec), dtype=DTYPE))
+    maps = {k: v for k, v in geometry.items() if k not in RIGID_KEYS}
+    g0, S = rigid(geometry), selectors(spec)
+
+    def rows(v):
+        g = {**apply_deltas(v, g0, S), **maps}
+        if weight is None:
+            return fk(q, g).reshape(-1)
+        p, R = fk_pose(q, g)
+        return torch.cat([p, weight * rotation_error(R, R.detach())], 1).reshape(-1)
+    J = torch.func.jacfwd(rows)(torch.zeros(len(spec), dtype=DTYPE))
     return J.numpy(), spec
 
 
 def corrected(geometry: dict, spec: list, dx: np.ndarray) -> dict:
     """geometry with the parameter corrections dx (in `spec`'s units: mm, rad) added."""
-    maps = {k: v for k, v in geometry.items() if k not in GEOMETRY_KEYS}
-    g0 = {k: torch.as_tensor(geometry[k], dtype=DTYPE) for k in GEOMETRY_KEYS}
+    maps = {k: v for k, v in geometry.items() if k not in RIGID_KEYS}
+    g0 = rigid(geometry)
     return {**apply_deltas(torch.as_tensor(dx, dtype=DTYPE), g0, selectors(spec)), **maps}
 
 
@@ -184,34 +233,46 @@ def errors_3d(p: np.ndarray, p_meas: np.ndarray) -> dict:
             "max_mm": float(e.max())}
 
 
+def orientation_errors(R: np.ndarray, R_meas: np.ndarray) -> dict:
+    """The angle between predicted and measured orientations (n, 3, 3) x2, arcsec: mean, rms, p95, max."""
+    e = Rotation.from_matrix(np.einsum("nji,njk->nik", R, R_meas)).magnitude() / ARCSEC   # exact near 0 (arccos is not)
+    return {"mean_arcsec": float(e.mean()), "rms_arcsec": float(np.sqrt((e ** 2).mean())),
+            "p95_arcsec": float(np.percentile(e, 95)), "max_arcsec": float(e.max())}
+
+
 def identify(q: torch.Tensor | np.ndarray, p_meas: np.ndarray, geometry0: dict, cfg: dict,
              station: np.ndarray | None = None, stations: list[str] | None = None,
-             station_tools0: np.ndarray | None = None):
-    """Identify geometry corrections from joint angles q (n, 6) rad and positions p_meas (n, 3) mm.
+             station_tools0: np.ndarray | None = None, R_meas: np.ndarray | None = None):
+    """Identify geometry corrections from joint angles q (n, 6) rad and positions p_meas (n, 3) mm
+    (and, where measured, the probe's orientations R_meas (n, 3, 3) in the base frame).
 
     With several tracker stations, station (n,) indexes `stations` (the first is the base frame
     the geometry lives in) and each further station's frame correction is identified jointly;
     with station_tools0 (S, 3) mm, each station's own tool minus the first's (a tool per
-    station), those offsets too, started there.
+    station), those offsets too, started there. The tool_rot group is a candidate only with R_meas.
     Returns (geometry dict of tensors, report dict); report["stations"] holds the corrections,
     report["station_tools"] the tool offsets (zeros: the tool is shared).
-    cfg: the `calibrate:` section (params, tilt_joints, loss, loss_scale_mm, rank_tol, tol, max_nfev).
+    cfg: the `calibrate:` section (params, tilt_joints, loss, loss_scale_mm, pose_noise, rank_tol, tol, max_nfev).
     """
     t0 = time.perf_counter()
     q = torch.as_tensor(np.asarray(q, float), dtype=DTYPE)
     p_meas = np.asarray(p_meas, float)
-    g0 = {k: torch.as_tensor(geometry0[k], dtype=DTYPE) for k in GEOMETRY_KEYS}
+    p_t = torch.as_tensor(p_meas, dtype=DTYPE)
+    R_t = None if R_meas is None else torch.as_tensor(np.asarray(R_meas, float), dtype=DTYPE)
+    weight = orientation_weight(cfg["pose_noise"])
+    g0 = rigid(geometry0)
     stations = stations or ["main"]
     station = None if len(stations) == 1 else torch.as_tensor(np.asarray(station), dtype=torch.long)
     tools0 = None if station_tools0 is None else torch.as_tensor(np.asarray(station_tools0, float), dtype=DTYPE)
-    robot_spec = parameter_spec(cfg)
+    robot_spec = [s for s in parameter_spec(cfg) if R_meas is not None or s[1] != TOOL_ROT]
     spec = robot_spec + station_spec(stations, tools0 is not None)
     names = [s[0] for s in spec]
     S = selectors(spec, len(stations))
     P = len(spec)
     x0 = torch.zeros(P, dtype=DTYPE)
+    rows = lambda x: residual_rows(q, x, g0, S, station, tools0, p_t, R_t, weight)
 
-    J0 = jacobian(q, x0, g0, S, station, tools0).numpy()
+    J0 = jacobian(q, x0, g0, S, station, tools0, p_t, R_t, weight).numpy()
     ident = identifiability(J0, names, cfg["rank_tol"])
     keep = ident["keep"]
     fixed_by_stations = {}
@@ -227,10 +288,10 @@ def identify(q: torch.Tensor | np.ndarray, p_meas: np.ndarray, geometry0: dict, 
 
     def residuals(xk):
         with torch.no_grad():
-            return (positions(q, full(xk), g0, S, station, tools0).numpy() - p_meas).ravel()
+            return rows(full(xk)).numpy().ravel()
 
     def jac(xk):
-        return jacobian(q, full(xk), g0, S, station, tools0).numpy()[:, keep]
+        return jacobian(q, full(xk), g0, S, station, tools0, p_t, R_t, weight).numpy()[:, keep]
 
     tol = cfg["tol"]
     sol = least_squares(residuals, np.zeros(keep.sum()), jac=jac, method="trf",
@@ -257,8 +318,12 @@ def identify(q: torch.Tensor | np.ndarray, p_meas: np.ndarray, geometry0: dict, 
     c = geometry["compliance"].numpy()
     stiffness = {f"k{j + 1}": float(1.0 / c[j]) for j in range(6) if f"c{j + 1}" in estimates and c[j] > 0}
     with torch.no_grad():
-        before = errors_3d(positions(q, x0, g0, S, station, tools0).numpy(), p_meas)
-        after = errors_3d(positions(q, x, g0, S, station, tools0).numpy(), p_meas)
+        (p_before, R_before), (p_after, R_after) = (
+            predicted(q, v, g0, S, station, tools0, R_meas is not None) for v in (x0, x))
+    before, after = errors_3d(p_before.numpy(), p_meas), errors_3d(p_after.numpy(), p_meas)
+    if R_meas is not None:
+        before["orientation"] = orientation_errors(R_before.numpy(), np.asarray(R_meas, float))
+        after["orientation"] = orientation_errors(R_after.numpy(), np.asarray(R_meas, float))
     report = {
         "n_points": len(p_meas),
         "identified": [n for n, k in zip(names, keep) if k],
@@ -278,4 +343,6 @@ def identify(q: torch.Tensor | np.ndarray, p_meas: np.ndarray, geometry0: dict, 
         "nfev": int(sol.nfev), "njev": int(sol.njev or 0), "status": sol.message,
         "seconds": time.perf_counter() - t0,
     }
+    if R_meas is not None:
+        report["orientation_weight_mm_per_rad"] = weight
     return geometry, report

@@ -16,6 +16,9 @@ Geometry keys (all float64 tensors):
                                 (the elasto-geometric model; 0 = rigid)
     mass, com             (6,), (6, 3)  link masses (kg) and centres of mass (mm, link DH frame):
                                 robot data (robots.py), never identified
+    tool_rot              (3,)  optional: the marker's (probe's) rotation in the flange frame,
+                                [rx, ry, rz] rad as rotation_xyz; present where the campaign measures
+                                orientation (absent: the identity)
 
 Every chain function first deflects the joints (`deflected`): q -> q + c * tau(q),
 tau from the nominal-to-date geometry at the commanded q (the deflection is
@@ -31,6 +34,8 @@ from .robots import Robot
 
 DTYPE = torch.float64
 GEOMETRY_KEYS = ("d", "a", "alpha", "offset", "beta", "tool", "base", "compliance", "mass", "com")
+TOOL_ROT = "tool_rot"                   # the optional key: the probe's rotation in the flange
+RIGID_KEYS = GEOMETRY_KEYS + (TOOL_ROT,)     # what a geometry may hold besides its error maps
 GRAVITY = (0.0, 0.0, -9.80665)          # m/s² in the robot's base frame: the arm stands level
 
 
@@ -166,6 +171,30 @@ def flange_rotations(q: torch.Tensor, g: dict) -> torch.Tensor:
     return rotation_xyz(g["base"][:3]) @ fk_poses(q, g)[:, :3, :3]
 
 
+def tool_rotation(g: dict) -> torch.Tensor:
+    """The probe's rotation in the flange frame (3, 3): rotation_xyz(tool_rot), the identity without one."""
+    if TOOL_ROT in g:
+        return rotation_xyz(g[TOOL_ROT])
+    return torch.eye(3, dtype=g["tool"].dtype, device=g["tool"].device)
+
+
+def fk_pose(q: torch.Tensor, g: dict) -> tuple[torch.Tensor, torch.Tensor]:
+    """Marker position and the probe's orientation in the base frame, one FK pass:
+    (B, 6) rad -> p (B, 3) mm, R (B, 3, 3) = R_base R_flange R_tool."""
+    T = fk_poses(q, g)
+    Rb = rotation_xyz(g["base"][:3])
+    p = (T[:, :3, :3] @ g["tool"][..., None])[..., 0] + T[:, :3, 3]
+    return p @ Rb.T + g["base"][3:], Rb @ T[:, :3, :3] @ tool_rotation(g)
+
+
+def rotation_error(R: torch.Tensor, R_meas: torch.Tensor) -> torch.Tensor:
+    """The small rotation (rad, base frame) from a measured orientation to a predicted one, R ≈ exp([e]) R_meas:
+    e = vee of the skew part of R R_measᵀ, (B, 3, 3) x2 -> (B, 3); sin(angle) times the axis, within 2e-5
+    relative of the angle below 0.5°. Differentiable (calibration's Jacobians)."""
+    M = R @ R_meas.transpose(-1, -2)
+    return 0.5 * torch.stack([M[..., 2, 1] - M[..., 1, 2], M[..., 0, 2] - M[..., 2, 0], M[..., 1, 0] - M[..., 0, 1]], -1)
+
+
 def fk(q: torch.Tensor, g: dict) -> torch.Tensor:
     """Marker position in the base frame (mm): (B, 6) rad -> (B, 3).
 
@@ -197,6 +226,16 @@ def fk_jacobian(q: torch.Tensor, g: dict) -> tuple[torch.Tensor, torch.Tensor]:
     return p @ Rb.T + g["base"][3:], Rb @ J
 
 
+def angular_jacobian(q: torch.Tensor, g: dict) -> torch.Tensor:
+    """d(the probe's orientation)/dq as angular velocities in the base frame: (B, 6) rad -> (B, 3, 6) rad/rad,
+    column i the axis of joint i (z of the frame before it), rotated by the base correction; the tool's
+    rotation does not enter (a rotation of the flange turns the probe with it)."""
+    frames = fk_frames(q, g)
+    z = torch.stack([frames[0].new_tensor([0.0, 0.0, 1.0]).expand(len(q), 3)]
+                    + [F[:, :3, 2] for F in frames[:-1]], 2)               # (B, 3, 6)
+    return rotation_xyz(g["base"][:3]) @ z
+
+
 def fk_numpy(q_deg: np.ndarray, robot: Robot, geometry: dict | None = None) -> np.ndarray:
     """Convenience: joint angles in degrees (n, 6) -> positions (n, 3) mm, numpy in and out."""
     g = geometry if geometry is not None else nominal_geometry(robot)
@@ -206,8 +245,8 @@ def fk_numpy(q_deg: np.ndarray, robot: Robot, geometry: dict | None = None) -> n
 
 
 def geometry_keys(g: dict) -> tuple:
-    """The keys of geometry g: GEOMETRY_KEYS, then the error maps' it has (errormaps.MAP_KEYS)."""
-    return GEOMETRY_KEYS + tuple(k for k in MAP_KEYS if k in g)
+    """The keys of geometry g: GEOMETRY_KEYS, then tool_rot and the error maps' it has (errormaps.MAP_KEYS)."""
+    return GEOMETRY_KEYS + tuple(k for k in (TOOL_ROT,) + MAP_KEYS if k in g)
 
 
 class DHChain(nn.Module):

@@ -16,25 +16,43 @@ is sniffed from the header line and the decimal mark (`.` `,`) from the cells,
 unless set. A joint column's name fixes its unit (`*_rad`, `actual_q_*`:
 radians; `*_deg`: degrees), otherwise `angle_unit` does; positions are in
 `length_unit`.
+The probe's orientation (optional, never guessed), read from the tracker file (the
+table in one-table mode) by lib/orientation.py:
+- `columns.orientation`: 3 (Euler), 4 (quaternion) or 9 (matrix) headers, read as
+  `ingest.orientation` says (kind, sequence, angle_unit, scalar_first);
+- `columns.marker`: a rigid multi-marker target, one tracker row per marker, several per
+  id (paired files only): each pose is the target frame fitted by Kabsch to
+  `ingest.target` (its markers in its own frame), or to the geometry estimated from
+  the poses (null: origin at the markers' centroid); a marker farther than
+  `target_residual_mm` from its pose's fit is removed and the pose refitted.
 
 Output, data/interim/ingest.parquet, rows in input order (of the joints file):
     point_id (str), j1_deg..j6_deg (degrees), meas_x, meas_y, meas_z (mm, the file's frame),
+    with an orientation meas_qw, meas_qx, meas_qy, meas_qz (unit quaternion, w >= 0, of the
+    rotation probe -> tracker; no such columns without one),
     then every other input column under its own header (float if every kept cell
     is a number, else text); a name already taken gets its file's role as a
     prefix ("tracker_x"), a blank header becomes "<role>_col<k>".
 and reports/ingest.json: files, n_read (data rows per file), n_kept, dropped
-[{point_id, file, row, reason, detail}], dropped_counts {reason: n}, units,
-geometry, gross_outlier. `row` is the 1-based line number in the file, header
-included (for a point cloud: the 1-based point index).
+[{point_id, file, row, reason, detail}], dropped_counts {reason: n}, units (with
+an orientation: units.orientation), geometry, gross_outlier (and target, for a
+multi-marker target). `row` is the 1-based line number in the file, header
+included (for a point cloud: the 1-based point index; a target's pose: each of
+its marker rows).
 
 A per-row problem drops the row and lists it; `reason` is one of
     field_count      more or fewer cells than the header (a stray separator?); empty cells
                      after the last column pass when most rows have them (trailing separator)
-    missing_id       the id cell is empty
+    missing_id       the id cell (or a target's marker cell) is empty
     duplicate        id already used by an earlier row of the same file (the first row
-                     keeps the id, even if that row is itself dropped for another reason)
-    empty, nan, non_numeric   a joint/position cell (the detail names the column)
-    non_finite       a joint/position cell reads as +-inf ('inf', or 1e999: a mistyped exponent?)
+                     keeps the id, even if that row is itself dropped for another reason);
+                     a target's file: the same id and marker
+    empty, nan, non_numeric   a joint/position/orientation cell (the detail names the column)
+    non_finite       a joint/position/orientation cell reads as +-inf ('inf', or 1e999: a mistyped exponent?)
+    bad_rotation     orientation cells that are no rotation: a quaternion whose norm is off 1 by
+                     more than 1e-3, a matrix not orthonormal within 1e-3 or a reflection
+    marker_residual  a target's marker farther than target_residual_mm from its pose's fit
+    too_few_markers  a target's pose with fewer than 3 usable markers (its marker rows)
     unpaired         id in one file only
     partner_dropped  the point's row in the other file was dropped
     joint_limit      an angle outside the robot's limits (also a joint cell that lost its decimal point)
@@ -50,7 +68,8 @@ A per-row problem drops the row and lists it; `reason` is one of
                      4096 reference points drawn with a fixed seed (the same for the same count;
                      gross_outlier.reference_points in the summary), so the check stays linear
 A dropped point lists its row in every file it has one in, so for each file
-n_kept + (dropped rows of that file) == n_read.
+n_kept + (dropped rows of that file) == n_read (a target's tracker file: the
+kept poses' marker rows + its dropped rows == n_read).
 
 Fatal problems raise IngestError, whose message names file, row and column:
     unreadable file, no data rows, a missing or ambiguous required column
@@ -64,6 +83,11 @@ Fatal problems raise IngestError, whose message names file, row and column:
     the gross-outlier check flagging more than half the points (wrong robot,
     tool or units); fewer than 10 points left; measured points (nearly)
     collinear or coincident. Nearly coplanar points only warn (geometry.coplanar).
+    Orientation: more than half the rows no rotation (bad_rotation); orientation
+    settings that do not fit together (kind and header count; orientation and
+    marker both; a target without a marker column; a marker column in one table);
+    orientation or markers asked of a point cloud; a target's marker not in
+    ingest.target, its markers on a line, or (estimated) no pose with every marker.
 """
 import codecs
 import csv
@@ -78,8 +102,9 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from .columns import JOINTS_DEG, MEAS
-from .config import check_keys, logger
+from . import orientation
+from .columns import JOINTS_DEG, MEAS, MEAS_Q
+from .config import check_keys, check_values, logger
 from .kinematics import fk_numpy
 
 log = logger(__name__)
@@ -135,6 +160,20 @@ class Rows:
     extras: list = field(default_factory=list)    # [(header, [cell per row])]
     sep: str | None = None
     decimal: str = "."
+    groups: dict = field(default_factory=dict)    # what (joints, position, orientation, marker) -> its headers
+    quat: np.ndarray | None = None                # (n, 4) the orientation columns as unit quaternions (w first)
+    markers: list | None = None                   # each row's marker name (a multi-marker target's file)
+    members: list | None = None                   # one row per pose (a target): the file lines it stands for
+    n_lines: int | None = None                    # ... and the file's data rows
+
+    @property
+    def n_read(self) -> int:
+        """The file's data rows."""
+        return len(self.lines) if self.n_lines is None else self.n_lines
+
+    def lines_of(self, r: int) -> list:
+        """The file lines row r stands for: its own, or a pose's marker rows."""
+        return [self.lines[r]] if self.members is None else self.members[r]
 
     def first_rows(self) -> dict:
         """id -> index of the first row with that id (whatever its problems)."""
@@ -316,35 +355,48 @@ def shape_problems(cells: list, width: int) -> list:
             for row, pad in zip(cells, padded)]
 
 
-def read_rows(path: str, role: str, cfg: dict, id_setting, groups: list) -> Rows:
-    """Read a text table and check every row; groups = [(setting, candidates, what)] of required columns."""
+def cell(row: list, c: int) -> str:
+    """Row's cell c, stripped ("" when the row is short)."""
+    return row[c].strip() if c < len(row) else ""
+
+
+def parse_row(row: list, keys: list, cols: list, header: list, decimal: str, out: np.ndarray):
+    """None, or the row's problem: an empty key cell ([(column, "id" | "marker")]), else its first
+    unreadable number; the numbers of `cols` go to `out`."""
+    for c, what in keys:
+        if not cell(row, c):
+            return ("missing_id", f"empty {what} cell", header[c])
+    for k, c in enumerate(cols):
+        out[k], err = parse_finite(row[c], decimal)
+        if err:
+            return (err[0], f"column '{header[c]}': {err[1]}", header[c])
+    return None
+
+
+def read_rows(path: str, role: str, cfg: dict, id_setting, groups: list, marker=None) -> Rows:
+    """Read a text table and check every row; groups = [(setting, candidates, what)] of required columns;
+    marker: the header naming each row's marker (a multi-marker target), or None."""
     header, cells, lines, sep, decimal = read_table(path, cfg["sep"], cfg["decimal"], cfg["skip_lines"])
     id_col = pick_id(header, id_setting, role, path)
-    cols = [c for setting, cands, what in groups for c in pick_columns(header, setting, cands, what, path)]
+    picked = {what: pick_columns(header, setting, cands, what, path) for setting, cands, what in groups}
+    cols = [c for idx in picked.values() for c in idx]
+    keys = [(id_col, "id")] if id_col is not None else []
+    if marker is not None:
+        keys.append((find_column(header, marker, "marker", path), "marker"))
     width, n = len(header), len(cells)
-    ids = row_ids(n) if id_col is None else [""] * n
+    ids = row_ids(n) if id_col is None else [cell(row, id_col) for row in cells]
     values = np.full((n, len(cols)), np.nan)
-    problem = [None] * n
     shape = shape_problems(cells, width)
-    for r, row in enumerate(cells):
-        if id_col is not None:
-            ids[r] = row[id_col].strip() if id_col < len(row) else ""
-        if shape[r]:
-            problem[r] = ("field_count", shape[r], None)
-            continue
-        if id_col is not None:
-            if not ids[r]:
-                problem[r] = ("missing_id", "empty id cell", header[id_col])
-                continue
-        for k, c in enumerate(cols):
-            values[r, k], err = parse_finite(row[c], decimal)
-            if err:
-                problem[r] = (err[0], f"column '{header[c]}': {err[1]}", header[c])
-                break
-    used = set(cols) | ({id_col} if id_col is not None else set())
+    problem = [("field_count", shape[r], None) if shape[r] else
+               parse_row(row, keys, cols, header, decimal, values[r]) for r, row in enumerate(cells)]
+    used = set(cols) | {c for c, _ in keys}
     extras = [(header[c] or f"{role}_col{c + 1}", [row[c] if c < len(row) else "" for row in cells])
               for c in range(width) if c not in used]
-    rows = Rows(path, role, lines, ids, values, problem, [header[c] for c in cols], extras, sep, decimal)
+    rows = Rows(path, role, lines, ids, values, problem, [header[c] for c in cols], extras, sep, decimal,
+                groups={what: [header[c] for c in idx] for what, idx in picked.items()})
+    if marker is not None:
+        rows.markers = [cell(row, keys[-1][0]) for row in cells]
+        rows.groups["marker"] = [header[keys[-1][0]]]
     mark_duplicates(rows)
     check_mostly_readable(rows)
     return rows
@@ -363,16 +415,22 @@ def read_cloud(path: str) -> Rows:
     problem = [("nan", f"point {i + 1} has a non-finite coordinate", None) if b else None
                for i, b in enumerate(bad)]
     return Rows(path, "tracker", list(range(1, len(pts) + 1)), [""] * len(pts), pts, problem,
-                ["x", "y", "z"])
+                ["x", "y", "z"], groups={"position": ["x", "y", "z"]})
 
 
 def mark_duplicates(rows: Rows) -> None:
-    """Every row after the first with the same id gets the `duplicate` problem."""
-    first = rows.first_rows()
-    for r, pid in enumerate(rows.ids):
+    """Every row after the first with the same id (a target's file: the same id and marker) gets the
+    `duplicate` problem."""
+    keys = rows.ids if rows.markers is None else list(zip(rows.ids, rows.markers))
+    first = {}
+    for r, (pid, key) in enumerate(zip(rows.ids, keys)):
+        if pid:
+            first.setdefault(key, r)
+    for r, (pid, key) in enumerate(zip(rows.ids, keys)):
         field_count = rows.problem[r] and rows.problem[r][0] == "field_count"
-        if pid and first[pid] != r and not field_count:
-            rows.problem[r] = ("duplicate", f"id {pid!r} already on row {rows.lines[first[pid]]}", None)
+        if pid and first[key] != r and not field_count:
+            what = f"id {pid!r}" + (f" marker {rows.markers[r]!r}" if rows.markers is not None else "")
+            rows.problem[r] = ("duplicate", f"{what} already on row {rows.lines[first[key]]}", None)
 
 
 def check_mostly_readable(rows: Rows) -> None:
@@ -388,15 +446,136 @@ def check_mostly_readable(rows: Rows) -> None:
                           file=rows.path, row=rows.lines[r], column=column)
 
 
+# -------------------------------------------------------------------- orientation, multi-marker targets
+
+def add_orientation(rows: Rows, spec: dict) -> None:
+    """The orientation columns (the last of rows.values) as unit quaternions (rows.quat), read as `spec`
+    (ingest.orientation); a row whose numbers are no rotation gets the `bad_rotation` problem."""
+    headers = rows.groups.get("orientation")
+    if not headers:
+        return
+    rows.quat, why = orientation.rotations(rows.values[:, -len(headers):], spec)
+    named = ", ".join(f"'{h}'" for h in headers)
+    for r, w in enumerate(why):
+        if w and rows.problem[r] is None:
+            rows.problem[r] = ("bad_rotation", f"columns {named}: {w}", headers[0])
+    bad = [r for r, p in enumerate(rows.problem) if p and p[0] == "bad_rotation"]
+    if 2 * len(bad) > len(rows.problem):
+        raise IngestError(f"{rows.problem[bad[0]][1]}; {len(bad)} of {len(rows.problem)} rows are no rotation "
+                          f"like this: check ingest.orientation (kind {spec['kind']}) and ingest.columns.orientation",
+                          file=rows.path, row=rows.lines[bad[0]], column=headers[0])
+
+
+def pose_groups(rows: Rows) -> dict:
+    """A target's file: id -> its usable marker rows (row indices), every id of the file in order of
+    first appearance (an id whose rows all failed their checks: none)."""
+    out = {pid: [] for pid in rows.first_rows()}
+    for r, (pid, p) in enumerate(zip(rows.ids, rows.problem)):
+        if p is None:
+            out[pid].append(r)
+    return out
+
+
+def target_geometry(target, points: dict, rows: Rows) -> tuple[dict, str]:
+    """The target's geometry {name: (3,) mm}: ingest.target's (every marker of the file in it), else
+    estimated from the poses' markers (orientation.estimate_geometry) -> (geometry, "given" | "estimated")."""
+    if target is None:
+        try:
+            return orientation.estimate_geometry(list(points.values())), "estimated"
+        except ValueError as e:
+            raise IngestError(f"{e}: the target's geometry is estimated from the first pose with every marker; "
+                              "give it in ingest.target", file=rows.path, column=rows.groups["marker"][0]) from None
+    geometry = {str(k): np.asarray(v, float) for k, v in target["markers"].items()}
+    if orientation.collinear(geometry):
+        raise IngestError("ingest.target.markers: the markers lie on a line; a rigid target needs three "
+                          "not on one line", file="params.yaml")
+    for r, (name, p) in enumerate(zip(rows.markers, rows.problem)):
+        if p is None and name not in geometry:
+            raise IngestError(f"marker {name!r} is not in ingest.target.markers ({', '.join(geometry)})",
+                              file=rows.path, row=rows.lines[r], column=rows.groups["marker"][0])
+    return geometry, "given"
+
+
+def pose_extras(rows: Rows, groups: list) -> list:
+    """The target file's other columns, one cell per pose: those on which every pose's marker rows agree
+    (a time stamp); one that differs between a pose's markers (per-marker values) is left out."""
+    out = []
+    for header, cells in rows.extras:
+        per_pose = [{cells[r].strip() for r in idx} for idx in groups]
+        if all(len(c) <= 1 for c in per_pose):
+            out.append((header, [next(iter(c), "") for c in per_pose]))
+        else:
+            log.info("column %r of %s differs between one pose's markers: left out of the ingest table",
+                     header, rows.path)
+    return out
+
+
+def fit_target_pose(rows: Rows, idx: list, points: dict, geometry: dict, limit: float, dropped: list):
+    """One pose's markers (rows idx, positions `points` {name: (3,) mm}) fitted to the geometry; each marker
+    off the fit is listed (`marker_residual`) -> (orientation.PoseFit, the file lines of the markers kept)."""
+    fit = orientation.fit_pose(geometry, points, limit)
+    row_of = {rows.markers[r]: r for r in idx}
+    for name, res in fit.removed:
+        dropped.append(entry(rows, row_of[name], "marker_residual", f"marker {name!r} is {res:.3g} mm off its "
+                             f"pose's fit to the target (limit {limit:g} mm, ingest.target_residual_mm)"))
+    gone = {name for name, _ in fit.removed}
+    return fit, [rows.lines[r] for r in idx if rows.markers[r] not in gone]
+
+
+def target_rows(rows: Rows, cfg: dict, dropped: list) -> tuple[Rows, dict]:
+    """A multi-marker target's rows (several per id, one per marker) -> one row per pose: the target
+    frame's origin (values, in the file's length unit) and rotation (quat), fitted to the target's
+    geometry (lib/orientation.py); a pose left with fewer than 3 markers has `too_few_markers`. Returns
+    (pose rows, the summary's `target`)."""
+    scale = 1000.0 if cfg["length_unit"] == "m" else 1.0
+    groups = pose_groups(rows)
+    points = {pid: {rows.markers[r]: rows.values[r, :3] * scale for r in idx} for pid, idx in groups.items()}
+    geometry, source = target_geometry(cfg["target"], points, rows)
+    limit = float(cfg["target_residual_mm"])
+    fits = [fit_target_pose(rows, idx, points[pid], geometry, limit, dropped) for pid, idx in groups.items()]
+    ok = [f.R is not None for f, _ in fits]
+    values = np.array([f.t / scale if good else [np.nan] * 3 for (f, _), good in zip(fits, ok)]).reshape(-1, 3)
+    quat = np.array([orientation.quaternion(f.R) if good else [np.nan] * 4
+                     for (f, _), good in zip(fits, ok)]).reshape(-1, 4)
+    problem = [None if good else ("too_few_markers", f.why + (f" ({len(f.removed)} off the fit)" if f.removed else ""),
+                                  None) for (f, _), good in zip(fits, ok)]
+    first = rows.first_rows()
+    pose = Rows(rows.path, rows.role, [rows.lines[first[pid]] for pid in groups], list(groups), values, problem,
+                rows.headers, pose_extras(rows, list(groups.values())), rows.sep, rows.decimal,
+                groups=rows.groups, quat=quat, members=[lines for _, lines in fits], n_lines=rows.n_read)
+    residuals = [v for f, _ in fits for v in f.residual.values()]
+    info = {"marker_column": rows.groups["marker"][0], "geometry": source,
+            "origin": "ingest.target's origin" if source == "given" else "the markers' centroid",
+            "markers_mm": {name: np.asarray(g).tolist() for name, g in geometry.items()},
+            "residual_limit_mm": limit, "n_poses_fitted": int(sum(ok)),
+            "residual_mm": {"median": float(np.median(residuals)) if residuals else None,
+                            "max": float(np.max(residuals)) if residuals else None}}
+    return pose, info
+
+
+def orientation_units(cfg: dict, files: list, target: dict | None) -> dict | None:
+    """units.orientation of the summary: where the meas_q* columns came from; None without them."""
+    to = "meas_qw, meas_qx, meas_qy, meas_qz: unit quaternion (w >= 0) of the probe -> tracker rotation"
+    if target is not None:
+        return {"kind": "target", "marker_column": target["marker_column"], "to": to}
+    headers = files[-1].groups.get("orientation")
+    if not headers:
+        return None
+    spec = cfg["orientation"]
+    keys = {"euler": ("sequence", "angle_unit"), "quaternion": ("scalar_first",), "matrix": ()}[spec["kind"]]
+    return {"columns": headers, "kind": spec["kind"], **{k: spec[k] for k in keys}, "to": to}
+
+
 # -------------------------------------------------------------------- points
 
 @dataclass
 class Points:
-    """Paired points: ids, angles (deg), positions (mm), and their source rows per file."""
+    """Paired points: ids, angles (deg), positions (mm), orientations, and their source rows per file."""
     ids: np.ndarray                 # (n,) str
     q: np.ndarray                   # (n, 6) degrees
     m: np.ndarray                   # (n, 3) mm
     src: dict                       # role -> (Rows, (n,) row indices)
+    o: np.ndarray | None = None     # (n, 4) unit quaternions w, x, y, z (the probe -> tracker), or None
 
     def __len__(self):
         return len(self.ids)
@@ -405,32 +584,39 @@ class Points:
         """Points without `mask`; each dropped point's rows go to `dropped`."""
         for k in np.flatnonzero(mask):
             for rows, idx in self.src.values():
-                dropped.append(entry(rows, idx[k], reason, details[k], self.ids[k]))
+                dropped += entries(rows, idx[k], reason, details[k], self.ids[k])
         keep = ~np.asarray(mask)
         return Points(self.ids[keep], self.q[keep], self.m[keep],
-                      {role: (rows, idx[keep]) for role, (rows, idx) in self.src.items()})
+                      {role: (rows, idx[keep]) for role, (rows, idx) in self.src.items()},
+                      None if self.o is None else self.o[keep])
 
 
-def entry(rows: Rows, r: int, reason: str, detail: str, pid=None) -> dict:
-    """One line of reports/ingest.json `dropped`."""
+def entry(rows: Rows, r: int, reason: str, detail: str, pid=None, line=None) -> dict:
+    """One line of reports/ingest.json `dropped` (row r's own file line, unless `line` says)."""
     return {"point_id": str(pid if pid is not None else rows.ids[r]), "file": rows.path,
-            "row": int(rows.lines[r]), "reason": reason, "detail": detail}
+            "row": int(rows.lines[r] if line is None else line), "reason": reason, "detail": detail}
+
+
+def entries(rows: Rows, r: int, reason: str, detail: str, pid=None) -> list:
+    """`entry` for every file line row r stands for (a target's pose: its marker rows)."""
+    return [entry(rows, r, reason, detail, pid, line) for line in rows.lines_of(r)]
 
 
 def row_problems(rows: Rows) -> list:
     """Dropped entries for the rows that failed their own checks."""
-    return [entry(rows, r, p[0], p[1]) for r, p in enumerate(rows.problem) if p]
+    return [e for r, p in enumerate(rows.problem) if p for e in entries(rows, r, p[0], p[1])]
 
 
 def make_points(pairs: list, joints: Rows, tracker: Rows | None) -> Points:
     """Points from (joint row, tracker row) index pairs; tracker None: positions are in `joints`."""
     j = np.array([a for a, _ in pairs], dtype=int)
+    ids = np.array([joints.ids[r] for r in j], dtype=object)
     if tracker is None:
-        return Points(np.array([joints.ids[r] for r in j], dtype=object), joints.values[j, :6],
-                      joints.values[j, 6:9], {"table": (joints, j)})
+        o = None if joints.quat is None else joints.quat[j]
+        return Points(ids, joints.values[j, :6], joints.values[j, 6:9], {"table": (joints, j)}, o)
     t = np.array([b for _, b in pairs], dtype=int)
-    return Points(np.array([joints.ids[r] for r in j], dtype=object), joints.values[j, :6],
-                  tracker.values[t, :3], {"joints": (joints, j), "tracker": (tracker, t)})
+    o = None if tracker.quat is None else tracker.quat[t]
+    return Points(ids, joints.values[j, :6], tracker.values[t, :3], {"joints": (joints, j), "tracker": (tracker, t)}, o)
 
 
 def pair_by_id(J: Rows, T: Rows, dropped: list) -> list:
@@ -448,10 +634,10 @@ def pair_by_id(J: Rows, T: Rows, dropped: list) -> list:
                 continue
             o = other.get(pid)
             if o is None:
-                dropped.append(entry(A, r, "unpaired", f"id {pid!r} is not in {B.path}"))
+                dropped += entries(A, r, "unpaired", f"id {pid!r} is not in {B.path}")
             elif B.problem[o]:
-                dropped.append(entry(A, r, "partner_dropped",
-                                     f"its row {B.lines[o]} in {B.path} was dropped ({B.problem[o][0]})"))
+                dropped += entries(A, r, "partner_dropped",
+                                   f"its row {B.lines[o]} in {B.path} was dropped ({B.problem[o][0]})")
             elif from_joints:
                 pairs.append((r, o))
     return pairs
@@ -665,7 +851,7 @@ def numeric_or_text(cells: list, decimal: str):
 
 def extra_columns(pts: Points) -> dict:
     """The inputs' other columns, for the kept points, under unique names."""
-    taken, out = {"point_id", *JOINTS_DEG, *MEAS}, {}
+    taken, out = {"point_id", *JOINTS_DEG, *MEAS, *MEAS_Q}, {}
     for role, (rows, idx) in pts.src.items():
         for header, cells in rows.extras:
             name = header if header not in taken else f"{role}_{header}"
@@ -683,6 +869,8 @@ def to_frame(pts: Points) -> pd.DataFrame:
         df[c] = pts.q[:, i].astype(np.float64)
     for i, c in enumerate(MEAS):
         df[c] = pts.m[:, i].astype(np.float64)
+    for i, c in enumerate(MEAS_Q if pts.o is not None else []):
+        df[c] = pts.o[:, i].astype(np.float64)
     for name, col in extra_columns(pts).items():
         df[name] = col
     return df
@@ -690,7 +878,7 @@ def to_frame(pts: Points) -> pd.DataFrame:
 
 def file_info(rows: Rows) -> dict:
     return {"path": rows.path, "sep": rows.sep, "decimal": rows.decimal if rows.sep else None,
-            "columns": rows.headers, "n_rows": len(rows.lines)}
+            "columns": rows.headers, "n_rows": rows.n_read}
 
 
 # -------------------------------------------------------------------- settings and the whole read
@@ -698,7 +886,10 @@ def file_info(rows: Rows) -> dict:
 def settings(ingest_cfg: dict) -> dict:
     """The `ingest:` section, checked (keys, separators, units), `table` set when both inputs are one file."""
     cfg = dict(check_keys(ingest_cfg, "ingest"))
-    check_keys(cfg["columns"], "ingest.columns")
+    check_values(cfg, "ingest")
+    for sub in ("columns", "orientation"):
+        check_values(check_keys(cfg[sub], f"ingest.{sub}"), f"ingest.{sub}")
+    check_orientation_settings(cfg)
     cfg["table"] = cfg["joints"] if str(cfg["joints"]) == str(cfg["tracker"]) else None
     if cfg["sep"] != "auto":
         if cfg["sep"] not in SEPARATORS:
@@ -716,6 +907,22 @@ def settings(ingest_cfg: dict) -> dict:
     return cfg
 
 
+def check_orientation_settings(cfg: dict) -> None:
+    """Stop on orientation settings that do not fit together (each one's values: config.RULES)."""
+    cols, kind = cfg["columns"], cfg["orientation"]["kind"]
+    need = orientation.KINDS[kind]
+    if cols["orientation"] is not None and len(cols["orientation"]) != need:
+        raise IngestError(f"ingest.columns.orientation has {len(cols['orientation'])} headers but "
+                          f"ingest.orientation.kind {kind} reads {need} (euler 3, quaternion 4, matrix 9)",
+                          file="params.yaml")
+    if cols["orientation"] is not None and cols["marker"] is not None:
+        raise IngestError("ingest.columns.orientation and ingest.columns.marker: a multi-marker target's "
+                          "orientation comes from its markers; set one of the two", file="params.yaml")
+    if cfg["target"] is not None and cols["marker"] is None:
+        raise IngestError("ingest.target is a multi-marker target's geometry: set ingest.columns.marker "
+                          "(the column naming each row's marker) too", file="params.yaml")
+
+
 def id_settings(setting) -> tuple:
     """columns.point_id -> (joints header, tracker header)."""
     if isinstance(setting, (list, tuple)):
@@ -727,28 +934,43 @@ def id_settings(setting) -> tuple:
 
 
 def read_inputs(cfg: dict, dropped: list):
-    """Read the configured files -> (points, [Rows], path named in whole-set errors)."""
+    """Read the configured files -> (points, [Rows], path named in whole-set errors, the summary's
+    `target` or None)."""
     cols = cfg["columns"]
     joint_group = (cols["joints"], AUTO_JOINTS, "joints")
-    pos_group = (cols["position"], AUTO_POSITION, "position")
+    tracker_groups = [(cols["position"], AUTO_POSITION, "position")]
+    if cols["orientation"] is not None:                    # explicit only: never guessed from headers
+        tracker_groups.append((cols["orientation"], [cols["orientation"]], "orientation"))
     if cfg["table"]:
-        rows = read_rows(str(cfg["table"]), "table", cfg, cols["point_id"], [joint_group, pos_group])
+        if cols["marker"] is not None:
+            raise IngestError("ingest.columns.marker: a multi-marker target has several rows per pose, so it "
+                              "needs its own tracker file (ingest.tracker), paired by id", file="params.yaml")
+        rows = read_rows(str(cfg["table"]), "table", cfg, cols["point_id"], [joint_group, *tracker_groups])
+        add_orientation(rows, cfg["orientation"])
         dropped += row_problems(rows)
         pairs = [(r, r) for r, p in enumerate(rows.problem) if p is None]
-        return make_points(pairs, rows, None), [rows], rows.path
+        return make_points(pairs, rows, None), [rows], rows.path, None
     jid, tid = id_settings(cols["point_id"])
     J = read_rows(str(cfg["joints"]), "joints", cfg, jid, [joint_group])
-    tracker = str(cfg["tracker"])
+    tracker, target = str(cfg["tracker"]), None
     if Path(tracker).suffix.lower() in CLOUD_SUFFIXES:
+        if cols["orientation"] is not None or cols["marker"] is not None:
+            key = "orientation" if cols["orientation"] is not None else "marker"
+            raise IngestError(f"a point cloud holds positions only, no orientation or marker names: "
+                              f"ingest.columns.{key} needs a tracker table (.csv/.txt)", file=tracker)
         T = read_cloud(tracker)
         dropped += row_problems(J)
         pairs = pair_by_order(J, T, dropped)
         dropped += row_problems(T)
     else:
-        T = read_rows(tracker, "tracker", cfg, tid, [pos_group])
+        T = read_rows(tracker, "tracker", cfg, tid, tracker_groups, cols["marker"])
+        add_orientation(T, cfg["orientation"])
+        if cols["marker"] is not None:                      # marker rows -> one row per pose
+            dropped += row_problems(T)
+            T, target = target_rows(T, cfg, dropped)
         pairs = pair_by_id(J, T, dropped)
         dropped += row_problems(J) + row_problems(T)
-    return make_points(pairs, J, T), [J, T], T.path
+    return make_points(pairs, J, T), [J, T], T.path, target
 
 
 def convert_units(pts: Points, joints: Rows, cfg: dict) -> list:
@@ -778,12 +1000,12 @@ def ingest(ingest_cfg: dict, robot):
     cfg = settings(ingest_cfg)
     dropped = []
     t0 = time.perf_counter()
-    pts, files, path = read_inputs(cfg, dropped)
+    pts, files, path, target = read_inputs(cfg, dropped)
     if len(pts) > REFERENCE_POINTS:                         # a large campaign: say where it is
-        log.info("read %s: %d points paired (%.0f s); checking them", ", ".join(f"{len(f.lines)} rows of {f.path}"
+        log.info("read %s: %d points paired (%.0f s); checking them", ", ".join(f"{f.n_read} rows of {f.path}"
                                                                         for f in files), len(pts), time.perf_counter() - t0)
     joints, positions = files[0], files[-1]
-    jh, ph = joints.headers[:6], positions.headers[-3:]
+    jh, ph = joints.groups["joints"], positions.groups["position"]
     units = convert_units(pts, joints, cfg)
     for h, u in zip(jh, units):
         if u != cfg["angle_unit"]:
@@ -803,7 +1025,7 @@ def ingest(ingest_cfg: dict, robot):
     dropped.sort(key=lambda d: (order[d["file"]], d["row"]))
     summary = {
         "files": {rows.role: file_info(rows) for rows in files},
-        "n_read": {rows.role: len(rows.lines) for rows in files},
+        "n_read": {rows.role: rows.n_read for rows in files},
         "n_kept": len(pts),
         "dropped": dropped,
         "dropped_counts": dict(Counter(d["reason"] for d in dropped)),
@@ -813,6 +1035,11 @@ def ingest(ingest_cfg: dict, robot):
         "geometry": geometry,
         "gross_outlier": outliers,
     }
+    rotation = orientation_units(cfg, files, target)
+    if rotation is not None:                                # only then: a campaign without is as it was
+        summary["units"]["orientation"] = rotation
+    if target is not None:
+        summary["target"] = target
     log_counts(summary, files)
     return to_frame(pts), summary
 
@@ -823,5 +1050,5 @@ def log_counts(summary: dict, files: list) -> None:
     for rows in files:
         c = Counter(d["reason"] for d in summary["dropped"] if d["file"] == rows.path)
         why = " (" + ", ".join(f"{n} {r}" for r, n in c.most_common()) + ")" if c else ""
-        parts.append(f"{rows.path}: read {len(rows.lines)}, dropped {sum(c.values())}{why}")
+        parts.append(f"{rows.path}: read {rows.n_read}, dropped {sum(c.values())}{why}")
     log.info("%s; kept %d points", "; ".join(parts), summary["n_kept"])

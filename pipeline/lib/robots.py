@@ -244,4 +244,4 @@ def load_robot(cfg: dict) -> Robot:
 
 def nominal_robot(name: str) -> Robot:
     """A catalogue robot (TABLES) with its own limits and no tool."""
-    return load_robot({"model": name, "dh": None, "joint_limits_deg": None, "tool_mm": [0.0, 0.0, 0.0]})
+    return load_robot({"model": name, "dh": None, "joint_limits_deg": None, "tool_mm": [0.0, 0.0, 0.0], "tcp": None})

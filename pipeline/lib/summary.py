@@ -241,11 +241,19 @@ def not_covered(metrics: dict, validation: dict, cond: dict, trained: list, tool
                  + ", ".join(([f"{pct(1 - u['in_workspace_share'])} of the test split"]
                               if u.get("in_workspace_share") is not None else []) + ws)
                  + (" (outside the error maps' joint-angle range: " + ", ".join(maps) + ")" if maps else "") + ".")
-    items.append("**Orientation.** Only the marker's position is calibrated and judged; the tool's "
-                  "orientation accuracy is not stated"
-                  + (f" (the tracker recorded {', '.join(f'`{c}`' for c in orientation_columns[:3])}"
-                     f"{', …' if len(orientation_columns) > 3 else ''}, not used)." if orientation_columns
-                     else " (no orientation was measured)."))
+    pose = (metrics.get("pose") or {}).get((metrics.get("reported") or {}).get("method"), {}).get("test")
+    if pose:
+        tcps = ", ".join(f"`{k}` {v['mean_mm']:.3f} mm" for k, v in pose["tcp"].items())
+        items.append(f"**Orientation and tools.** Calibrated on the probe's position and orientation: on the test "
+                     f"split the orientation is off by {pose['orientation']['mean_arcsec']:.0f}″ on average "
+                     f"(95% within {pose['orientation']['p95_arcsec']:.0f}″)"
+                     + (f"; at the tools (TCP) {tcps} mean." if tcps else "; no TCP is set (`robot.tcp`)."))
+    else:
+        items.append("**Orientation.** Only the marker's position is calibrated and judged; the tool's "
+                     "orientation accuracy is not stated"
+                     + (f" (the tracker recorded {', '.join(f'`{c}`' for c in orientation_columns[:3])}"
+                        f"{', …' if len(orientation_columns) > 3 else ''}, not used)." if orientation_columns
+                        else " (no orientation was measured)."))
     temps = [(c, cond.get(c)) for c in trained if (cond.get(c) or {}).get("t_mean") is not None]
     if temps:
         lo = min(t["t_min"] for _, t in temps)

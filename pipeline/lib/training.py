@@ -27,7 +27,7 @@ from tqdm import tqdm
 
 from .columns import JOINTS_DEG, MEAS
 from .errormaps import MAP_KEYS
-from .kinematics import DTYPE, GEOMETRY_KEYS
+from .kinematics import DTYPE, RIGID_KEYS
 from .loss import SPILoss, data_loss
 from .model import DNN, BoTER, Ensemble, check_config, n_params
 from .workspace import workspace_radius
@@ -84,7 +84,7 @@ def load_model(path) -> BoTER | Ensemble:
     Needs no params: the checkpoint says how to build it, its state holds the geometry."""
     ckpt = torch.load(path, weights_only=True, map_location="cpu")     # saved from the CPU; loads anywhere
     state = ckpt["state_dict"]
-    geometry = {k: state[f"physics.{k}"] for k in GEOMETRY_KEYS + MAP_KEYS if f"physics.{k}" in state}
+    geometry = {k: state[f"physics.{k}"] for k in RIGID_KEYS + MAP_KEYS if f"physics.{k}" in state}
     members = [make_model(ckpt["config"], geometry) for _ in range(ckpt["members"])]
     model = members[0] if len(members) == 1 else Ensemble(members)
     model.load_state_dict(state)

@@ -12,8 +12,13 @@ way real arms do:
                  angular structure per joint (FINE: a few components of 18-72
                  cycles per revolution, features of 5-20°, tens of arcseconds,
                  as the IPA UR10 shows; issue 22);
-  measurement    joint repeatability noise, tracker noise, a few gross tracker
-                 misreads, and an unknown tracker pose ≈3 m from the robot.
+  wrist          errors only the probe's orientation reveals (WRIST, issue 34): a tilt of joint 6's
+                 axis (an Ry tilt after joint 5), a joint-6 angle map (a few low harmonics of tens
+                 of arcsec) and the probe's rotation on the flange; its own stream, not tuned to
+                 flatter a model;
+  measurement    joint repeatability noise, tracker noise (position and, as a 6-DoF probe such
+                 as the T-Mac measures it, orientation), a few gross tracker misreads, and an
+                 unknown tracker pose ≈3 m from the robot.
 Everything derives from one seed (SEED), through named random streams, so a
 change in one part (say, the poses) does not reshuffle the others.
 
@@ -24,6 +29,8 @@ API
     twin.expected_position(q_deg)       # (n, 3) base-frame marker position, noise-free
     twin.to_tracker(p_base)             # (n, 3) base -> tracker frame, P = R Q + t (eq. 20)
     twin.drive(q_deg, rng)              # (n, 3) one tracker measurement per pose (noisy, no misreads)
+    twin.drive_pose(q_deg, rng, orng)   # the same and the probe's measured orientation (n, 3, 3)
+    twin.expected_pose(q_deg)           # (n, 3), (n, 3, 3) base-frame marker and probe orientation, noise-free
     twin.noise_floor_mm                 # 3D MAE a perfect model still shows (Monte Carlo)
     twin.campaign(n=724)                # (joints_df, tracker_df, misreads {id: offset mm}),
                                         # the tables in docs/data-format.md format
@@ -47,9 +54,9 @@ from scipy.spatial.transform import Rotation
 from .campaigns import pair_sha256
 from .columns import JOINTS_DEG
 from .config import read_json, write_json
-from .frames import robust_kabsch, to_base
+from .frames import quaternions, robust_kabsch, to_base
 from .identify import identify
-from .kinematics import DTYPE, GRAVITY, fk, gravity_torques, nominal_geometry
+from .kinematics import DTYPE, GRAVITY, TOOL_ROT, fk, fk_pose, gravity_torques, nominal_geometry
 from .metrics import drive_table
 from .poses import RULES, acceptable
 from .robots import nominal_robot
@@ -118,7 +125,17 @@ STATION_B = {"seed": 726, "n": {"side": 300}, "dir": "station_b", "prefix": "B"}
 # ("fine"), so the other errors, poses and noise are the same draws as without it.
 FINE = {"components": 3, "cycles": (18, 72), "amp_arcsec": (10.0, 40.0)}
 
-STREAMS = {"errors": 1, "tracker": 2, "poses": 3, "noise": 4, "misreads": 5, "floor": 6, "fine": 7}
+# The wrist (issue 34): what a marker on joint 6's axis cannot see. A tilt of joint 6's axis (Ry after joint 5's
+# DH transform, as the parallel axes' beta), a joint-6 angle error of a few low harmonics (a worn or eccentric
+# last gear), the probe's rotation on the flange (a mount is never square), and the 6-DoF probe's orientation
+# noise (per axis, 1 sigma; a T-Mac reads about 0.01° = 36″). From their own streams ("wrist", "orientation"),
+# so every other draw is as before.
+WRIST = {"beta5_deg": (0.02, 0.06), "j6_components": 3, "j6_cycles": (2, 8), "j6_amp_arcsec": (30.0, 90.0),
+         "tool_rot_deg": (0.1, 0.5), "orientation_sigma_arcsec": 20.0}
+ORIENTATION_COLUMNS = ["QW", "QX", "QY", "QZ"]   # the tracker export's probe orientation (scalar first)
+
+STREAMS = {"errors": 1, "tracker": 2, "poses": 3, "noise": 4, "misreads": 5, "floor": 6, "fine": 7, "wrist": 8,
+           "orientation": 9}
 
 
 def stream(seed: int, name: str) -> np.random.Generator:
@@ -151,7 +168,21 @@ def sample_errors(seed: int = SEED) -> dict:
         "joint_sigma_deg": JOINT_SIGMA_DEG,
         "tracker_sigma_mm": TRACKER_SIGMA_MM,
         **sample_fine(seed),
+        **sample_wrist(seed),
     }
+
+
+def sample_wrist(seed: int = SEED) -> dict:
+    """The wrist's errors (WRIST), from the "wrist" stream."""
+    rng = stream(seed, "wrist")
+    sign = lambda n: rng.choice([-1.0, 1.0], n)
+    k = WRIST["j6_components"]
+    return {"wrist_beta5_deg": float(sign(1)[0] * rng.uniform(*WRIST["beta5_deg"])),
+            "j6_cycles": rng.integers(WRIST["j6_cycles"][0], WRIST["j6_cycles"][1] + 1, k).astype(float),
+            "j6_amp_arcsec": rng.uniform(*WRIST["j6_amp_arcsec"], k),
+            "j6_phase_rad": rng.uniform(0.0, 2 * np.pi, k),
+            "tool_rot_deg": sign(3) * rng.uniform(*WRIST["tool_rot_deg"], 3),
+            "orientation_sigma_arcsec": WRIST["orientation_sigma_arcsec"]}
 
 
 def sample_fine(seed: int = SEED) -> dict:
@@ -168,7 +199,8 @@ def zero_errors() -> dict:
     e = {k: np.zeros_like(v) for k, v in sample_errors(0).items()
          if isinstance(v, np.ndarray)}
     e["stiffness_Nm_per_rad"] = np.full(6, np.inf)
-    return {**e, "joint_sigma_deg": 0.0, "tracker_sigma_mm": 0.0}
+    return {**e, "joint_sigma_deg": 0.0, "tracker_sigma_mm": 0.0, "wrist_beta5_deg": 0.0,
+            "orientation_sigma_arcsec": 0.0}
 
 
 def true_geometry(errors: dict, robot=None) -> dict:
@@ -179,12 +211,14 @@ def true_geometry(errors: dict, robot=None) -> dict:
     g = nominal_geometry(robot)
     t = lambda v: torch.as_tensor(np.asarray(v, float), dtype=DTYPE)
     mass, com = (LINK_MASS, LINK_COM) if robot.name == "ur5" else (robot.mass, robot.com)
+    beta = np.radians(errors["beta_deg"]) + np.radians([0, 0, 0, 0, errors.get("wrist_beta5_deg", 0.0), 0])
     return {**g,
             "d": g["d"] + t(errors["d_mm"]), "a": g["a"] + t(errors["a_mm"]),
             "alpha": g["alpha"] + t(np.radians(errors["alpha_deg"])),
             "offset": g["offset"] + t(np.radians(errors["offset_deg"])),
-            "beta": g["beta"] + t(np.radians(errors["beta_deg"])),
-            "tool": g["tool"] + t(errors["tool_mm"]), "mass": t(mass), "com": t(com)}
+            "beta": g["beta"] + t(beta),
+            "tool": g["tool"] + t(errors["tool_mm"]), "mass": t(mass), "com": t(com),
+            TOOL_ROT: t(np.radians(errors.get("tool_rot_deg", np.zeros(3))))}
 
 
 def sample_tracker_pose(seed: int = SEED) -> tuple[np.ndarray, np.ndarray]:
@@ -269,6 +303,10 @@ class Twin:
         if "fine_amp_arcsec" in self.errors:         # a twin.json from before issue 22 has none
             q = q + gear_error_rad(q, np.asarray(self.errors["fine_amp_arcsec"]) / 3600.0,
                                    self.errors["fine_phase_rad"], self.errors["fine_cycles"])
+        if "j6_amp_arcsec" in self.errors:           # ... nor one from before issue 34 a wrist
+            j6 = np.radians((np.asarray(self.errors["j6_amp_arcsec"]) / 3600.0
+                             * np.sin(q[..., 5:6] * self.errors["j6_cycles"] + self.errors["j6_phase_rad"])).sum(-1))
+            q = q + np.stack([np.zeros_like(j6)] * 5 + [j6], -1)
         with torch.no_grad():
             tau = gravity_torques(torch.as_tensor(q, dtype=DTYPE), self.geometry).numpy()
         return np.degrees(q + (tau - self.tau_ref) * self.compliance)  # joint gives way to torque
@@ -280,6 +318,26 @@ class Twin:
     def expected_position(self, q_deg) -> np.ndarray:
         """Noise-free base-frame marker position (mm) for commanded q_deg (n, 6)."""
         return self._fk(self.actual_joints(q_deg))
+
+    def _pose(self, q_deg: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        with torch.no_grad():
+            p, R = fk_pose(torch.as_tensor(np.radians(q_deg), dtype=DTYPE), self.geometry)
+        return p.numpy(), R.numpy()
+
+    def expected_pose(self, q_deg) -> tuple[np.ndarray, np.ndarray]:
+        """Noise-free base-frame marker position (n, 3) mm and probe orientation (n, 3, 3) for commanded q_deg."""
+        return self._pose(self.actual_joints(q_deg))
+
+    def drive_pose(self, q_deg, rng: np.random.Generator, orng: np.random.Generator):
+        """Command q_deg (n, 6) once: the tracker's reading of the marker (n, 3), as `drive` (the same draws
+        from rng), and of the probe's orientation (n, 3, 3), its noise from orng."""
+        q = self.actual_joints(q_deg)
+        q = q + rng.normal(0.0, self.errors["joint_sigma_deg"], q.shape)
+        p, R = self._pose(q)
+        p = self.to_tracker(p) + rng.normal(0.0, self.errors["tracker_sigma_mm"], p.shape)
+        sigma = np.radians(self.errors.get("orientation_sigma_arcsec", 0.0) / 3600.0)
+        noise = Rotation.from_rotvec(orng.normal(0.0, sigma, (len(q), 3))).as_matrix()
+        return p, noise @ self.R @ R
 
     def to_tracker(self, p_base) -> np.ndarray:
         """Base frame -> tracker frame: P = R Q + t (eq. 20)."""
@@ -314,7 +372,7 @@ class Twin:
         seed = self.seed if seed is None else seed
         q = self.poses(n, seed)
         ids = [f"P{i + 1:04d}" for i in range(n)]
-        P = self.drive(q, stream(seed, "noise"))
+        P, R = self.drive_pose(q, stream(seed, "noise"), stream(seed, "orientation"))
         rng = stream(seed, "misreads")
         misreads = {}
         for i in sorted(rng.choice(n, min(N_MISREADS, n), replace=False)):
@@ -324,9 +382,7 @@ class Twin:
             misreads[ids[i]] = off
         joints = pd.DataFrame(q, columns=JOINTS_DEG)
         joints.insert(0, "point_id", ids)
-        tracker = pd.DataFrame(P, columns=["X", "Y", "Z"])
-        tracker.insert(0, "Name", ids)
-        return joints, tracker, misreads
+        return joints, tracker_table(ids, P, R), misreads
 
 
     def validation_campaign(self, seed: int = VALIDATION["seed"], n: dict = VALIDATION["n"],
@@ -340,9 +396,18 @@ class Twin:
         ids = [f"{prefix}{i + 1:04d}" for i in range(len(q))]
         joints = pd.DataFrame(q, columns=JOINTS_DEG)
         joints.insert(0, "point_id", ids)
-        tracker = pd.DataFrame(moved.drive(q, stream(seed, "noise")), columns=["X", "Y", "Z"])
-        tracker.insert(0, "Name", ids)
-        return joints, tracker, (R, t)
+        return joints, tracker_table(ids, *moved.drive_pose(q, stream(seed, "noise"), stream(seed, "orientation"))), (R, t)
+
+
+def tracker_table(ids: list, P: np.ndarray, R: np.ndarray) -> pd.DataFrame:
+    """The tracker export: Name, X, Y, Z (mm) and the probe's orientation as a unit quaternion QW..QZ
+    (scalar first), the latter as text of 10 decimals (1e-10: far below the noise; the positions are
+    written with 4)."""
+    out = pd.DataFrame(P, columns=["X", "Y", "Z"])
+    out.insert(0, "Name", ids)
+    for c, v in zip(ORIENTATION_COLUMNS, quaternions(R).T):
+        out[c] = [f"{x:.10f}" for x in v]
+    return out
 
 
 # ----------------------------------------------------------------------------- difficulty
@@ -464,4 +529,17 @@ def drive_check(twin: Twin, frame: dict, rng: np.random.Generator, q_before: np.
     after = to_base(twin.drive(q_after, rng), frame)
     summary = {"before": drive_table(before, target), "after": drive_table(after, target),
                "noise_floor_mm": twin.noise_floor_mm}
+    return summary, np.hstack([before - target, after - target])
+
+
+def tcp_drive_check(twin: Twin, frame: dict, rng: np.random.Generator, orng: np.random.Generator,
+                    q_before: np.ndarray, q_after: np.ndarray, target: np.ndarray, o: np.ndarray):
+    """The drive check for a TCP o (3,) mm in the probe's frame: drive the twin to the recorded and the
+    compensated angles, measure the probe's pose, and the TCP where it follows from it (P + R_meas o),
+    in the base frame; returns (Table 9 stats before and after, per-point errors (n, 6) mm)."""
+    def measured(q):
+        P, R = twin.drive_pose(q, rng, orng)
+        return to_base(P + R @ o, frame)
+    before, after = measured(q_before), measured(q_after)
+    summary = {"before": drive_table(before, target), "after": drive_table(after, target)}
     return summary, np.hstack([before - target, after - target])

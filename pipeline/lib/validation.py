@@ -21,7 +21,10 @@ measured it in its tracker's frame. Two ways to compare them:
             offset dt (flange frame) fitted with each method's frame on the same points, every
             method's marker moved by R_flange(q) dt (its own chain's flange). Only where the
             campaign's orientations fix dt (several tool orientations: the fit's condition
-            number is reported); the methods are registered alike.
+            number is reported); the methods are registered alike. Where the campaign measures
+            the probe's orientation, the registration fits it too (the frame, dt and the probe's
+            re-mounted rotation dR, weighted by `calibrate.pose_noise`), and each method is judged
+            also on the orientation and at every TCP (`judge_poses`, lib/tcp.py).
 
 ISO 9283 position accuracy where the campaign commands one position several
 times (a `commanded` column group): per commanded position, with the
@@ -40,6 +43,7 @@ from scipy.spatial.transform import Rotation
 from .frames import check_fit, robust_kabsch, to_base
 from .identify import identifiability
 from .metrics import stats
+from .tcp import pose_errors
 
 METHODS = ("nominal", "calibrated", "calibrated_parts", "model")
 
@@ -61,21 +65,39 @@ MODES = ("same", "refit", "refit_tool")
 
 
 FRAME_TOOL = ["rx", "ry", "rz", "tx", "ty", "tz", "tool_x", "tool_y", "tool_z"]
+PROBE_ROT = ["tool_rx", "tool_ry", "tool_rz"]
 
 
-def refit_tool(p: np.ndarray, Rf: np.ndarray, P: np.ndarray, R0: np.ndarray, t0: np.ndarray, rank_tol: float):
+def small_rotation(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """kinematics.rotation_error in numpy: vee of the skew part of A Bᵀ, (k, 3, 3) x2 -> (k, 3) rad."""
+    M = A @ np.swapaxes(B, -1, -2)
+    return 0.5 * np.stack([M[..., 2, 1] - M[..., 1, 2], M[..., 0, 2] - M[..., 2, 0], M[..., 1, 0] - M[..., 0, 1]], -1)
+
+
+def refit_tool(p: np.ndarray, Rf: np.ndarray, P: np.ndarray, R0: np.ndarray, t0: np.ndarray, rank_tol: float,
+               R_probe: np.ndarray | None = None, R_world: np.ndarray | None = None, weight: float = 0.0):
     """Frame and tool offset jointly, P ≈ R (p + Rf dt) + t, from the start (R0, t0): p (k, 3) predicted
     markers, Rf (k, 3, 3) the flange rotations (base frame). Only the offset components the poses'
     orientations determine are fitted (identify.identifiability at rank_tol: an offset along an axis
-    the flange never turns away from is a translation of the frame); the others stay 0.
-    Returns R, t, dt (3,) mm and the names of the components held at 0."""
+    the flange never turns away from is a translation of the frame); the others stay 0. With measured
+    orientations R_world (k, 3, 3, tracker frame) and the predicted ones R_probe, also R R_probe dR ≈ R_world,
+    weight mm/rad, and the probe's re-mounted rotation dR.
+    Returns R, t, dt (3,) mm, dR (3, 3) and the names of the components held at 0."""
+    poses = R_world is not None
+    names = FRAME_TOOL + (PROBE_ROT if poses else [])
+
     def residuals(x):
         R = Rotation.from_rotvec(x[:3]).as_matrix()
-        return ((p + np.einsum("kij,j->ki", Rf, x[6:])) @ R.T + x[3:6] - P).ravel()
-    x0 = np.r_[Rotation.from_matrix(R0).as_rotvec(), t0, np.zeros(3)]
+        r = ((p + np.einsum("kij,j->ki", Rf, x[6:9])) @ R.T + x[3:6] - P).ravel()
+        if not poses:
+            return r
+        dR = Rotation.from_rotvec(x[9:12]).as_matrix()
+        return np.r_[r, weight * small_rotation(R @ R_probe @ dR, R_world).ravel()]
+    x0 = np.r_[Rotation.from_matrix(R0).as_rotvec(), t0, np.zeros(len(names) - 6)]
     r0 = residuals(x0)
-    J = np.stack([(residuals(x0 + h * e) - r0) / h for e, h in zip(np.eye(9), [1e-6] * 3 + [1e-3] * 6)], 1)
-    keep = identifiability(J, FRAME_TOOL, rank_tol)["keep"]
+    steps = [1e-6] * 3 + [1e-3] * 6 + [1e-6] * (len(names) - 9)
+    J = np.stack([(residuals(x0 + h * e) - r0) / h for e, h in zip(np.eye(len(names)), steps)], 1)
+    keep = identifiability(J, names, rank_tol)["keep"]
     keep[:6] = True                                       # the frame is always fitted
     def sub(xk):
         x = x0.copy()
@@ -84,19 +106,23 @@ def refit_tool(p: np.ndarray, Rf: np.ndarray, P: np.ndarray, R0: np.ndarray, t0:
     sol = least_squares(sub, x0[keep], x_scale="jac")
     x = x0.copy()
     x[keep] = sol.x
-    return (Rotation.from_rotvec(x[:3]).as_matrix(), x[3:6], x[6:],
-            [n for n, k in zip(FRAME_TOOL, keep) if not k])
+    dR = Rotation.from_rotvec(x[9:12]).as_matrix() if poses else np.eye(3)
+    return (Rotation.from_rotvec(x[:3]).as_matrix(), x[3:6], x[6:9], dR,
+            [n for n, k in zip(names, keep) if not k])
 
 
 def judge(pred: dict, P_world: np.ndarray, mode: str, frame: dict, n_register: int, frame_cfg: dict,
-          flange_R: dict | None = None, tool_rank_tol: float | None = None):
+          flange_R: dict | None = None, tool_rank_tol: float | None = None, probe_R: dict | None = None,
+          R_world: np.ndarray | None = None, weight: float = 0.0):
     """Each method's 3D error per point and the frame it was judged in.
 
     pred: {method: (m, 3) base frame}; P_world: (m, 3) tracker frame; flange_R {method: (m, 3, 3)}: the
     flange rotations each method's chain gives (refit_tool). Returns (errors {method: (m,)}, registered
     (m,) bool, frames {method: {"R", "t", "tool_offset_mm"}}); registered points are not judged (their
     errors are the registration residuals). refit_tool: the frame and a tool offset dt (the probe
-    re-mounted) on the registration points, every method's prediction moved by R_flange dt.
+    re-mounted) on the registration points, every method's prediction moved by R_flange dt; with measured
+    orientations R_world (m, 3, 3) and each method's probe orientations probe_R, fitted on them too
+    (frames[method]["probe_rotation"]: the re-mounted probe's dR).
     """
     if mode == "same":
         P = to_base(P_world, frame)
@@ -114,14 +140,32 @@ def judge(pred: dict, P_world: np.ndarray, mode: str, frame: dict, n_register: i
         frames[m] = {"R": R, "t": t, "tool_offset_mm": np.zeros(3)}
         if mode == "refit_tool":
             k = np.flatnonzero(reg)[inl]
-            R, t, dt, held = refit_tool(p[k], flange_R[m][k], P_world[k], R, t, tool_rank_tol)
+            poses = R_world is not None
+            R, t, dt, dR, held = refit_tool(p[k], flange_R[m][k], P_world[k], R, t, tool_rank_tol,
+                                            probe_R[m][k] if poses else None, R_world[k] if poses else None, weight)
             p = p + np.einsum("mij,j->mi", flange_R[m], dt)
-            frames[m] = {"R": R, "t": t, "tool_offset_mm": dt, "tool_held": held}
+            frames[m] = {"R": R, "t": t, "tool_offset_mm": dt, "tool_held": held,
+                         **({"probe_rotation": dR} if poses else {})}
         errors[m] = np.linalg.norm(p @ R.T + t - P_world, axis=1)
         k = np.flatnonzero(reg)[inl]                      # the registration's own residual, per degree of freedom
         dof = max(3 * len(k) - (6 + 3 - len(frames[m].get("tool_held", ["x"] * 3))), 1)
         frames[m]["registration_rms_mm"] = float(np.sqrt((errors[m][k] ** 2).sum() / dof * 3))
     return errors, reg, frames
+
+
+def judge_poses(pred: dict, probe_R: dict, flange_R: dict, frames: dict, P_world: np.ndarray,
+                R_world: np.ndarray, offsets: dict, judged: np.ndarray) -> dict:
+    """Each method's orientation and TCP errors (lib/tcp.py pose_errors) on the judged points, in the frame
+    it was registered in (its tool offset dt and re-mounted probe rotation dR applied)."""
+    out = {}
+    for m, p in pred.items():
+        f = frames[m]
+        R, t = np.asarray(f["R"]), np.asarray(f["t"])
+        p_m = p + np.einsum("mij,j->mi", flange_R[m], f["tool_offset_mm"])
+        R_m = probe_R[m] @ f.get("probe_rotation", np.eye(3))
+        out[m] = pose_errors(p_m[judged], R_m[judged], to_base(P_world, f)[judged],
+                             np.einsum("ji,njk->nik", R, R_world)[judged], offsets)
+    return out
 
 
 def summary(table: pd.DataFrame, mode: str) -> dict:
