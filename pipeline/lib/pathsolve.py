@@ -131,54 +131,56 @@ def beyond_reach(targets: np.ndarray, arc_mm: np.ndarray, reach_mm: float) -> st
             f"beyond the arm's reach of {reach_mm:.1f} mm")
 
 
-def refusal(table: pd.DataFrame, n_samples: int, robot, tol_mm: float, dev: np.ndarray, max_deviation_mm: float,
-            speed_mm_s: float, speeds_deg_s: np.ndarray, workspace=None) -> str | None:
+def refusal(table: pd.DataFrame, n_samples: int, limits_deg: np.ndarray, tol_mm: float, dev: np.ndarray,
+            max_deviation_mm: float, speed_mm_s: float, speeds_deg_s: np.ndarray, workspace=None) -> str | None:
     """Why the path must stop, naming its first sample that must not be driven (numbered from 1), or None:
-    not converged, beyond the joint limits, a joint step faster than its speed limit at speed_mm_s or a
-    joint-space step whose middle leaves the path by more than max_deviation_mm (dev: `deviation`; a branch
-    flip), and, with a workspace, outside the trained workspace."""
-    found = []                                           # (sample index, message)
+    not reached (the table's last sample: solve_path stops there), beyond the joint limits, a joint step
+    faster than the joint's speed limit at speed_mm_s, or a joint-space step whose middle leaves the path by
+    more than max_deviation_mm (dev: `deviation`: a branch flip), and, with a workspace, outside the trained
+    workspace; the kinds found after the first are named with their first sample."""
+    found = []                                           # (sample index, kind, message)
     arc, q = table.arc_mm.to_numpy(), table[JCOMP_DEG].to_numpy()
     name = lambda k: f"sample {k + 1} (arc {arc[k]:.1f} mm)"
-    last = len(table) - 1
-    if not table.converged.iloc[last]:
-        found.append((last, f"{name(last)}: not reached (residual {table.residual_mm.iloc[last]:.4f} mm after "
-                            f"{int(table.iterations.iloc[last])} iterations, tolerance {tol_mm:g} mm), solved from "
-                            f"sample {last}'s joints; the {n_samples - last - 1} samples after it were not solved"))
-    beyond = robot.check_joints(q)
-    if beyond.any():
-        k, j = map(int, np.argwhere(beyond)[0])
-        found.append((k, f"{name(k)}: joint {j + 1} at {q[k, j]:.1f}°, beyond its limits "
-                         f"[{robot.limits_deg[j][0]:g}, {robot.limits_deg[j][1]:g}]°"))
-    if len(q) > 1:
-        dt = servo_times(arc, speed_mm_s)
-        rate = np.abs(np.diff(q, axis=0)) / dt[:, None]                  # deg/s
-        fast = np.argwhere(rate > speeds_deg_s)
-        if len(fast):
-            k, j = map(int, fast[0])
-            found.append((k + 1, f"{name(k + 1)}: joint {j + 1} turns {abs(q[k + 1, j] - q[k, j]):.2f}° from "
-                                 f"sample {k + 1} in {dt[k]:.3f} s ({rate[k, j]:.0f}°/s, beyond its "
-                                 f"{speeds_deg_s[j]:.0f}°/s at {speed_mm_s:g} mm/s): a branch flip?"))
-        off = np.flatnonzero(dev > max_deviation_mm)
-        if len(off):
-            k = int(off[0])
-            found.append((k + 1, f"samples {k + 1}-{k + 2} (arc {arc[k]:.1f}-{arc[k + 1]:.1f} mm): the joint-space "
-                                 f"step between them leaves the path by {dev[k]:.2f} mm at its middle, as the model "
-                                 f"predicts it (path.max_deviation_mm {max_deviation_mm:g}): a branch flip?"))
-    if workspace is not None:
-        out = np.flatnonzero(~table.in_workspace.to_numpy(bool))
-        if len(out):
-            k = int(out[0])
-            radii = float(workspace.distance(q[k])[0] / workspace.radius)
-            found.append((k, f"{name(k)}: outside the trained workspace ({radii:.2f} workspace radii from the "
-                             f"nearest training pose; {len(out)} of {len(q)} samples are), where the correction "
-                             "has faded to the calibration: rerun with --allow-outside-workspace to write it "
-                             "with those samples flagged"))
+    m = len(table)                                       # the samples reached
+    if not table.converged.iloc[-1]:
+        m -= 1
+        found.append((m, "not reached", f"{name(m)}: not reached (residual {table.residual_mm.iloc[m]:.4f} mm, "
+                                        f"tolerance {tol_mm:g} mm), solved from sample {m}'s joints; the "
+                                        f"{n_samples - m - 1} samples after it were not solved"))
+    lo, hi = np.asarray(limits_deg, float).T
+    beyond = np.argwhere((q[:m] < lo) | (q[:m] > hi))
+    if len(beyond):
+        k, j = map(int, beyond[0])
+        found.append((k, "beyond the joint limits",
+                      f"{name(k)}: joint {j + 1} at {q[k, j]:.1f}°, beyond its limits [{lo[j]:g}, {hi[j]:g}]°"))
+    dt = servo_times(arc[:m], speed_mm_s)
+    rate = np.abs(np.diff(q[:m], axis=0)) / dt[:, None]                  # deg/s
+    fast = np.argwhere(rate > speeds_deg_s)
+    if len(fast):
+        k, j = map(int, fast[0])
+        found.append((k + 1, "a joint too fast",
+                      f"{name(k + 1)}: joint {j + 1} turns {abs(q[k + 1, j] - q[k, j]):.2f}° from sample {k + 1} in "
+                      f"{dt[k]:.3f} s ({rate[k, j]:.0f}°/s, beyond its {speeds_deg_s[j]:.0f}°/s at {speed_mm_s:g} mm/s): "
+                      "a branch flip?"))
+    off = np.flatnonzero(dev[:max(m - 1, 0)] > max_deviation_mm)
+    if len(off):
+        k = int(off[0])
+        found.append((k + 1, "leaving the path",
+                      f"samples {k + 1}-{k + 2} (arc {arc[k]:.1f}-{arc[k + 1]:.1f} mm): the joint-space step between "
+                      f"them leaves the path by {dev[k]:.2f} mm at its middle (path.max_deviation_mm "
+                      f"{max_deviation_mm:g}): a branch flip?"))
+    outside = np.flatnonzero(~table.in_workspace.to_numpy(bool)[:m]) if workspace is not None else []
+    if len(outside):
+        k = int(outside[0])
+        radii = float(workspace.distance(q[k])[0] / workspace.radius)
+        found.append((k, "outside the trained workspace",
+                      f"{name(k)}: outside the trained workspace ({radii:.2f} workspace radii from the nearest "
+                      f"training pose; {len(outside)} of {m} samples are), where the correction has faded to the "
+                      "calibration: rerun with --allow-outside-workspace to write it with those samples flagged"))
     if not found:
         return None
     found.sort(key=lambda f: f[0])
-    more = f" (and {len(found) - 1} further problem(s) after it)" if len(found) > 1 else ""
-    return found[0][1] + more
+    return found[0][2] + "".join(f"; then {kind} at sample {k + 1}" for k, kind, _ in found[1:])
 
 
 def fmt(values) -> str:
