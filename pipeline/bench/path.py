@@ -97,17 +97,18 @@ def stats(d: np.ndarray) -> dict:
 
 
 class Judge:
-    """The project's model, its nominal controller and the twin it was calibrated on."""
+    """The model of the project in `root` (after `dvc repro`), its nominal controller and the twin it was
+    calibrated on."""
 
-    def __init__(self, params: dict):
+    def __init__(self, params: dict, root=ROOT):
         self.params, self.robot = params, load_robot(params["robot"])
         self.cfg = params["compensate"]
-        self.frame = read_json(ROOT / FRAME_JSON)
+        self.frame = read_json(root / FRAME_JSON)
         self.nominal_geometry = theory_geometry(self.robot, self.frame["tool_mm"])
         self.nominal = nominal_controller(self.nominal_geometry)
-        self.workspace = Workspace.from_dict(read_json(ROOT / WORKSPACE_JSON))
-        self.model = served(load_model(ROOT / MODEL_WEIGHTS), self.workspace.network)
-        self.twin = Twin.from_json(ROOT / self.cfg["twin"])
+        self.workspace = Workspace.from_dict(read_json(root / WORKSPACE_JSON))
+        self.model = served(load_model(root / MODEL_WEIGHTS), self.workspace.network)
+        self.twin = Twin.from_json(root / self.cfg["twin"])
 
     def truth(self, q_deg: np.ndarray) -> np.ndarray:
         """Where the twin's TCP is at commanded joints, in the model's base frame (the fitted frame)."""
