@@ -128,6 +128,21 @@ def test_bad_cells_are_named_by_row_and_column(tmp_path):
         read_path(src, robot, lambda q: q[:, :3])
 
 
+def test_an_offline_program_is_where_the_nominal_kinematics_put_its_joints(tmp_path):
+    """Joints without targets: each waypoint is the joints' nominal position; the first row's joints are the
+    start; radian columns are read as radians."""
+    robot = load_robot(UR5)
+    q = np.array([[2.5, -60.4, 91.1, -182.3, -61.2, -100.7], [10.0, -55.0, 85.0, -180.0, -60.0, -100.0]])
+    nominal = lambda x: fk_numpy(x, robot)
+    for names, values in ((JOINTS_DEG, q), ([f"j{i}_rad" for i in range(1, 7)], np.radians(q))):
+        src = tmp_path / "prog.csv"
+        pd.DataFrame(values, columns=names).to_csv(src, index=False)
+        found = read_path(src, robot, nominal)
+        np.testing.assert_allclose(found.points, fk_numpy(q, robot), atol=1e-9)
+        np.testing.assert_allclose(found.joints_deg[0], q[0], atol=1e-9)
+        assert found.moves == ["", "movel"] and found.rotvec is None and len(found.segs) == 1
+
+
 def test_path_settings_are_checked_by_key():
     p = load_params(ROOT / "params.yaml")
     for key, value, message in [("gain", 50, "servoj's gain, an integer 100-2000"), ("spacing_mm", 0, "> 0 mm"),
@@ -167,8 +182,8 @@ def test_a_compensated_seam_stays_on_the_path_on_the_twin(in_trained_project, tm
 
 
 def test_the_script_holds_only_numbers_and_fixed_text(in_trained_project, tmp_path):
-    """An offline program (joints, a move column with a movec): the URScript's every line is one of ours,
-    each servo_step goes on from where the one before ended, its cycles the step's time at the speed."""
+    """A program's path (a move column: an arc, then a line): the URScript's every line is one of ours, each
+    servo_step goes on from where the one before ended, its cycles the step's time at the speed."""
     p0 = nominal_position(in_trained_project, CIRCLE_START)
     pts = [p0, p0 + [-20, 20, 0], p0 + [-40, 0, 0], p0 + [-40, -10, 0]]
     src = write_path(tmp_path, pts, ["start", "via", "movec", "movel"], name="prog.csv")
