@@ -134,8 +134,8 @@ def run(argv=None) -> pd.DataFrame:
         table = refine(model, table, found.segs, cfg["chord_mm"], p["compensate"], robot)
     table = finish(table, workspace, cfg["speed_mm_s"])
     dev = deviation(model_position(model), table[JCOMP_DEG].to_numpy(), found.segs)
-    why = refusal(table, n, robot.limits_deg, p["compensate"]["tol_mm"], dev, cfg["max_deviation_mm"], cfg["speed_mm_s"],
-                  speeds, None if a.allow_outside_workspace else workspace)
+    why = refusal(table, n, robot.limits_deg, p["compensate"]["tol_mm"], dev, cfg["max_deviation_mm"],
+                  cfg["speed_mm_s"], speeds, None if a.allow_outside_workspace else workspace)
     if why:
         raise Refused(f"{src}: {why}; nothing written")
     out.mkdir(parents=True, exist_ok=True)

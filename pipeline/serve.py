@@ -74,7 +74,8 @@ PARAMS = ("robot", "compensate", "serve", "path")
 REQUIRED = [MODEL_WEIGHTS, WORKSPACE_JSON]                # the trained artifacts it reads (the checkpoint
                                                           # carries its config and physics geometry)
 SERVICE_KEYS = ("unreachable_mm", "max_iter", "budget_ms", "stall_iter", "stall_ratio", "max_batch",
-                "batch_wait_ms", "max_items", "call_budget_ms", "lm_per_call", "compile", "max_path_samples")   # lib/service.py's
+                "batch_wait_ms", "max_items", "call_budget_ms", "lm_per_call", "compile",
+                "max_path_samples")                                                        # lib/service.py's
 LIMIT_KEYS = ("max_body_bytes", "timeout_s", "max_connections", "echo_chars")          # the transport's
 
 

@@ -98,7 +98,8 @@ def test_an_arc_through_three_points_of_space():
 
 @pytest.mark.parametrize("cells, moves, message", [
     ([[0, 0, 400], [100, 0, 400]], ["", "movej"], r"row 3, column 'move': move 'movej' is not one of .* no TCP path"),
-    ([[0, 0, 400], [100, 0, 400]], ["", "movel set_digital_out(0, True)"], r"row 3, column 'move': move 'movel set_digital_ou' is not one of"),
+    ([[0, 0, 400], [100, 0, 400]], ["", "movel set_digital_out(0, True)"],
+     r"row 3, column 'move': move 'movel set_digital_ou' is not one of"),
     ([[0, 0, 400], [50, 50, 400], [100, 0, 400]], ["", "via", "movel"], r"row 3, column 'move': a movec needs one via"),
     ([[0, 0, 400], [50, 0, 400], [100, 0, 400]], ["", "via", "movec"], r"row 3, column 'move': the via point lies"),
     ([[0, 0, 400], [0, 0, 400]], ["", "movel"], r"row 3, column 'move': the same point as the one before"),
@@ -205,11 +206,12 @@ def test_a_path_the_solver_cannot_follow_is_refused_naming_the_sample(in_trained
     stops where the arm is stretched; the path is refused (exit 1) naming that sample, nothing is written
     (not even the folder)."""
     src = write_path(tmp_path, [[-650.0, -200.0, 250.0], [-1000.0, -200.0, 250.0]])
-    code, said = exit_code(path_command.main, [str(src), "--out", str(tmp_path / "o"), "--spacing", "5",
-                                               "--allow-outside-workspace", "--start-deg", *map(str, SEAM_START)], capsys)
+    argv = [str(src), "--out", str(tmp_path / "o"), "--spacing", "5", "--allow-outside-workspace", "--start-deg",
+            *map(str, SEAM_START)]
+    code, said = exit_code(path_command.main, argv, capsys)
     m = re.search(r"refused: .*seam.csv: sample (\d+) \(arc ([0-9.]+) mm\): not reached \(residual ([0-9.]+) mm, "
-                  r"tolerance 0.001 mm\), solved from sample (\d+)'s joints; the (\d+) samples after it were not solved; "
-                  r"nothing written", said)
+                  r"tolerance 0.001 mm\), solved from sample (\d+)'s joints; the (\d+) samples after it were not "
+                  r"solved; nothing written", said)
     assert code == 1 and m and "Traceback" not in said, said
     k, arc = int(m[1]), float(m[2])
     assert 40 < k < 71 and arc == 5 * (k - 1) and float(m[3]) > 0.01 and int(m[4]) == k - 1 and int(m[5]) == 71 - k
@@ -319,10 +321,11 @@ def test_the_service_answers_a_whole_path(path_server, in_trained_project):
     r = c.compensate_path(q0, SEAM, [], 2.0, 20.0)
     assert set(r) == {"q_rad", "target_mm", "arc_mm", "t_s", "residual_mm", "in_workspace", "all_in_workspace"}
     q, target = np.degrees(r["q_rad"]), np.array(r["target_mm"])
-    assert q.shape == (51, 6) and r["all_in_workspace"] and max(r["residual_mm"]) < in_trained_project["compensate"]["tol_mm"]
+    tol = in_trained_project["compensate"]["tol_mm"]
+    assert q.shape == (51, 6) and r["all_in_workspace"] and max(r["residual_mm"]) < tol
     np.testing.assert_allclose(r["arc_mm"], np.arange(0, 101, 2.0), atol=1e-9)
     np.testing.assert_allclose(r["t_s"][-1], 5.0, atol=1e-9)
-    np.testing.assert_allclose(model_position(served_model())(q), target, atol=in_trained_project["compensate"]["tol_mm"])
+    np.testing.assert_allclose(model_position(served_model())(q), target, atol=tol)
     assert np.abs(np.diff(q, axis=0)).max() < 2.0                                  # no jump between samples
     bad = {
         "moves[1] (points_mm[1]): move 'movej' is not one of": (q0, SEAM, ["", "movej"], 2.0, 20.0),

@@ -60,8 +60,8 @@ PATHS = {
                          *arc_via([-550.0, 0.0, 250.0], 100.0, 180, 360)]), ["", "via", "movec", "via", "movec"],
                [-19.8, -63.6, 81.1, 88.5, 105.4, -155.0]),
     "side": (np.array([[150.0, -500.0, 250.0], [350.0, -500.0, 250.0], *arc_via([350.0, -440.0, 250.0], 60.0, -90, 0),
-                       [410.0, -300.0, 250.0], [410.0, -300.0, 150.0]]), ["", "movel", "via", "movec", "movel", "movel"],
-             None),
+                       [410.0, -300.0, 250.0], [410.0, -300.0, 150.0]]),
+             ["", "movel", "via", "movec", "movel", "movel"], None),
 }
 
 
@@ -93,7 +93,8 @@ def joint_motion(arc: np.ndarray, q: np.ndarray, step_mm: float = FINE_MM) -> tu
 
 
 def stats(d: np.ndarray) -> dict:
-    return {"mean_mm": float(d.mean()), "max_mm": float(d.max()), "p95_mm": float(np.percentile(d, 95)), "n": int(len(d))}
+    return {"mean_mm": float(d.mean()), "max_mm": float(d.max()), "p95_mm": float(np.percentile(d, 95)),
+            "n": int(len(d))}
 
 
 class Judge:

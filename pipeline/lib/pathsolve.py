@@ -160,8 +160,8 @@ def refusal(table: pd.DataFrame, n_samples: int, limits_deg: np.ndarray, tol_mm:
         k, j = map(int, fast[0])
         found.append((k + 1, "a joint too fast",
                       f"{name(k + 1)}: joint {j + 1} turns {abs(q[k + 1, j] - q[k, j]):.2f}° from sample {k + 1} in "
-                      f"{dt[k]:.3f} s ({rate[k, j]:.0f}°/s, beyond its {speeds_deg_s[j]:.0f}°/s at {speed_mm_s:g} mm/s): "
-                      "a branch flip?"))
+                      f"{dt[k]:.3f} s ({rate[k, j]:.0f}°/s, beyond its {speeds_deg_s[j]:.0f}°/s at "
+                      f"{speed_mm_s:g} mm/s): a branch flip?"))
     off = np.flatnonzero(dev[:max(m - 1, 0)] > max_deviation_mm)
     if len(off):
         k = int(off[0])
