@@ -5,7 +5,7 @@ import os
 import platform
 
 # Run by hand (python -m pipeline.<name>, or the spi-boter-<name> script), never by ./dvc.yaml.
-COMMANDS = ("bench", "serve", "program", "plan", "fleet", "ablation", "preset", "twin")
+COMMANDS = ("bench", "serve", "program", "path", "plan", "fleet", "ablation", "preset", "twin")
 
 # Before numpy loads: BLAS threads on the small matrices here only fight torch's
 # threads (measured 5-10x slower calibration with them).

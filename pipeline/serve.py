@@ -12,6 +12,13 @@ XML-RPC at http://HOST:PORT/RPC2 (only that path, only POST; default 127.0.0.1:5
                                          residual_mm, converged 1.0/0.0, in_workspace 1.0/0.0]
     compensate_many([[q_rad, target_mm], ...])   at most serve.max_items; each item answered in its
                                          place: compensate's struct, or {"error": "requests[3].q_rad: ..."}
+    compensate_path(q_rad, points_mm, moves, spacing_mm, speed_mm_s)   a TCP path (its waypoints, mm, and
+                                         moves: movel, movep, via + movec; [] all movel) resampled at most
+                                         spacing_mm apart, every sample solved from the one before, within
+                                         serve.max_path_samples and serve.call_budget_ms -> {"q_rad": [[6]
+                                         per sample], "target_mm", "arc_mm", "t_s", "residual_mm",
+                                         "in_workspace": per sample, "all_in_workspace": bool}, or a Fault
+                                         naming the field (a sample that must not be driven: points_mm)
     system.listMethods, system.methodHelp, system.methodSignature
 
 What a request costs and when it is answered, refused or unreachable: lib/service.py (the logic: a
@@ -51,6 +58,7 @@ from .lib.compensation import reach_mm
 from .lib.config import PARAMS as PARAMS_YAML, ParamsError, for_stage, load_params, logger, read_json
 from .lib.model import served
 from .lib.onnx_model import OnnxRealtime, deviation
+from .lib.pathsolve import joint_speeds
 from .lib.realtime import Realtime
 from .lib.robots import load_robot
 from .lib.service import RequestError, Service
@@ -60,13 +68,14 @@ from .lib.workspace import Workspace
 log = logger(__name__)
 PATH = "/RPC2"
 INVALID_PARAMS, NO_METHOD, INTERNAL = -32602, -32601, -32603       # the XML-RPC fault code convention
-METHODS = ("compensate", "compensate_many", "compensate_list")
+METHODS = ("compensate", "compensate_many", "compensate_list", "compensate_path")
 
-PARAMS = ("robot", "compensate", "serve")
+PARAMS = ("robot", "compensate", "serve", "path")
 REQUIRED = [MODEL_WEIGHTS, WORKSPACE_JSON]                # the trained artifacts it reads (the checkpoint
                                                           # carries its config and physics geometry)
 SERVICE_KEYS = ("unreachable_mm", "max_iter", "budget_ms", "stall_iter", "stall_ratio", "max_batch",
-                "batch_wait_ms", "max_items", "call_budget_ms", "lm_per_call", "compile")   # lib/service.py's
+                "batch_wait_ms", "max_items", "call_budget_ms", "lm_per_call", "compile",
+                "max_path_samples")                                                        # lib/service.py's
 LIMIT_KEYS = ("max_body_bytes", "timeout_s", "max_connections", "echo_chars")          # the transport's
 
 
@@ -348,7 +357,12 @@ def make_server(params: dict, host: str | None = None, port: int | None = None,
     host, port = cfg["host"] if host is None else host, cfg["port"] if port is None else port
     check_artifacts()
     torch.set_num_threads(cfg["torch_threads"])             # process-wide
-    workspace, limits_deg = Workspace.from_dict(read_json(WORKSPACE_JSON)), load_robot(params["robot"]).limits_deg
+    robot, workspace = load_robot(params["robot"]), Workspace.from_dict(read_json(WORKSPACE_JSON))
+    limits_deg = robot.limits_deg
+    try:
+        speeds = joint_speeds(robot, params["path"]["joint_speed_deg_s"])
+    except ValueError as e:                               # compensate_path says so; the rest serves
+        speeds = str(e)
     model = served(load_model(MODEL_WEIGHTS), workspace.network)     # evaluate's verdict on the network
     graph = CONTROLLER_ONNX if workspace.network else CONTROLLER_PHYSICS_ONNX
     tol = params["compensate"]["tol_mm"]
@@ -358,6 +372,7 @@ def make_server(params: dict, host: str | None = None, port: int | None = None,
              f"onnxruntime ({graph})" if controller is not None else "PyTorch" + (", compiled" if cfg["compile"] else ""))
     service = Service(model, workspace, limits_deg, reach_mm(model.physics.geometry()), tol_mm=tol,
                       jacobian_of=params["compensate"]["jacobian_of"], controller=controller,
+                      max_deviation_mm=params["path"]["max_deviation_mm"], joint_speed_deg_s=speeds,
                       **{k: cfg[k] for k in SERVICE_KEYS})
     try:
         server = Server((host, port), {k: cfg[k] for k in LIMIT_KEYS}, service)

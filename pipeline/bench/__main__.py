@@ -10,12 +10,15 @@
     python -m pipeline.bench sweep                          a reduced ablation, in order vs on a local Ray
     python -m pipeline.bench plan [--n 60 --seeds 139 140 141]   the measurement planner's loop closed on the twin
     python -m pipeline.bench plan --curve [--sizes 25 50 100 200 400 700]   error against the poses measured
+    python -m pipeline.bench path [--spacings 0.5 1 2 5 10 20 50]   a path compensated sample by sample against
+                                                            its waypoints alone, judged on the twin
     python -m pipeline.bench scale [--rows 10000 30000 300000 --programs 200000]   ingest and the program
                                                             compensator at scale: time and peak memory
 """
 import argparse
 
 from ..lib.sweep import ENGINES
+from .path import PATHS, SPACINGS, bench_path
 from .plan import VARIANTS, bench_plan
 from .real import REAL_SETS, bench_real
 from .scale import bench_scale
@@ -27,7 +30,7 @@ from .sweep import bench_sweep
 def main(argv=None):
     ap = argparse.ArgumentParser(prog="python -m pipeline.bench", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("what", choices=["real", "speed", "serve", "sweep", "plan", "scale"])
+    ap.add_argument("what", choices=["real", "speed", "serve", "sweep", "plan", "scale", "path"])
     ap.add_argument("--seeds", type=int, nargs="+", default=None,
                     help="training seeds (real: 139; plan: 139 140 141, each also the seed of its measurements)")
     ap.add_argument("--epochs", type=int, default=None, help="override train.max_epochs (real, plan)")
@@ -79,8 +82,14 @@ def main(argv=None):
     ap.add_argument("--station", choices=["new", "same"], default="new",
                     help="plan: measure the new poses from a tracker station of their own (facing the side), "
                          "or from the default campaign's")
+    ap.add_argument("--spacings", type=float, nargs="+", default=list(SPACINGS),
+                    help="path: the compensated samples' spacings, mm")
+    ap.add_argument("--names", nargs="+", choices=list(PATHS), default=list(PATHS),
+                    help="path: the paths to judge")
     a = ap.parse_args(argv)
-    if a.what == "scale":
+    if a.what == "path":
+        bench_path(a.spacings, a.names)
+    elif a.what == "scale":
         bench_scale([n for n in a.rows if n], [n for n in a.programs if n], a.keep)
     elif a.what == "plan":
         bench_plan(a.n, a.seeds or [139, 140, 141], a.waypoints, a.variants, a.curve, a.sizes, a.overrides,

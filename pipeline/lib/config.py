@@ -56,9 +56,11 @@ SECTIONS = {
              "acc", "vel"),
     "plan.rules": ("radius_mm", "height_mm", "elbow_up", "elbow_min_mm", "table_mm", "column_mm", "sin_elbow",
                    "sin_wrist", "tracker_side_deg"),
+    "path": ("spacing_mm", "chord_mm", "speed_mm_s", "max_deviation_mm", "joint_speed_deg_s", "max_samples",
+             "lookahead_s", "gain"),
     "serve": ("host", "port", "unreachable_mm", "onnx", "torch_threads", "compile", "max_iter", "budget_ms", "stall_iter",
               "stall_ratio", "max_batch", "batch_wait_ms", "max_items", "call_budget_ms", "lm_per_call", "max_body_bytes", "timeout_s",
-              "max_connections", "echo_chars"),
+              "max_connections", "echo_chars", "max_path_samples"),
 }
 
 
@@ -79,6 +81,11 @@ def _num(lo, hi=None, open_lo=False):
 def _fractions(v):
     return (isinstance(v, list) and len(v) == 3 and all(_num(0, 1, open_lo=True)(x) for x in v)
             and abs(sum(v) - 1) < 1e-9)
+
+
+def _speeds(v):
+    return v is None or _num(0, open_lo=True)(v) or (isinstance(v, list) and len(v) == 6
+                                                      and all(_num(0, open_lo=True)(x) for x in v))
 
 
 def _joints(v):
@@ -118,6 +125,14 @@ RULES = {
     "program.movej.vel": (_num(0, open_lo=True), "a speed > 0 rad/s"),
     "program.movel.acc": (_num(0, open_lo=True), "an acceleration > 0 m/s²"),
     "program.movel.vel": (_num(0, open_lo=True), "a speed > 0 m/s"),
+    "path.spacing_mm": (_num(0, open_lo=True), "a spacing > 0 mm"),
+    "path.chord_mm": (lambda v: v is None or _num(0, open_lo=True)(v), "null or a tolerance > 0 mm"),
+    "path.speed_mm_s": (_num(0, open_lo=True), "a speed > 0 mm/s"),
+    "path.max_deviation_mm": (_num(0, open_lo=True), "a distance > 0 mm"),
+    "path.joint_speed_deg_s": (_speeds, "null (the robot's), a speed > 0 deg/s or 6 of them"),
+    "path.max_samples": (_int(2), "an integer >= 2"),
+    "path.lookahead_s": (_num(0.03, 0.2), "servoj's lookahead_time, 0.03-0.2 s"),
+    "path.gain": (_int(100, 2000), "servoj's gain, an integer 100-2000"),
     "serve.port": (_int(0, 65535), "a TCP port 0-65535 (0: any free port)"),
     "serve.torch_threads": (_int(1), "an integer >= 1"),
     "serve.unreachable_mm": (_num(0, open_lo=True), "a distance > 0 mm"),
@@ -149,6 +164,7 @@ RULES = {
                                                                                  for k, p in v["markers"].items())),
                       "null (estimated from the poses), or {markers: {name: [x, y, z] mm}} with at least 3 markers"),
     "ingest.target_residual_mm": (_num(0, open_lo=True), "a distance > 0 mm"),
+    "serve.max_path_samples": (_int(2), "an integer >= 2"),
 }
 
 

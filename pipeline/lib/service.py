@@ -23,7 +23,8 @@ worker, in a loop:
      is spent (`call_budget_ms` from the call's start: compensate_many queues no more items then, and
      answers those not solved with an error in their place).
 Left above `unreachable_mm`, a request is a RequestError "unreachable"; within it, an answer with
-converged False.
+converged False. `compensate_path` queues a path's samples one at a time, each from the answer before
+(lib/pathsolve.py), all under one call budget, and refuses the path as the path command does.
 """
 import math
 import queue
@@ -33,9 +34,14 @@ from concurrent.futures import Future
 from dataclasses import dataclass, field, fields
 
 import numpy as np
+import pandas as pd
 import torch
 
+from .columns import JCOMP_DEG, TARGET
 from .kinematics import DTYPE
+from .model import PhysicsOnly
+from .paths import n_samples, resample, segments
+from .pathsolve import beyond_reach, deviation, model_position, refusal, servo_times
 from .realtime import Realtime, answers
 from .solvers import LAM0, lm_jacobian, lm_step, predict
 
@@ -56,6 +62,15 @@ def describe(v) -> str:
         v = v[:40] if not isinstance(v, dict) else dict(list(v.items())[:3])
     text = repr(v)
     return f"{kind} ({text if len(text) <= 40 else text[:37] + '...'})"
+
+
+def positive(value, field: str) -> float:
+    """value as a finite number > 0, or a RequestError naming the field."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise RequestError(f"{field}: expected a number, got {describe(value)}")
+    if not (math.isfinite(float(value)) and value > 0):
+        raise RequestError(f"{field}: expected a number > 0, got {value}")
+    return float(value)
 
 
 def numbers(value, field: str, n: int) -> np.ndarray:
@@ -117,12 +132,15 @@ class Service:
     tol_mm and jacobian_of (the `compensate:` section), and the limits of the `serve:` section. controller:
     the controller path to run (onnx_model.OnnxRealtime on the same model, limits, tol_mm and workspace);
     None: realtime.Realtime on the model, compiled when `compile`. lm runs on the controller's graph when
-    it is given and jacobian_of is physics (the graph's steps), else on the PyTorch model."""
+    it is given and jacobian_of is physics (the graph's steps), else on the PyTorch model. compensate_path:
+    at most max_path_samples samples, refused as the path command refuses (max_deviation_mm, the joint
+    speed limits joint_speed_deg_s (6,); a string: why they are unknown)."""
 
     def __init__(self, model, workspace, limits_deg, reach_mm: float, *, tol_mm: float, jacobian_of: str,
                  unreachable_mm: float, max_iter: int, budget_ms: float, stall_iter: int, stall_ratio: float,
                  max_batch: int, batch_wait_ms: float, max_items: int, call_budget_ms: float, lm_per_call: int,
-                 compile: bool, controller=None):
+                 compile: bool, controller=None, max_path_samples: int = 1000, max_deviation_mm: float = 0.5,
+                 joint_speed_deg_s=None):
         self.model, self.workspace, self.reach = model, workspace, float(reach_mm)
         self.limits_deg = np.asarray(limits_deg, float)
         self.limits = torch.as_tensor(np.radians(self.limits_deg), dtype=DTYPE)
@@ -131,6 +149,9 @@ class Service:
         self.stall_iter, self.stall_ratio = int(stall_iter), float(stall_ratio)
         self.max_batch, self.batch_wait = int(max_batch), float(batch_wait_ms) / 1000
         self.max_items, self.call_budget_ms, self.lm_per_call = int(max_items), float(call_budget_ms), int(lm_per_call)
+        self.max_path_samples, self.max_deviation = int(max_path_samples), float(max_deviation_mm)
+        self.joint_speeds = joint_speed_deg_s
+        self.position = model_position(PhysicsOnly(model))     # the path check's kinematics: no network, any thread
         self.realtime = controller if controller is not None else Realtime(
             model, np.radians(self.limits_deg), self.tol, workspace=workspace, compile=compile)
         self.graph = controller if controller is not None and jacobian_of == "physics" else None
@@ -156,7 +177,16 @@ class Service:
     def check(self, q_rad, target_mm, where: str = "") -> tuple[np.ndarray, np.ndarray]:
         """q_rad (6 numbers within the joint limits) and target_mm (3 numbers within reach) as arrays,
         or a RequestError naming the field (prefixed `where`)."""
-        q, target = numbers(q_rad, where + "q_rad", 6), numbers(target_mm, where + "target_mm", 3)
+        q, target = self.joints(q_rad, where), numbers(target_mm, where + "target_mm", 3)
+        dist = float(np.linalg.norm(target))
+        if dist > self.reach:
+            raise RequestError(f"{where}target_mm: unreachable ({dist:.1f} mm from the base, beyond the arm's "
+                               f"reach of {self.reach:.1f} mm)")
+        return q, target
+
+    def joints(self, q_rad, where: str = "") -> np.ndarray:
+        """q_rad as 6 numbers within the joint limits, or a RequestError naming the field."""
+        q = numbers(q_rad, where + "q_rad", 6)
         lo, hi = self.limits_deg[:, 0], self.limits_deg[:, 1]
         beyond = np.flatnonzero((np.degrees(q) < lo) | (np.degrees(q) > hi))
         if len(beyond):
@@ -164,11 +194,7 @@ class Service:
             a, (lo, hi) = np.degrees(q[i]), self.limits_deg[i]
             raise RequestError(f"{where}q_rad[{i}]: {a:.1f}° ({q[i]:.3f} rad) beyond the joint limits "
                                f"[{lo:g}, {hi:g}]° ([{np.radians(lo):.3f}, {np.radians(hi):.3f}] rad)")
-        dist = float(np.linalg.norm(target))
-        if dist > self.reach:
-            raise RequestError(f"{where}target_mm: unreachable ({dist:.1f} mm from the base, beyond the arm's "
-                               f"reach of {self.reach:.1f} mm)")
-        return q, target
+        return q
 
     def submit(self, q: np.ndarray, target: np.ndarray, where: str = "", call=None,
                call_deadline: float = math.inf) -> Future:
@@ -217,6 +243,66 @@ class Service:
                 except RequestError as e:
                     out.append({"error": str(e)})
         return out
+
+    def compensate_path(self, q_rad, points_mm, moves, spacing_mm, speed_mm_s) -> dict:
+        """A TCP path (points_mm, moves as the path command's file: movel, movep, via + movec; [] every
+        move movel) resampled at most spacing_mm apart, each sample solved from the previous one's answer, the
+        first from q_rad, in order, within one call budget (`call_budget_ms`); refused as the path command
+        refuses (lib/pathsolve.refusal; outside the trained workspace: flagged, not refused), else
+        {q_rad, target_mm, arc_mm, t_s (servoj's times at speed_mm_s), residual_mm, in_workspace: per sample,
+        all_in_workspace}. A RequestError names the field."""
+        deadline = time.monotonic() + self.call_budget_ms / 1000
+        if not isinstance(points_mm, (list, tuple)):
+            raise RequestError(f"points_mm: expected a list of [x, y, z], got {describe(points_mm)}")
+        if not 2 <= len(points_mm) <= self.max_path_samples:
+            raise RequestError(f"points_mm: {len(points_mm)} points: a path needs 2 to {self.max_path_samples} "
+                               "(serve.max_path_samples)")
+        points = np.array([numbers(p, f"points_mm[{i}]", 3) for i, p in enumerate(points_mm)])
+        if not isinstance(moves, (list, tuple)) or len(moves) not in (0, len(points)):
+            raise RequestError(f"moves: expected a list of {len(points)} strings (or [], every move movel), got "
+                               f"{describe(moves)}")
+        for i, m in enumerate(moves):
+            if not isinstance(m, str):
+                raise RequestError(f"moves[{i}]: expected a string, got {describe(m)}")
+        spacing, speed = positive(spacing_mm, "spacing_mm"), positive(speed_mm_s, "speed_mm_s")
+        q = self.joints(q_rad)
+        if isinstance(self.joint_speeds, str):
+            raise RequestError(f"speed_mm_s: {self.joint_speeds}")
+        try:
+            segs = segments(points, list(moves) or [""] + ["movel"] * (len(points) - 1),
+                            lambda i: f"moves[{i}] (points_mm[{i}])")
+        except ValueError as e:
+            raise RequestError(str(e)) from None
+        n = n_samples(segs, spacing)
+        if n > self.max_path_samples:
+            raise RequestError(f"spacing_mm: a {sum(s.length for s in segs):.1f} mm path at {spacing:g} mm is {n} "
+                               f"samples, more than the limit of {self.max_path_samples} (serve.max_path_samples): "
+                               "a larger spacing, or split the path")
+        targets, arc = resample(segs, spacing)
+        far = beyond_reach(targets, arc, self.reach)
+        if far:
+            raise RequestError(f"points_mm: {far}")
+        rows, call = [], object()
+        for k, (x, a) in enumerate(zip(targets, arc)):
+            where = f"points_mm: sample {k + 1} (arc {a:.1f} mm), "
+            if time.monotonic() >= deadline:
+                raise RequestError(self._unsolved(where))
+            r = self.submit(q, x, where, call, deadline).result()
+            q = np.array(r["q_rad"])
+            rows.append([a, *x, *np.degrees(q), r["residual_mm"], 0, r["converged"], r["in_workspace"]])
+            if not r["converged"]:
+                break
+        table = pd.DataFrame(rows, columns=["arc_mm"] + TARGET + JCOMP_DEG + ["residual_mm", "iterations",
+                                                                              "converged", "in_workspace"])
+        qd = table[JCOMP_DEG].to_numpy()
+        why = refusal(table, n, self.limits_deg, self.tol, deviation(self.position, qd, segs), self.max_deviation,
+                      speed, self.joint_speeds)
+        if why:
+            raise RequestError(f"points_mm: {why}")
+        return {"q_rad": np.radians(qd).tolist(), "target_mm": targets.tolist(), "arc_mm": arc.tolist(),
+                "t_s": np.concatenate([[0.0], np.cumsum(servo_times(arc, speed))]).tolist(),
+                "residual_mm": table.residual_mm.tolist(), "in_workspace": table.in_workspace.astype(bool).tolist(),
+                "all_in_workspace": bool(table.in_workspace.all())}
 
     def _unsolved(self, where: str, residual: str = "") -> str:
         return (f"{where}target_mm: not solved{residual}: the call's budget of {self.call_budget_ms:g} ms "

@@ -1,0 +1,348 @@
+"""Issue 36: a path compensated sample by sample (python -m pipeline.path, the service's compensate_path),
+its geometry, its refusals, its URScript, judged on the twin along the whole motion."""
+import re
+import threading
+import xmlrpc.client
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from conftest import exit_code, served_model
+from pipeline import path as path_command
+from pipeline.bench.path import Judge, joint_motion
+from pipeline.lib import pathsolve
+from pipeline.lib.columns import JCOMP_DEG, JOINTS_DEG, TARGET
+from pipeline.lib.artifacts import FRAME_JSON, WORKSPACE_JSON
+from pipeline.lib.config import ParamsError, load_params, read_json, section
+from pipeline.lib.geometry import theory_geometry
+from pipeline.lib.kinematics import fk_numpy
+from pipeline.lib.paths import Arc, at, distance, n_samples, read_path, resample, segments
+from pipeline.lib.pathsolve import deviation, model_position
+from pipeline.lib.robots import load_robot
+from pipeline.lib.twin import sample_poses
+from pipeline.lib.workspace import Workspace
+from pipeline.serve import make_server, url
+
+ROOT = Path(__file__).resolve().parents[1]
+UR5 = {"model": "ur5", "dh": None, "joint_limits_deg": None, "tool_mm": [0, 0, 0]}
+SEAM_START = [2.5, -60.4, 91.1, -182.3, -61.2, -100.7]          # a training pose near the seam's start
+SEAM = [[-650.0, -200.0, 250.0], [-650.0, -100.0, 250.0]]        # 100 mm of bench path's seam, inside the workspace
+CIRCLE_START = [-19.8, -63.6, 81.1, 88.5, 105.4, -155.0]
+SCRIPT_LINE = re.compile(                                        # every line the path's URScript may hold
+    r"# compensated path by `python -m pipeline\.path`: \d+ samples over [0-9.]+ mm at [0-9.]+ mm/s, [0-9.]+ s; "
+    r"joints in rad|# residual max [0-9.]+ mm; \d+ samples outside the trained workspace|def compensated_path\(\):|"
+    r"  def servo_step\(a, b, n\):|    # from joints a to b in n controller cycles, joint-linear: one servoj a cycle|"
+    r"    i = 1\.0|    while i <= n:|      s = i / n|"
+    r"      servoj\(\[(a\[\d\] \+ s \* \(b\[\d\] - a\[\d\]\)(, )?){6}\], t=0\.002, lookahead_time=[0-9.]+, gain=\d+\)|"
+    r"      i = i \+ 1\.0|    end|  end|end|"
+    r"  movej\(\[[-0-9., ]+\], a=[0-9.]+, v=[0-9.]+\)|  servo_step\(\[[-0-9., ]+\], \[[-0-9., ]+\], \d+\)|"
+    r"  # sample \d+: outside the trained workspace \(uncertainty [0-9.]+ mm\)|  stopj\([0-9.]+\)|")
+
+
+def write_path(tmp_path, points, moves=None, name="seam.csv", **columns) -> Path:
+    df = pd.DataFrame(np.asarray(points, float), columns=TARGET).assign(**columns)
+    if moves is not None:
+        df["move"] = moves
+    src = tmp_path / name
+    df.to_csv(src, index=False)
+    return src
+
+
+def nominal_position(params, q_deg) -> np.ndarray:
+    """Where the nominal kinematics (the frame stage's tool) put joints q_deg (6,)."""
+    robot = load_robot(params["robot"])
+    return fk_numpy(np.asarray(q_deg, float)[None], robot, theory_geometry(robot, read_json(FRAME_JSON)["tool_mm"]))[0]
+
+
+def run(src, out, *extra, start=SEAM_START):
+    return path_command.run([str(src), "--out", str(out), *(["--start-deg", *map(str, start)] if start else []),
+                             *extra])
+
+
+# ----------------------------------------------------------------------------- geometry, no project needed
+
+def test_resampling_arc_lengths_by_hand():
+    """A 10 mm line, then a half circle of radius 10 (10π mm) through its via point: at 3 mm, the line in 4
+    steps of 2.5 mm, the arc in 11 of 10π/11; every waypoint a sample, every sample on the path."""
+    pts = np.array([[0.0, 0, 0], [10, 0, 0], [20, 10, 0], [30, 0, 0]])
+    segs = segments(pts, ["", "movel", "via", "movec"])
+    assert [round(s.length, 9) for s in segs] == [10.0, round(10 * np.pi, 9)]
+    P, arc = resample(segs, 3.0)
+    assert len(P) == n_samples(segs, 3.0) == 1 + 4 + 11
+    np.testing.assert_allclose(arc[:5], [0, 2.5, 5, 7.5, 10], atol=1e-12)
+    np.testing.assert_allclose(np.diff(arc[4:]), 10 * np.pi / 11, atol=1e-12)
+    np.testing.assert_allclose(P[[0, 4, -1]], pts[[0, 1, 3]], atol=1e-12)       # the waypoints are samples
+    np.testing.assert_allclose(np.linalg.norm(P[4:] - [20, 0, 0], axis=1), 10, atol=1e-12)
+    np.testing.assert_allclose(at(segs, np.array([10 + 5 * np.pi])), [[20, 10, 0]], atol=1e-12)   # the via
+    np.testing.assert_allclose(distance(P, segs), 0, atol=1e-12)
+    np.testing.assert_allclose(distance(np.array([[20, 5, 0], [5, 3, 0], [-4, 3, 0], [20, 10, 2], [20, -10, 0]]),
+                                        segs), [5, 3, 5, 2, np.hypot(10, 10)], atol=1e-12)
+    _, arc1 = resample(segs, 1.0)
+    assert len(arc1) == 1 + 10 + 32 and np.diff(arc1).max() <= 1.0
+
+
+def test_an_arc_through_three_points_of_space():
+    a, b, c = np.array([1.0, 2, 3]), np.array([4.0, -1, 5]), np.array([0.0, 6, -2])
+    arc = Arc(a, b, c)
+    for p in (a, b, c):
+        assert abs(np.linalg.norm(p - arc.centre) - arc.radius) < 1e-9
+    s = np.linspace(0, arc.length, 7)
+    P = arc.at(s)
+    np.testing.assert_allclose(P[[0, -1]], [a, c], atol=1e-9)
+    assert arc.distance(b[None])[0] < 1e-9 and (np.abs((P - arc.centre) @ arc.normal) < 1e-9).all()
+    with pytest.raises(ValueError, match="on the line through the arc's ends"):
+        Arc(a, (a + c) / 2, c)
+
+
+@pytest.mark.parametrize("cells, moves, message", [
+    ([[0, 0, 400], [100, 0, 400]], ["", "movej"], r"row 3, column 'move': move 'movej' is not one of .* no TCP path"),
+    ([[0, 0, 400], [100, 0, 400]], ["", "movel set_digital_out(0, True)"],
+     r"row 3, column 'move': move 'movel set_digital_ou' is not one of"),
+    ([[0, 0, 400], [50, 50, 400], [100, 0, 400]], ["", "via", "movel"], r"row 3, column 'move': a movec needs one via"),
+    ([[0, 0, 400], [50, 0, 400], [100, 0, 400]], ["", "via", "movec"], r"row 3, column 'move': the via point lies"),
+    ([[0, 0, 400], [0, 0, 400]], ["", "movel"], r"row 3, column 'move': the same point as the one before"),
+    ([[0, 0, 400], [100, 0, 400]], ["movel", "movel"], r"row 2, column 'move': the first point is the path's start"),
+])
+def test_bad_moves_are_named_by_row_and_column(tmp_path, cells, moves, message):
+    src = write_path(tmp_path, cells, moves)
+    with pytest.raises(ValueError, match=message) as e:
+        read_path(src, load_robot(UR5))
+    assert str(src) in str(e.value)
+
+
+def test_bad_cells_are_named_by_row_and_column(tmp_path):
+    robot = load_robot(UR5)
+    src = tmp_path / "p.csv"
+    src.write_text("target_x,target_y,target_z\n1,2,3\n4,x,6\n")
+    with pytest.raises(ValueError, match=r"p.csv, row 3, column 'target_y': not a finite number \('x' is not"):
+        read_path(src, robot)
+    src.write_text("target_x,target_y,target_z\n1,2,3\n4,5,6,7\n")
+    with pytest.raises(ValueError, match=r"p.csv, row 3: 4 cells but the header has 3"):
+        read_path(src, robot)
+    src.write_text("target_x,target_y\n1,2\n4,5\n")
+    with pytest.raises(ValueError, match=r"column 'target_z': columns target_x, target_y, target_z go together"):
+        read_path(src, robot)
+    src.write_text(",".join(JOINTS_DEG) + "\n0,0,0,0,0,0\n0,0,400,0,0,0\n")
+    with pytest.raises(ValueError, match=r"row 3, column 'j3_deg': 400° beyond the joint limits"):
+        read_path(src, robot, lambda q: q[:, :3])
+
+
+def test_an_offline_program_is_where_the_nominal_kinematics_put_its_joints(tmp_path):
+    """Joints without targets: each waypoint is the joints' nominal position; the first row's joints are the
+    start; radian columns are read as radians."""
+    robot = load_robot(UR5)
+    q = np.array([[2.5, -60.4, 91.1, -182.3, -61.2, -100.7], [10.0, -55.0, 85.0, -180.0, -60.0, -100.0]])
+    nominal = lambda x: fk_numpy(x, robot)
+    for names, values in ((JOINTS_DEG, q), ([f"j{i}_rad" for i in range(1, 7)], np.radians(q))):
+        src = tmp_path / "prog.csv"
+        pd.DataFrame(values, columns=names).to_csv(src, index=False)
+        found = read_path(src, robot, nominal)
+        np.testing.assert_allclose(found.points, fk_numpy(q, robot), atol=1e-9)
+        np.testing.assert_allclose(found.joints_deg[0], q[0], atol=1e-9)
+        assert found.moves == ["", "movel"] and found.rotvec is None and len(found.segs) == 1
+
+
+def test_path_settings_are_checked_by_key():
+    p = load_params(ROOT / "params.yaml")
+    for key, value, message in [("gain", 50, "servoj's gain, an integer 100-2000"), ("spacing_mm", 0, "> 0 mm"),
+                                ("joint_speed_deg_s", [1, 2], "6 of them"), ("lookahead_s", 0.5, "0.03-0.2 s")]:
+        bad = {**p, "path": {**p["path"], key: value}}
+        with pytest.raises(ParamsError, match=rf"params.yaml path.{key}: .*{re.escape(message)}"):
+            section(bad, "path")
+
+
+# ----------------------------------------------------------------------------- the command, on the trained model
+
+def test_a_compensated_seam_stays_on_the_path_on_the_twin(in_trained_project, tmp_path):
+    """The command's samples, driven joint-linearly on the twin (noise-free, in the model's frame), keep the
+    TCP within 0.1 mm mean, 0.3 mm max of the seam along the whole motion; uncompensated (the controller's
+    nominal movel) it is off by most of a millimetre. path.csv and the URScript carry the same joints."""
+    src = write_path(tmp_path, SEAM)
+    table = run(src, tmp_path / "out")
+    back = pd.read_csv(tmp_path / "out" / "path.csv")
+    assert list(back.columns) == pathsolve.PATH_COLUMNS and len(back) == 101 and back.converged.all()
+    np.testing.assert_allclose(back.arc_mm, np.arange(101.0), atol=1e-9)
+    np.testing.assert_allclose(back.t_s.iloc[-1], 100 / in_trained_project["path"]["speed_mm_s"], atol=1e-9)
+    np.testing.assert_allclose(back[TARGET].to_numpy(), np.linspace(*np.array(SEAM), 101), atol=1e-6)
+    judge = Judge(in_trained_project, root=Path.cwd())
+    segs = segments(np.array(SEAM), ["", "movel"])
+    q = back[JCOMP_DEG].to_numpy()
+    arc, motion = joint_motion(back.arc_mm.to_numpy(), q, 0.1)
+    d = distance(judge.truth(motion), segs)
+    assert d.mean() <= 0.10 and d.max() <= 0.30, (d.mean(), d.max())
+    unc = judge.uncompensated(segs, np.array(SEAM_START))[0]
+    assert unc["mean_mm"] > 0.3 and unc["mean_mm"] > 5 * d.mean(), unc["mean_mm"]
+    script = (tmp_path / "out" / "path.script").read_text()
+    steps = re.findall(r"  servo_step\((\[[^\]]+\]), (\[[^\]]+\]), (\d+)\)", script)
+    to = np.array([[float(v) for v in b.strip("[]").split(",")] for _, b, _ in steps])
+    np.testing.assert_allclose(to[:-1], np.radians(q[1:]), atol=1e-8)                 # then the end, held
+    cycles = round(1.0 / in_trained_project["path"]["speed_mm_s"] / 0.002)        # 1 mm at the path's speed
+    assert [int(n) for *_, n in steps] == [cycles] * 100 + [25] and len(table) == 101  # the end held 0.05 s
+
+
+def test_the_script_holds_only_numbers_and_fixed_text(in_trained_project, tmp_path):
+    """A program's path (a move column: an arc, then a line): the URScript's every line is one of ours, each
+    servo_step goes on from where the one before ended, its cycles the step's time at the speed."""
+    p0 = nominal_position(in_trained_project, CIRCLE_START)
+    pts = [p0, p0 + [-20, 20, 0], p0 + [-40, 0, 0], p0 + [-40, -10, 0]]
+    src = write_path(tmp_path, pts, ["start", "via", "movec", "movel"], name="prog.csv")
+    table = run(src, tmp_path / "o", "--speed", "10", "--spacing", "2", start=CIRCLE_START)
+    script = (tmp_path / "o" / "path.script").read_text()
+    for line in script.splitlines():
+        assert SCRIPT_LINE.fullmatch(line), line
+    steps = re.findall(r"  servo_step\((\[[^\]]+\]), (\[[^\]]+\]), (\d+)\)", script)
+    vec = lambda s: np.array([float(v) for v in s.strip("[]").split(",")])
+    for (a, _, _), (_, b, _) in zip(steps[1:], steps[:-1]):
+        np.testing.assert_array_equal(vec(a), vec(b))                               # continuous
+    cycles = np.array([int(n) for *_, n in steps[:-1]])
+    np.testing.assert_allclose(cycles * 0.002, np.diff(table.t_s), atol=1e-12)
+    assert abs(table.arc_mm.iloc[-1] - (20 * np.pi + 10)) < 1e-6 and 0.19 <= np.diff(table.t_s).min()
+
+
+def test_a_path_the_solver_cannot_follow_is_refused_naming_the_sample(in_trained_project, tmp_path, capsys):
+    """A seam running out beyond the arm's reach (inside the generous reach bound, so it is solved): the solve
+    stops where the arm is stretched; the path is refused (exit 1) naming that sample, nothing is written
+    (not even the folder)."""
+    src = write_path(tmp_path, [[-650.0, -200.0, 250.0], [-1000.0, -200.0, 250.0]])
+    argv = [str(src), "--out", str(tmp_path / "o"), "--spacing", "5", "--allow-outside-workspace", "--start-deg",
+            *map(str, SEAM_START)]
+    code, said = exit_code(path_command.main, argv, capsys)
+    m = re.search(r"refused: .*seam.csv: sample (\d+) \(arc ([0-9.]+) mm\): not reached \(residual ([0-9.]+) mm, "
+                  r"tolerance 0.001 mm\), solved from sample (\d+)'s joints; the (\d+) samples after it were not "
+                  r"solved; nothing written", said)
+    assert code == 1 and m and "Traceback" not in said, said
+    k, arc = int(m[1]), float(m[2])
+    assert 40 < k < 71 and arc == 5 * (k - 1) and float(m[3]) > 0.01 and int(m[4]) == k - 1 and int(m[5]) == 71 - k
+    assert not (tmp_path / "o").exists()
+
+
+def test_a_branch_flip_between_samples_is_refused(in_trained_project, tmp_path, capsys, monkeypatch):
+    """A solve that lands sample 31 on the other wrist branch (joints 4, 5, 6 flipped: the same position):
+    at the path's speed joint 4 would turn 180° in one step; slowly, the step's joint-space middle leaves
+    the path. Both refuse naming the sample; nothing is written."""
+    solve = pathsolve.solve_sample
+    calls = []
+
+    def flipping(model, q_deg, target, cfg, robot, rotvec=None):
+        q, r, it, ok = solve(model, q_deg, target, cfg, robot)
+        calls.append(1)
+        if len(calls) == 31:
+            q = q + [0, 0, 0, 180.0, 0, 180.0]
+            q[4] = -q[4]
+        return q, r, it, ok
+    monkeypatch.setattr(pathsolve, "solve_sample", flipping)
+    src = write_path(tmp_path, SEAM)
+    argv = [str(src), "--out", str(tmp_path / "o"), "--start-deg", *map(str, SEAM_START), "--spacing", "2"]
+    code, said = exit_code(path_command.main, argv, capsys)
+    assert code == 1 and re.search(r"sample 31 \(arc 60\.0 mm\): joint 4 turns 1(79|80)\.\d\d° from sample 30 in "
+                                   r"0\.100 s .*beyond its 180°/s", said), said
+    calls.clear()
+    code, said = exit_code(path_command.main, argv + ["--speed", "0.001"], capsys)
+    m = re.search(r"samples 30-31 \(arc 58\.0-60\.0 mm\): the joint-space step between them leaves the path by "
+                  r"([0-9.]+) mm", said)
+    assert code == 1 and m and float(m[1]) > 10, said
+    assert not (tmp_path / "o").exists()
+
+
+def test_outside_the_trained_workspace_is_refused_unless_allowed(in_trained_project, tmp_path, capsys):
+    """The twin's side, where no training pose lies: refused naming the first sample, written flagged with
+    --allow-outside-workspace."""
+    poses = sample_poses(50, np.random.default_rng(5), load_robot(in_trained_project["robot"]), region="side")
+    ws = Workspace.from_dict(read_json(WORKSPACE_JSON))
+    q0 = poses[np.argmax(ws.distance(poses))]                                  # the farthest from training
+    p0 = nominal_position(in_trained_project, q0)
+    src = write_path(tmp_path, [p0, p0 + [20.0, 0, 0]], name="side.csv")
+    argv = [str(src), "--out", str(tmp_path / "o"), "--spacing", "5", "--start-deg", *map(str, q0)]
+    code, said = exit_code(path_command.main, argv, capsys)
+    assert code == 1 and re.search(r"sample 1 \(arc 0\.0 mm\): outside the trained workspace \([0-9.]+ workspace "
+                                   r"radii .*5 of 5 samples are\).*--allow-outside-workspace", said), said
+    assert not (tmp_path / "o").exists()
+    code, said = exit_code(path_command.main, argv + ["--allow-outside-workspace"], capsys)
+    script = (tmp_path / "o" / "path.script").read_text()
+    assert code == 0 and "5 samples outside the trained workspace" in said, said
+    assert script.count("outside the trained workspace (uncertainty") == 4            # each servo_step's target
+    assert not pd.read_csv(tmp_path / "o" / "path.csv").in_workspace.any()
+
+
+def test_an_orientation_is_refused_unless_ignored_and_inputs_are_kept(in_trained_project, tmp_path, capsys):
+    src = write_path(tmp_path, SEAM, target_rx=[0.0, 0.0], target_ry=[3.14, 3.14], target_rz=[0.0, 0.0])
+    before = src.read_bytes()
+    argv = [str(src), "--out", str(tmp_path / "o"), "--spacing", "10", "--start-deg", *map(str, SEAM_START)]
+    code, said = exit_code(path_command.main, argv, capsys)
+    assert code == 1 and "target_rx, target_ry, target_rz: the solver compensates the TCP position only" in said
+    assert exit_code(path_command.main, argv + ["--ignore-orientation"], capsys)[0] == 0
+    code, said = exit_code(path_command.main, [str(src), "--out", str(tmp_path), "--ignore-orientation"], capsys)
+    assert code == 2 and "no joint columns: give the arm's joints at the path's start" in said
+    (tmp_path / "d").mkdir()
+    (tmp_path / "d" / "path.csv").symlink_to(src)
+    code, said = exit_code(path_command.main, argv[:1] + ["--out", str(tmp_path / "d")] + argv[3:], capsys)
+    assert code == 2 and "is the input" in said and src.read_bytes() == before
+
+
+def test_chord_mode_halves_the_steps_that_leave_the_path(in_trained_project, tmp_path):
+    """From 50 mm steps on the seam, halved until the model puts every step's joint-space middle within
+    0.005 mm of the path: more samples than 50 mm gives, far fewer than 1 mm, none beyond the tolerance."""
+    src = write_path(tmp_path, SEAM)
+    segs = segments(np.array(SEAM), ["", "movel"])
+    position = model_position(served_model())
+    coarse = pathsolve.solve_path(served_model(), *resample(segs, 50.0), SEAM_START, in_trained_project["compensate"],
+                                  load_robot(in_trained_project["robot"]))
+    assert deviation(position, coarse[JCOMP_DEG].to_numpy(), segs).max() > 0.005
+    table = run(src, tmp_path / "o", "--spacing", "50", "--chord", "0.005")
+    dev = deviation(position, table[JCOMP_DEG].to_numpy(), segs)
+    assert dev.max() <= 0.005 and 3 < len(table) < 40, (dev.max(), len(table))
+    np.testing.assert_allclose(table[TARGET].to_numpy(), at(segs, table.arc_mm.to_numpy()), atol=1e-9)
+
+
+# ----------------------------------------------------------------------------- the service's compensate_path
+
+@pytest.fixture
+def path_server(in_trained_project):
+    def start(**serve):
+        p = {**in_trained_project, "serve": {**in_trained_project["serve"], **serve}}
+        s = make_server(p, "127.0.0.1", 0)
+        threading.Thread(target=s.serve_forever, daemon=True).start()
+        servers.append(s)
+        return xmlrpc.client.ServerProxy(url(s))
+    servers = []
+    yield start
+    for s in servers:
+        s.shutdown()
+        s.server_close()
+
+
+def test_the_service_answers_a_whole_path(path_server, in_trained_project):
+    """A real client: the seam at 2 mm, every sample on its target through the model, continuous; bad
+    requests a Fault naming the field, and the server serves on; the call's budget bounds it."""
+    c = path_server()
+    q0 = np.radians(SEAM_START).tolist()
+    r = c.compensate_path(q0, SEAM, [], 2.0, 20.0)
+    assert set(r) == {"q_rad", "target_mm", "arc_mm", "t_s", "residual_mm", "in_workspace", "all_in_workspace"}
+    q, target = np.degrees(r["q_rad"]), np.array(r["target_mm"])
+    tol = in_trained_project["compensate"]["tol_mm"]
+    assert q.shape == (51, 6) and r["all_in_workspace"] and max(r["residual_mm"]) < tol
+    np.testing.assert_allclose(r["arc_mm"], np.arange(0, 101, 2.0), atol=1e-9)
+    np.testing.assert_allclose(r["t_s"][-1], 5.0, atol=1e-9)
+    np.testing.assert_allclose(model_position(served_model())(q), target, atol=tol)
+    assert np.abs(np.diff(q, axis=0)).max() < 2.0                                  # no jump between samples
+    bad = {
+        "moves[1] (points_mm[1]): move 'movej' is not one of": (q0, SEAM, ["", "movej"], 2.0, 20.0),
+        "points_mm[1][2]: not a finite number (nan)": (q0, [SEAM[0], [0.0, 0.0, float("nan")]], [], 2.0, 20.0),
+        "spacing_mm: expected a number > 0, got 0": (q0, SEAM, [], 0, 20.0),
+        "speed_mm_s: expected a number, got a string": (q0, SEAM, [], 2.0, "fast"),
+        "moves: expected a list of 2 strings": (q0, SEAM, ["movel"], 2.0, 20.0),
+        "q_rad[2]: 400.0°": (q0[:2] + [float(np.radians(400))] + q0[3:], SEAM, [], 2.0, 20.0),
+        "spacing_mm: a 100.0 mm path at 0.01 mm is 10001 samples, more than the limit of 1000 "
+        "(serve.max_path_samples)": (q0, SEAM, [], 0.01, 20.0),
+        "points_mm: sample ": (q0, [SEAM[0], [0.0, 0.0, 30.0]], [], 20.0, 20.0),
+    }
+    for words, args in bad.items():
+        with pytest.raises(xmlrpc.client.Fault, match=re.escape(words)):
+            c.compensate_path(*args)
+        assert c.compensate(q0, SEAM[0])["converged"]                              # still serving
+    tight = path_server(call_budget_ms=1.0)
+    with pytest.raises(xmlrpc.client.Fault, match=r"points_mm: sample \d+ \(arc [0-9.]+ mm\), target_mm: not solved: "
+                                                   r"the call's budget of 1 ms \(serve.call_budget_ms\) was spent"):
+        tight.compensate_path(q0, SEAM, [], 1.0, 20.0)
