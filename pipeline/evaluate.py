@@ -167,6 +167,11 @@ def run(params: dict) -> dict:
                       "calibrated_dh": cal.geometry, "calibrated_parts": with_parts(cal.geometry, parts)}
         metrics["pose"] = pose_metrics(df, R_meas, geometries, (name, pred, model.physics.geometry()),
                                        p["robot"]["tcp"], cal.geometry)
+        if df[CAMPAIGN].nunique() > 1:               # and per training campaign
+            metrics["pose_campaigns"] = {
+                c: pose_metrics(df[m].reset_index(drop=True), R_meas[m], geometries,
+                                (name, pred[m], model.physics.geometry()), p["robot"]["tcp"], cal.geometry)
+                for c in df[CAMPAIGN].unique() if (m := (df[CAMPAIGN] == c).to_numpy()).any()}
         r = metrics["pose"].get(reported, metrics["pose"][name]).get("test")
         if r:
             log.info("test split, %s: orientation %.0f arcsec mean (p95 %.0f); TCP mean %s mm", reported,

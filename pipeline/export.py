@@ -34,6 +34,7 @@ import numpy as np
 import pinocchio as pin
 import torch
 import yaml
+from scipy.spatial.transform import Rotation
 
 from .lib.artifacts import (CALIBRATED_GEOMETRY, CONTROLLER_ONNX, CONTROLLER_PHYSICS_ONNX, EXPORT_JSON, MODEL_ONNX, MODEL_WEIGHTS, PARTS_JSON, UR_YAML, URDF_FILE,
                             load_points)
@@ -43,7 +44,7 @@ from .lib.config import for_stage, load_params, logger, read_json, write_json
 from .lib.geometry import Calibration, with_parts
 from .lib.identify import identify
 from .lib.realtime import Realtime
-from .lib.kinematics import DTYPE, GEOMETRY_KEYS, fk, fk_frames
+from .lib.kinematics import DTYPE, RIGID_KEYS, TOOL_ROT, fk, fk_frames, fk_pose
 from .lib.model import PhysicsOnly
 from .lib.onnx_model import OnnxModel, OnnxRealtime, deviation, export_controller, export_onnx
 from .lib.robots import TABLES, load_robot
@@ -54,15 +55,21 @@ log = logger(__name__)
 PARAMS = ("robot", "calibrate")
 
 
-def urdf_positions(urdf_text: str, q_rad: np.ndarray) -> np.ndarray:
-    """tool0 positions (n, 3) mm by Pinocchio from URDF text at joint angles q (n, 6) rad."""
+def urdf_poses(urdf_text: str, q_rad: np.ndarray, frame_name: str = "tool0") -> tuple[np.ndarray, np.ndarray]:
+    """A frame's positions (n, 3) mm and rotations (n, 3, 3) by Pinocchio from URDF text at joint angles q (n, 6) rad."""
     m = pin.buildModelFromXML(urdf_text)
-    d, frame = m.createData(), m.getFrameId("tool0")
-    out = []
+    d, frame = m.createData(), m.getFrameId(frame_name)
+    p, R = [], []
     for q in q_rad:
         pin.framesForwardKinematics(m, d, q)
-        out.append(d.oMf[frame].translation * 1000.0)
-    return np.array(out)
+        p.append(d.oMf[frame].translation * 1000.0)
+        R.append(d.oMf[frame].rotation.copy())
+    return np.array(p), np.array(R)
+
+
+def urdf_positions(urdf_text: str, q_rad: np.ndarray) -> np.ndarray:
+    """tool0 positions (n, 3) mm by Pinocchio from URDF text at joint angles q (n, 6) rad."""
+    return urdf_poses(urdf_text, q_rad)[0]
 
 
 def ur_yaml_poses(kinematics: dict, q_rad: np.ndarray) -> np.ndarray:
@@ -92,10 +99,12 @@ def rigid_equivalent(g: dict, q: torch.Tensor, cfg: dict) -> tuple[dict, dict]:
     left_out = (["joint compliance under gravity"] if g["compliance"].any() else []) + \
         [name for key, name in (("amap_coef", "per-joint angle error maps"), ("lmap_coef", "per-joint load error maps"))
          if key in g]
-    rigid = {k: v for k, v in g.items() if k in GEOMETRY_KEYS} | {"compliance": torch.zeros(6, dtype=DTYPE)}
-    if left_out:
+    rigid = {k: v for k, v in g.items() if k in RIGID_KEYS} | {"compliance": torch.zeros(6, dtype=DTYPE)}
+    if left_out:                                  # g's orientations too, where it has a probe rotation
         cfg = {**cfg, "params": [k for k in cfg["params"] if k != "compliance"], "loss": "linear"}
-        rigid = identify(q, p, rigid, cfg)[0]
+        with torch.no_grad():
+            R = fk_pose(q, g)[1].numpy() if TOOL_ROT in g else None
+        rigid = identify(q, p, rigid, cfg, R_meas=R)[0]
     with torch.no_grad():
         e = np.linalg.norm(fk(q, rigid).numpy() - p, axis=1)
     return rigid, {"mean_mm": float(e.mean()), "max_mm": float(e.max()), "left_out": left_out}
@@ -114,16 +123,22 @@ def run(params: dict) -> dict:
     log.info("the calibrated model as a rigid chain: %.4f mm mean, %.4f mm max from it on %d poses",
              fit["mean_mm"], fit["max_mm"], len(pts))
 
-    text = to_urdf(g, robot)
+    text = to_urdf(g, robot, tcp=p["robot"]["tcp"])
     URDF_FILE.write_text(text)
-    dev = np.linalg.norm(urdf_positions(text, q.numpy()) - p_rigid, axis=1)
+    p_urdf, R_urdf = urdf_poses(text, q.numpy())
+    dev = np.linalg.norm(p_urdf - p_rigid, axis=1)
     summary["urdf"] = {"file": str(URDF_FILE), "checked_with": f"pinocchio {pin.__version__}",
                        "max_deviation_mm": float(dev.max())}
+    if TOOL_ROT in g:                               # tool0 is the probe's frame: its orientation checked too
+        with torch.no_grad():
+            R_rigid = fk_pose(q, g)[1].numpy()
+        summary["urdf"]["max_rotation_deviation_arcsec"] = size(
+            Rotation.from_matrix(np.einsum("nji,njk->nik", R_urdf, R_rigid)).magnitude().max() * 206264.806)
     log.info("%s: Pinocchio's tool0 vs the exported chain's FK on %d poses: max %.2e mm", URDF_FILE, len(pts),
              dev.max())
 
     if robot.name in TABLES:
-        kin = ur_kinematics(g)
+        kin = ur_kinematics(g, p["robot"]["tcp"])
         UR_YAML.write_text(yaml.safe_dump(kin, sort_keys=False))
         truth = base_transform(g) @ flange6 @ np.linalg.inv(joint_origins(g)[1])   # joint 6's frame
         poses = ur_yaml_poses(kin, q.numpy())
@@ -142,9 +157,13 @@ def run(params: dict) -> dict:
     onnx_p = OnnxModel(MODEL_ONNX)(q32.numpy())
     with torch.no_grad():
         same, f64 = model(q32.double())[0].numpy(), model(q[test])[0].numpy()
+        R_same = fk_pose(q32.double(), model.physics.geometry())[1].numpy()
+    R_onnx = OnnxModel(MODEL_ONNX).pose(q32.numpy())[1]
     summary["onnx"] = {"file": str(MODEL_ONNX), "checked_with": "onnxruntime", "n_test_poses": int(test.sum()),
                        "max_deviation_mm": size(np.abs(onnx_p - same).max()),
-                       "max_deviation_from_float64_angles_mm": size(np.abs(onnx_p - f64).max())}
+                       "max_deviation_from_float64_angles_mm": size(np.abs(onnx_p - f64).max()),
+                       "max_rotation_deviation_arcsec": size(Rotation.from_matrix(np.einsum(
+                           "nji,njk->nik", R_onnx, R_same)).magnitude().max() * 206264.806)}
     log.info("%s: onnxruntime vs PyTorch on %d test poses: max %.2e mm on the same float32 angles, %.2e mm "
              "from the float64 angles", MODEL_ONNX, test.sum(), summary["onnx"]["max_deviation_mm"],
              summary["onnx"]["max_deviation_from_float64_angles_mm"])

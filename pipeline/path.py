@@ -48,6 +48,7 @@ from .lib.pathsolve import (beyond_reach, deviation, finish, joint_speeds, model
                             solve_path, urscript)
 from .lib.robots import load_robot
 from .lib.training import load_model
+from .lib.tcp import at_tcp
 from .lib.workspace import Workspace
 from .lib.writing import check_outputs, write_together
 
@@ -94,6 +95,7 @@ def run(argv=None) -> pd.DataFrame:
                     help="the arm's joints at the path's start (deg), when the file has no joint columns")
     ap.add_argument("--allow-outside-workspace", action="store_true",
                     help="write a path with samples outside the trained workspace (flagged) instead of refusing it")
+    ap.add_argument("--tcp", default=None, help="solve for this robot.tcp point (params.yaml) instead of the marker")
     ap.add_argument("--ignore-orientation", action="store_true",
                     help="compensate the position of a path that gives target_rx..rz, leaving its orientation")
     a = ap.parse_args(argv)
@@ -111,6 +113,10 @@ def run(argv=None) -> pd.DataFrame:
     if missing:
         raise ValueError(f"missing trained artifact(s) {', '.join(missing)} in {Path.cwd()}; run `dvc repro` first")
     nominal = theory_geometry(robot, read_json(FRAME_JSON)["tool_mm"])
+    workspace = Workspace.from_dict(read_json(WORKSPACE_JSON))
+    model = served(load_model(MODEL_WEIGHTS), workspace.network)
+    if a.tcp is not None:
+        model, nominal = at_tcp(model, p["robot"]["tcp"], a.tcp, nominal)
     found = read_path(src, robot, lambda q: fk_numpy(q, robot, nominal))
     if found.rotvec is not None and not a.ignore_orientation:
         raise Refused(f"{src}: columns {', '.join(ROTVEC)}: the solver compensates the TCP position only "
@@ -124,8 +130,6 @@ def run(argv=None) -> pd.DataFrame:
         raise ValueError(f"{src}: {n} samples at a spacing of {cfg['spacing_mm']:g} mm over {length:.1f} mm, more "
                          f"than path.max_samples ({cfg['max_samples']}): a larger --spacing")
     targets, arc = resample(found.segs, cfg["spacing_mm"])
-    workspace = Workspace.from_dict(read_json(WORKSPACE_JSON))
-    model = served(load_model(MODEL_WEIGHTS), workspace.network)
     far = beyond_reach(targets, arc, reach_mm(model.physics.geometry()))
     if far:
         raise Refused(f"{src}: {far}; nothing written")

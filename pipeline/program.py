@@ -1,7 +1,7 @@
 """Command: compensate a robot program: its waypoints in, the compensated program out (CSV and URScript).
 
     python -m pipeline.program waypoints.csv [--out program_comp.csv] [--urscript program_comp.script]
-                                             [--comment-out-unreached]
+                                             [--comment-out-unreached] [--tcp NAME]
 
 waypoints.csv, one row per waypoint (`,` `;` or tab separated, decimal point or comma, as ingest reads):
     point_id (optional; default W001, W002, ...), j1_deg..j6_deg   the program's joint targets
@@ -42,6 +42,7 @@ from .lib.model import served
 from .lib.training import load_model
 from .lib.cli import Refused, one_line
 from .lib.waypoints import ID_PATTERN, compensate_program, read_waypoints, unreached
+from .lib.tcp import at_tcp
 from .lib.workspace import Workspace
 from .lib.writing import check_outputs, write_together
 
@@ -97,6 +98,7 @@ def run(argv=None) -> pd.DataFrame:
     ap.add_argument("--comment-out-unreached", action="store_true",
                     help="write the program with every waypoint not reached as a comment (no move) "
                          "instead of refusing it")
+    ap.add_argument("--tcp", default=None, help="compensate for this robot.tcp point (params.yaml), not the marker")
     a = ap.parse_args(argv)
     src = Path(a.waypoints)
     out = Path(a.out or src.with_name(src.stem + "_comp.csv"))
@@ -109,8 +111,11 @@ def run(argv=None) -> pd.DataFrame:
         raise ValueError(f"missing trained artifact(s) {', '.join(missing)} in {Path.cwd()}; run `dvc repro` first")
     df = read_waypoints(src, robot)
     workspace = Workspace.from_dict(read_json(WORKSPACE_JSON))
-    table = compensate_program(df, served(load_model(MODEL_WEIGHTS), workspace.network), workspace, robot,
-                               theory_geometry(robot, read_json(FRAME_JSON)["tool_mm"]), p["compensate"])
+    model = served(load_model(MODEL_WEIGHTS), workspace.network)
+    nominal = theory_geometry(robot, read_json(FRAME_JSON)["tool_mm"])
+    if a.tcp is not None:                            # targets and solve at a TCP (lib/tcp.py)
+        model, nominal = at_tcp(model, p["robot"]["tcp"], a.tcp, nominal)
+    table = compensate_program(df, model, workspace, robot, nominal, p["compensate"])
     skipped = unreached(table, robot)
     text = summary_text(table, skipped, workspace)
     if skipped and not a.comment_out_unreached:

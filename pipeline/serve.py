@@ -1,6 +1,6 @@
 """The compensation service: the trained model over XML-RPC, for a robot program to call.
 
-    python -m pipeline.serve [--port N] [--host H] [--no-onnx] [--compile]   (defaults: the `serve:` section)
+    python -m pipeline.serve [--port N] [--host H] [--no-onnx] [--compile] [--tcp NAME]   (defaults: the `serve:` section)
 
 XML-RPC at http://HOST:PORT/RPC2 (only that path, only POST; default 127.0.0.1:50000):
 
@@ -20,6 +20,10 @@ XML-RPC at http://HOST:PORT/RPC2 (only that path, only POST; default 127.0.0.1:5
                                          "in_workspace": per sample, "all_in_workspace": bool}, or a Fault
                                          naming the field (a sample that must not be driven: points_mm)
     system.listMethods, system.methodHelp, system.methodSignature
+
+With --tcp NAME every target is that `robot.tcp` point's (lib/tcp.py AtTcp: the marker's answer moved
+along the probe's orientation), not the marker's; the controller path then runs in PyTorch (the
+exported graphs are the marker's), and a model calibrated without orientation is refused.
 
 What a request costs and when it is answered, refused or unreachable: lib/service.py (the logic: a
 worker thread owning the model batches concurrent requests; each has a budget, serve.max_iter and
@@ -62,6 +66,8 @@ from .lib.pathsolve import joint_speeds
 from .lib.realtime import Realtime
 from .lib.robots import load_robot
 from .lib.service import RequestError, Service
+from .lib.tcp import at_tcp
+from .lib.geometry import theory_geometry
 from .lib.training import load_model
 from .lib.workspace import Workspace
 
@@ -348,9 +354,10 @@ def fast_path(model, workspace: Workspace, limits_deg, tol_mm: float, graph=CONT
 
 
 def make_server(params: dict, host: str | None = None, port: int | None = None,
-                compile: bool | None = None, onnx: bool | None = None) -> Server:
+                compile: bool | None = None, onnx: bool | None = None, tcp: str | None = None) -> Server:
     """The service on host:port (None: the `serve:` section; port 0: a free port, in server.server_address),
-    not yet serving: call serve_forever(). compile, onnx: override serve.compile, serve.onnx."""
+    not yet serving: call serve_forever(). compile, onnx: override serve.compile, serve.onnx; tcp: answer
+    for that `robot.tcp` point."""
     params = for_stage(params, PARAMS)
     cfg = params["serve"]
     cfg = {**cfg, **{k: v for k, v in (("compile", compile), ("onnx", onnx)) if v is not None}}
@@ -364,9 +371,11 @@ def make_server(params: dict, host: str | None = None, port: int | None = None,
     except ValueError as e:                               # compensate_path says so; the rest serves
         speeds = str(e)
     model = served(load_model(MODEL_WEIGHTS), workspace.network)     # evaluate's verdict on the network
+    if tcp is not None:                                   # every target a TCP's (the graphs are the marker's)
+        model = at_tcp(model, params["robot"]["tcp"], tcp, theory_geometry(robot, robot.tool))[0]
     graph = CONTROLLER_ONNX if workspace.network else CONTROLLER_PHYSICS_ONNX
     tol = params["compensate"]["tol_mm"]
-    controller = fast_path(model, workspace, limits_deg, tol, graph) if cfg["onnx"] else None
+    controller = fast_path(model, workspace, limits_deg, tol, graph) if cfg["onnx"] and tcp is None else None
     log.info("serving %s; the controller path on %s", "the whole model" if workspace.network else
              "the physics alone (the network did not lower the validation error)",
              f"onnxruntime ({graph})" if controller is not None else "PyTorch" + (", compiled" if cfg["compile"] else ""))
@@ -400,14 +409,15 @@ def main(argv=None):
                     help="run the controller path on onnxruntime, models/controller.onnx (default: serve.onnx)")
     ap.add_argument("--compile", action=argparse.BooleanOptionalAction, default=None,
                     help="torch.compile the controller path when it runs in PyTorch (default: serve.compile)")
+    ap.add_argument("--tcp", default=None, help="answer for this robot.tcp point (params.yaml), not the marker")
     a = ap.parse_args(argv)
     missing = [str(p) for p in [PARAMS_YAML, *REQUIRED] if not p.exists()]
     if not PARAMS_YAML.exists():
         raise SystemExit(f"pipeline.serve: missing {', '.join(missing)} in {Path.cwd()}: run it in the "
                          f"project's root (where params.yaml is), after `dvc repro`")
     try:
-        server = make_server(load_params(), a.host, a.port, a.compile, a.onnx)
-    except ParamsError as e:
+        server = make_server(load_params(), a.host, a.port, a.compile, a.onnx, a.tcp)
+    except (ParamsError, ValueError) as e:
         raise SystemExit(f"pipeline.serve: {e}") from None
     log.info("serving %s: %s (torch %d threads)", url(server), ", ".join(server.system_listMethods()),
              torch.get_num_threads())

@@ -14,7 +14,7 @@ from pipeline.export import rigid_equivalent, ur_yaml_poses, urdf_positions
 from conftest import project_points
 from pipeline.lib.columns import JOINTS_DEG, THEORY
 from pipeline.lib.config import load_params, read_json
-from pipeline.lib.kinematics import DTYPE, fk, fk_frames, nominal_geometry
+from pipeline.lib.kinematics import DTYPE, fk, fk_frames, fk_pose, nominal_geometry
 from pipeline.lib.model import Ensemble, PhysicsOnly
 from pipeline.lib.onnx_model import OnnxModel, OnnxRealtime, export_controller, export_onnx
 from pipeline.lib.realtime import Realtime
@@ -56,6 +56,32 @@ def test_urdf_read_by_pinocchio_matches_the_chain_to_1e6_mm():
     np.testing.assert_allclose(m.lowerPositionLimit, -2 * np.pi)
     np.testing.assert_allclose(m.effortLimit, [150, 150, 150, 28, 28, 28])
     assert {"base_link", "flange", "tool0"} <= {f.name for f in m.frames}
+
+
+def test_the_urdf_and_yaml_carry_the_probe_and_tcp_frames():
+    """tool0 is the probe's frame (its rotation in the flange included) and each robot.tcp a link on the
+    flange: read back by Pinocchio, against the chain's own poses (issue 34)."""
+    from pipeline.export import urdf_poses
+    from pipeline.lib.kinematics import TOOL_ROT, fk_pose
+    g = {**calibrated_like(), TOOL_ROT: torch.tensor([0.01, -0.02, -1.5707], dtype=DTYPE)}
+    tcp = {"torch": {"xyz_mm": [150.0, 0.0, 80.0], "rxyz_deg": [0.0, 30.0, 0.0]}}
+    q = poses(50)
+    text = to_urdf(g, UR5, tcp=tcp)
+    with torch.no_grad():
+        p, R = (v.numpy() for v in fk_pose(q, g))
+        flange = fk_pose(q, {**g, "tool": torch.zeros(3, dtype=DTYPE), TOOL_ROT: torch.zeros(3, dtype=DTYPE)})
+    p_u, R_u = urdf_poses(text, q.numpy())
+    assert np.abs(p_u - p).max() < 1e-6 and np.abs(R_u - R).max() < 1e-12
+    p_t, R_t = urdf_poses(text, q.numpy(), "tcp_torch")
+    want = flange[0].numpy() + flange[1].numpy() @ np.array([150.0, 0.0, 80.0])
+    assert np.abs(p_t - want).max() < 1e-6
+    np.testing.assert_allclose(R_t, flange[1].numpy() @ Rotation.from_euler("y", 30, degrees=True).as_matrix(),
+                               atol=1e-12)
+    frames = yaml.safe_load(yaml.safe_dump(ur_kinematics(g, tcp)))["tool_frames"]
+    assert set(frames) == {"marker", "torch"}
+    e = frames["torch"]                                              # joint 6's frame -> the TCP, m and rpy
+    c = joint_origins(g)[1] @ np.r_[150.0, 0.0, 80.0, 1.0]            # the flange transform after joint 6, then c
+    np.testing.assert_allclose([e["x"], e["y"], e["z"]], c[:3] / 1000, atol=1e-12)
 
 
 def test_nominal_ur5_at_zero_is_where_the_datasheet_puts_it():
@@ -124,7 +150,7 @@ def test_onnx_read_by_onnxruntime_matches_pytorch(tmp_path, ensemble):
     export_onnx(model, path)
     import onnx
     graph = onnx.load(str(path)).graph
-    assert [i.name for i in graph.input] == ["q_rad"] and [o.name for o in graph.output] == ["p_mm"]
+    assert [i.name for i in graph.input] == ["q_rad"] and [o.name for o in graph.output] == ["p_mm", "probe_rot"]
     assert b"onnx_model.py" not in path.read_bytes()                # no source paths (stack traces): issue 21
     assert not any(n.metadata_props or n.doc_string for n in graph.node)
     ort = OnnxModel(path)
@@ -135,6 +161,10 @@ def test_onnx_read_by_onnxruntime_matches_pytorch(tmp_path, ensemble):
         out = ort(q.numpy())
         assert out.shape == (n, 3)
         assert np.abs(out - ref).max() < 1e-6, n
+        R = ort.pose(q.numpy())[1]                                  # the probe's orientation (issue 34)
+        with torch.no_grad():
+            R_ref = fk_pose(q.double(), model.physics.geometry())[1].numpy()
+        assert R.shape == (n, 3, 3) and np.abs(R - R_ref).max() < 1e-12, n
 
 
 def test_export_stage_files_read_back(in_trained_project):

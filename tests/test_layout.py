@@ -121,8 +121,26 @@ MODULES = sorted((top, m) for top, mods in TOP.items() for m in mods)           
 
 
 def test_every_stage_is_a_pipeline_module():
-    assert set(STAGES.values()) <= set(TOP)
-    assert len(STAGES) == 17
+    """STAGES, which the deps and params tests below run over, holds every stage of every dvc.yaml that
+    lists its code file by file (fleet/dvc.yaml depends on the whole package), each once under its own
+    name (an ablation stage as ablation/<name>, so no stage hides another); ./dvc.yaml's stages run a
+    stage module, an existing pipeline/<name>.py or package that is not a command, ablation/dvc.yaml's a
+    command."""
+    files = subprocess.run(["git", "ls-files", "--cached", "--others", "--exclude-standard", "*dvc.yaml"], cwd=ROOT,
+                           capture_output=True, text=True, check=True).stdout.split()
+    by_file = {f: yaml.safe_load((ROOT / f).read_text())["stages"] for f in sorted(set(files))}
+    whole = [f for f, stages in by_file.items() if all("pipeline" in s.get("do", s)["deps"] for s in stages.values())]
+    assert sorted(DVC_FILES) == sorted(set(by_file) - set(whole)) and whole == ["fleet/dvc.yaml"]
+    assert len(STAGES) == sum(len(by_file[f]) for f in DVC_FILES)          # none lost, none under another's name
+    for f in DVC_FILES:
+        for name, stage in by_file[f].items():
+            key = name if f == "dvc.yaml" else f"{Path(f).parent}/{name}"
+            cmd = stage.get("do", stage)["cmd"]
+            assert STAGES[key] == cmd.split()[2] and module_path(STAGES[key]).is_file(), f"{f}: {name}: {cmd}"
+            want = "a command" if f != "dvc.yaml" else "a stage module, not a command"
+            assert STAGES[key] in TOP and (STAGES[key] in CMDS) == (f != "dvc.yaml"), \
+                f"{f}: stage {name} runs {STAGES[key]}: want {want}"
+    assert {"ingest", "train", "report", "validate", "ablation/group"} <= set(STAGES)
     assert {"pipeline.ingest", "pipeline.train", "pipeline.report"} <= set(STAGES.values())
 
 

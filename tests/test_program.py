@@ -273,3 +273,31 @@ def test_the_example_program_in_the_readme_runs(in_trained_project, tmp_path, ca
                                           "--urscript", str(tmp_path / "c.script")], capsys)
     assert code == 0 and said.startswith("10 waypoints: 10 reached"), said
     assert (tmp_path / "c.script").read_text().count("movej(") == 10
+
+
+def test_a_program_compensated_at_a_tcp_lands_the_tcp_on_the_twin(in_trained_project, tmp_path, capsys):
+    """--tcp: the waypoints' nominal TCP positions solved for through the probe's pose (issue 34); the twin,
+    driven there (noise-free), puts that TCP (fixed to its probe) within a tenth of a millimetre, where the
+    uncompensated program misses by about a millimetre."""
+    from pipeline.lib.config import read_json
+    from pipeline.lib.frames import to_base
+    from pipeline.lib.tcp import probe_offsets
+    from pipeline.lib.twin import Twin
+    params = in_trained_project
+    pts = load_points().query("split == 'test'").head(20)
+    src = tmp_path / "prog.csv"
+    pts[JOINTS_DEG].to_csv(src, index=False)
+    table = program.run([str(src), "--tcp", "x150"])
+    assert table["converged"].all()
+    twin, frame = Twin.from_json(params["compensate"]["twin"]), read_json("reports/frame.json")
+    o = probe_offsets(params["robot"]["tcp"], served_model().physics.geometry())["x150"]
+
+    def tcp_on_twin(q_deg):
+        p, R = twin.expected_pose(q_deg)
+        return to_base(twin.to_tracker(p + R @ o), frame)
+    after = np.linalg.norm(tcp_on_twin(table[JCOMP_DEG].to_numpy()) - table[TARGET].to_numpy(), axis=1)
+    before = np.linalg.norm(tcp_on_twin(pts[JOINTS_DEG].to_numpy()) - table[TARGET].to_numpy(), axis=1)
+    assert before.mean() > 0.5 and after.mean() < 0.1 and after.max() < 0.3, (before.mean(), after)
+    code, said = exit_code(program.main, [str(src), "--tcp", "nozzle", "--out", str(tmp_path / "x.csv")], capsys)
+    assert code == 2 and "--tcp nozzle: not in params.yaml robot.tcp (x150)" in said
+    assert not (tmp_path / "x.csv").exists()

@@ -744,3 +744,29 @@ def test_where_the_network_is_off_the_physics_alone_is_served(project, params, p
     finally:
         server.shutdown()
         server.server_close()
+
+
+def test_a_service_for_a_tcp_lands_that_tcp_on_its_target(project, params, poses):
+    """serve --tcp x150: each answer puts the TCP (the marker's answer moved along the probe's
+    orientation, lib/tcp.py), not the marker, on the target; a real client calls it (issue 34)."""
+    from pipeline.lib.tcp import AtTcp, probe_offsets
+    threads = torch.get_num_threads()
+    s = serving(params, tcp="x150")
+    try:
+        client = xmlrpc.client.ServerProxy(url(s))
+        model = served_model()
+        at = AtTcp(model, probe_offsets(params["robot"]["tcp"], model.physics.geometry())["x150"])
+        q0 = poses[0][:3]
+        with torch.no_grad():
+            target = at(torch.as_tensor(q0))[0].numpy() + [0.4, -0.2, 0.3]     # a TCP target near each pose
+        for q, t in zip(q0, target):
+            r = client.compensate(q.tolist(), t.tolist())
+            with torch.no_grad():
+                tcp = at(torch.tensor([r["q_rad"]], dtype=torch.float64))[0][0].numpy()
+                marker = model(torch.tensor([r["q_rad"]], dtype=torch.float64))[0][0].numpy()
+            assert r["converged"] and np.linalg.norm(tcp - t) < params["compensate"]["tol_mm"]
+            assert np.linalg.norm(marker - t) > 100                            # the marker is elsewhere
+    finally:
+        s.shutdown()
+        s.server_close()
+        torch.set_num_threads(threads)

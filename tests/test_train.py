@@ -1,8 +1,7 @@
 """Training: same params and seed give the same model on CPU; the best validation checkpoint is kept;
-`train.device`: the CPU path is the loop from before the setting, bit for bit; the CUDA graph's steps,
-run eagerly on the CPU, give the same numbers; on a GPU (skipped without one) the model comes back on
-the CPU."""
-import copy
+`train.device`: on the CPU a run repeats bit for bit, its curves are its model's, the data order is
+train.seed's alone and the EMA is what is validated and kept; the CUDA graph's steps, run eagerly on
+the CPU, give the same numbers; on a GPU (skipped without one) the model comes back on the CPU."""
 import json
 from pathlib import Path
 
@@ -112,55 +111,6 @@ def test_members_must_be_a_positive_integer(points):
 # ----------------------------------------------------------------------------- train.device
 
 
-def fit_before_train_device(model, loss_fn, train, val, cfg, live=None):
-    """lib/training.py's fit as it was before `train.device` (commit 865b43e), kept to hold the CPU path
-    to it bit for bit (its progress bar left out)."""
-    q, p = train
-    gen = torch.Generator().manual_seed(cfg["seed"])
-    params = list(model.parameters()) + list(getattr(loss_fn, "parameters", lambda: [])())
-    opt = torch.optim.AdamW(params, lr=cfg["lr"], weight_decay=cfg["weight_decay"])
-    ema = (None if cfg["ema"] is None else torch.optim.swa_utils.AveragedModel(
-        model, multi_avg_fn=torch.optim.swa_utils.get_ema_multi_avg_fn(cfg["ema"])))
-    judged = model if ema is None else ema.module
-    sched = (None if cfg["lr_drop"] is None else torch.optim.lr_scheduler.ReduceLROnPlateau(
-        opt, factor=cfg["lr_drop"], patience=cfg["lr_patience"], threshold=0.0))
-    best, best_epoch, best_state = np.inf, -1, None
-    for epoch in range(cfg["max_epochs"]):
-        model.train()
-        losses = []
-        for idx in torch.randperm(len(q), generator=gen).split(cfg["batch_size"]):
-            p_pred, p_theory = model(q[idx])
-            loss, parts = loss_fn(p_pred, p[idx], p_theory)
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            torch.nn.utils.clip_grad_norm_(model.parameters(), cfg["grad_clip"])
-            opt.step()
-            if ema is not None:
-                ema.update_parameters(model)
-            losses.append((loss.item(), parts, (p_pred - p[idx]).detach().norm(dim=1).sum().item()))
-        val_mae = mae_3d(judged, *val)
-        train_mae = sum(l[2] for l in losses) / len(q)
-        if val_mae < best:
-            best, best_epoch, best_state = val_mae, epoch, copy.deepcopy(judged.state_dict())
-        if sched is not None:
-            sched.step(val_mae)
-        if live is not None:
-            row = {"loss": float(np.mean([l[0] for l in losses])),
-                   "data_loss": float(np.mean([l[1]["data"] for l in losses])),
-                   "physics_loss": float(np.mean([l[1]["physics"] for l in losses])),
-                   "train_mae_3d_mm": train_mae, "val_mae_3d_mm": val_mae, "lr": opt.param_groups[0]["lr"]}
-            if hasattr(model, "alpha"):
-                row["alpha"] = model.alpha.item()
-            for name, value in row.items():
-                live.log_metric(name, value, timestamp=False)
-            live.next_step()
-        if epoch - best_epoch >= cfg["patience"]:
-            break
-    model.load_state_dict(best_state)
-    return {"epochs_run": epoch + 1, "best_epoch": best_epoch + 1, "best_val_mae_3d_mm": best,
-            "final_lr": opt.param_groups[0]["lr"]}
-
-
 class Rows:
     """A dvclive stand-in that keeps the logged rows."""
 
@@ -182,11 +132,13 @@ CASES = {"ema": ({"ema": 0.9}, {}, "boter"), "lr_drop": ({"lr_drop": 0.5, "lr_pa
          "dnn": ({"ema": 0.9}, None, "dnn")}
 
 
-def run_case(points, case, runner):
-    """(model, history, logged rows) of one training run of CASES[case] by runner(model, loss, train, val, cfg, live)."""
+def run_case(points, case, runner, **train):
+    """(model, history, logged rows) of one training run of CASES[case] (8 epochs and no early stop unless
+    `train`, further train: settings, says otherwise) by runner(model, loss, train, val, cfg, live)."""
     change, loss_change, kind = CASES[case]
     p = json.loads(json.dumps(PARAMS))
     p["train"].update(change, max_epochs=change.get("max_epochs", 8), patience=8)
+    p["train"].update(train)
     model = make_model(p["model"], G, kind)
     if kind == "boter":
         model.fade.fit(points.loc[points.split == "train", JOINTS_DEG].to_numpy(), 20.0)
@@ -210,14 +162,91 @@ def assert_same_run(a, b):
     assert json.dumps(r1) == json.dumps(r2)                      # every logged number (NaN included)
 
 
+def cpu_fit(model, loss, train, val, cfg, live):
+    """fit as train_boter calls it on the CPU (its default path: the eager steps)."""
+    return fit(model, loss, train, val, cfg, live=live, progress=False)
+
+
+ROW = ["loss", "data_loss", "physics_loss", "train_mae_3d_mm", "val_mae_3d_mm", "lr", "alpha"]   # a curve row
+SUMMARY = {"epochs_run", "best_epoch", "best_val_mae_3d_mm", "final_lr", "seconds", "seconds_per_epoch"}
+
+
 @pytest.mark.parametrize("case", ["ema", "lr_drop", "data_only_ema"])
-def test_cpu_training_is_the_loop_from_before_train_device(points, case):
-    """train.device cpu (auto without a GPU): the same weights, history and logged curves, bit for bit,
-    as the loop before the setting existed, so dvc.lock's outputs stay as they are."""
-    old = run_case(points, case, fit_before_train_device)
-    new = run_case(points, case, lambda *a: fit(*a[:5], live=a[5], progress=False))
-    assert_same_run(old, new)
-    assert "device" not in new[1]                                # the CPU summary keeps its keys (and bytes)
+def test_cpu_training_repeats_bit_for_bit_and_its_curves_are_its_model(points, case):
+    """train.device cpu (auto without a GPU): a second run gives the same weights, history and logged
+    curves, bit for bit, so dvc.lock's outputs stay as they are. One curve row an epoch; the weights kept
+    (the EMA's) score exactly the lowest validation error of the curve, logged at best_epoch; the run stops
+    `patience` epochs after it (lr 3e-2: ema after 23 epochs, its best the 20th; lr_drop after 6, its best
+    the 3rd); the logged rate halves after each epoch without a new best (lr_drop); without the physics
+    term its curve is NaN; the CPU summary keeps its keys (no device)."""
+    early = {} if case == "data_only_ema" else {"lr": 3e-2, "patience": 3, "max_epochs": 40}
+    model, h, rows = run = run_case(points, case, cpu_fit, **early)
+    assert_same_run(run, run_case(points, case, cpu_fit, **early))
+    assert set(h) == SUMMARY and len(rows) == h["epochs_run"] and all(list(r) == ROW for r in rows)
+    val = [r["val_mae_3d_mm"] for r in rows]
+    assert val.index(min(val)) == h["best_epoch"] - 1 and h["best_val_mae_3d_mm"] == min(val)
+    assert mae_3d(model, *tensors(points[points.split == "val"])) == h["best_val_mae_3d_mm"]   # not the last epoch's
+    if early:                                              # stopped early, past its best
+        assert h["best_epoch"] < h["epochs_run"] < 40 and h["epochs_run"] - h["best_epoch"] == 3
+    else:
+        assert h["epochs_run"] == 8
+    cfg = {**PARAMS["train"], **CASES[case][0], **early}
+    not_best = np.cumsum([i > 0 and v >= min(val[:i]) for i, v in enumerate(val)])
+    want = [cfg["lr"] * (cfg["lr_drop"] or 1.0) ** int(k) for k in not_best]
+    assert [r["lr"] for r in rows] == want and h["final_lr"] == want[-1]
+    assert h["final_lr"] == (3e-2 / 8 if case == "lr_drop" else cfg["lr"])      # lr_drop: 3 epochs not better
+    assert all(np.isnan(r["physics_loss"]) == (case == "data_only_ema") for r in rows)
+
+
+def test_the_ema_is_validated_and_kept_and_leaves_the_steps_alone(points):
+    """train.ema: the training steps are the plain run's, bit for bit (every curve but the validation
+    error: loss terms, train error, alpha, rate); the validation curve and the kept weights are the
+    average's, at every epoch; an average of decay 0 is the last step's weights, so that run is the plain
+    run, bit for bit (weights, history, curves)."""
+    runs = {ema: run_case(points, "ema", cpu_fit, ema=ema) for ema in (None, 0.0, 0.9)}
+    steps = lambda run: [{k: v for k, v in r.items() if k != "val_mae_3d_mm"} for r in run[2]]
+    val = lambda run: [r["val_mae_3d_mm"] for r in run[2]]
+    assert json.dumps(steps(runs[0.9])) == json.dumps(steps(runs[None])) and len(steps(runs[None])) == 8
+    assert all(a != b for a, b in zip(val(runs[0.9]), val(runs[None])))
+    assert not torch.equal(runs[0.9][0].head.out.weight, runs[None][0].head.out.weight)
+    assert mae_3d(runs[0.9][0], *tensors(points[points.split == "val"])) == runs[0.9][1]["best_val_mae_3d_mm"]
+    assert_same_run(runs[0.0], runs[None])
+
+
+class SeenLoss(SPILoss):
+    """The SPI loss, noting which training poses (row numbers, by their measured positions) each batch holds."""
+
+    def __init__(self, p_train, **cfg):
+        super().__init__(**cfg)
+        self.rows = {tuple(r): i for i, r in enumerate(p_train.tolist())}
+        self.batches = []
+
+    def forward(self, p_pred, p_gt, p_theory):
+        self.batches.append([self.rows[tuple(r)] for r in p_gt.tolist()])
+        return super().forward(p_pred, p_gt, p_theory)
+
+
+def test_each_epoch_visits_every_training_pose_once_in_an_order_of_train_seed_alone(points):
+    """The data order: each epoch every one of the 96 training poses once, in batches of batch_size (40,
+    40 and the 16 left), shuffled by a generator of its own seeded with train.seed: the initial weights
+    and dropout's draws (init_seed, dropout) and the EMA do not move it; another train.seed does."""
+    train_t, val_t = tensors(points[points.split == "train"]), tensors(points[points.split == "val"])
+
+    def order(model_change={}, train_change={}):
+        p = json.loads(json.dumps(PARAMS))
+        p["model"].update(model_change)
+        p["train"].update(train_change, batch_size=40, max_epochs=3, patience=3)
+        loss = SeenLoss(train_t[1].numpy(), **p["loss"])
+        fit(make_model(p["model"], G), loss, train_t, val_t, p["train"], progress=False)
+        return loss.batches
+
+    base = order()
+    assert [len(b) for b in base] == [40, 40, 16] * 3
+    for e in range(3):
+        assert sorted(sum(base[3 * e:3 * e + 3], [])) == list(range(96))
+    assert base[:3] != base[3:6]                                        # shuffled again each epoch
+    assert order({"init_seed": 4, "dropout": 0.0}, {"ema": 0.9}) == base
+    assert order(train_change={"seed": 4}) != base
 
 
 @pytest.mark.parametrize("case", list(CASES))

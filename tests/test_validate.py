@@ -80,6 +80,9 @@ def test_registration_points_spread_over_the_campaign():
 
 
 def test_workspace_flags_poses_outside_the_training_coverage():
+    """Side poses lie outside a front training set's coverage: flagged, and their uncertainty is the
+    model's scale (0.1 mm) within the radius, rising linearly through the fade to the calibration's
+    (0.2 mm, 0.3 without its angle maps) at fade_to radii and beyond, where the farthest pose sits."""
     rng = np.random.default_rng(1)
     train, front, side = (T.sample_poses(576, rng), T.sample_poses(200, rng),
                           T.sample_poses(200, rng, region="side"))
@@ -93,8 +96,13 @@ def test_workspace_flags_poses_outside_the_training_coverage():
     cover[0, :61], cover[0, 300:] = 1.0, 1.0                           # joint 1 mapped over -60..60 only
     ws_maps = Workspace.fit(train, val, PARAMS["workspace"], 2.0, cover)
     assert ws_maps.parts(side)["angle_map"].mean() < 0.05 and ws_maps(side)[0].max() == pytest.approx(0.3)
-    far = side[ws.distance(side).argmax()]
-    assert ws(far[None])[0][0] > ws(side[:1])[0][0] or not ws(far[None])[1][0]
+    d = ws.distance(side) / ws.radius                                  # radii from the nearest training pose
+    band = (d > 1.0) & (d < 2.0)                                       # the fade: 160 of the 200 side poses
+    assert band.sum() > 100                                            # linear: 0.1 at 1 radius, 0.2 at fade_to
+    np.testing.assert_allclose(u_side[band], 0.1 + 0.1 * (d[band] - 1.0), rtol=1e-12)
+    (u_far,), (in_far,) = ws(side[d.argmax()][None])                   # 2.3 radii out, past fade_to
+    assert d.max() > 2.0 and not in_far and u_far == pytest.approx(0.2)
+    assert u_far > ws(side[:1])[0][0] > u_front.max()                  # above a nearer side pose (1.8 radii), a front one
     again = Workspace.from_dict(json.loads(json.dumps(ws.to_dict())))
     np.testing.assert_allclose(again(side)[0], u_side)
 

@@ -1,5 +1,7 @@
 """The trained model as ONNX (physics branch + network + fade, eq. 9): `q_rad` (batch, 6) float32 in,
-`p_mm` (batch, 3) float64 out, base frame (docs/data-format.md, "Exports for the robot cell"). And the
+`p_mm` (batch, 3) float64 and `probe_rot` (batch, 3, 3) float64 out, base frame: the marker's position and
+the probe's orientation (the physics branch's: the network corrects positions), so the pose of any TCP
+follows, p + R o (lib/tcp.py; docs/data-format.md, "Exports for the robot cell"). And the
 controller path (realtime.py: both chord steps, two evaluations of the model) as one graph, run by
 `OnnxRealtime` as Realtime runs it in PyTorch:
 
@@ -30,7 +32,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from .kinematics import DTYPE
+from .kinematics import DTYPE, fk_pose
 from .model import Ensemble
 from .realtime import DAMPING, Result, answers, two_steps
 from .solvers import lm_keep
@@ -39,15 +41,16 @@ CONTROLLER_INPUTS = ("q0_rad", "target_mm", "q_min_rad", "q_max_rad", "damping")
 CONTROLLER_OUTPUTS = ("q1_rad", "q2_rad", "r0_mm", "r1_mm")
 
 
-class _Positions(nn.Module):
-    """The model seen as q (float32 rad) -> predicted position (float64 mm)."""
+class _Poses(nn.Module):
+    """The model seen as q (float32 rad) -> predicted position (float64 mm) and the probe's orientation."""
 
     def __init__(self, model):
         super().__init__()
         self.model = model
 
-    def forward(self, q_rad):                              # (B, 6) float32 -> (B, 3) float64
-        return self.model(q_rad.double())[0]
+    def forward(self, q_rad):                              # (B, 6) float32 -> (B, 3), (B, 3, 3) float64
+        q = q_rad.double()
+        return self.model(q)[0], fk_pose(q, self.model.physics.geometry())[1]
 
 
 class _Controller(nn.Module):
@@ -63,7 +66,7 @@ class _Controller(nn.Module):
 
 def export_onnx(model, path) -> None:
     """Write `model` (BoTER or Ensemble, eval mode) to `path` as ONNX."""
-    _export(_Positions(_exportable(model)), (torch.zeros(4, 6),), ["q_rad"], ["p_mm"], ({0: "batch"},), path)
+    _export(_Poses(_exportable(model)), (torch.zeros(4, 6),), ["q_rad"], ["p_mm", "probe_rot"], ({0: "batch"},), path)
 
 
 def export_controller(model, path) -> None:
@@ -145,6 +148,10 @@ class OnnxModel:
 
     def __call__(self, q_rad) -> np.ndarray:
         return self.session.run(["p_mm"], {"q_rad": np.asarray(q_rad, np.float32).reshape(-1, 6)})[0]
+
+    def pose(self, q_rad) -> tuple[np.ndarray, np.ndarray]:
+        """(p_mm (n, 3), probe_rot (n, 3, 3))."""
+        return tuple(self.session.run(["p_mm", "probe_rot"], {"q_rad": np.asarray(q_rad, np.float32).reshape(-1, 6)}))
 
 
 def session(path, fixed: dict | None = None):

@@ -60,3 +60,18 @@ class AtTcp(nn.Module):
         p, p_theory = self.model(q)
         arm = fk_pose(q, self.model.physics.geometry())[1] @ self.o      # (B, 3): R_probe o
         return p + arm, p_theory + arm
+
+
+def at_tcp(model, tcp: dict | None, name: str, nominal: dict):
+    """The model and the nominal geometry (for offline-programmed targets) moved to `robot.tcp` entry `name`:
+    (AtTcp(model, o), nominal with the TCP as its tool). Refused (ValueError) for an unknown name or a model
+    calibrated without orientation: its chain's orientation was never measured, so a point off the marker
+    has no stated accuracy."""
+    if not tcp or name not in tcp:
+        raise ValueError(f"--tcp {name}: not in params.yaml robot.tcp ({', '.join(tcp or {}) or 'none set'})")
+    g = model.physics.geometry()
+    if TOOL_ROT not in g:
+        raise ValueError(f"--tcp {name}: the model was calibrated without the probe's orientation, so a point "
+                         "off the marker has no measured accuracy; calibrate on a campaign with orientation")
+    return AtTcp(model, probe_offsets(tcp, g)[name]), {**nominal, "tool": torch.as_tensor(
+        np.asarray(tcp[name]["xyz_mm"], float), dtype=DTYPE)}

@@ -2,7 +2,8 @@
 
 The chain (kinematics.py) regrouped as joint origins: with B the base correction,
     base_link -> B Tz(d1) Rz(off1) -> [q1] -> Tx(a1) Rx(alpha1) Ry(beta1) Tz(d2) Rz(off2) -> [q2] -> ...
-              -> [q6] -> Tx(a6) Rx(alpha6) Ry(beta6) = flange -> tool = tool0
+              -> [q6] -> Tx(a6) Rx(alpha6) Ry(beta6) = flange -> tool, tool_rot = tool0 (the probe's frame)
+                                                                      -> each robot.tcp = tcp_<name>
 Tz(d_i) and Rz(off_i) commute with joint i's rotation Rz(q_i), so each joint's
 origin O_i = [Tx(a_{i-1}) Rx(alpha_{i-1}) Ry(beta_{i-1})] Tz(d_i) Rz(off_i) (O_1 = B Tz(d1) Rz(off1)),
 the grouping of the UR ROS description, whose `default_kinematics.yaml` lists
@@ -19,7 +20,7 @@ import numpy as np
 import torch
 from scipy.spatial.transform import Rotation
 
-from .kinematics import DTYPE, rigid_xyz
+from .kinematics import DTYPE, TOOL_ROT, rigid_xyz, rotation_xyz
 from .robots import Robot
 
 UR_YAML_NAMES = ["shoulder", "upper_arm", "forearm", "wrist_1", "wrist_2", "wrist_3"]
@@ -63,14 +64,27 @@ def _num(v) -> str:
     return " ".join(repr(float(x)) for x in v)          # repr: every digit (1e-6 mm wanted)
 
 
-def to_urdf(g: dict, robot: Robot, name: str = "calibrated") -> str:
-    """URDF text of the calibrated rigid chain: base_link, six revolute joints, flange, tool0."""
+def tool_transform(g: dict) -> np.ndarray:
+    """The probe's (marker's) frame in the flange frame (4, 4), mm: tool and, where measured, tool_rot."""
+    R = rotation_xyz(torch.as_tensor(g[TOOL_ROT], dtype=DTYPE)).numpy() if TOOL_ROT in g else None
+    return transform(R, np.asarray(torch.as_tensor(g["tool"], dtype=DTYPE)))
+
+
+def tcp_transforms(tcp: dict | None) -> dict:
+    """{name: (4, 4) mm}: each `robot.tcp` point's frame in the flange frame (rxyz_deg as rotation_xyz)."""
+    return {n: transform(Rotation.from_euler("xyz", c.get("rxyz_deg", [0, 0, 0]), degrees=True).as_matrix(),
+                         c["xyz_mm"]) for n, c in (tcp or {}).items()}
+
+
+def to_urdf(g: dict, robot: Robot, name: str = "calibrated", tcp: dict | None = None) -> str:
+    """URDF text of the calibrated rigid chain: base_link, six revolute joints, flange, tool0 (the probe's
+    frame) and a fixed link tcp_<name> on the flange for each `robot.tcp` point."""
     origins, flange = joint_origins(g)
     links = ["base_link", *robot.link_names, "flange", "tool0"]
     root = ET.Element("robot", name=f"{robot.name}_{name}")
-    for link in links:
+    for link in links + [f"tcp_{n}" for n in tcp or {}]:
         ET.SubElement(root, "link", name=link)
-    fixed = [transform(p=np.asarray(torch.as_tensor(g["tool"], dtype=DTYPE)))]
+    fixed = [tool_transform(g)]
     for i, (parent, child) in enumerate(zip(links[:-1], links[1:])):
         revolute = i < 6
         j = ET.SubElement(root, "joint", name=robot.joint_names[i] if revolute else f"{parent}-{child}",
@@ -85,20 +99,31 @@ def to_urdf(g: dict, robot: Robot, name: str = "calibrated") -> str:
             lo, hi = np.radians(robot.limits_deg[i])
             ET.SubElement(j, "limit", lower=repr(float(lo)), upper=repr(float(hi)),
                           effort=repr(float(robot.effort_nm[i])), velocity=repr(float(robot.velocity_rad_s[i])))
+    for n, T in tcp_transforms(tcp).items():
+        j = ET.SubElement(root, "joint", name=f"flange-tcp_{n}", type="fixed")
+        xyz, rpy = xyz_rpy(T)
+        ET.SubElement(j, "origin", xyz=_num(xyz), rpy=_num(rpy))
+        ET.SubElement(j, "parent", link="flange")
+        ET.SubElement(j, "child", link=f"tcp_{n}")
     ET.indent(root)
     return '<?xml version="1.0"?>\n' + ET.tostring(root, encoding="unicode") + "\n"
 
 
-def ur_kinematics(g: dict) -> dict:
+def pose_entry(T: np.ndarray) -> dict:
+    xyz, rpy = xyz_rpy(T)
+    return {**dict(zip("xyz", map(float, xyz))), **dict(zip(("roll", "pitch", "yaw"), map(float, rpy)))}
+
+
+def ur_kinematics(g: dict, tcp: dict | None = None) -> dict:
     """The UR ROS description's calibration (`default_kinematics.yaml` layout): O_1..O_6 as
     {x, y, z, roll, pitch, yaw} (m, rad). Holds no flange transform after joint 6 and no tool:
-    tool0 there is joint 6's frame (`flange_residual` says what that leaves out)."""
-    origins, _ = joint_origins(g)
-    out = {}
-    for key, T in zip(UR_YAML_NAMES, origins):
-        xyz, rpy = xyz_rpy(T)
-        out[key] = {**dict(zip("xyz", map(float, xyz))), **dict(zip(("roll", "pitch", "yaw"), map(float, rpy)))}
-    return {"kinematics": out}
+    tool0 there is joint 6's frame (`flange_residual` says what that leaves out). Beside `kinematics`
+    (which the UR description reads), `tool_frames`: the probe (`marker`) and each `robot.tcp` point
+    in joint 6's frame, the flange transform included, for a controller's TCP setting."""
+    origins, flange = joint_origins(g)
+    frames = {"marker": flange @ tool_transform(g), **{n: flange @ T for n, T in tcp_transforms(tcp).items()}}
+    return {"kinematics": {key: pose_entry(T) for key, T in zip(UR_YAML_NAMES, origins)},
+            "tool_frames": {n: pose_entry(T) for n, T in frames.items()}}
 
 
 def flange_residual(g: dict) -> dict:
