@@ -154,7 +154,8 @@ def run(argv=None) -> dict:
                                   a_cfg["fade_deg"])
     robot_names = {s[0] for s in parameter_spec(p["calibrate"])}      # not the further stations' frames
     ident = Identification(cal.geometry, p["calibrate"], [n for n in cal_json["identified"] if n in robot_names],
-                           report["residual_sigma_mm"], station["new_station"])
+                           report["residual_sigma_mm"], station["new_station"],       # orientation rows where
+                           weight=report.get("orientation_weight_mm_per_rad"))         # calibrate had them
     seed = cfg["seed"] if a.seed is None else a.seed
     cand = candidates(q_wp, np.random.default_rng(seed), nominal_geometry(robot), cfg["rules"], robot.limits_deg,
                       cov, cfg["per_waypoint"], cfg["region"], cfg["region_margin_deg"], tracker,

@@ -292,7 +292,7 @@ def test_typo_cells_in_positions_drop_their_rows_not_the_campaign(tmp_path):
         assert s["n_kept"] + len(by_file(s, paths[role])) == s["n_read"][role]
     keep = [r for r in cells["tracker"][1:] if r[0] not in ("P0001", "P0010")]
     assert list(df.point_id) == [r[0] for r in keep]
-    np.testing.assert_allclose(df[MEAS].to_numpy(), [[float(v) for v in r[1:]] for r in keep], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(df[MEAS].to_numpy(), [[float(v) for v in r[1:4]] for r in keep], rtol=0, atol=1e-9)
     assert 1000.0 < s["geometry"]["extent_mm"] < 3000.0                # judged without the typo
 
 

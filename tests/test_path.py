@@ -26,7 +26,7 @@ from pipeline.lib.workspace import Workspace
 from pipeline.serve import make_server, url
 
 ROOT = Path(__file__).resolve().parents[1]
-UR5 = {"model": "ur5", "dh": None, "joint_limits_deg": None, "tool_mm": [0, 0, 0]}
+UR5 = {"model": "ur5", "dh": None, "joint_limits_deg": None, "tool_mm": [0, 0, 0], "tcp": None}
 SEAM_START = [2.5, -60.4, 91.1, -182.3, -61.2, -100.7]          # a training pose near the seam's start
 SEAM = [[-650.0, -200.0, 250.0], [-650.0, -100.0, 250.0]]        # 100 mm of bench path's seam, inside the workspace
 CIRCLE_START = [-19.8, -63.6, 81.1, 88.5, 105.4, -155.0]

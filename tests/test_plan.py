@@ -301,3 +301,30 @@ def test_a_learning_curve_is_extended_only_with_the_settings_it_was_run_with(tmp
     assert got["extensions"] == [{"sizes": [700], "machine": {"cpu": "x"}}] and got["seconds"] == 9.0
     with pytest.raises(SystemExit, match="seeds"):
         bench.extended_curve("learning_curve", {**rec, "seeds": [139]}, [700])
+
+
+def test_orientation_rows_identify_joint_6_which_positions_cannot():
+    """A marker on joint 6's axis (the twin's, at the flange): positions alone leave offset6 (and the
+    probe's rotation) unidentified, so the plan's prediction is None; the calibration fitted with orientation
+    identifies them, and so does the planner with the same weighted orientation rows (calibrate's
+    geometry_jacobian rows, 6 per pose), with finite standard errors for every parameter."""
+    params = load_params()
+    cfg, q = params["calibrate"], sample_poses(200, np.random.default_rng(3))
+    g = true_geometry(Twin().errors)
+    names = ["a5", "offset5", "offset6", "tool_ry"]                # in parameter_spec's order, as calibrate's
+    weight = 286.4788975654116                                 # 0.05 mm / 36 arcsec
+    pos = planning.Identification(g, cfg, names, 0.05)
+    pose = planning.Identification(g, cfg, names, 0.05, weight=weight)
+    A3, A6 = pos.rows(q, new=True), pose.rows(q, new=True)
+    assert A3.shape == (200, 3, 4) and A6.shape == (200, 6, 4)
+    np.testing.assert_array_equal(A6[:, :3], A3)                # the position rows are the same
+    J = geometry_jacobian(torch.as_tensor(np.radians(q), dtype=DTYPE), g, cfg, names, weight)[0]
+    np.testing.assert_allclose(A6.reshape(-1, 4), J, rtol=0, atol=1e-9)
+    assert not planning.prediction(planning.information(A3), pos)["identified"]
+    told = planning.prediction(planning.information(A6), pose)
+    assert told["identified"] and all(0 < v["se"] < 1e-2 for v in told["se"].values())   # mm, deg (~2.5")
+    block = planning.MapBlock([6], 10.0, 300.0, 50.0, 0.05)      # joint 6's map: seen by orientation
+    v3, _ = block.rows(q, g)
+    v6, _ = block.rows(q, g, weight)
+    np.testing.assert_array_equal(v6[:, :3], v3)              # the marker ~0.15 mm off joint 6's axis
+    assert np.abs(v6[:, 3:]).max() > 1000 * np.abs(v3).max()

@@ -14,7 +14,7 @@ BASE = yaml.safe_load((ROOT / "params.yaml").read_text())
 
 def leaves(d, prefix=""):
     for k, v in d.items():
-        if isinstance(v, dict) and v and k != "campaigns":      # a preset replaces campaigns whole
+        if isinstance(v, dict) and v and k not in ("campaigns", "tcp"):   # maps of the user's own names
             yield from leaves(v, f"{prefix}{k}.")
         else:
             yield f"{prefix}{k}"

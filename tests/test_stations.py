@@ -148,6 +148,7 @@ def test_two_twin_stations_recovered_through_frame_and_calibrate_stages(tmp_path
                                                                        float_format="%.9f")
     params = json.loads(json.dumps(PARAMS))
     params["ingest"].update(joints="a/joints.csv", tracker="a/tracker.csv")
+    params["ingest"]["columns"]["orientation"] = None               # positions only
     params["campaigns"] = {"name": "front", "station": "a", "more": {
         "side": {"ingest": {"joints": "b/joints.csv", "tracker": "b/tracker.csv"}, "station": "b"}}}
     params["calibrate"]["loss"] = "linear"

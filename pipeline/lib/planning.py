@@ -46,7 +46,7 @@ import torch
 from .errormaps import ARCSEC, angle_covered, calibration_like, cubic_weights, second_difference
 from .errormaps import coverage as angle_coverage
 from .identify import geometry_jacobian, is_angular
-from .kinematics import DTYPE, fk, fk_jacobian
+from .kinematics import DTYPE, angular_jacobian, fk, fk_jacobian
 from .poses import acceptable, checks
 from .solvers import min_norm_step
 from .workspace import JOINTS, Workspace, wrapped
@@ -134,33 +134,43 @@ class Identification:
     """What the calibration identifies: its geometry (calibrated, a kinematics geometry dict), the
     `calibrate:` section, the identified robot parameters' names and the residual sigma (mm, per
     coordinate); new_station: the planned poses are measured from a tracker placement of their own,
-    whose 6 frame parameters are identified jointly."""
+    whose 6 frame parameters are identified jointly; weight (mm/rad, identify.orientation_weight): where the
+    calibration was fitted on the probe's orientation too, each pose also gives its 3 weighted orientation
+    rows, as calibrate's residual does (None: positions only)."""
     geometry: dict
     cfg: dict
     names: list
     sigma_mm: float
     new_station: bool = False
     spec: list = field(default_factory=list)
+    weight: float | None = None
+
+    @property
+    def k(self) -> int:
+        """Rows per pose: 3 (position) or 6 (position and weighted orientation)."""
+        return 3 if self.weight is None else 6
 
     def rows(self, q_deg, new: bool) -> np.ndarray:
-        """The identification Jacobian of poses q (n, 6) deg: (n, 3, P) mm per parameter unit (rad, mm,
+        """The identification Jacobian of poses q (n, 6) deg: (n, k, P) mm per parameter unit (rad, mm,
         rad/(N·m)); P = the identified parameters (+ 6 station parameters with new_station, nonzero for
         `new` poses only)."""
         q = torch.as_tensor(np.radians(np.atleast_2d(np.asarray(q_deg, float))), dtype=DTYPE)
         out = []
         for s in range(0, len(q), 512):
-            J, self.spec = geometry_jacobian(q[s:s + 512], self.geometry, self.cfg, self.names)
-            out.append(J.reshape(-1, 3, J.shape[1]))
-        J = np.concatenate(out) if out else np.zeros((0, 3, len(self.names)))
+            J, self.spec = geometry_jacobian(q[s:s + 512], self.geometry, self.cfg, self.names, self.weight)
+            out.append(J.reshape(-1, self.k, J.shape[1]))
+        J = np.concatenate(out) if out else np.zeros((0, self.k, len(self.names)))
         if not self.new_station:
             return J
-        S = np.zeros((len(q), 3, 6))
+        S = np.zeros((len(q), self.k, 6))
         if new and len(q):
             with torch.no_grad():
                 p = fk(q, self.geometry).numpy()
             for k in range(3):                               # d(R(r) p + t)/dr_k at r = 0: e_k x p
-                S[:, :, k] = np.cross(np.eye(3)[k], p)
-            S[:, :, 3:] = np.eye(3)
+                S[:, :3, k] = np.cross(np.eye(3)[k], p)
+            S[:, :3, 3:] = np.eye(3)
+            if self.weight is not None:                      # R(r) R_probe: the orientation turns by r
+                S[:, 3:, :3] = self.weight * np.eye(3)
         return np.concatenate([J, S], axis=2)
 
     @property
@@ -181,7 +191,7 @@ class Identification:
 
 
 def information(A: np.ndarray) -> np.ndarray:
-    """JᵀJ of stacked pose rows A (n, 3, P)."""
+    """JᵀJ of stacked pose rows A (n, k, P)."""
     J = A.reshape(-1, A.shape[-1])
     return J.T @ J
 
@@ -251,16 +261,21 @@ class MapBlock:
     def size(self) -> int:
         return self.knots * len(self.joints)
 
-    def rows(self, q_deg, geometry: dict) -> tuple[np.ndarray, np.ndarray]:
-        """Sparse rows of poses q (m, 6) deg: values (m, 3, 4k) mm/rad and their columns (m, 4k) in the block:
-        the chain's joint Jacobian (kinematics.fk_jacobian) times each joint's four B-spline weights."""
+    def rows(self, q_deg, geometry: dict, weight: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Sparse rows of poses q (m, 6) deg: values (m, k, 4 per joint) mm/rad and their columns in the
+        block: the chain's joint Jacobian (kinematics.fk_jacobian; with weight, below it the weighted
+        angular one, as Identification.rows) times each joint's four B-spline weights."""
         q = np.atleast_2d(np.asarray(q_deg, float))
-        vals, idx = np.zeros((len(q), 3, 4 * len(self.joints))), np.zeros((len(q), 4 * len(self.joints)), int)
+        k = 3 if weight is None else 6
+        vals, idx = np.zeros((len(q), k, 4 * len(self.joints))), np.zeros((len(q), 4 * len(self.joints)), int)
         if not self.joints or not len(q):
             return vals, idx
         qt = torch.as_tensor(np.radians(q), dtype=DTYPE)
         with torch.no_grad():
             J = np.concatenate([fk_jacobian(qt[s:s + 512], geometry)[1].numpy() for s in range(0, len(q), 512)])
+            if weight is not None:                                             # (m, 6, 6)
+                J = np.concatenate([J, weight * np.concatenate(
+                    [angular_jacobian(qt[s:s + 512], geometry).numpy() for s in range(0, len(q), 512)])], 1)
         n = self.knots
         for b, j in enumerate(self.joints):
             u = np.remainder(q[:, j - 1], 360.0) * n / 360.0
@@ -287,7 +302,7 @@ class MapBlock:
 class DCriterion:
     """log det M, M = JᵀJ + Λ over [the calibration's parameters (+ a new station's), the map block's
     coefficients], Λ the map block's prior (and a 1e-9 ridge), the existing poses in, and its gain for each
-    candidate pose (log det(I₃ + A_c M⁻¹ A_cᵀ), A_c the pose's 3 rows: dense over the calibration's
+    candidate pose (log det(I + A_c M⁻¹ A_cᵀ), A_c the pose's 3 or 6 rows: dense over the calibration's
     columns, 4 per mapped joint over the block's): columns scaled to unit norm for the arithmetic."""
 
     def __init__(self, A_old: np.ndarray, vals_old, idx_old, A: np.ndarray, vals, idx, prior: np.ndarray):
@@ -306,7 +321,7 @@ class DCriterion:
         self.Minv = np.linalg.inv(self.M)
 
     def dense(self, A, vals, idx) -> np.ndarray:
-        out = np.zeros((len(A), 3, self.Pc + self.Pm))
+        out = np.zeros((len(A), A.shape[1], self.Pc + self.Pm))
         out[:, :, :self.Pc] = A
         for k in range(idx.shape[1]):
             np.add.at(out, (np.arange(len(A)), slice(None), self.Pc + idx[:, k]), vals[:, :, k])
@@ -316,16 +331,16 @@ class DCriterion:
         """The log det gain of each candidate in `rows` (indices)."""
         Ac, Am, I = self.A[rows], self.vals[rows], self.Pc + self.idx[rows]
         Mi, Pc = self.Minv, self.Pc
-        G = np.eye(3) + np.einsum("mip,pq,mjq->mij", Ac, Mi[:Pc, :Pc], Ac)
+        G = np.eye(Ac.shape[1]) + np.einsum("mip,pq,mjq->mij", Ac, Mi[:Pc, :Pc], Ac)
         if I.shape[1]:
             X = np.einsum("mip,pmk,mjk->mij", Ac, Mi[:Pc][:, I], Am)
             G += X + X.transpose(0, 2, 1) + np.einsum("mik,mkl,mjl->mij", Am, Mi[I[:, :, None], I[:, None, :]], Am)
         return np.linalg.slogdet(G)[1]
 
     def add(self, c: int) -> None:
-        a = self.dense(self.A[c:c + 1], self.vals[c:c + 1], self.idx[c:c + 1])[0]          # (3, P)
+        a = self.dense(self.A[c:c + 1], self.vals[c:c + 1], self.idx[c:c + 1])[0]          # (k, P)
         B = self.Minv @ a.T
-        self.Minv -= B @ np.linalg.solve(np.eye(3) + a @ B, B.T)
+        self.Minv -= B @ np.linalg.solve(np.eye(len(a)) + a @ B, B.T)
         self.M += a.T @ a
 
 
@@ -490,12 +505,13 @@ def plan(q_wp, n: int, cov: Coverage, ident: Identification, cand: dict, cover_k
     reqs = cov.requirements(q_wp)
     S = cov.satisfies(Q, q_wp, reqs) if reqs else np.zeros((len(Q), 0), bool)
     need = np.full(len(reqs), cover_k if cover else 0)
-    A_old = ident.rows(cov.train_q, new=False) if len(cov.train_q) else np.zeros((0, 3, len(ident.parameter_names)))
+    A_old = ident.rows(cov.train_q, new=False) if len(cov.train_q) else np.zeros((0, ident.k, len(ident.parameter_names)))
     A = ident.rows(Q, new=True)
     block = None if maps is None else replace(maps, joints=[j for j in maps.joints
                                                            if any(p == f"joint{j}" for _, p in reqs)])
     block = block if block is not None and block.joints else MapBlock([], 1.0, 1.0, 1.0, 1.0)
-    crit = DCriterion(A_old, *block.rows(cov.train_q, ident.geometry), A, *block.rows(Q, ident.geometry),
+    crit = DCriterion(A_old, *block.rows(cov.train_q, ident.geometry, ident.weight), A,
+                      *block.rows(Q, ident.geometry, ident.weight),
                       block.precision())
     Minv_before = crit.Minv.copy()
     free = np.ones(len(Q), bool)

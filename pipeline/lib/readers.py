@@ -300,7 +300,9 @@ def find_column(header: list, name: str, what: str, path: str) -> int:
     if hits:
         raise IngestError(f"{what} column '{name}' appears {len(hits)} times in the header",
                           file=path, column=name)
-    raise IngestError(f"missing {what} column '{name}'; {headers_found(header)}", file=path, column=name)
+    unset = " (a campaign without the probe's orientation: ingest.columns.orientation: null)" \
+        if what == "orientation" else ""
+    raise IngestError(f"missing {what} column '{name}'{unset}; {headers_found(header)}", file=path, column=name)
 
 
 def pick_columns(header: list, setting, candidates: list, what: str, path: str) -> list:
