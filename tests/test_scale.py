@@ -112,6 +112,8 @@ def model():
 
 @pytest.mark.parametrize("solver,jacobian_of", [("lm", "physics"), ("lm", "model"), ("adam", "physics")])
 def test_a_chunked_solve_gives_one_batch_numbers(model, solver, jacobian_of, caplog):
+    """70 points in blocks of at most 16, solved on every core (solvers.in_blocks), give the numbers of
+    one batch bit for bit: q, prediction, iterations, convergence and (lm) the history."""
     rng = np.random.default_rng(0)
     q_true = rng.uniform([-60, -120, 30, -150, 40, -90], [60, -40, 120, -30, 140, 90], (70, 6))
     with torch.no_grad():
@@ -127,5 +129,5 @@ def test_a_chunked_solve_gives_one_batch_numbers(model, solver, jacobian_of, cap
         assert np.array_equal(a, b)
     if solver == "lm":
         assert np.array_equal(whole[4], chunked[4])                     # history
-        assert "lm: iteration 0, 70 of 70 points still solving" in caplog.text
+    assert "compensate: 70 of 70 points solved" in caplog.text              # progress, a line per block
     assert compensate(model, q0, target, cfg, robot, solver, history=False)[4] is None

@@ -14,7 +14,9 @@ points:
 path (realtime.py: two model evaluations a pose) take; `lm_step`, one lm
 iteration, is also what the service (service.py) resumes request by request.
 """
+import os
 import time
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import torch
@@ -198,10 +200,37 @@ SOLVERS = {"adam": solve_adam, "lm": solve_lm}
 CHUNK = 4096                        # points the model evaluates at once (compensate): bounds the memory
 
 
+def in_blocks(solver, model, q0, tgt, cfg, limits, chunk: int, history: bool):
+    """solver on the points in blocks of at most `chunk` (`slices`), each solved on its own, the blocks on
+    every core (one torch thread each: each block's numbers are those of its points alone, whatever the
+    number of cores). Returns what a solver returns; the history of a block that finished early is held at
+    its last row."""
+    blocks = slices(len(q0), chunk)
+    if len(blocks) == 1:
+        return solver(model, q0, tgt, cfg, limits, chunk=chunk, history=history)
+    t0, done = time.perf_counter(), []
+
+    def one(s):
+        out = solver(model, q0[s], tgt[s], cfg, limits, chunk=chunk, history=history)
+        done.append(s)
+        log.info("compensate: %d of %d points solved (%.0f s)", sum(b.stop - b.start for b in done), len(q0),
+                 time.perf_counter() - t0)
+        return out
+
+    with ThreadPoolExecutor(max(1, min(len(blocks), len(os.sched_getaffinity(0))))) as pool:
+        parts = list(pool.map(one, blocks))
+    q, pred, iters, ok = (torch.cat([p[i] for p in parts]) for i in range(4))
+    if not history:
+        return q, pred, iters, ok, None
+    rows = max(len(p[4]) for p in parts)                    # (iterations + 1, block) each, padded
+    hist = torch.cat([torch.cat([p[4], p[4][-1:].expand(rows - len(p[4]), -1)]) for p in parts], dim=1)
+    return q, pred, iters, ok, hist
+
+
 def compensate(model, q0_deg: np.ndarray, target: np.ndarray, cfg: dict, robot=None, solver=None,
                chunk: int = CHUNK, history: bool = True):
-    """Solve for every point, the model evaluated `chunk` points at a time (memory; a log line per
-    iteration when there are more points); returns (q_deg (n, 6), pred (n, 3), iterations, converged,
+    """Solve for every point, in blocks of `chunk` points on every core (`in_blocks`: bounded memory, a
+    log line per block); returns (q_deg (n, 6), pred (n, 3), iterations, converged,
     history (iterations + 1, n) or None when not asked for, seconds)."""
     solver = solver or cfg["solver"]
     if solver not in SOLVERS:
@@ -213,7 +242,7 @@ def compensate(model, q0_deg: np.ndarray, target: np.ndarray, cfg: dict, robot=N
     q0 = torch.as_tensor(np.radians(q0_deg), dtype=DTYPE)
     tgt = torch.as_tensor(target, dtype=DTYPE)
     t0 = time.perf_counter()
-    q, pred, iters, ok, hist = SOLVERS[solver](model, q0, tgt, cfg, limits, chunk=chunk, history=history)
+    q, pred, iters, ok, hist = in_blocks(SOLVERS[solver], model, q0, tgt, cfg, limits, chunk, history)
     seconds = time.perf_counter() - t0
     return (np.degrees(q.numpy()), pred.numpy(), iters.numpy(), ok.numpy(), None if hist is None else hist.numpy(),
             seconds)
