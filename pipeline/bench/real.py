@@ -102,8 +102,17 @@ def validation_runs(params: dict) -> dict:
                      **{f"mean_3d_mm_{w}": {m: s["mean"] for m, s in v["by_workspace"][w].items()}
                         for w in ("in", "out")},
                      **{f"mean_3d_mm_map_{w}": {m: s["mean"] for m, s in v["angle_map"][w].items()}
-                        for w in ("in", "out")}}
+                        for w in ("in", "out")},
+                     **({"pose": pose_means(v["pose"])} if "pose" in v else {})}
     return out
+
+
+def pose_means(pose: dict) -> dict:
+    """{method: {orientation_arcsec, orientation_p95_arcsec, tcp_mm: {name: mean}}} of a pose record
+    (evaluate's split or validate's campaign, lib/tcp.py pose_errors), where orientation was measured."""
+    return {m: {"orientation_arcsec": r["orientation"]["mean_arcsec"], "orientation_p95_arcsec":
+                r["orientation"]["p95_arcsec"], "tcp_mm": {k: t["mean_mm"] for k, t in r["tcp"].items()}}
+            for m, r in pose.items()}
 
 
 def overridden(params: dict, overrides: list[str]) -> dict:
@@ -143,7 +152,8 @@ def seed_run(job, files: dict) -> dict:
     return {"runs": {k: v["test"]["3d"]["mae"] for k, v in metrics["baselines"].items()},
             "per_campaign": {c: {k: v[k]["test"]["mae"] for k in v if k not in ("station", "n")}
                              for c, v in metrics["campaigns"].items()},
-            "valid": valid, "pred": pred}
+            "valid": valid, "pred": pred,
+            "pose": pose_means({m: r["test"] for m, r in metrics.get("pose", {}).items() if "test" in r})}
 
 
 def localized(params: dict, folder: Path) -> dict:
@@ -222,7 +232,8 @@ def run_set(name: str, seeds: list[int], epochs: int | None, other_physics: bool
             ensemble = float(np.linalg.norm(np.mean([x["pred"] for x in r], 0) - test[MEAS].to_numpy(),
                                             axis=1).mean())
             return set_summary([x["runs"] for x in r], [x["valid"] for x in r], [x["per_campaign"] for x in r],
-                               ensemble, [seeds[i] for i in order], n_kept, nominal, params, t0)
+                               ensemble, [seeds[i] for i in order], n_kept, nominal, params, t0,
+                               [x["pose"] for x in r])
 
         def finished(i, r):
             done[i] = r
@@ -233,8 +244,15 @@ def run_set(name: str, seeds: list[int], epochs: int | None, other_physics: bool
     return {**summary(done), "engine": engine, "threads_per_seed": threads}
 
 
+def seed_stats(runs: list):
+    """Each number of nested dicts of one shape (one per seed) as {mean, std, runs}."""
+    if isinstance(runs[0], dict):
+        return {k: seed_stats([r[k] for r in runs]) for k in runs[0]}
+    return {"mean": float(np.mean(runs)), "std": float(np.std(runs)), "runs": runs}
+
+
 def set_summary(runs: list[dict], valid: list[dict], per_campaign: list[dict], ensemble: float, seeds: list[int],
-                n: int, nominal, params: dict, t0: float) -> dict:
+                n: int, nominal, params: dict, t0: float, poses: list[dict] | None = None) -> dict:
     per = {k: [r[k] for r in runs if k in r] for k in runs[0]}
     out = {"n": n, "seeds": seeds, "physics": params["model"]["physics"], "seconds": time.perf_counter() - t0,
            "max_epochs": params["train"]["max_epochs"], "train": params["train"],
@@ -250,13 +268,15 @@ def set_summary(runs: list[dict], valid: list[dict], per_campaign: list[dict], e
             validation[c][key] = {m: stat(np.mean, r) for m, r in runs_.items()}
             validation[c][key + "_std"] = {m: stat(np.std, r) for m, r in runs_.items()}
             validation[c][key + "_runs"] = runs_
+        if "pose" in valid[0][c]:             # orientation and TCP errors, where the campaign measures them
+            validation[c]["pose"] = seed_stats([v[c]["pose"] for v in valid])
     campaigns = {}                          # per training campaign and method: mean, std, every seed
     for c, methods in per_campaign[0].items():
         runs_ = {m: [p[c][m] for p in per_campaign] for m in methods}
         campaigns[c] = {m: {"mean": float(np.mean(r)), "std": float(np.std(r)), "runs": r} for m, r in runs_.items()}
     return {**out, **seed_summary(per, nominal, params["model"]["physics"]),
             "test_3d_mae_ensemble": {"spi_boter": ensemble, "models": len(runs)}, "validation": validation,
-            "test_3d_mae_per_campaign": campaigns}
+            "test_3d_mae_per_campaign": campaigns, **({"test_pose": seed_stats(poses)} if poses and poses[0] else {})}
 
 
 def seed_summary(per: dict, nominal: float | None, physics: str) -> dict:
