@@ -82,7 +82,7 @@ REQUIRED = [MODEL_WEIGHTS, WORKSPACE_JSON]                # the trained artifact
 SERVICE_KEYS = ("unreachable_mm", "max_iter", "budget_ms", "stall_iter", "stall_ratio", "max_batch",
                 "batch_wait_ms", "max_items", "call_budget_ms", "lm_per_call", "compile",
                 "max_path_samples")                                                        # lib/service.py's
-LIMIT_KEYS = ("max_body_bytes", "timeout_s", "max_connections", "echo_chars")          # the transport's
+LIMIT_KEYS = ("max_body_bytes", "timeout_s", "max_connections", "echo_chars", "refusal_delay_ms")          # the transport's
 
 
 def check_artifacts() -> None:
@@ -197,6 +197,13 @@ class Handler(SimpleXMLRPCRequestHandler):
         if not inflate.eof:
             return self.send_error(400, "bad gzip content (truncated)")
         return out
+
+    def send_error(self, code, message=None, explain=None):
+        """A refusal (4xx, 501), answered serve.refusal_delay_ms after it was decided: the thread sleeps (no
+        CPU), so a client that sends bad requests back to back gets a few answers a second, not hundreds."""
+        if code >= 400:
+            time.sleep(self.server.limits["refusal_delay_ms"] / 1000.0)
+        super().send_error(code, message, explain)
 
     def refuse_unread(self, code: int, message: str) -> None:
         """Answer code without reading the body; then discard what the client still sends (at most

@@ -60,7 +60,7 @@ SECTIONS = {
              "lookahead_s", "gain"),
     "serve": ("host", "port", "unreachable_mm", "onnx", "torch_threads", "compile", "max_iter", "budget_ms", "stall_iter",
               "stall_ratio", "max_batch", "batch_wait_ms", "max_items", "call_budget_ms", "lm_per_call", "max_body_bytes", "timeout_s",
-              "max_connections", "echo_chars", "max_path_samples"),
+              "max_connections", "echo_chars", "max_path_samples", "refusal_delay_ms"),
 }
 
 
@@ -146,6 +146,7 @@ RULES = {
     "serve.max_body_bytes": (_int(1), "an integer >= 1"),
     "serve.timeout_s": (_num(0, open_lo=True), "a time > 0 s"),
     "serve.echo_chars": (_int(20), "an integer >= 20"),
+    "serve.refusal_delay_ms": (_num(0, 1000), "a time in 0..1000 ms"),
     "ingest.columns.orientation": (lambda v: v is None or (isinstance(v, list) and len(v) in (3, 4, 9) and all(
         isinstance(h, (str, int)) and not isinstance(h, bool) for h in v) and len({str(h) for h in v}) == len(v)),
         "null, or 3 (Euler angles), 4 (quaternion) or 9 (rotation matrix, row-major) distinct headers"),
