@@ -126,7 +126,7 @@ def run_campaign(params: dict, name: str) -> dict:
     q = df[JOINTS_DEG].to_numpy()
     model = load_model(MODEL_WEIGHTS)
     thermal = thermal_change(df, parts)
-    geometries = {"nominal": theory_geometry(robot, frame["tool_mm"]), "calibrated": cal.geometry,
+    geometries = {"nominal": theory_geometry(robot, frame["tool_mm"], frame.get("tool_rot")), "calibrated": cal.geometry,
                   "calibrated_parts": with_parts(cal.geometry, parts), "model": model.physics.geometry()}
     if thermal:                                      # the arm at the campaign's temperature (not the nominal table)
         geometries = {m: g if m == "nominal" else at_temperature(g, thermal["dT_k"], thermal["cte_per_k"])

@@ -161,3 +161,14 @@ def test_the_twins_probe_orientation_is_noisy_as_stated_and_leaves_positions_as_
     dev = Rotation.from_matrix(np.einsum("nji,njk->nik", truth, R)).magnitude() / ARCSEC
     sigma = T.WRIST["orientation_sigma_arcsec"]
     assert 0.8 * sigma * np.sqrt(3) < np.sqrt((dev ** 2).mean()) < 1.2 * sigma * np.sqrt(3) + 10    # joint noise adds
+
+
+def test_validate_judges_the_nominal_chain_with_the_measured_probe_mount(in_trained_project):
+    """validate's nominal chain carries the probe's rotation in the flange that the frame stage measured,
+    as evaluate's does, so its orientation error on the twin's side campaign is the chain's own, of the
+    test split's size (before: the probe's mount on its flange was counted as the chain's error, 2.4x;
+    on the IPA probe, turned 90° on its flange, 324 000″)."""
+    from pipeline.lib.config import read_json
+    side = read_json("reports/validation/twin_side.json")["pose"]["nominal"]["orientation"]["mean_arcsec"]
+    test = read_json("reports/metrics.json")["pose"]["nominal_dh"]["test"]["orientation"]["mean_arcsec"]
+    assert side < 1.5 * test, (side, test)
