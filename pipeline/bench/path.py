@@ -32,6 +32,7 @@ from ..lib.model import PhysicsOnly, served
 from ..lib.paths import at, distance, resample, segments
 from ..lib.pathsolve import deviation, model_position, refine, solve_path
 from ..lib.robots import load_robot
+from ..lib.tcp import at_tcp, probe_offsets
 from ..lib.training import load_model
 from ..lib.twin import Twin, sample_poses
 from ..lib.waypoints import compensate_program
@@ -99,21 +100,30 @@ def stats(d: np.ndarray) -> dict:
 
 class Judge:
     """The model of the project in `root` (after `dvc repro`), its nominal controller and the twin it was
-    calibrated on."""
+    calibrated on; tcp: a `robot.tcp` name, the path that TCP's (the model, the controller's nominal
+    kinematics and the twin's point judged all moved to it, lib/tcp.py), else the marker's."""
 
-    def __init__(self, params: dict, root=ROOT):
+    def __init__(self, params: dict, root=ROOT, tcp: str | None = None):
         self.params, self.robot = params, load_robot(params["robot"])
         self.cfg = params["compensate"]
         self.frame = read_json(root / FRAME_JSON)
         self.nominal_geometry = theory_geometry(self.robot, self.frame["tool_mm"])
-        self.nominal = nominal_controller(self.nominal_geometry)
         self.workspace = Workspace.from_dict(read_json(root / WORKSPACE_JSON))
         self.model = served(load_model(root / MODEL_WEIGHTS), self.workspace.network)
+        self.offset = np.zeros(3)                                  # the point judged, in the probe's frame
+        if tcp is not None:
+            self.offset = probe_offsets(params["robot"]["tcp"], self.model.physics.geometry())[tcp]
+            self.model, self.nominal_geometry = at_tcp(self.model, params["robot"]["tcp"], tcp, self.nominal_geometry)
+        self.nominal = nominal_controller(self.nominal_geometry)
         self.twin = Twin.from_json(root / self.cfg["twin"])
 
     def truth(self, q_deg: np.ndarray) -> np.ndarray:
-        """Where the twin's TCP is at commanded joints, in the model's base frame (the fitted frame)."""
-        return to_base(self.twin.to_tracker(self.twin.expected_position(q_deg)), self.frame)
+        """Where the twin's marker (or TCP: fixed to its probe) is at commanded joints, in the model's base
+        frame (the fitted frame)."""
+        if not self.offset.any():
+            return to_base(self.twin.to_tracker(self.twin.expected_position(q_deg)), self.frame)
+        p, R = self.twin.expected_pose(q_deg)
+        return to_base(self.twin.to_tracker(p + R @ self.offset), self.frame)
 
     def along(self, segs, arc, q) -> dict:
         """The arm driven through joints q (k, 6) at arcs (k,): its deviation from segs along the path."""
@@ -168,33 +178,48 @@ def start_joints(judge: Judge, name: str, segs) -> np.ndarray:
     return poses[np.argmin(np.linalg.norm(p - PATHS[name][0][0], axis=1))]
 
 
+def strip(r: dict) -> dict:
+    return {k: v for k, v in r.items() if k not in ("arc_mm", "deviation_mm")}
+
+
+def judge_path(judge: Judge, name: str, spacings, chord: bool = True) -> tuple[dict, dict]:
+    """One path of PATHS judged: (its record, its curves for the figure)."""
+    points, moves, _ = PATHS[name]
+    segs = segments(points, moves)
+    q0 = start_joints(judge, name, segs)
+    t0 = time.perf_counter()
+    unc, q_nominal = judge.uncompensated(segs, q0)
+    arc_nominal = resample(segs, FINE_MM)[1]
+    wp = judge.waypoints(points, moves, segs, arc_nominal, q_nominal)
+    comp = {f"{s:g}": judge.compensated(segs, q_nominal[0], s) for s in spacings}
+    curves = {"uncompensated": unc, "waypoints": wp, **{f"compensated {k} mm": comp[k] for k in ("1", "10") if k in comp}}
+    out = {"length_mm": float(sum(s.length for s in segs)), "points": points.tolist(), "moves": moves,
+           "start_deg": np.round(q0, 6).tolist(), "uncompensated": strip(unc), "waypoints": strip(wp),
+           "compensated": {k: strip(v) for k, v in comp.items()}}
+    if chord:
+        out["chord"] = {"chord_mm": CHORD_MM, "from_spacing_mm": max(spacings),
+                        **strip(judge.compensated(segs, q_nominal[0], max(spacings), CHORD_MM))}
+    log.info("%s: uncompensated %.3f / %.3f mm, waypoints %.3f / %.3f, compensated 1 mm %s (mean / max)", name,
+             unc["mean_mm"], unc["max_mm"], wp["mean_mm"], wp["max_mm"],
+             f"{comp['1']['mean_mm']:.3f} / {comp['1']['max_mm']:.3f}" if "1" in comp else "-")
+    return {**out, "seconds": time.perf_counter() - t0}, curves
+
+
 def bench_path(spacings=SPACINGS, names=tuple(PATHS)) -> dict:
-    """Every path, case and spacing judged on the twin; reports/bench/path.json and path_deviation.png."""
-    judge = Judge(load_params(ROOT / "params.yaml"))
-    out = {"machine": machine(), "fine_mm": FINE_MM, "goals": GOALS, "paths": {}}
+    """Every path, case and spacing judged on the twin; the goal's paths at 1 and 10 mm at each `robot.tcp`
+    too (`at_tcp`); reports/bench/path.json and path_deviation.png."""
+    params = load_params(ROOT / "params.yaml")
+    judge = Judge(params)
+    out = {"machine": machine(), "fine_mm": FINE_MM, "goals": GOALS, "paths": {}, "at_tcp": {}}
     curves = {}
     for name in names:
-        points, moves, _ = PATHS[name]
-        segs = segments(points, moves)
-        q0 = start_joints(judge, name, segs)
-        t0 = time.perf_counter()
-        unc, q_nominal = judge.uncompensated(segs, q0)
-        arc_nominal = resample(segs, FINE_MM)[1]
-        wp = judge.waypoints(points, moves, segs, arc_nominal, q_nominal)
-        comp = {f"{s:g}": judge.compensated(segs, q_nominal[0], s) for s in spacings}
-        chord = judge.compensated(segs, q_nominal[0], max(spacings), CHORD_MM)
-        curves[name] = {"uncompensated": unc, "waypoints": wp, **{f"compensated {k} mm": comp[k] for k in ("1", "10")
-                                                                  if k in comp}}
-        strip = lambda r: {k: v for k, v in r.items() if k not in ("arc_mm", "deviation_mm")}
-        out["paths"][name] = {"length_mm": float(sum(s.length for s in segs)), "points": points.tolist(),
-                              "moves": moves, "start_deg": np.round(q0, 6).tolist(),
-                              "uncompensated": strip(unc), "waypoints": strip(wp),
-                              "compensated": {k: strip(v) for k, v in comp.items()},
-                              "chord": {"chord_mm": CHORD_MM, "from_spacing_mm": max(spacings), **strip(chord)},
-                              "seconds": time.perf_counter() - t0}
-        log.info("%s: uncompensated %.3f / %.3f mm, waypoints %.3f / %.3f, compensated 1 mm %s (mean / max)", name,
-                 unc["mean_mm"], unc["max_mm"], wp["mean_mm"], wp["max_mm"],
-                 f"{comp['1']['mean_mm']:.3f} / {comp['1']['max_mm']:.3f}" if "1" in comp else "-")
+        out["paths"][name], curves[name] = judge_path(judge, name, spacings)
+    for tcp in params["robot"]["tcp"] or {}:
+        at = Judge(params, tcp=tcp)
+        log.info("at the TCP %s (%s mm in the flange frame)", tcp, params["robot"]["tcp"][tcp]["xyz_mm"])
+        out["at_tcp"][tcp] = {"xyz_mm": params["robot"]["tcp"][tcp]["xyz_mm"], "paths": {
+            n: judge_path(at, n, [s for s in spacings if s in (1.0, 10.0)], chord=False)[0]
+            for n in GOALS["paths"] if n in names}}
     out["goals"]["met"] = {n: {"mean": out["paths"][n]["compensated"]["1"]["mean_mm"] <= GOALS["mean_mm"],
                                "max": out["paths"][n]["compensated"]["1"]["max_mm"] <= GOALS["max_mm"]}
                            for n in GOALS["paths"] if n in out["paths"] and "1" in out["paths"][n]["compensated"]}
