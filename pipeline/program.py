@@ -32,6 +32,7 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+import torch
 
 from .lib.artifacts import FRAME_JSON, MODEL_WEIGHTS, WORKSPACE_JSON
 from .lib.columns import JCOMP_DEG
@@ -130,6 +131,7 @@ def run(argv=None) -> pd.DataFrame:
 
 
 def main(argv=None):
+    torch.set_num_threads(1)          # the process's: a long program's blocks then run on every core (solvers.in_blocks)
     return one_line("pipeline.program", run, argv)
 
 

@@ -201,10 +201,10 @@ CHUNK = 4096                        # points the model evaluates at once (compen
 
 
 def in_blocks(solver, model, q0, tgt, cfg, limits, chunk: int, history: bool):
-    """solver on the points in blocks of at most `chunk` (`slices`), each solved on its own, the blocks on
-    every core (one torch thread each: each block's numbers are those of its points alone, whatever the
-    number of cores). Returns what a solver returns; the history of a block that finished early is held at
-    its last row."""
+    """solver on the points in blocks of at most `chunk` (`slices`), each solved on its own (its numbers
+    are those of its points alone, whatever runs beside it), as many at once as the cores hold at the
+    caller's torch threads (one thread each: every core; the program command runs so). Returns what a
+    solver returns; the history of a block that finished early is held at its last row."""
     blocks = slices(len(q0), chunk)
     if len(blocks) == 1:
         return solver(model, q0, tgt, cfg, limits, chunk=chunk, history=history)
@@ -217,7 +217,8 @@ def in_blocks(solver, model, q0, tgt, cfg, limits, chunk: int, history: bool):
                  time.perf_counter() - t0)
         return out
 
-    with ThreadPoolExecutor(max(1, min(len(blocks), len(os.sched_getaffinity(0))))) as pool:
+    workers = min(len(blocks), len(os.sched_getaffinity(0)) // torch.get_num_threads())
+    with ThreadPoolExecutor(max(1, workers)) as pool:
         parts = list(pool.map(one, blocks))
     q, pred, iters, ok = (torch.cat([p[i] for p in parts]) for i in range(4))
     if not history:
