@@ -95,7 +95,8 @@ def bench_ingest(n: int, params: dict, tmp: Path) -> dict:
     folder.mkdir()
     robot = load_robot(params["robot"])
     joints, tracker = write_campaign(folder, n, robot)
-    p = {**params, "ingest": {**params["ingest"], "joints": joints, "tracker": tracker},
+    p = {**params, "ingest": {**params["ingest"], "joints": joints, "tracker": tracker,   # positions only
+                              "columns": {**params["ingest"]["columns"], "orientation": None}},
          "campaigns": {**params["campaigns"], "more": {}}}
     (folder / "params.yaml").write_text(yaml.safe_dump(p, sort_keys=False))
     run = measured([sys.executable, "-m", "pipeline.ingest"], folder, folder / "log.txt")
