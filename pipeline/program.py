@@ -45,7 +45,7 @@ from .lib.cli import Refused, one_line
 from .lib.waypoints import ID_PATTERN, compensate_program, read_waypoints, unreached
 from .lib.tcp import at_tcp
 from .lib.workspace import Workspace
-from .lib.writing import check_outputs, write_together
+from .lib.writing import check_outputs, csv_text, write_together
 
 log = logger(__name__)
 PARAMS = ("robot", "compensate", "program")
@@ -63,14 +63,16 @@ def urscript(table: pd.DataFrame, skipped: dict, move: str = "movej", acc: float
     lines = [f"# compensated by `python -m pipeline.program`: {len(table)} waypoints, {len(skipped)} not reached "
              f"(commented out, no move); {move}, acc and vel in {MOVES[move]}",
              "def compensated_program():", f"  acc = {float(acc):.6f}", f"  vel = {float(vel):.6f}"]
-    for r in table.itertuples():
-        pid = r.point_id if ID_PATTERN.fullmatch(str(r.point_id)) else "?"     # read_waypoints refused others
+    q_rad = np.radians(table[JCOMP_DEG].to_numpy(float)).tolist()          # (n, 6), one call for the program
+    for pid, q, inside, u, res in zip(table.point_id, q_rad, table.in_workspace, table.uncertainty_mm,
+                                      table.residual_mm):
+        pid = pid if ID_PATTERN.fullmatch(str(pid)) else "?"                  # read_waypoints refused others
         if pid in skipped or pid == "?":
             lines.append(f"  # {pid}: NOT REACHED ({skipped.get(pid, 'invalid id')}): no move")
             continue
-        q = ", ".join(f"{v:.9f}" for v in np.radians(np.array([getattr(r, c) for c in JCOMP_DEG], float)))
-        flag = "" if r.in_workspace else f", outside the trained workspace (uncertainty {r.uncertainty_mm:.3f} mm)"
-        lines += [f"  # {pid}: residual {r.residual_mm:.4f} mm{flag}", f"  {move}([{q}], a=acc, v=vel)"]
+        q = ", ".join(f"{v:.9f}" for v in q)
+        flag = "" if inside else f", outside the trained workspace (uncertainty {u:.3f} mm)"
+        lines += [f"  # {pid}: residual {res:.4f} mm{flag}", f"  {move}([{q}], a=acc, v=vel)"]
     return "\n".join(lines + ["end", ""])
 
 
@@ -123,7 +125,7 @@ def run(argv=None) -> pd.DataFrame:
         raise Refused(f"{src}: {len(skipped)} waypoint(s) not reached; nothing written (or rerun with "
                       f"--comment-out-unreached to write them as comments, no move)\n{text}")
     c = p["program"]
-    write_together({out: table.to_csv(index=False, float_format="%.6f"),
+    write_together({out: csv_text(table),
                     script: urscript(table, skipped, c["move"], **c[c["move"]])}, [src])
     print(text)
     log.info("wrote %s and %s", out, script)

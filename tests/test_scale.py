@@ -2,8 +2,11 @@
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import pytest
 import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from pipeline.lib import readers
 from pipeline.lib.config import load_params
@@ -11,6 +14,7 @@ from pipeline.lib.kinematics import fk_numpy, nominal_geometry
 from pipeline.lib.model import BoTER
 from pipeline.lib.robots import load_robot, nominal_robot
 from pipeline.lib.solvers import compensate
+from pipeline.lib.writing import csv_text
 
 ROOT = Path(__file__).resolve().parents[1]
 ROBOT_CFG = {"model": "ur5", "tool_mm": [10.0, -5.0, 120.0], "dh": None, "joint_limits_deg": None, "tcp": None}
@@ -131,3 +135,64 @@ def test_a_chunked_solve_gives_one_batch_numbers(model, solver, jacobian_of, cap
         assert np.array_equal(whole[4], chunked[4])                     # history
     assert "compensate: 70 of 70 points solved" in caplog.text              # progress, a line per block
     assert compensate(model, q0, target, cfg, robot, solver, history=False)[4] is None
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.data())
+def test_csv_text_is_pandas_to_csv_byte_for_byte(data):
+    """The program's fast CSV writer equals pandas' to_csv on what a Δθ table holds (floats of any sign and
+    size, -0.0, inf, ints, bools, ids), and on what it must hand back to pandas (NaN, text to quote)."""
+    n = data.draw(st.integers(1, 30))
+    floats = st.floats(allow_nan=True, allow_infinity=True, width=64)
+    text = st.text(alphabet="ab:,\" \n", min_size=0, max_size=4)
+    df = pd.DataFrame({"point_id": data.draw(st.lists(text, min_size=n, max_size=n)),
+                       "x": data.draw(st.lists(floats, min_size=n, max_size=n)),
+                       "y": np.array(data.draw(st.lists(st.floats(-1e6, 1e6), min_size=n, max_size=n))),
+                       "iterations": data.draw(st.lists(st.integers(-5, 10**6), min_size=n, max_size=n)),
+                       "converged": data.draw(st.lists(st.booleans(), min_size=n, max_size=n))})
+    fmt = data.draw(st.sampled_from(["%.6f", "%.4f", "%.9f"]))
+    assert csv_text(df, fmt) == df.to_csv(index=False, float_format=fmt, lineterminator="\n")
+
+
+def test_csv_text_takes_the_fast_path_on_a_plain_table(monkeypatch):
+    """A Δθ-like table (ids, floats, ints, bools) never reaches pandas' writer, and its text is pandas'."""
+    rng = np.random.default_rng(0)
+    df = pd.DataFrame({"point_id": [f"W{i:03d}" for i in range(50)], "x": rng.normal(0, 500, 50),
+                       "iterations": rng.integers(0, 9, 50), "converged": rng.random(50) > 0.5})
+    want = df.to_csv(index=False, float_format="%.6f", lineterminator="\n")
+    monkeypatch.setattr(pd.DataFrame, "to_csv", lambda *a, **k: pytest.fail("fell back to pandas"))
+    assert csv_text(df) == want
+
+
+def test_nearest_distance_in_chunks_is_the_plain_formula_exactly():
+    """The workspace distance, chunked and in place (numpy) or chunked (torch), equals the one-line
+    formula min_j |wrapped(q - ref_j)| bit for bit, at the wrap's edges too (±180°, multiples of 360°)."""
+    from pipeline.lib.workspace import JOINTS, nearest_distance, wrapped
+    rng = np.random.default_rng(3)
+    ref = rng.uniform(-360, 360, (300, 6))
+    q = np.concatenate([rng.uniform(-360, 360, (700, 6)), ref[:50] + 360.0, ref[:50] - 180.0,
+                        np.full((20, 6), -180.0), np.full((20, 6), 360.0)])
+    plain = np.sqrt((wrapped(q[:, None, JOINTS] - ref[None, :, JOINTS]) ** 2).sum(-1)).min(1)
+    assert np.array_equal(nearest_distance(q, ref), plain)
+    assert np.array_equal(nearest_distance(q, ref, chunk=7), plain)
+    tq, tr = torch.as_tensor(q), torch.as_tensor(ref)
+    assert torch.equal(nearest_distance(tq, tr, chunk=1024), nearest_distance(tq, tr))
+    assert np.allclose(nearest_distance(tq, tr).numpy(), plain, rtol=0, atol=1e-12)
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.lists(st.one_of(st.floats(-1e6, 1e6).map(repr), st.from_regex(r"[ +-]?[0-9]{0,3}[.,]?[0-9]{0,3}(e-?[0-9])? ?",
+                                                                         fullmatch=True),
+                          st.sampled_from(["", " ", "nan", "inf", "1e999", "1\n2", "1.", ".5", "٣", "1,5", "--1"])),
+                min_size=1, max_size=8),
+       st.sampled_from([".", ","]))
+def test_parse_column_reads_a_column_as_parse_number_reads_each_cell(cells, decimal):
+    """The waypoint reader's column-at-once parse gives parse_number's values where every cell is a finite
+    number, and hands the column back (None) otherwise, so the cell-by-cell rule names the bad cell."""
+    each = [readers.parse_number(c, decimal) for c in cells]
+    fine = all(err is None and np.isfinite(v) for v, err in each)
+    got = readers.parse_column(cells, decimal)
+    if fine:
+        assert got is not None and np.array_equal(got, [v for v, _ in each])
+    else:
+        assert got is None

@@ -124,6 +124,7 @@ INF_WORDS = {"inf", "+inf", "-inf", "infinity", "+infinity", "-infinity"}
 POSITION_FAR = 5.0          # x (reach + |tool|): real points lie within (1 + sqrt 3) x that of their
                             # per-axis median; a lost decimal point puts a cell 10..10^4 x off
 NUMBER = re.compile(r"[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?")
+NUMBERS = re.compile(r"(?:[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?\n)*")    # NUMBER, one per line
 COMMA_DECIMAL = re.compile(r"[+-]?\d*,\d+([eE][+-]?\d+)?")
 DOT_DECIMAL = re.compile(r"[+-]?\d*\.\d+([eE][+-]?\d+)?")
 REFERENCE_POINTS = 4096       # the gross-outlier check scores a point against at most this many others
@@ -274,6 +275,21 @@ def parse_number(cell: str, decimal: str):
     if s.lower() in INF_WORDS:
         return float(s), None
     return np.nan, ("non_numeric", f"{s!r} is not a number")
+
+
+def parse_column(cells: list, decimal: str) -> np.ndarray | None:
+    """parse_number's values of a whole column of cells at once (one regex scan, no call per cell), or None
+    when any cell is not a plain finite number: then parse_number, cell by cell, says which and why."""
+    text = "\n".join(c.strip() for c in cells) + "\n"
+    if decimal == ",":
+        if "." in text:
+            return None
+        text = text.replace(",", ".")
+    parts = text.split("\n")[:-1]
+    if len(parts) != len(cells) or not NUMBERS.fullmatch(text):      # a cell holding a line break: cell by cell
+        return None
+    v = np.fromiter(map(float, parts), float, len(parts))
+    return v if np.isfinite(v).all() else None
 
 
 def parse_finite(cell: str, decimal: str):

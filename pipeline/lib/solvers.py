@@ -241,7 +241,7 @@ def compensate(model, q0_deg: np.ndarray, target: np.ndarray, cfg: dict, robot=N
     model.eval()
     limits = None if robot is None else torch.as_tensor(np.radians(robot.limits_deg), dtype=DTYPE)
     q0 = torch.as_tensor(np.radians(q0_deg), dtype=DTYPE)
-    tgt = torch.as_tensor(target, dtype=DTYPE)
+    tgt = torch.tensor(target, dtype=DTYPE)                 # a copy: the table's arrays may be read-only
     t0 = time.perf_counter()
     q, pred, iters, ok, hist = in_blocks(SOLVERS[solver], model, q0, tgt, cfg, limits, chunk, history)
     seconds = time.perf_counter() - t0

@@ -22,7 +22,7 @@ from .compensation import delta_table, reach_mm, solve
 from .config import logger
 from .kinematics import fk_numpy
 from .readers import (AUTO_JOINTS, IngestError, find_column, headers_found, looks_like_radians, parse_number,
-                      read_table, shape_problems, unit_of)
+                      parse_column, read_table, shape_problems, unit_of)
 
 log = logger(__name__)
 ID_PATTERN = re.compile(r"[A-Za-z0-9_.:-]{1,64}")          # what a point id may be, to reach a URScript comment
@@ -40,6 +40,22 @@ def joint_columns(header: list, path) -> tuple[list, list]:
                       f"radians); {headers_found(header)}", file=path, column=missing)
 
 
+def numbers(cells: list, cols: list, names: list, decimal: str, path, lines: list) -> np.ndarray:
+    """The cells of columns `cols` as numbers (rows, len(cols)): a column at a time (readers.parse_column),
+    else cell by cell to name the first bad cell (an IngestError: file, row, column)."""
+    fast = [parse_column([row[c] for row in cells], decimal) for c in cols]   # shape_problems: every row has c
+    if all(v is not None for v in fast):
+        return np.stack(fast, 1)
+    values = np.empty((len(cells), len(cols)))
+    for r, row in enumerate(cells):
+        for k, c in enumerate(cols):
+            values[r, k], err = parse_number(row[c], decimal)
+            if err or not np.isfinite(values[r, k]):
+                raise IngestError(f"not a finite number ({err[1] if err else row[c]})", file=path, row=lines[r],
+                                  column=names[k])
+    return values
+
+
 def read_waypoints(path, robot) -> pd.DataFrame:
     """The waypoints file, checked: point_id, the joints (degrees, or radians by their names) and, if given,
     target_x..z; every bad cell is an IngestError naming file, row (the header is row 1) and column."""
@@ -54,13 +70,7 @@ def read_waypoints(path, robot) -> pd.DataFrame:
     for r, problem in enumerate(shape_problems(cells, len(header))):
         if problem:                                  # its cells would be read shifted: a wrong move
             raise IngestError(problem, file=path, row=lines[r])
-    values = np.empty((len(cells), len(cols)))
-    for r, row in enumerate(cells):
-        for k, c in enumerate(cols):
-            values[r, k], err = parse_number(row[c] if c < len(row) else "", decimal)
-            if err or not np.isfinite(values[r, k]):
-                raise IngestError(f"not a finite number ({err[1] if err else row[c]})", file=path, row=lines[r],
-                                  column=names[k])
+    values = numbers(cells, cols, names, decimal, path, lines)
     values[:, :6] = np.where(np.array(units) == "rad", np.degrees(values[:, :6]), values[:, :6])
     df = pd.DataFrame(values, columns=JOINTS_DEG + (TARGET if targets else []))
     if "point_id" in lower:

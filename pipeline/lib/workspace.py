@@ -34,17 +34,25 @@ def wrapped(a_deg):
     return (a_deg + 180.0) % 360.0 - 180.0
 
 
-def nearest_distance(q_deg, ref_deg, chunk: int = 1024, leave_one_out: bool = False):
+def nearest_distance(q_deg, ref_deg, chunk: int = 256, leave_one_out: bool = False):
     """Distance (deg) from each pose q (n, 6) to the nearest of ref (m, 6), over JOINTS, wrapped.
 
     Tensors in, a tensor out (differentiable, exportable); arrays in, an array out, computed in numpy (in
     the service, right after an onnxruntime run, a pose's check cost 0.32 ms in torch, 0.05 in numpy).
+    `chunk` poses at a time: a (chunk, m, 5) block that stays in the cache (256: 2-3× faster than 1024 with
+    the same numbers, docs/decisions.md).
     """
     if not isinstance(q_deg, torch.Tensor):
         q, ref = np.asarray(q_deg, float)[:, JOINTS], np.asarray(ref_deg, float)[:, JOINTS]
         out = np.empty(len(q))
         for s in range(0, len(q), chunk):
-            d = np.sqrt((wrapped(q[s:s + chunk, None] - ref[None]) ** 2).sum(-1))      # (c, m)
+            d = q[s:s + chunk, None] - ref[None]                                  # (c, m, 5), in place:
+            d += 180.0                                                          # wrapped(d) ** 2, with
+            np.fmod(d, 360.0, out=d)                                            # np.mod's numbers (fmod
+            np.add(d, 360.0, out=d, where=d < 0)                                # is exact; the sign fix
+            d -= 180.0                                                          # is np.mod's own), 2x
+            d *= d                                                              # faster
+            d = np.sqrt(d.sum(-1))                                              # (c, m)
             if leave_one_out:
                 d[np.arange(len(d)), s + np.arange(len(d))] = np.inf
             out[s:s + chunk] = d.min(1)
