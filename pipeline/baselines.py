@@ -22,7 +22,8 @@ from .lib.config import for_stage, load_params, logger, read_json, split_timings
 from .lib.geometry import Calibration, aligned, physics_geometry, theory_geometry, with_parts
 from .lib.kinematics import fk_numpy
 from .lib.robots import load_robot
-from .lib.training import predict, train_boter, train_dnn
+from .lib.model import predict
+from .lib.training import train_boter, train_dnn
 
 log = logger(__name__)
 PARAMS = ("robot", "model", "loss", "train", "baselines", "workspace")

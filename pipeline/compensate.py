@@ -39,7 +39,7 @@ from .lib.realtime import Realtime, check
 from .lib.kinematics import fk_numpy
 from .lib.robots import load_robot
 from .lib.solvers import SOLVERS
-from .lib.training import load_model
+from .lib.checkpoint import load_model
 from .lib.tcp import AtTcp, probe_offsets
 from .lib.twin import Twin, drive_check, tcp_drive_check
 from .lib.workspace import Workspace

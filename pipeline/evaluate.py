@@ -37,7 +37,8 @@ from .lib.metrics import split_metrics
 from .lib.model import PhysicsOnly
 from .lib.robots import load_robot
 from .lib.tcp import pose_errors, pose_of, probe_offsets
-from .lib.training import load_model, predict
+from .lib.checkpoint import load_model
+from .lib.model import predict
 from .lib.workspace import Workspace
 
 log = logger(__name__)

@@ -48,7 +48,7 @@ from .lib.kinematics import DTYPE, RIGID_KEYS, TOOL_ROT, fk, fk_frames, fk_pose
 from .lib.model import PhysicsOnly
 from .lib.onnx_model import OnnxModel, OnnxRealtime, deviation, export_controller, export_onnx
 from .lib.robots import TABLES, load_robot
-from .lib.training import load_model
+from .lib.checkpoint import load_model
 from .lib.urdf import UR_YAML_NAMES, base_transform, flange_residual, joint_origins, to_urdf, ur_kinematics
 
 log = logger(__name__)

@@ -47,7 +47,7 @@ from .lib.paths import ROTVEC, n_samples, read_path, resample
 from .lib.pathsolve import (beyond_reach, deviation, finish, joint_speeds, model_position, refine, refusal,
                             solve_path, urscript)
 from .lib.robots import load_robot
-from .lib.training import load_model
+from .lib.checkpoint import load_model
 from .lib.tcp import at_tcp
 from .lib.workspace import Workspace
 from .lib.writing import check_outputs, write_together

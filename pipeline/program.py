@@ -40,7 +40,7 @@ from .lib.config import for_stage, load_params, logger, read_json
 from .lib.geometry import theory_geometry
 from .lib.robots import load_robot
 from .lib.model import served
-from .lib.training import load_model
+from .lib.checkpoint import load_model
 from .lib.cli import Refused, one_line
 from .lib.waypoints import ID_PATTERN, compensate_program, read_waypoints, unreached
 from .lib.tcp import at_tcp

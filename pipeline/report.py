@@ -29,7 +29,7 @@ from .lib.artifacts import (BASELINES_MD, BASELINES_TABLE, CALIBRATION_JSON, COM
 from .lib.cli import one_line
 from .lib.columns import MEAS, PRED, THEORY
 from .lib.config import for_stage, load_params, logger, read_json
-from .lib.training import load_model
+from .lib.checkpoint import load_model
 
 log = logger(__name__)
 PARAMS = ("robot", "ingest", "campaigns", "frame", "split", "calibrate", "parts", "model", "loss", "train", "baselines",

@@ -68,7 +68,7 @@ from .lib.robots import load_robot
 from .lib.service import RequestError, Service
 from .lib.tcp import at_tcp
 from .lib.geometry import theory_geometry
-from .lib.training import load_model
+from .lib.checkpoint import load_model
 from .lib.workspace import Workspace
 
 log = logger(__name__)

@@ -15,7 +15,8 @@ from .lib.config import for_stage, load_params, logger, read_json, split_timings
 from .lib.geometry import Calibration, aligned, physics_geometry, theory_geometry, with_parts
 from .lib.robots import load_robot
 from .lib.model import check_config
-from .lib.training import resolve_device, save_model, train_boter
+from .lib.checkpoint import save_model
+from .lib.training import resolve_device, train_boter
 
 log = logger(__name__)
 PARAMS = ("robot", "model", "loss", "train", "workspace")

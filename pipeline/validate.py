@@ -35,7 +35,8 @@ from .lib.kinematics import DTYPE, TOOL_ROT, fk_numpy, fk_pose, flange_rotations
 from .lib.presets import deep_merge
 from .lib.readers import ingest
 from .lib.robots import load_robot
-from .lib.training import load_model, predict
+from .lib.checkpoint import load_model
+from .lib.model import predict
 from .lib.tcp import probe_offsets
 from .lib.validation import METHODS, judge, judge_poses, position_accuracy, summary
 from .lib.workspace import Workspace

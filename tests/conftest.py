@@ -24,7 +24,7 @@ from pipeline.lib.config import load_params, read_json
 from pipeline.lib.geometry import Calibration, aligned, theory_geometry
 from pipeline.lib.model import served
 from pipeline.lib.robots import load_robot
-from pipeline.lib.training import load_model
+from pipeline.lib.checkpoint import load_model
 from pipeline.lib.workspace import Workspace
 
 ROOT = Path(__file__).resolve().parents[1]

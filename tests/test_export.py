@@ -20,7 +20,7 @@ from pipeline.lib.onnx_model import OnnxModel, OnnxRealtime, export_controller, 
 from pipeline.lib.realtime import Realtime
 from pipeline.lib.solvers import lm_jacobian, lm_step, predict
 from pipeline.lib.robots import UR_JOINTS, load_robot, nominal_robot
-from pipeline.lib.training import load_model, make_model
+from pipeline.lib.checkpoint import load_model, make_model
 from pipeline.lib.workspace import Workspace
 from pipeline.lib.twin import sample_poses
 from pipeline.lib.urdf import base_transform, flange_residual, joint_origins, to_urdf, ur_kinematics

@@ -22,7 +22,7 @@ from pipeline.lib.config import for_stage, load_params, read_json, write_json
 from pipeline.lib.kinematics import nominal_geometry
 from pipeline.lib.metrics import drive_table, regression_metrics
 from pipeline.lib.robots import nominal_robot
-from pipeline.lib.training import make_model, save_model
+from pipeline.lib.checkpoint import make_model, save_model
 from pipeline.lib.validation import summary
 
 ROOT = Path(__file__).resolve().parents[1]

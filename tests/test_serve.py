@@ -21,7 +21,7 @@ import torch
 
 from pipeline.lib.columns import JOINTS_DEG, THEORY
 from pipeline.lib.config import load_params
-from pipeline.lib.training import load_model
+from pipeline.lib.checkpoint import load_model
 from conftest import ENV, project_points, served_model
 from pipeline import serve as serve_module
 from pipeline.lib.model import PhysicsOnly

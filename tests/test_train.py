@@ -17,8 +17,9 @@ from pipeline import train as train_stage
 from pipeline.lib import config
 from pipeline.lib.config import load_params
 from pipeline.lib.loss import SPILoss, data_loss
-from pipeline.lib.training import (EpochGraph, fit, load_model, make_model, mae_3d, resolve_device, save_model,
-                                   tensors, train_boter)
+from pipeline.lib.checkpoint import load_model, make_model, save_model
+from pipeline.lib.model import tensors
+from pipeline.lib.training import EpochGraph, fit, mae_3d, resolve_device, train_boter
 
 CUDA = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU (torch sees none)")
 

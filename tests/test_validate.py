@@ -13,7 +13,7 @@ from pipeline.lib import twin as T
 from pipeline.lib.config import load_params, write_json
 from pipeline.lib.kinematics import fk, flange_rotations, fk_numpy, nominal_geometry, save_geometry
 from pipeline.lib.robots import nominal_robot
-from pipeline.lib.training import make_model, save_model
+from pipeline.lib.checkpoint import make_model, save_model
 from pipeline.lib.validation import METHODS, judge, position_accuracy, registration_subset, summary
 from pipeline.lib.workspace import Workspace
 

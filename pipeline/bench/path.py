@@ -33,7 +33,7 @@ from ..lib.paths import at, distance, resample, segments
 from ..lib.pathsolve import deviation, model_position, refine, solve_path
 from ..lib.robots import load_robot
 from ..lib.tcp import at_tcp, probe_offsets
-from ..lib.training import load_model
+from ..lib.checkpoint import load_model
 from ..lib.twin import Twin, sample_poses
 from ..lib.waypoints import compensate_program
 from ..lib.workspace import Workspace

@@ -63,7 +63,7 @@ from ..lib.identify import geometry_jacobian, identifiability, identify
 from ..lib.kinematics import DTYPE, fk, nominal_geometry
 from ..lib.planning import Coverage, Identification, candidates, plan
 from ..lib.robots import load_robot
-from ..lib.training import load_model
+from ..lib.checkpoint import load_model
 from ..lib.twin import REGIONS, Twin, sample_poses
 from ..lib.waypoints import compensate_program
 from ..lib.workspace import Workspace, workspace_radius

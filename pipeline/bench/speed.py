@@ -30,7 +30,9 @@ from ..lib.onnx_model import OnnxModel, OnnxRealtime, deviation
 from ..lib.realtime import Realtime, check
 from ..lib.robots import load_robot
 from ..lib.solvers import compensate
-from ..lib.training import fit, load_model, make_model, tensors
+from ..lib.checkpoint import load_model, make_model
+from ..lib.model import tensors
+from ..lib.training import fit
 from .common import BENCH, machine, prepared, timed
 
 log = logger(__name__)

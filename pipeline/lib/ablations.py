@@ -8,7 +8,8 @@ import pandas as pd
 
 from .config import logger
 from .metrics import split_metrics
-from .training import predict, train_boter
+from .model import predict
+from .training import train_boter
 
 log = logger(__name__)
 GROUPS = {                                   # name -> params changes (one source of the groups)

@@ -15,11 +15,15 @@ faster on CPU); the fusion is float64.
 Also the paper's DNN baseline (an MLP from joint angles to the position error).
 """
 import copy
+import itertools
 import warnings
 
+import numpy as np
+import pandas as pd
 import torch
 from torch import nn
 
+from .columns import JOINTS_DEG, MEAS
 from .kinematics import DTYPE, DHChain
 from .workspace import Fade
 
@@ -287,3 +291,21 @@ class DNN(nn.Module):
 def n_params(model: nn.Module) -> int:
     return sum(p.numel() for p in model.parameters() if p.requires_grad)
 
+
+def model_device(model) -> torch.device:
+    """Where a model's tensors are (the CPU for a module without any)."""
+    return next(itertools.chain(model.buffers(), model.parameters()), torch.empty(0)).device
+
+
+def tensors(df: pd.DataFrame) -> tuple[torch.Tensor, torch.Tensor]:
+    """Joint angles (n, 6) rad and measured positions (n, 3) mm as float64 tensors."""
+    q = torch.tensor(np.radians(df[JOINTS_DEG].to_numpy()), dtype=DTYPE)
+    return q, torch.tensor(df[MEAS].to_numpy(), dtype=DTYPE)
+
+
+@torch.no_grad()
+def predict(model, df: pd.DataFrame, batch: int = 4096) -> np.ndarray:
+    """Model predictions (n, 3) mm, base frame (on the CPU, wherever the model is)."""
+    q, _ = tensors(df)
+    q = q.to(model_device(model))
+    return torch.cat([model(qb)[0] for qb in q.split(batch)]).cpu().numpy()

@@ -17,7 +17,6 @@ after `patience` epochs without improvement (the `train:` section). Beyond the p
               bound by kernel launches; the trained model comes back on the CPU.
 """
 import copy
-import itertools
 import time
 
 import numpy as np
@@ -25,11 +24,10 @@ import pandas as pd
 import torch
 from tqdm import tqdm
 
-from .columns import JOINTS_DEG, MEAS
-from .errormaps import MAP_KEYS
-from .kinematics import DTYPE, RIGID_KEYS
+from .checkpoint import make_model
+from .columns import JOINTS_DEG
 from .loss import SPILoss, data_loss
-from .model import DNN, BoTER, Ensemble, check_config, n_params
+from .model import Ensemble, model_device, n_params, tensors
 from .workspace import workspace_radius
 
 DEVICES = ("auto", "cpu", "cuda")
@@ -48,56 +46,6 @@ def resolve_device(setting) -> torch.device:
                              "CUDA GPU; use auto (a GPU when there is one) or cpu")
         return torch.device(setting)
     raise ValueError(f"params.yaml train.device: unknown {setting!r}; use one of {DEVICES} (or cuda:N)")
-
-
-def model_device(model) -> torch.device:
-    """Where a model's tensors are (the CPU for a module without any)."""
-    return next(itertools.chain(model.buffers(), model.parameters()), torch.empty(0)).device
-
-
-def tensors(df: pd.DataFrame) -> tuple[torch.Tensor, torch.Tensor]:
-    """Joint angles (n, 6) rad and measured positions (n, 3) mm as float64 tensors."""
-    q = torch.tensor(np.radians(df[JOINTS_DEG].to_numpy()), dtype=DTYPE)
-    return q, torch.tensor(df[MEAS].to_numpy(), dtype=DTYPE)
-
-
-def make_model(cfg: dict, geometry: dict, kind: str = "boter"):
-    """BoTER (the `model:` section) or the DNN baseline on `geometry`, weights from cfg["init_seed"]."""
-    check_config(cfg)
-    torch.manual_seed(cfg["init_seed"])
-    if kind == "dnn":
-        return DNN(geometry)
-    return BoTER(geometry, d_model=cfg["d_model"], n_layer=cfg["n_layer"], n_head=cfg["n_head"],
-                 d_hidden=cfg["d_hidden"], mask=cfg["mask"], head=cfg["head"], encoder=cfg["encoder"],
-                 alpha0=cfg["alpha0"], dropout=cfg["dropout"], fade_to=cfg["fade_to"])
-
-
-def save_model(model, path, cfg: dict) -> None:
-    """A checkpoint that carries its own config: {"config": the `model:` section, "members": K,
-    "state_dict"} (the physics branch's geometry and the training poses are buffers of the state)."""
-    members = getattr(model, "n_members", 1)
-    torch.save({"config": dict(cfg), "members": members, "state_dict": model.state_dict()}, path)
-
-
-def load_model(path) -> BoTER | Ensemble:
-    """The trained BoTER or Ensemble of a checkpoint (save_model; weights_only=True), in eval mode.
-    Needs no params: the checkpoint says how to build it, its state holds the geometry."""
-    ckpt = torch.load(path, weights_only=True, map_location="cpu")     # saved from the CPU; loads anywhere
-    state = ckpt["state_dict"]
-    geometry = {k: state[f"physics.{k}"] for k in RIGID_KEYS + MAP_KEYS if f"physics.{k}" in state}
-    members = [make_model(ckpt["config"], geometry) for _ in range(ckpt["members"])]
-    model = members[0] if len(members) == 1 else Ensemble(members)
-    model.load_state_dict(state)
-    model.config = ckpt["config"]
-    return model.eval()
-
-
-@torch.no_grad()
-def predict(model, df: pd.DataFrame, batch: int = 4096) -> np.ndarray:
-    """Model predictions (n, 3) mm, base frame (on the CPU, wherever the model is)."""
-    q, _ = tensors(df)
-    q = q.to(model_device(model))
-    return torch.cat([model(qb)[0] for qb in q.split(batch)]).cpu().numpy()
 
 
 @torch.no_grad()
