@@ -43,7 +43,8 @@ from .lib.config import for_stage, json_text, load_params, logger, read_json
 from .lib.geometry import Calibration
 from .lib.identify import parameter_spec
 from .lib.kinematics import nominal_geometry
-from .lib.planning import Coverage, Identification, MapBlock, candidates, plan, program_joints
+from .lib.design import Identification, MapBlock
+from .lib.planning import Coverage, candidates, plan, program_joints
 from .lib.robots import load_robot
 from .lib.cli import Refused, one_line
 from .lib.waypoints import read_waypoints

@@ -15,7 +15,7 @@ import torch
 
 from conftest import exit_code
 from pipeline import plan as plan_cmd
-from pipeline.lib import planning, poses
+from pipeline.lib import design, planning, poses, tour
 from pipeline.lib.columns import JOINTS_DEG
 from pipeline.lib.config import load_params, read_json
 from pipeline.lib.errormaps import coverage as angle_coverage
@@ -61,7 +61,7 @@ def test_the_three_files_with_their_names_and_columns(side_plan):
     for when in ("before", "after"):
         assert ident[when]["condition_number"] > 1 and all(v["se"] > 0 for v in ident[when]["se"].values())
     assert set(ident["after"]["se"]) == set(ident["parameters"]) and "station_tx" in ident["after"]["se"]
-    assert set(ident["before"]["se"]) == set(ident["parameters"]) - set(planning.STATION_NAMES)
+    assert set(ident["before"]["se"]) == set(ident["parameters"]) - set(design.STATION_NAMES)
     maps = ident["angle_maps"]                  # the program's uncovered joint (1) in the criterion, with its priors
     assert maps["joints"] == [1] and maps["joint1"]["after"]["mean_arcsec"] < maps["joint1"]["before"]["mean_arcsec"]
     assert on_disk["candidates"]["made"]["link"] > 0              # a new station may measure old poses again
@@ -191,13 +191,13 @@ def test_the_tour_visits_every_pose_once_and_2opt_shortens_it():
     line = np.zeros((12, 6))
     line[:, 0] = np.arange(12) * 10.0
     perm = rng.permutation(12)
-    order = planning.tour(line[perm], start=int(np.argmin(perm)))
+    order = tour.tour(line[perm], start=int(np.argmin(perm)))
     assert sorted(order) == list(range(12)) and perm[order[0]] == 0
-    assert planning.travel(line[perm][order])["max_joint_deg"] == pytest.approx(110.0)      # straight along the line
+    assert tour.travel(line[perm][order])["max_joint_deg"] == pytest.approx(110.0)      # straight along the line
     q = rng.uniform(-90, 90, (40, 6))
-    nn, opt = planning.tour(q, 0, passes=0), planning.tour(q, 0)
+    nn, opt = tour.tour(q, 0, passes=0), tour.tour(q, 0)
     assert sorted(opt) == list(range(40)) and opt[0] == 0
-    assert planning.travel(q[opt])["max_joint_deg"] <= planning.travel(q[nn])["max_joint_deg"]
+    assert tour.travel(q[opt])["max_joint_deg"] <= tour.travel(q[nn])["max_joint_deg"]
 
 
 def twin_identification(q_deg, params, sigma):
@@ -207,7 +207,7 @@ def twin_identification(q_deg, params, sigma):
     cfg = params["calibrate"]
     J, spec = geometry_jacobian(torch.as_tensor(np.radians(q_deg), dtype=DTYPE), nominal_geometry(Twin().robot), cfg)
     keep = identifiability(J, [s[0] for s in spec], cfg["rank_tol"])["keep"]
-    return planning.Identification(g, cfg, [s[0] for s, k in zip(spec, keep) if k], sigma)
+    return design.Identification(g, cfg, [s[0] for s, k in zip(spec, keep) if k], sigma)
 
 
 def scratch_plan(q_cand, n, ident, cover=False):
@@ -220,7 +220,7 @@ def scratch_plan(q_cand, n, ident, cover=False):
 
 def log_det(ident, q):
     A = ident.rows(q, new=True)
-    M = planning.information(A)
+    M = design.information(A)
     d = np.sqrt(np.diag(M))
     return np.linalg.slogdet(M / np.outer(d, d))[1] + 2 * np.log(d).sum()
 
@@ -270,9 +270,9 @@ def test_the_criterion_gain_is_the_log_det_increase():
     q_old, q_new = sample_poses(40, np.random.default_rng(41)), sample_poses(30, np.random.default_rng(42), region="side")
     ident = twin_identification(q_old, params, 0.05)
     ident.new_station = True
-    block = planning.MapBlock([1], 10.0, 300.0, 50.0, 0.1)
+    block = design.MapBlock([1], 10.0, 300.0, 50.0, 0.1)
     g = ident.geometry
-    crit = planning.DCriterion(ident.rows(q_old, False), *block.rows(q_old, g), ident.rows(q_new, True),
+    crit = design.DCriterion(ident.rows(q_old, False), *block.rows(q_old, g), ident.rows(q_new, True),
                                *block.rows(q_new, g), block.precision())
     dense = crit.dense(crit.A, crit.vals, crit.idx)                               # (30, 3, P), scaled
     logdet = lambda M: np.linalg.slogdet(M)[1]
@@ -313,17 +313,17 @@ def test_orientation_rows_identify_joint_6_which_positions_cannot():
     g = true_geometry(Twin().errors)
     names = ["a5", "offset5", "offset6", "tool_ry"]                # in parameter_spec's order, as calibrate's
     weight = 286.4788975654116                                 # 0.05 mm / 36 arcsec
-    pos = planning.Identification(g, cfg, names, 0.05)
-    pose = planning.Identification(g, cfg, names, 0.05, weight=weight)
+    pos = design.Identification(g, cfg, names, 0.05)
+    pose = design.Identification(g, cfg, names, 0.05, weight=weight)
     A3, A6 = pos.rows(q, new=True), pose.rows(q, new=True)
     assert A3.shape == (200, 3, 4) and A6.shape == (200, 6, 4)
     np.testing.assert_array_equal(A6[:, :3], A3)                # the position rows are the same
     J = geometry_jacobian(torch.as_tensor(np.radians(q), dtype=DTYPE), g, cfg, names, weight)[0]
     np.testing.assert_allclose(A6.reshape(-1, 4), J, rtol=0, atol=1e-9)
-    assert not planning.prediction(planning.information(A3), pos)["identified"]
-    told = planning.prediction(planning.information(A6), pose)
+    assert not design.prediction(design.information(A3), pos)["identified"]
+    told = design.prediction(design.information(A6), pose)
     assert told["identified"] and all(0 < v["se"] < 1e-2 for v in told["se"].values())   # mm, deg (~2.5")
-    block = planning.MapBlock([6], 10.0, 300.0, 50.0, 0.05)      # joint 6's map: seen by orientation
+    block = design.MapBlock([6], 10.0, 300.0, 50.0, 0.05)      # joint 6's map: seen by orientation
     v3, _ = block.rows(q, g)
     v6, _ = block.rows(q, g, weight)
     np.testing.assert_array_equal(v6[:, :3], v3)              # the marker ~0.15 mm off joint 6's axis

@@ -61,7 +61,8 @@ from ..lib.frames import to_base
 from ..lib.geometry import Calibration, theory_geometry
 from ..lib.identify import geometry_jacobian, identifiability, identify
 from ..lib.kinematics import DTYPE, fk, nominal_geometry
-from ..lib.planning import Coverage, Identification, candidates, plan
+from ..lib.design import Identification
+from ..lib.planning import Coverage, candidates, plan
 from ..lib.robots import load_robot
 from ..lib.checkpoint import load_model
 from ..lib.twin import REGIONS, Twin, sample_poses
