@@ -11,7 +11,6 @@ import os
 import tempfile
 from pathlib import Path
 
-import numpy as np
 import pandas as pd
 
 
@@ -66,17 +65,15 @@ def csv_text(df: pd.DataFrame, float_format: str = "%.6f") -> str:
     """`df.to_csv(index=False, float_format=float_format, lineterminator="\\n")`, byte for byte, one
     `%` per row instead of one per cell (a 200k-row Δθ table: seconds, not tens of seconds). Frames the
     fast path cannot vouch for (a NaN, a text cell the csv module would quote, other dtypes) go to pandas."""
-    def plain(c):
-        return (c.dtype == object or pd.api.types.is_string_dtype(c.dtype)) and all(type(v) is str and v and not any(x in v for x in ',"\r\n') for v in c)
-    kinds = []
-    for _, c in df.items():
-        if c.dtype.kind == "f" and not c.isna().any():
-            kinds.append(float_format)
-        elif c.dtype.kind in "iub" or plain(c):
-            kinds.append("%s")
-        else:
-            return df.to_csv(index=False, float_format=float_format, lineterminator="\n")
-    if not plain(pd.Series(list(map(str, df.columns)), dtype=object)):
+    def plain(values) -> bool:                       # text the csv module writes as it is
+        return all(type(v) is str and v and not any(x in v for x in ',"\r\n') for v in values)
+
+    def text(c) -> bool:
+        return c.dtype == object or pd.api.types.is_string_dtype(c.dtype)
+
+    kinds = [float_format if c.dtype.kind == "f" and not c.isna().any() else
+             "%s" if c.dtype.kind in "iub" or (text(c) and plain(c)) else None for _, c in df.items()]
+    if None in kinds or not plain(map(str, df.columns)):
         return df.to_csv(index=False, float_format=float_format, lineterminator="\n")
     row = ",".join(kinds) + "\n"
     cols = [c.tolist() for _, c in df.items()]
