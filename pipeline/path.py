@@ -50,7 +50,7 @@ from .lib.robots import load_robot
 from .lib.checkpoint import load_model
 from .lib.tcp import at_tcp
 from .lib.workspace import Workspace
-from .lib.writing import check_outputs, write_together
+from .lib.writing import check_outputs, csv_text, write_together
 
 log = logger(__name__)
 PARAMS = ("robot", "compensate", "program", "path")
@@ -144,7 +144,7 @@ def run(argv=None) -> pd.DataFrame:
         raise Refused(f"{src}: {why}; nothing written")
     out.mkdir(parents=True, exist_ok=True)
     approach = p["program"]["movej"]
-    write_together({out / "path.csv": table.to_csv(index=False, float_format="%.6f", lineterminator="\n"),
+    write_together({out / "path.csv": csv_text(table),
                     out / "path.script": urscript(table, cfg["speed_mm_s"], cfg["lookahead_s"], cfg["gain"],
                                                   approach["acc"], approach["vel"])}, [src])
     print(summary_text(table, dev, cfg["spacing_mm"], cfg["speed_mm_s"]))

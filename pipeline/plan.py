@@ -49,7 +49,7 @@ from .lib.robots import load_robot
 from .lib.cli import Refused, one_line
 from .lib.waypoints import read_waypoints
 from .lib.workspace import Workspace
-from .lib.writing import check_outputs, write_together
+from .lib.writing import check_outputs, csv_text, write_together
 
 log = logger(__name__)
 PARAMS = ("robot", "calibrate", "parts", "split", "plan")
@@ -190,7 +190,7 @@ def run(argv=None) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     poses = pd.DataFrame(result.q_deg, columns=JOINTS_DEG)
     poses.insert(0, "pose_id", ids)
-    write_together({out / "poses.csv": poses.to_csv(index=False, float_format="%.6f", lineterminator="\n"),
+    write_together({out / "poses.csv": csv_text(poses),
                     out / "measure.script": measure_script(result.q_deg, cfg), out / "plan.json": json_text(rep)},
                    [src])
     c, i, t = rep["coverage"], rep["identifiability"], rep["travel"]
