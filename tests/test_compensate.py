@@ -153,3 +153,50 @@ def test_the_closed_form_3x3_solve_equals_lapacks(model):
     step = min_norm_step(J, r, 1e-9)                       # and the step it gives, to 1e-12 rad
     x = solve3(A, r)
     assert (step + (J.transpose(1, 2) @ x.unsqueeze(-1)).squeeze(-1)).abs().max() < 1e-12
+
+
+class Counted(torch.nn.Module):
+    """A model that counts the rows it evaluates."""
+
+    def __init__(self, m):
+        super().__init__()
+        self.m, self.physics, self.rows = m, m.physics, 0
+
+    def forward(self, q):
+        self.rows += len(q)
+        return self.m(q)
+
+
+def test_physics_steps_judge_each_trial_with_one_model_evaluation(model):
+    """With the correction held over a few physics-only steps, lm needs about two evaluations of the model a
+    point (the first residual, one trial) where a chord step a trial needs about three; both land."""
+    small = BoTER(nominal_geometry(ROBOT), d_model=12, n_layer=1, n_head=2, d_hidden=32, mask="spi",
+                  head="resnet", encoder=True, alpha0=0.1, dropout=0.0, fade_to=None)
+    small.load_state_dict(model.state_dict())
+    with torch.no_grad():
+        small.alpha.fill_(0.01)                           # a trained model's size of correction
+    q0, tgt = targets(small, n=200, seed=3)
+    rows = {}
+    for steps in (1, 4):
+        m = Counted(small)
+        cfg = {**CFG, "jacobian_of": "physics", "physics_steps": steps}
+        q, pred, iters, ok, _, _ = compensate(m, q0, tgt, cfg, ROBOT, "lm")
+        assert ok.all() and np.linalg.norm(pred - tgt, axis=1).max() < 1e-3
+        rows[steps] = m.rows / len(q0)
+    assert rows[4] <= 2.05 and rows[1] >= 2.5, rows
+
+
+def test_physics_steps_still_land_on_a_strongly_nonlinear_model(model):
+    """The trial is still judged by the whole model: where the network's slope is large (α = 1) the held
+    correction misleads and lm's rule rejects and damps; every point still lands."""
+    q0, tgt = targets(model)
+    cfg = {**CFG, "jacobian_of": "physics", "physics_steps": 4}
+    q, pred, iters, ok, _, _ = compensate(model, q0, tgt, cfg, ROBOT, "lm")
+    assert ok.all() and np.linalg.norm(pred - tgt, axis=1).max() < 1e-3
+
+
+def test_the_model_evaluated_in_cache_sized_slices_gives_one_batch_numbers(model):
+    from pipeline.lib.solvers import EVAL_ROWS, predict
+    q = torch.as_tensor(np.radians(targets(model, n=3 * EVAL_ROWS + 17)[0]))
+    with torch.no_grad():
+        assert torch.equal(predict(model, q), model(q)[0])

@@ -53,8 +53,14 @@ def solve3(A, b):
     return (rows @ b.unsqueeze(-1)).squeeze(-1) / (a0 * rows[:, 0]).sum(-1, keepdim=True)
 
 
-def predict(model, q):                                     # (B, 6) -> (B, 3)
-    return model(q)[0]
+EVAL_ROWS = 256                     # rows the model evaluates at once: they stay in the cache (a 4096-row batch
+                                    # costs 1.3-1.5x as much a row, docs/decisions.md), the same numbers
+
+
+def predict(model, q):                                     # (B, 6) -> (B, 3), EVAL_ROWS rows at a time
+    if len(q) <= EVAL_ROWS:
+        return model(q)[0]
+    return torch.cat([model(q[s])[0] for s in slices(len(q), EVAL_ROWS)])
 
 
 def jacobian(f, q):
@@ -136,18 +142,41 @@ def lm_jacobian(model, jacobian_of: str):
     raise ValueError(f"params.yaml compensate.jacobian_of: {jacobian_of!r}; use physics or model")
 
 
-def lm_step(model, jac, q, r, err, lam, target, limits=None):
+def lm_step(model, jac, q, r, err, lam, target, limits=None, physics_steps: int = 1):
     """One lm iteration for points q (A, 6), residual r (A, 3) mm, |r| err (A,), damping lam (A,):
-    the step is kept where it lowers |r| (then λ/3, else λ·10). Returns the new q, r, err, lam."""
-    q_try = q + min_norm_step(jac(q), r, lam)               # (A, 6)
-    if limits is not None:
-        q_try = q_try.clamp(limits[:, 0], limits[:, 1])
+    the step is kept where it lowers |r| (then λ/3, else λ·10). Returns the new q, r, err, lam.
+    physics_steps > 1 (jacobian_of physics): the trial point is the end of that many damped steps on the
+    physics branch alone with the network's correction at q held (`physics_trial`), one model evaluation
+    still judging it."""
+    if physics_steps > 1:
+        q_try = physics_trial(model.physics.geometry(), q, r, lam, physics_steps, limits)
+    else:
+        q_try = clamped(q + min_norm_step(jac(q), r, lam), limits)   # (A, 6)
     with torch.no_grad():
         r_try = predict(model, q_try) - target
     err_try = r_try.norm(dim=1)
     ok = err_try < err
     q, err, lam = lm_keep(ok, q_try, err_try, q, err, lam)
     return q, torch.where(ok[:, None], r_try, r), err, lam
+
+
+def clamped(q, limits):
+    return q if limits is None else q.clamp(limits[:, 0], limits[:, 1])
+
+
+def physics_trial(g, q, r, lam, steps: int, limits=None):
+    """lm's trial point with the correction c = model(q) - physics(q) held: `steps` damped minimum-norm
+    steps toward physics(q') = target - c = physics(q) - r on the physics branch (geometry g: exact
+    position and Jacobian, one FK pass a step; the first step is the chord step). The network's evaluation,
+    the costly part, then judges the end point once: about 2 model evaluations a point instead of 3 (the
+    network's slope over a compensation's Δθ is ~1e-5 mm). q (A, 6), r (A, 3) -> (A, 6)."""
+    p, J = fk_jacobian(q, g)
+    goal = p - r                                            # (A, 3) mm: where the physics branch must go
+    q_try = clamped(q + min_norm_step(J, r, lam), limits)
+    for _ in range(steps - 1):
+        p, J = fk_jacobian(q_try, g)
+        q_try = clamped(q_try + min_norm_step(J, p - goal, lam), limits)
+    return q_try
 
 
 def lm_keep(ok, q_try, err_try, q, err, lam):
@@ -165,6 +194,7 @@ def solve_lm(model, q0, target, cfg: dict, limits=None, lam0=LAM0, chunk: int | 
     not asked for)."""
     max_iter, tol_mm = cfg["max_iter"], cfg["tol_mm"]
     jac = lm_jacobian(model, cfg["jacobian_of"])
+    physics_steps = cfg.get("physics_steps", 1) if cfg["jacobian_of"] == "physics" else 1
     n = len(q0)
     chunk = chunk or max(n, 1)
     q = q0.clone()
@@ -186,7 +216,8 @@ def solve_lm(model, q0, target, cfg: dict, limits=None, lam0=LAM0, chunk: int | 
             progress("lm", it, len(active), n, t0)
         for s in slices(len(active), chunk):
             a = active[s]
-            q[a], r[a], err[a], lam[a] = lm_step(model, jac, q[a], r[a], err[a], lam[a], target[a], limits)
+            q[a], r[a], err[a], lam[a] = lm_step(model, jac, q[a], r[a], err[a], lam[a], target[a], limits,
+                                                   physics_steps)
         if history:
             hist.append(err.clone())
     else:

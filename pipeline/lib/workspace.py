@@ -20,6 +20,9 @@ not cover it. Angles are wrapped: 350° and -10° are the same angle.
                   falling linearly to 0 at `fade_to` radii, so far from every training pose the
                   model is the calibrated physics it sits on.
 """
+import os
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 import torch
 from torch import nn
@@ -27,6 +30,7 @@ from torch import nn
 from .errormaps import angle_covered
 
 JOINTS = [0, 1, 2, 3, 4]                                   # joints 1-5 (0-based)
+PARALLEL_CHUNKS = 16                                       # numpy distances: this many chunks and more on every core
 
 
 def wrapped(a_deg):
@@ -45,7 +49,8 @@ def nearest_distance(q_deg, ref_deg, chunk: int = 256, leave_one_out: bool = Fal
     if not isinstance(q_deg, torch.Tensor):
         q, ref = np.asarray(q_deg, float)[:, JOINTS], np.asarray(ref_deg, float)[:, JOINTS]
         out = np.empty(len(q))
-        for s in range(0, len(q), chunk):
+
+        def rows(s):
             d = q[s:s + chunk, None] - ref[None]                                  # (c, m, 5), in place:
             d += 180.0                                                          # wrapped(d) ** 2, with
             np.fmod(d, 360.0, out=d)                                            # np.mod's numbers (fmod
@@ -56,6 +61,14 @@ def nearest_distance(q_deg, ref_deg, chunk: int = 256, leave_one_out: bool = Fal
             if leave_one_out:
                 d[np.arange(len(d)), s + np.arange(len(d))] = np.inf
             out[s:s + chunk] = d.min(1)
+
+        starts = range(0, len(q), chunk)
+        if len(starts) < PARALLEL_CHUNKS:
+            for s in starts:
+                rows(s)
+        else:                                               # a long program's table: chunks on every core
+            with ThreadPoolExecutor(len(os.sched_getaffinity(0))) as pool:
+                list(pool.map(rows, starts))
         return out
     q, ref = q_deg[:, JOINTS], torch.as_tensor(ref_deg)[:, JOINTS].to(q_deg.dtype)
     if torch.compiler.is_exporting():                       # ONNX export: one chunk, the batch size stays free
