@@ -24,12 +24,11 @@ import numpy as np
 
 from .lib import sweep
 from .lib.ablations import GROUPS, Data, Job, train_one
-from .lib.artifacts import CALIBRATED_GEOMETRY, FRAME_JSON, PARTS_JSON, REPORTS, TIMINGS, load_points
+from .lib.artifacts import REPORTS, TIMINGS
 from .lib.config import for_stage, load_params, logger, read_json, split_timings, write_json
 from .lib.figures import fig_ablation, save
-from .lib.geometry import Calibration, aligned, theory_geometry, with_parts
 from .lib.paper import PAPER_ABLATION, PAPER_ABLATION_EPOCHS
-from .lib.robots import load_robot
+from .lib.prepared import load_prepared
 
 log = logger(__name__)
 OUT = REPORTS / "ablation"
@@ -44,11 +43,8 @@ def jobs_for(params: dict, groups: list[str]) -> tuple[list[Job], Data]:
     if unknown:
         raise ValueError(f"unknown ablation group(s) {unknown}; use {list(GROUPS)}")
     p = for_stage(params, PARAMS["group"])
-    calibration = Calibration.from_dict(read_json(CALIBRATED_GEOMETRY))
-    nominal = theory_geometry(load_robot(p["robot"]), read_json(FRAME_JSON)["tool_mm"])
-    points = aligned(load_points(), calibration, nominal)
-    geometries = {"calibrated": with_parts(calibration.geometry, read_json(PARTS_JSON)), "nominal": nominal}
-    return [Job(p, g, s) for g in groups for s in p["ablation"]["seeds"]], Data(points, geometries)
+    prep = load_prepared(p["robot"])
+    return [Job(p, g, s) for g in groups for s in p["ablation"]["seeds"]], Data(prep.points, prep.geometries())
 
 
 def run_groups(params: dict, groups: list[str], engine: str = "sequential", address: str | None = None,

@@ -14,15 +14,14 @@ for evaluate, and reports/baselines_train.json.
 """
 import pandas as pd
 
-from .lib.artifacts import (BASELINES_JSON, BASELINES_TABLE, CALIBRATED_GEOMETRY, FRAME_JSON, PARTS_JSON, TIMINGS,
-                            load_points)
+from .lib.artifacts import BASELINES_JSON, BASELINES_TABLE, TIMINGS
 from .lib.cli import one_line
 from .lib.columns import JOINTS_DEG
-from .lib.config import for_stage, load_params, logger, read_json, split_timings, write_json
-from .lib.geometry import Calibration, aligned, physics_geometry, theory_geometry, with_parts
+from .lib.config import for_stage, load_params, logger, split_timings, write_json
+from .lib.geometry import physics_geometry
 from .lib.kinematics import fk_numpy
-from .lib.robots import load_robot
 from .lib.model import predict
+from .lib.prepared import load_prepared
 from .lib.training import train_boter, train_dnn
 
 log = logger(__name__)
@@ -32,17 +31,14 @@ PARAMS = ("robot", "model", "loss", "train", "baselines", "workspace")
 def run(params: dict) -> dict:
     p = for_stage(params, PARAMS)
     cfg = p["baselines"]
-    calibration = Calibration.from_dict(read_json(CALIBRATED_GEOMETRY))
-    nominal = theory_geometry(load_robot(p["robot"]), read_json(FRAME_JSON)["tool_mm"])
-    df = aligned(load_points(), calibration, nominal)
+    prep = load_prepared(p["robot"])
+    df, nominal, parts, calibrated = prep.points, prep.nominal, prep.parts, prep.calibrated
     out, summary = pd.DataFrame({"point_id": df["point_id"]}), {}
 
     def add(name, pred):
         out[[f"{name}_{a}" for a in "xyz"]] = pred
 
-    add("calibrated_dh", fk_numpy(df[JOINTS_DEG].to_numpy(), None, calibration.geometry))
-    parts = read_json(PARTS_JSON)
-    calibrated = with_parts(calibration.geometry, parts)
+    add("calibrated_dh", fk_numpy(df[JOINTS_DEG].to_numpy(), None, prep.calibration.geometry))
     if parts["enabled"]:                              # the calibration with the per-joint error maps, no network
         add("calibrated_parts", fk_numpy(df[JOINTS_DEG].to_numpy(), None, calibrated))
     if cfg["dnn"]:

@@ -25,18 +25,18 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from .lib.artifacts import (CALIBRATED_GEOMETRY, COMPENSATION_CSV, COMPENSATION_JSON, COMPENSATION_PARQUET,
-                            CONVERGENCE_CSV, DRIVE_CSV, FRAME_JSON, INGEST_JSON, MODEL_WEIGHTS, REPORTS, TIMINGS,
-                            WORKSPACE_JSON, load_points)
+from .lib.artifacts import (COMPENSATION_CSV, COMPENSATION_JSON, COMPENSATION_PARQUET, CONVERGENCE_CSV, DRIVE_CSV,
+                            INGEST_JSON, MODEL_WEIGHTS, REPORTS, TIMINGS, WORKSPACE_JSON)
 from .lib.campaigns import ingested_sha256, made_by_twin
 from .lib.cli import one_line
 from .lib.columns import JCOMP_DEG, JOINTS_DEG, TARGET, THEORY
 from .lib.compensation import delta_table, solve
 from .lib.config import for_stage, load_params, logger, read_json, split_timings, write_json
-from .lib.geometry import Calibration, aligned, theory_geometry
 from .lib.model import served
 from .lib.realtime import Realtime, check
 from .lib.kinematics import fk_numpy
+from .lib.geometry import theory_geometry
+from .lib.prepared import load_prepared
 from .lib.robots import load_robot
 from .lib.solvers import SOLVERS
 from .lib.checkpoint import load_model
@@ -48,11 +48,10 @@ log = logger(__name__)
 PARAMS = ("robot", "compensate")
 
 
-def test_targets(robot, frame: dict) -> pd.DataFrame:
-    """point_id, j1_deg..j6_deg, target_x..z: every test point, target = its theory position."""
-    df = aligned(load_points(), Calibration.from_dict(read_json(CALIBRATED_GEOMETRY)),
-                 theory_geometry(robot, frame["tool_mm"]))
-    df = df[df.split == "test"].reset_index(drop=True)
+def test_targets(points: pd.DataFrame) -> pd.DataFrame:
+    """point_id, j1_deg..j6_deg, target_x..z: every test point of the prepared points, target = its theory
+    position."""
+    df = points[points.split == "test"].reset_index(drop=True)
     return df[["point_id"] + JOINTS_DEG].assign(**dict(zip(TARGET, df[THEORY].to_numpy().T)))
 
 
@@ -133,8 +132,9 @@ def convergence_table(histories: dict) -> pd.DataFrame:
 
 def run(params: dict) -> dict:
     p = for_stage(params, PARAMS)
-    cfg, robot, frame = p["compensate"], load_robot(p["robot"]), read_json(FRAME_JSON)
-    table, summary, histories = solve_all(cfg, robot, test_targets(robot, frame))
+    prep = load_prepared(p["robot"], parts=False)
+    cfg, robot, frame = p["compensate"], prep.robot, prep.frame
+    table, summary, histories = solve_all(cfg, robot, test_targets(prep.points))
     table.to_csv(COMPENSATION_CSV, index=False, float_format="%.6f")
     table.to_parquet(COMPENSATION_PARQUET, index=False)
     convergence_table(histories).to_csv(CONVERGENCE_CSV, index=False)

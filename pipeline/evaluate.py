@@ -26,16 +26,16 @@ the model's orientation is its physics branch's (the network corrects the marker
 import numpy as np
 import pandas as pd
 
-from .lib.artifacts import (BASELINES_MD, BASELINES_TABLE, CALIBRATED_GEOMETRY, FRAME_JSON, HEADLINE_JSON,
-                            METRICS_JSON, MODEL_WEIGHTS, PARTS_JSON, PREDICTIONS_TABLE, WORKSPACE_JSON, load_points)
+from .lib.artifacts import (BASELINES_MD, BASELINES_TABLE, HEADLINE_JSON, METRICS_JSON, MODEL_WEIGHTS,
+                            PREDICTIONS_TABLE, WORKSPACE_JSON)
 from .lib.cli import one_line
 from .lib.columns import CAMPAIGN, JOINTS_DEG, MEAS, PRED, SPLITS, STATION, THEORY
 from .lib.frames import measured_rotations
-from .lib.config import for_stage, load_params, logger, read_json, write_json
-from .lib.geometry import Calibration, aligned, theory_geometry, with_parts
+from .lib.config import for_stage, load_params, logger, write_json
+from .lib.geometry import theory_geometry
 from .lib.metrics import split_metrics
 from .lib.model import PhysicsOnly
-from .lib.robots import load_robot
+from .lib.prepared import load_prepared
 from .lib.tcp import pose_errors, pose_of, probe_offsets
 from .lib.checkpoint import load_model
 from .lib.model import predict
@@ -118,10 +118,8 @@ def pose_metrics(df: pd.DataFrame, R_meas: np.ndarray, geometries: dict, model_p
 def run(params: dict) -> dict:
     p = for_stage(params, PARAMS)
     cfg = p["workspace"]
-    frame = read_json(FRAME_JSON)
-    nominal = theory_geometry(load_robot(p["robot"]), frame["tool_mm"])
-    cal = Calibration.from_dict(read_json(CALIBRATED_GEOMETRY))
-    df = aligned(load_points(), cal, nominal)
+    prep = load_prepared(p["robot"])
+    df, frame, cal, parts = prep.points, prep.frame, prep.calibration, prep.parts
     model = load_model(MODEL_WEIGHTS)
     pred = predict(model, df)
     q = df[JOINTS_DEG].to_numpy()
@@ -135,7 +133,6 @@ def run(params: dict) -> dict:
     err, val = errors[name], (df.split == "val").to_numpy()
     physics = np.linalg.norm(predict(PhysicsOnly(model), df) - df[MEAS].to_numpy(), axis=1)
     network = bool(err[val].mean() < physics[val].mean())      # as the error maps: kept where it lowers val
-    parts = read_json(PARTS_JSON)
     maps = {"model": err, "calibrated": errors["calibrated_dh"],
             "calibrated_parts": errors.get("calibrated_parts", errors["calibrated_dh"])}
     ws = Workspace.fit(q[(df.split == "train").to_numpy()], {k: v[val] for k, v in maps.items()}, cfg,
@@ -164,8 +161,8 @@ def run(params: dict) -> dict:
                                              "physics_alone": float(physics[val].mean())}}
     R_meas = measured_rotations(df)
     if R_meas is not None:
-        geometries = {"nominal_dh": theory_geometry(load_robot(p["robot"]), frame["tool_mm"], frame["tool_rot"]),
-                      "calibrated_dh": cal.geometry, "calibrated_parts": with_parts(cal.geometry, parts)}
+        geometries = {"nominal_dh": theory_geometry(prep.robot, frame["tool_mm"], frame["tool_rot"]),
+                      "calibrated_dh": cal.geometry, "calibrated_parts": prep.calibrated}
         metrics["pose"] = pose_metrics(df, R_meas, geometries, (name, pred, model.physics.geometry()),
                                        p["robot"]["tcp"], cal.geometry)
         if df[CAMPAIGN].nunique() > 1:               # and per training campaign

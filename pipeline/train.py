@@ -8,12 +8,11 @@ times to reports/timings/train.json.
 """
 from dvclive import Live
 
-from .lib.artifacts import (CALIBRATED_GEOMETRY, FRAME_JSON, LIVE, MODEL_WEIGHTS, PARTS_JSON, TIMINGS, TRAIN_JSON,
-                            load_points)
+from .lib.artifacts import LIVE, MODEL_WEIGHTS, TIMINGS, TRAIN_JSON
 from .lib.cli import one_line
-from .lib.config import for_stage, load_params, logger, read_json, split_timings, write_json
-from .lib.geometry import Calibration, aligned, physics_geometry, theory_geometry, with_parts
-from .lib.robots import load_robot
+from .lib.config import for_stage, load_params, logger, split_timings, write_json
+from .lib.geometry import physics_geometry
+from .lib.prepared import load_prepared
 from .lib.model import check_config
 from .lib.checkpoint import save_model
 from .lib.training import resolve_device, train_boter
@@ -26,10 +25,9 @@ def run(params: dict) -> dict:
     p = for_stage(params, PARAMS)
     check_config(p["model"])                       # before dvclive resets reports/live: a bad setting
     resolve_device(p["train"]["device"])           # leaves the last run's curves as they were
-    calibration = Calibration.from_dict(read_json(CALIBRATED_GEOMETRY))
-    nominal = theory_geometry(load_robot(p["robot"]), read_json(FRAME_JSON)["tool_mm"])
-    df = aligned(load_points(), calibration, nominal)
-    geometry = physics_geometry(p["model"]["physics"], with_parts(calibration.geometry, read_json(PARTS_JSON)), nominal)
+    prep = load_prepared(p["robot"])
+    df = prep.points
+    geometry = physics_geometry(p["model"]["physics"], prep.calibrated, prep.nominal)
     # save_dvc_exp: dvclive needs a git repo with a commit; no system monitor and no timestamps: the curves
     # are hashed in dvc.lock, so the same params give the same bytes (issue 21)
     with Live(dir=str(LIVE), save_dvc_exp=False, dvcyaml=False, report=None, monitor_system=False) as live:

@@ -19,11 +19,9 @@ import pytest
 import yaml
 from filelock import FileLock
 
-from pipeline.lib.artifacts import load_points
 from pipeline.lib.config import load_params, read_json
-from pipeline.lib.geometry import Calibration, aligned, theory_geometry
 from pipeline.lib.model import served
-from pipeline.lib.robots import load_robot
+from pipeline.lib.prepared import load_prepared
 from pipeline.lib.checkpoint import load_model
 from pipeline.lib.workspace import Workspace
 
@@ -129,9 +127,7 @@ def served_model():
 
 def project_points(params: dict) -> pd.DataFrame:
     """The points of the project in the working directory, aligned as the stages see them, with their split."""
-    calibration = Calibration.from_dict(read_json("models/calibration.json"))
-    nominal = theory_geometry(load_robot(params["robot"]), read_json("reports/frame.json")["tool_mm"])
-    return aligned(load_points(), calibration, nominal)
+    return load_prepared(params["robot"], parts=False).points
 
 
 @pytest.fixture(scope="session")

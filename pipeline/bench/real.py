@@ -40,10 +40,11 @@ from ..lib.artifacts import INGEST_JSON, INGEST_TABLE, METRICS_JSON, PREDICTIONS
 from ..lib.columns import JOINTS_DEG, MEAS, PRED
 from ..lib.config import load_params, logger, read_json, write_json
 from ..lib.kinematics import fk_numpy
+from ..lib.prepared import load_prepared
 from ..lib.presets import merged_params
 from ..lib.robots import load_robot
 from ..lib.twin import SEED, generate
-from .common import BENCH, DATASETS, ROOT, prepared
+from .common import BENCH, DATASETS, ROOT
 
 log = logger(__name__)
 # name: the preset merged over params.yaml (None: params.yaml, the twin), the dataset it needs under
@@ -204,7 +205,7 @@ def run_set(name: str, seeds: list[int], epochs: int | None, other_physics: bool
             for name_ in ("ingest", "frame", "theory", "split", "calibrate", "parts"):
                 stage(name_, params)
             n_kept = read_json(INGEST_JSON)["n_kept"]
-            df = prepared(params)[0]
+            df = load_prepared(params["robot"], parts=False).points
             test = df[df.split == "test"]
             raw = pd.read_parquet(INGEST_TABLE).set_index("point_id").loc[test.point_id]
             nominal = None

@@ -25,14 +25,15 @@ import psutil
 
 from ..lib.columns import JOINTS_DEG, THEORY
 from ..lib.config import load_params, logger, read_json, write_json
-from .common import BENCH, ROOT, machine, prepared
+from ..lib.prepared import load_prepared
+from .common import BENCH, ROOT, machine
 
 log = logger(__name__)
 
 
 def test_targets() -> tuple[list, list]:
     """The project's test points: recorded angles (rad) and their theory positions (mm), as lists."""
-    df = prepared(load_params())[0]
+    df = load_prepared(load_params()["robot"], parts=False).points
     test = df[df.split == "test"]
     return np.radians(test[JOINTS_DEG].to_numpy()).tolist(), test[THEORY].to_numpy().tolist()
 

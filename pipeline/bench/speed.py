@@ -26,6 +26,7 @@ from ..lib.columns import JOINTS_DEG, TARGET
 from ..lib.config import load_params, logger, read_json, write_json
 from ..lib.loss import SPILoss
 from ..lib.model import PhysicsOnly
+from ..lib.prepared import load_prepared
 from ..lib.onnx_model import OnnxModel, OnnxRealtime, deviation
 from ..lib.realtime import Realtime, check
 from ..lib.robots import load_robot
@@ -33,7 +34,7 @@ from ..lib.solvers import compensate
 from ..lib.checkpoint import load_model, make_model
 from ..lib.model import tensors
 from ..lib.training import fit
-from .common import BENCH, machine, prepared, timed
+from .common import BENCH, machine, timed
 
 log = logger(__name__)
 PATHS = ("pytorch_eager", "pytorch_compiled", "onnx", "physics_pytorch", "physics_onnx")
@@ -209,7 +210,8 @@ def bench_speed(soak_s: float = 600.0, rounds: int = 20, only: str | None = None
     if only == "controller":
         return controller_only(soak_s, rounds, torch_threads)
     params = load_params()
-    df, geometries = prepared(params)
+    prep = load_prepared(params["robot"])
+    df, geometries = prep.points, prep.geometries()
     train_t, val_t = tensors(df[df.split == "train"]), tensors(df[df.split == "val"])
     model = make_model(params["model"], geometries[params["model"]["physics"]])
     cfg = {**params["train"], "max_epochs": 10, "patience": 10, "device": "cpu"}

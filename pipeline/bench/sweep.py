@@ -11,7 +11,8 @@ from ..lib import sweep                                   # lib/sweep.py: jobs i
 from ..lib.ablations import Data, Job, train_one
 from ..lib.artifacts import CALIBRATED_GEOMETRY, FRAME_JSON, PARTS_JSON, POINTS_TABLE, SPLIT_TABLE
 from ..lib.config import load_params, logger, write_json
-from .common import BENCH, machine, prepared
+from ..lib.prepared import load_prepared
+from .common import BENCH, machine
 
 log = logger(__name__)
 
@@ -28,7 +29,8 @@ def bench_sweep(groups=("baseline", "no_resnet"), seeds=(139, 140), epochs: int 
     params = load_params()
     params["ablation"].update(seeds=list(seeds), max_epochs=epochs)
     cores = os.cpu_count() or 1
-    df, geometries = prepared(params)
+    prep = load_prepared(params["robot"])
+    df, geometries = prep.points, prep.geometries()
     p = {k: params[k] for k in ("model", "loss", "train", "workspace", "ablation")}
     jobs, data = [Job(p, g, s) for g in groups for s in seeds], Data(df, geometries)
     files = [POINTS_TABLE, SPLIT_TABLE, FRAME_JSON, CALIBRATED_GEOMETRY, PARTS_JSON]

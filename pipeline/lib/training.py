@@ -27,7 +27,7 @@ from tqdm import tqdm
 from .checkpoint import make_model
 from .columns import JOINTS_DEG
 from .loss import SPILoss, data_loss
-from .model import Ensemble, model_device, n_params, tensors
+from .model import Ensemble, n_params, tensors
 from .workspace import workspace_radius
 
 DEVICES = ("auto", "cpu", "cuda")
