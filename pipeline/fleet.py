@@ -36,6 +36,7 @@ import numpy as np
 import yaml
 
 from .lib import sweep
+from .lib.campaigns import write_pair
 from .lib.config import load_params, logger, read_json, write_json
 from .lib.presets import deep_merge
 from .lib.twin import Twin
@@ -158,10 +159,8 @@ def demo(fleet_dir="data/fleet", robots: int = 4, n: int = 300, models=("ur5", "
     for k in range(robots):
         model = models[k % len(models)]
         d = Path(fleet_dir) / f"{model}_{k + 1:02d}"
-        d.mkdir(parents=True, exist_ok=True)
         joints, tracker, _ = Twin(DEMO_SEED + k, robot=model).campaign(n)
-        joints.to_csv(d / "joints.csv", index=False, float_format="%.6f", lineterminator="\n")
-        tracker.to_csv(d / "tracker.csv", index=False, float_format="%.4f", lineterminator="\n")
+        write_pair(d, joints, tracker)
         (d / "params.yaml").write_text(f"# twin seed {DEMO_SEED + k}: a demo {model.upper()} of the fleet\n"
                                        f"robot: {{model: {model}}}\n"
                                        "ingest: {joints: joints.csv, tracker: tracker.csv}\n")

@@ -55,6 +55,7 @@ from scipy.spatial.transform import Rotation
 
 from ..lib.artifacts import (CALIBRATED_GEOMETRY, CALIBRATION_JSON, COMPENSATION_JSON, FRAME_JSON, METRICS_JSON,
                              MODEL_WEIGHTS, VALIDATION_DIR, WORKSPACE_JSON)
+from ..lib.campaigns import write_pair
 from ..lib.columns import JCOMP_DEG, JOINTS_DEG
 from ..lib.config import load_params, logger, read_json, write_json
 from ..lib.frames import to_base
@@ -95,15 +96,12 @@ def station_pose(region: str = "side") -> tuple[np.ndarray, np.ndarray, np.ndarr
 def write_campaign(folder: Path, q_deg: np.ndarray, twin: Twin, rng: np.random.Generator, prefix: str) -> dict:
     """The twin measures poses q (deg) once each: joints.csv and tracker.csv in `folder` (the data
     format); returns the ingest overrides naming them."""
-    folder.mkdir(parents=True, exist_ok=True)
     ids = [f"{prefix}{i + 1:04d}" for i in range(len(q_deg))]
     joints = pd.DataFrame(np.round(q_deg, 6), columns=JOINTS_DEG)
     joints.insert(0, "point_id", ids)
     tracker = pd.DataFrame(twin.drive(joints[JOINTS_DEG].to_numpy(), rng), columns=["X", "Y", "Z"])
     tracker.insert(0, "Name", ids)
-    joints.to_csv(folder / "joints.csv", index=False, float_format="%.6f", lineterminator="\n")
-    tracker.to_csv(folder / "tracker.csv", index=False, float_format="%.4f", lineterminator="\n")
-    return {"joints": str(folder / "joints.csv"), "tracker": str(folder / "tracker.csv")}
+    return write_pair(folder, joints, tracker)
 
 
 def run_pipeline(folder: Path, params: dict, compensate: bool = True) -> dict:

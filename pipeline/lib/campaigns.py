@@ -25,6 +25,17 @@ def pair_sha256(joints, tracker) -> dict:
     return {"joints": file_sha256(joints), "tracker": file_sha256(tracker)}
 
 
+def write_pair(folder, joints, tracker) -> dict:
+    """A campaign's two tables written as the twin writes every campaign (docs/data-format.md): `folder`/
+    joints.csv (6 decimals) and tracker.csv (4), LF line ends. Returns the ingest overrides naming them."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    paths = {"joints": folder / "joints.csv", "tracker": folder / "tracker.csv"}
+    joints.to_csv(paths["joints"], index=False, float_format="%.6f", lineterminator="\n")
+    tracker.to_csv(paths["tracker"], index=False, float_format="%.4f", lineterminator="\n")
+    return {k: str(p) for k, p in paths.items()}
+
+
 def ingested_sha256(files: dict) -> dict:
     """The same identity from ingest.json's `files` (its "table" entry for one table)."""
     return {r: files[r if r in files else "table"]["sha256"] for r in ("joints", "tracker")}

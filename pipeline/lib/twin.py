@@ -51,7 +51,7 @@ import pandas as pd
 import torch
 from scipy.spatial.transform import Rotation
 
-from .campaigns import pair_sha256
+from .campaigns import pair_sha256, write_pair
 from .columns import JOINTS_DEG
 from .config import read_json, write_json
 from .frames import quaternions, robust_kabsch, to_base
@@ -494,24 +494,20 @@ def generate(out_dir: Path | str = RAW, seed: int = SEED, params: dict | None = 
         errors["fine_amp_arcsec"] = np.zeros_like(errors["fine_amp_arcsec"])
     twin = Twin(seed, errors)
     joints, tracker, misreads = twin.campaign()
-    joints.to_csv(out_dir / "joints.csv", index=False, float_format="%.6f", lineterminator="\n")
-    tracker.to_csv(out_dir / "tracker.csv", index=False, float_format="%.4f", lineterminator="\n")
+    files = write_pair(out_dir, joints, tracker)
     record = twin_record(twin, misreads)
-    record["campaign_sha256"] = pair_sha256(out_dir / "joints.csv", out_dir / "tracker.csv")
+    record["campaign_sha256"] = pair_sha256(files["joints"], files["tracker"])
     record["noise_floor_mm"] = round(twin.noise_floor_mm, 6)
     record["noise_floor_method"] = ("Monte Carlo: 64 drives of each campaign pose, stream "
                                     "'floor'; tracker-only analytic value 1.5958 * sigma")
     record["noise_floor_tracker_only_mm"] = MEAN_NORM_3D * TRACKER_SIGMA_MM
     for key, spec in (("validation", VALIDATION), ("station_b", STATION_B)):
-        sub = out_dir / spec["dir"]
-        sub.mkdir(exist_ok=True)
         vj, vt, (R, t) = twin.validation_campaign(spec["seed"], spec["n"], spec["prefix"])
-        vj.to_csv(sub / "joints.csv", index=False, float_format="%.6f", lineterminator="\n")
-        vt.to_csv(sub / "tracker.csv", index=False, float_format="%.4f", lineterminator="\n")
+        pair = write_pair(out_dir / spec["dir"], vj, vt)
         record[key] = {"seed": spec["seed"], "n": spec["n"], "files": spec["dir"],
                        "regions": {k: REGIONS[k] for k in spec["n"]},
                        "tracker_pose": {"R": R.round(12).tolist(), "t": t.round(9).tolist()},
-                       "campaign_sha256": pair_sha256(sub / "joints.csv", sub / "tracker.csv")}
+                       "campaign_sha256": pair_sha256(pair["joints"], pair["tracker"])}
     if params is not None:
         # measured from the files as written (rounded), as the pipeline will see them
         joints = pd.read_csv(out_dir / "joints.csv")
