@@ -183,6 +183,32 @@ def test_nearest_distance_in_chunks_is_the_plain_formula_exactly():
     assert np.allclose(nearest_distance(tq, tr).numpy(), plain, rtol=0, atol=1e-12)
 
 
+def test_the_kd_tree_candidates_give_the_brute_force_distance_to_the_bit():
+    """From TREE_ROWS poses on, the periodic KD-tree picks NEAREST_K candidates and the formula the nearest:
+    the same bits as the formula over all of ref, numpy and torch (its gradient too), near the training
+    poses and far, across the wrap, with duplicated references; a NaN pose still answers NaN."""
+    from pipeline.lib.workspace import JOINTS, TREE_ROWS, candidates, nearest_distance, wrapped
+    rng = np.random.default_rng(5)
+    ref = rng.uniform(-200, 200, (576, 6))
+    ref[100:110] = ref[:10]                                                  # duplicates: exact ties
+    q = np.concatenate([ref[rng.integers(0, 576, 3000)] + rng.normal(0, 2, (3000, 6)),
+                        rng.uniform(-720, 720, (1000, 6)), ref[:50] + 360.0, ref[50:100] - 180.0])
+    assert candidates(q[:, JOINTS], ref[:, JOINTS]) is not None and len(q) >= TREE_ROWS
+    plain = np.sqrt((wrapped(q[:, None, JOINTS] - ref[None, :, JOINTS]) ** 2).sum(-1)).min(1)
+    assert np.array_equal(nearest_distance(q, ref), plain)
+    tq = torch.as_tensor(q).requires_grad_(True)
+    brute = torch.cat([wrapped(tq[s:s + 256, None, JOINTS] - torch.as_tensor(ref)[None, :, JOINTS]).norm(dim=-1)
+                       .min(1).values for s in range(0, len(q), 256)])
+    tree = nearest_distance(tq, torch.as_tensor(ref))
+    assert torch.equal(tree, brute)
+    g_tree, = torch.autograd.grad(tree.sum(), tq)
+    g_brute, = torch.autograd.grad(brute.sum(), tq)
+    assert torch.equal(g_tree, g_brute)
+    q[7, 2] = np.nan
+    assert np.isnan(nearest_distance(q, ref)[7]) and np.array_equal(np.delete(nearest_distance(q, ref), 7),
+                                                                    np.delete(plain, 7))
+
+
 @settings(max_examples=300, deadline=None)
 @given(st.lists(st.one_of(st.floats(-1e6, 1e6).map(repr), st.from_regex(r"[ +-]?[0-9]{0,3}[.,]?[0-9]{0,3}(e-?[0-9])? ?",
                                                                          fullmatch=True),

@@ -25,12 +25,14 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import torch
+from scipy.spatial import cKDTree
 from torch import nn
 
 from .errormaps import angle_covered
 
 JOINTS = [0, 1, 2, 3, 4]                                   # joints 1-5 (0-based)
-PARALLEL_CHUNKS = 16                                       # numpy distances: this many chunks and more on every core
+PARALLEL_CHUNKS = 16                                       # numpy brute force: this many chunks and more on every core
+TREE_ROWS, NEAREST_K = 64, 4                               # nearest_distance: the KD-tree from 64 poses on, 4 candidates
 
 
 def wrapped(a_deg):
@@ -43,15 +45,19 @@ def nearest_distance(q_deg, ref_deg, chunk: int = 256, leave_one_out: bool = Fal
 
     Tensors in, a tensor out (differentiable, exportable); arrays in, an array out, computed in numpy (in
     the service, right after an onnxruntime run, a pose's check cost 0.32 ms in torch, 0.05 in numpy).
-    `chunk` poses at a time: a (chunk, m, 5) block that stays in the cache (256: 2-3× faster than 1024 with
-    the same numbers, docs/decisions.md).
+    From TREE_ROWS poses on, scipy's periodic KD-tree hands each pose its NEAREST_K nearest candidates and
+    the formula picks among them (`candidates`: the same numbers, ~10× faster at m = 576); otherwise
+    `chunk` poses at a time against all of ref, a (chunk, m, 5) block that stays in the cache (256: 2-3×
+    faster than 1024 with the same numbers, docs/decisions.md).
     """
     if not isinstance(q_deg, torch.Tensor):
         q, ref = np.asarray(q_deg, float)[:, JOINTS], np.asarray(ref_deg, float)[:, JOINTS]
+        near = None if leave_one_out else candidates(q, ref)                    # (n, k) or None
         out = np.empty(len(q))
 
         def rows(s):
-            d = q[s:s + chunk, None] - ref[None]                                  # (c, m, 5), in place:
+            others = ref[None] if near is None else ref[near[s:s + chunk]]     # (1, m, 5) or (c, k, 5)
+            d = q[s:s + chunk, None] - others                                   # (c, m, 5), in place:
             d += 180.0                                                          # wrapped(d) ** 2, with
             np.fmod(d, 360.0, out=d)                                            # np.mod's numbers (fmod
             np.add(d, 360.0, out=d, where=d < 0)                                # is exact; the sign fix
@@ -63,16 +69,20 @@ def nearest_distance(q_deg, ref_deg, chunk: int = 256, leave_one_out: bool = Fal
             out[s:s + chunk] = d.min(1)
 
         starts = range(0, len(q), chunk)
-        if len(starts) < PARALLEL_CHUNKS:
+        if len(starts) < PARALLEL_CHUNKS or near is not None:
             for s in starts:
                 rows(s)
-        else:                                               # a long program's table: chunks on every core
+        else:                                               # a long brute-force table: chunks on every core
             with ThreadPoolExecutor(len(os.sched_getaffinity(0))) as pool:
                 list(pool.map(rows, starts))
         return out
     q, ref = q_deg[:, JOINTS], torch.as_tensor(ref_deg)[:, JOINTS].to(q_deg.dtype)
     if torch.compiler.is_exporting():                       # ONNX export: one chunk, the batch size stays free
         return wrapped(q[:, None] - ref[None]).norm(dim=-1).min(1).values
+    near = None if leave_one_out else candidates(q.detach().cpu().numpy(), ref.cpu().numpy())
+    if near is not None:
+        others = ref[torch.as_tensor(near, device=ref.device)]                  # (n, k, 5)
+        return wrapped(q[:, None] - others).norm(dim=-1).min(1).values
     out = []
     for s in range(0, len(q), chunk):
         d = wrapped(q[s:s + chunk, None] - ref[None]).norm(dim=-1)               # (c, m)
@@ -80,6 +90,26 @@ def nearest_distance(q_deg, ref_deg, chunk: int = 256, leave_one_out: bool = Fal
             d[torch.arange(len(d)), s + torch.arange(len(d))] = torch.inf
         out.append(d.min(1).values)
     return torch.cat(out)
+
+
+def candidates(q, ref, k: int = None):
+    """(n, k) indices of each pose's k (NEAREST_K) nearest in ref, q (n, 5) and ref (m, 5) deg, found by
+    scipy's KD-tree on the torus of wrapped angles (boxsize 360); None where brute force is as cheap or must
+    answer: fewer than TREE_ROWS poses, ref no larger than k, a non-finite angle. The exact formula then
+    picks among the k, so the distance is the brute force's to the bit unless k + 1 poses of ref tie within
+    rounding (the tree's arithmetic is not the formula's)."""
+    k = k or NEAREST_K
+    if len(q) < TREE_ROWS or len(ref) <= k or not (np.isfinite(q).all() and np.isfinite(ref).all()):
+        return None
+    _, idx = cKDTree(on_torus(ref), boxsize=360.0).query(on_torus(q), k=k)
+    return idx
+
+
+def on_torus(a):
+    """Angles (deg) mapped into [0, 360), as the periodic KD-tree needs (np.mod may round up to 360)."""
+    a = np.mod(a, 360.0)
+    a[a >= 360.0] = 0.0
+    return a
 
 
 def workspace_radius(train_q_deg, quantile: float) -> float:
