@@ -63,10 +63,16 @@ def read_targets(path: str) -> pd.DataFrame:
     return df
 
 
-def solve_all(cfg: dict, robot, df: pd.DataFrame):
-    """Both solvers on df's targets -> (the Δθ table of compensate.solver, summary, histories)."""
+def served_model():
+    """The model the robot cell gets (model.served: the physics alone where evaluate switched the network
+    off) and its workspace."""
     workspace = Workspace.from_dict(read_json(WORKSPACE_JSON))
-    model = served(load_model(MODEL_WEIGHTS), workspace.network)     # the physics alone where the network is off
+    return served(load_model(MODEL_WEIGHTS), workspace.network), workspace
+
+
+def solve_all(model, workspace, cfg: dict, robot, df: pd.DataFrame):
+    """Job 1 and 2: both solvers on df's targets, and the controller path on the same targets -> (the Δθ
+    table of compensate.solver, the comparison's summary, histories)."""
     q0, target = df[JOINTS_DEG].to_numpy(), df[TARGET].to_numpy()
     summary, histories = {"solver": cfg["solver"], "n_points": len(df)}, {}
     for solver in SOLVERS:                                  # both, for the comparison; table from cfg
@@ -100,11 +106,35 @@ def twin_campaign(twin_json: str, files: dict) -> str | None:
     return made_by_twin(read_json(twin_json), ingested_sha256(files))
 
 
-def tcp_checks(cfg: dict, robot, tcp: dict, table: pd.DataFrame, frame: dict) -> dict:
+def twin_checks(model, cfg: dict, robot, tcp: dict | None, table: pd.DataFrame, frame: dict, made: str | None):
+    """Job 3: the twin driven to the table's recorded and compensated angles (the paper's Table 9), and
+    at every `robot.tcp` where the campaign has orientation, when the campaign is the twin's main one
+    (`made`) -> (compensation.json's entries, the per-point errors for drive_check.csv)."""
+    errors = pd.DataFrame(columns=["point_id"] + [f"{w}_{a}" for w in ("before", "after") for a in "xyz"])
+    out = {}
+    if cfg["drive_check"] and made != "main":                  # a real robot: no made-up twin result
+        out["drive_check_skipped"] = f"the campaign is not the twin's ({cfg['twin']}): no drive check"
+        log.info("%s", out["drive_check_skipped"])
+    if made != "main":
+        return out, errors
+    rng = np.random.default_rng(cfg["drive_seed"])
+    out["drive_check"], e = drive_check(Twin.from_json(cfg["twin"]), frame, rng, table[JOINTS_DEG].to_numpy(),
+                                        table[JCOMP_DEG].to_numpy(), table[TARGET].to_numpy())
+    errors = pd.DataFrame(e, columns=errors.columns[1:])
+    errors.insert(0, "point_id", table["point_id"])
+    if tcp and "tool_rot" in frame:
+        out["tcp_drive_check"] = tcp_checks(model, cfg, robot, tcp, table, frame)
+    b, a = out["drive_check"]["before"], out["drive_check"]["after"]
+    log.info("twin drive check on %d points: 3D error mean %.4f -> %.4f mm, max %.4f -> %.4f mm, "
+             "within ±%.1f mm %.0f%% -> %.0f%%", a["n"], b["3d"]["mean"], a["3d"]["mean"],
+             b["3d"]["max"], a["3d"]["max"], a["tol_mm"], 100 * b["within_tol_share"],
+             100 * a["within_tol_share"])
+    return out, errors
+
+
+def tcp_checks(model, cfg: dict, robot, tcp: dict, table: pd.DataFrame, frame: dict) -> dict:
     """Per `robot.tcp`: the test poses' nominal TCP positions solved for through the served model (AtTcp)
     and driven on the twin (lib/twin.py tcp_drive_check): Table 9 before (recorded angles) and after."""
-    workspace = Workspace.from_dict(read_json(WORKSPACE_JSON))
-    model = served(load_model(MODEL_WEIGHTS), workspace.network)
     twin, out = Twin.from_json(cfg["twin"]), {}
     q0 = table[JOINTS_DEG].to_numpy()
     for k, (name, o) in enumerate(probe_offsets(tcp, model.physics.geometry()).items()):
@@ -134,29 +164,14 @@ def run(params: dict) -> dict:
     p = for_stage(params, PARAMS)
     prep = load_prepared(p["robot"], parts=False)
     cfg, robot, frame = p["compensate"], prep.robot, prep.frame
-    table, summary, histories = solve_all(cfg, robot, test_targets(prep.points))
+    model, workspace = served_model()
+    table, summary, histories = solve_all(model, workspace, cfg, robot, test_targets(prep.points))
     table.to_csv(COMPENSATION_CSV, index=False, float_format="%.6f")
     table.to_parquet(COMPENSATION_PARQUET, index=False)
     convergence_table(histories).to_csv(CONVERGENCE_CSV, index=False)
-    errors = pd.DataFrame(columns=["point_id"] + [f"{w}_{a}" for w in ("before", "after") for a in "xyz"])
     made = twin_campaign(cfg["twin"], read_json(INGEST_JSON)["files"]) if cfg["drive_check"] else None
-    if cfg["drive_check"] and made != "main":                  # a real robot: no made-up twin result
-        summary["drive_check_skipped"] = f"the campaign is not the twin's ({cfg['twin']}): no drive check"
-        log.info("%s", summary["drive_check_skipped"])
-    if made == "main":
-        rng = np.random.default_rng(cfg["drive_seed"])
-        summary["drive_check"], e = drive_check(Twin.from_json(cfg["twin"]), frame, rng,
-                                                table[JOINTS_DEG].to_numpy(), table[JCOMP_DEG].to_numpy(),
-                                                table[TARGET].to_numpy())
-        errors = pd.DataFrame(e, columns=errors.columns[1:])
-        errors.insert(0, "point_id", table["point_id"])
-        if p["robot"]["tcp"] and "tool_rot" in frame:
-            summary["tcp_drive_check"] = tcp_checks(cfg, robot, p["robot"]["tcp"], table, frame)
-        b, a = summary["drive_check"]["before"], summary["drive_check"]["after"]
-        log.info("twin drive check on %d points: 3D error mean %.4f -> %.4f mm, max %.4f -> %.4f mm, "
-                 "within ±%.1f mm %.0f%% -> %.0f%%", a["n"], b["3d"]["mean"], a["3d"]["mean"],
-                 b["3d"]["max"], a["3d"]["max"], a["tol_mm"], 100 * b["within_tol_share"],
-                 100 * a["within_tol_share"])
+    checks, errors = twin_checks(model, cfg, robot, p["robot"]["tcp"], table, frame, made)
+    summary.update(checks)
     errors.to_csv(DRIVE_CSV, index=False, float_format="%.6f")   # empty: no drive check
     summary, timings = split_timings(summary)
     write_json(COMPENSATION_JSON, summary)
@@ -173,7 +188,8 @@ def main(argv=None):
     if a.targets is None:
         return run(params)
     p = for_stage(params, PARAMS)
-    table, summary, _ = solve_all(p["compensate"], load_robot(p["robot"]), read_targets(a.targets))
+    model, workspace = served_model()
+    table, summary, _ = solve_all(model, workspace, p["compensate"], load_robot(p["robot"]), read_targets(a.targets))
     out = REPORTS / f"compensation_{Path(a.targets).stem}.csv"
     table.to_csv(out, index=False, float_format="%.6f")
     log.info("wrote %s (%d targets)", out, len(table))

@@ -234,7 +234,7 @@ def split_records(text: str, sep: str, path: str):
                                    f"a quote opened on this line is never closed (the cell runs to line {line})"),
                                   file=path, row=last + 1)
             last = line
-            if rec and any(c.strip() for c in rec):
+            if "".join(rec).strip():                       # not a blank record (every cell whitespace)
                 records.append((line, rec))
     except csv.Error as e:
         raise IngestError(f"not a readable table ({e})", file=path, row=reader.line_num) from None
