@@ -41,7 +41,8 @@ from .lib.robots import load_robot
 from .lib.solvers import SOLVERS
 from .lib.checkpoint import load_model
 from .lib.tcp import AtTcp, probe_offsets
-from .lib.twin import Twin, drive_check, tcp_drive_check
+from .lib.drive import drive_check, tcp_drive_check
+from .lib.twin import Twin
 from .lib.workspace import Workspace
 
 log = logger(__name__)

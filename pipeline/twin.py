@@ -2,12 +2,13 @@
 
     python -m pipeline.twin
 
-Byte for byte the committed files (a test checks it); the twin itself is lib/twin.py.
+Byte for byte the committed files (a test checks it); the twin itself is lib/twin.py, its files lib/twin_files.py.
 """
 import argparse
 
 from .lib.config import for_stage, load_params, logger
-from .lib.twin import RAW, SEED, generate
+from .lib.twin import RAW, SEED
+from .lib.twin_files import generate
 
 log = logger(__name__)
 PARAMS = ("frame", "split", "calibrate")        # its difficulty is measured the pipeline's way

@@ -8,6 +8,8 @@ import pytest
 import torch
 
 from pipeline.lib import twin as T
+from pipeline.lib.difficulty import difficulty
+from pipeline.lib.twin_files import generate
 from pipeline.lib.columns import JOINTS_DEG
 from pipeline.lib.config import load_params
 from pipeline.lib.kinematics import DTYPE, fk, fk_numpy, link_frames
@@ -27,7 +29,7 @@ def recorded():
 
 
 def test_committed_files_are_what_the_generator_makes(tmp_path, recorded):
-    rec = T.generate(tmp_path, T.SEED, params=None)         # no difficulty: fast
+    rec = generate(tmp_path, T.SEED, params=None)         # no difficulty: fast
     for name in ("joints.csv", "tracker.csv", "validation/joints.csv", "validation/tracker.csv"):
         assert (tmp_path / name).read_bytes() == (RAW / name).read_bytes(), name
     fresh = json.loads((tmp_path / "twin.json").read_text())
@@ -119,7 +121,7 @@ def test_noise_floor(twin, recorded):
 def test_difficulty_is_that_of_a_real_ur5(twin, recorded):
     params = load_params(ROOT / "params.yaml")
     j, t = pd.read_csv(RAW / "joints.csv"), pd.read_csv(RAW / "tracker.csv")
-    d = T.difficulty(j, t, params, twin)
+    d = difficulty(j, t, params, twin)
     rec = recorded["difficulty"]
     assert d["frame_outliers"] == sorted(recorded["misreads"]) == rec["frame_outliers"]
     assert d["nominal_after_frame_mean_mm"] == pytest.approx(rec["nominal_after_frame_mean_mm"], abs=1e-6)

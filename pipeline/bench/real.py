@@ -43,7 +43,8 @@ from ..lib.kinematics import fk_numpy
 from ..lib.prepared import load_prepared
 from ..lib.presets import merged_params
 from ..lib.robots import load_robot
-from ..lib.twin import SEED, generate
+from ..lib.twin import SEED
+from ..lib.twin_files import generate
 from .common import BENCH, DATASETS, ROOT
 
 log = logger(__name__)

@@ -37,7 +37,7 @@ API
     twin.validation_campaign()          # a second campaign: tracker moved, poses front and side
     twin.validation_campaign(726, {"side": 300}, "B")   # the same from a second station, side only
 
-`python -m pipeline.twin` (generate) writes data/raw/{joints.csv, tracker.csv, twin.json},
+`python -m pipeline.twin` (lib/twin_files.py generate) writes data/raw/{joints.csv, tracker.csv, twin.json},
 data/raw/validation/{joints.csv, tracker.csv} and data/raw/station_b/ (the second
 station's training campaign, preset twin-2stations): twin.json holds the seed, the true
 errors, the noise floor, the misread ids, the validation campaign's tracker pose and
@@ -51,16 +51,12 @@ import pandas as pd
 import torch
 from scipy.spatial.transform import Rotation
 
-from .campaigns import pair_sha256, write_pair
 from .columns import JOINTS_DEG
-from .config import read_json, write_json
-from .frames import quaternions, robust_kabsch, to_base
-from .identify import identify
-from .kinematics import DTYPE, GRAVITY, TOOL_ROT, fk, fk_pose, gravity_torques, nominal_geometry
-from .metrics import drive_table
+from .config import read_json
+from .frames import quaternions
+from .kinematics import DTYPE, TOOL_ROT, fk, fk_pose, gravity_torques, nominal_geometry
 from .poses import RULES, acceptable
 from .robots import nominal_robot
-from .splits import split_indices
 
 
 SEED = 724
@@ -408,134 +404,3 @@ def tracker_table(ids: list, P: np.ndarray, R: np.ndarray) -> pd.DataFrame:
     for c, v in zip(ORIENTATION_COLUMNS, quaternions(R).T):
         out[c] = [f"{x:.10f}" for x in v]
     return out
-
-
-# ----------------------------------------------------------------------------- difficulty
-
-def difficulty(joints: pd.DataFrame, tracker: pd.DataFrame, params: dict,
-               twin: Twin | None = None) -> dict:
-    """How hard the campaign is, measured the pipeline's way.
-
-    1. robust Kabsch frame (eqs. 20-26) of nominal DH (tool 0) on the tracker points;
-    2. nominal DH error after that frame (mean 3D, inliers);
-    3. classical calibration (identify.identify, params' groups: elasto-geometric by
-       default) on the SPEC split's train points; its mean 3D error on train/val/test, and
-       vs the noise-free truth; the same without the compliance group (rigid).
-    """
-    q_deg = joints[JOINTS_DEG].to_numpy()
-    P = tracker[["X", "Y", "Z"]].to_numpy()
-    with torch.no_grad():
-        q = torch.as_tensor(np.radians(q_deg), dtype=DTYPE)
-        theory = fk(q, nominal_geometry(ur5())).numpy()
-    R, t, inl, _ = robust_kabsch(theory, P, params["frame"]["outlier_k"],
-                                 params["frame"]["outlier_min_mm"])
-    meas = (P - t) @ R                                               # base frame
-    e_nom = np.linalg.norm(meas - theory, axis=1)[inl]
-    keep = np.flatnonzero(inl)
-    idx = split_indices(len(keep), params["split"]["fractions"], params["split"]["seed"])
-    train = keep[idx["train"]]
-    cfg = params["calibrate"]
-    geo, rep = identify(q[train], meas[train], nominal_geometry(ur5()), cfg)
-    rigid, _ = identify(q[train], meas[train], nominal_geometry(ur5()),
-                        {**cfg, "params": [p for p in cfg["params"] if p != "compliance"]})
-    with torch.no_grad():
-        e_cal = np.linalg.norm(fk(q, geo).numpy() - meas, axis=1)
-        e_rigid = np.linalg.norm(fk(q, rigid).numpy() - meas, axis=1)
-    out = {
-        "frame_outliers": joints["point_id"][~inl].tolist(),
-        "nominal_after_frame_mean_mm": float(e_nom.mean()),
-        "nominal_after_frame_rms_mm": float(np.sqrt((e_nom ** 2).mean())),
-        "nominal_after_frame_max_mm": float(e_nom.max()),
-        "classical_fit_mean_mm": {k: float(e_cal[keep[v]].mean()) for k, v in idx.items()},
-        "rigid_fit_mean_mm": {k: float(e_rigid[keep[v]].mean()) for k, v in idx.items()},
-        "classical_fit_identified": rep["identified"],
-        "classical_fit_fixed": sorted(rep["fixed"]),
-    }
-    if twin is not None:       # model error alone: calibrated FK vs the noise-free truth
-        truth_base = (twin.to_tracker(twin.expected_position(q_deg)) - t) @ R
-        with torch.no_grad():
-            truth = np.linalg.norm(fk(q, geo).numpy() - truth_base, axis=1)
-        out["classical_fit_vs_truth_mean_mm"] = float(truth[keep].mean())
-    return out
-
-
-# ----------------------------------------------------------------------------- stage
-
-def twin_record(twin: Twin, misreads: dict) -> dict:
-    """The twin's truth for twin.json (everything but the measured difficulty)."""
-    e = twin.errors
-    return {
-        "seed": twin.seed,
-        "robot": "ur5",
-        "errors": {k: np.asarray(v).round(12).tolist() for k, v in e.items()},
-        "notes": ("commanded q -> actual q = q + gear(q) + (tau(q) - tau(zero_pose)) / stiffness "
-                  "+ N(0, joint_sigma); marker = fk(true_geometry, actual q); tracker reading = "
-                  "R marker + t + N(0, tracker_sigma) (+ misread offset)"),
-        "true_geometry": {k: v.numpy().round(12).tolist() for k, v in twin.geometry.items()},
-        "zero_pose_deg": ZERO_POSE_DEG,
-        "gravity_m_s2": list(GRAVITY),
-        "link_mass_kg": LINK_MASS.tolist(),
-        "link_com_mm": LINK_COM.tolist(),
-        "tracker_pose": {"R": twin.R.round(12).tolist(), "t": twin.t.round(9).tolist(),
-                         "convention": "P_tracker = R @ p_base + t"},
-        "misread_ids": sorted(misreads),
-        "misreads": {k: np.round(v, 6).tolist() for k, v in misreads.items()},
-    }
-
-
-def generate(out_dir: Path | str = RAW, seed: int = SEED, params: dict | None = None, fine: bool = True) -> dict:
-    """Write joints.csv, tracker.csv, validation/{joints,tracker}.csv and twin.json; with params,
-    also measure the difficulty. fine=False: the twin without its joints' fine angular structure
-    (as before issue 22; the other errors, poses and noise are the same draws)."""
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    errors = sample_errors(seed)
-    if not fine:
-        errors["fine_amp_arcsec"] = np.zeros_like(errors["fine_amp_arcsec"])
-    twin = Twin(seed, errors)
-    joints, tracker, misreads = twin.campaign()
-    files = write_pair(out_dir, joints, tracker)
-    record = twin_record(twin, misreads)
-    record["campaign_sha256"] = pair_sha256(files["joints"], files["tracker"])
-    record["noise_floor_mm"] = round(twin.noise_floor_mm, 6)
-    record["noise_floor_method"] = ("Monte Carlo: 64 drives of each campaign pose, stream "
-                                    "'floor'; tracker-only analytic value 1.5958 * sigma")
-    record["noise_floor_tracker_only_mm"] = MEAN_NORM_3D * TRACKER_SIGMA_MM
-    for key, spec in (("validation", VALIDATION), ("station_b", STATION_B)):
-        vj, vt, (R, t) = twin.validation_campaign(spec["seed"], spec["n"], spec["prefix"])
-        pair = write_pair(out_dir / spec["dir"], vj, vt)
-        record[key] = {"seed": spec["seed"], "n": spec["n"], "files": spec["dir"],
-                       "regions": {k: REGIONS[k] for k in spec["n"]},
-                       "tracker_pose": {"R": R.round(12).tolist(), "t": t.round(9).tolist()},
-                       "campaign_sha256": pair_sha256(pair["joints"], pair["tracker"])}
-    if params is not None:
-        # measured from the files as written (rounded), as the pipeline will see them
-        joints = pd.read_csv(out_dir / "joints.csv")
-        tracker = pd.read_csv(out_dir / "tracker.csv")
-        record["difficulty"] = difficulty(joints, tracker, params, twin)
-    write_json(out_dir / "twin.json", record)
-    return record
-
-
-def drive_check(twin: Twin, frame: dict, rng: np.random.Generator, q_before: np.ndarray,
-                q_after: np.ndarray, target: np.ndarray):
-    """Drive the twin to the recorded and the compensated angles (deg), measure, map to base with
-    the fitted frame; returns (the paper's Table 9 stats, per-point errors (n, 6) mm)."""
-    before = to_base(twin.drive(q_before, rng), frame)
-    after = to_base(twin.drive(q_after, rng), frame)
-    summary = {"before": drive_table(before, target), "after": drive_table(after, target),
-               "noise_floor_mm": twin.noise_floor_mm}
-    return summary, np.hstack([before - target, after - target])
-
-
-def tcp_drive_check(twin: Twin, frame: dict, rng: np.random.Generator, orng: np.random.Generator,
-                    q_before: np.ndarray, q_after: np.ndarray, target: np.ndarray, o: np.ndarray):
-    """The drive check for a TCP o (3,) mm in the probe's frame: drive the twin to the recorded and the
-    compensated angles, measure the probe's pose, and the TCP where it follows from it (P + R_meas o),
-    in the base frame; returns (Table 9 stats before and after, per-point errors (n, 6) mm)."""
-    def measured(q):
-        P, R = twin.drive_pose(q, rng, orng)
-        return to_base(P + R @ o, frame)
-    before, after = measured(q_before), measured(q_after)
-    summary = {"before": drive_table(before, target), "after": drive_table(after, target)}
-    return summary, np.hstack([before - target, after - target])
