@@ -174,7 +174,7 @@ def test_nearest_distance_in_chunks_is_the_plain_formula_exactly():
                         np.full((20, 6), -180.0), np.full((20, 6), 360.0)])
     plain = np.sqrt((wrapped(q[:, None, JOINTS] - ref[None, :, JOINTS]) ** 2).sum(-1)).min(1)
     assert np.array_equal(nearest_distance(q, ref), plain)
-    assert np.array_equal(nearest_distance(q, ref, chunk=7), plain)              # 120 chunks: on every core
+    assert np.array_equal(nearest_distance(q, ref, chunk=7), plain)
     own = np.sqrt((wrapped(ref[:, None, JOINTS] - ref[None, :, JOINTS]) ** 2).sum(-1))
     np.fill_diagonal(own, np.inf)
     assert np.array_equal(nearest_distance(ref, ref, chunk=7, leave_one_out=True), own.min(1))

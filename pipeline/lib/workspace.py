@@ -20,9 +20,6 @@ not cover it. Angles are wrapped: 350° and -10° are the same angle.
                   falling linearly to 0 at `fade_to` radii, so far from every training pose the
                   model is the calibrated physics it sits on.
 """
-import os
-from concurrent.futures import ThreadPoolExecutor
-
 import numpy as np
 import torch
 from scipy.spatial import cKDTree
@@ -31,7 +28,6 @@ from torch import nn
 from .errormaps import angle_covered
 
 JOINTS = [0, 1, 2, 3, 4]                                   # joints 1-5 (0-based)
-PARALLEL_CHUNKS = 16                                       # numpy brute force: this many chunks and more on every core
 TREE_ROWS, NEAREST_K = 64, 4                               # nearest_distance: the KD-tree from 64 poses on, 4 candidates
 
 
@@ -68,13 +64,8 @@ def nearest_distance(q_deg, ref_deg, chunk: int = 256, leave_one_out: bool = Fal
                 d[np.arange(len(d)), s + np.arange(len(d))] = np.inf
             out[s:s + chunk] = d.min(1)
 
-        starts = range(0, len(q), chunk)
-        if len(starts) < PARALLEL_CHUNKS or near is not None:
-            for s in starts:
-                rows(s)
-        else:                                               # a long brute-force table: chunks on every core
-            with ThreadPoolExecutor(len(os.sched_getaffinity(0))) as pool:
-                list(pool.map(rows, starts))
+        for s in range(0, len(q), chunk):
+            rows(s)
         return out
     q, ref = q_deg[:, JOINTS], torch.as_tensor(ref_deg)[:, JOINTS].to(q_deg.dtype)
     if torch.compiler.is_exporting():                       # ONNX export: one chunk, the batch size stays free
