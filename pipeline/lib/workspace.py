@@ -50,8 +50,7 @@ def nearest_distance(q_deg, ref_deg, chunk: int = 256, leave_one_out: bool = Fal
         q, ref = np.asarray(q_deg, float)[:, JOINTS], np.asarray(ref_deg, float)[:, JOINTS]
         near = None if leave_one_out else candidates(q, ref)                    # (n, k) or None
         out = np.empty(len(q))
-
-        def rows(s):
+        for s in range(0, len(q), chunk):
             others = ref[None] if near is None else ref[near[s:s + chunk]]     # (1, m, 5) or (c, k, 5)
             d = q[s:s + chunk, None] - others                                   # (c, m, 5), in place:
             d += 180.0                                                          # wrapped(d) ** 2, with
@@ -63,9 +62,6 @@ def nearest_distance(q_deg, ref_deg, chunk: int = 256, leave_one_out: bool = Fal
             if leave_one_out:
                 d[np.arange(len(d)), s + np.arange(len(d))] = np.inf
             out[s:s + chunk] = d.min(1)
-
-        for s in range(0, len(q), chunk):
-            rows(s)
         return out
     q, ref = q_deg[:, JOINTS], torch.as_tensor(ref_deg)[:, JOINTS].to(q_deg.dtype)
     if torch.compiler.is_exporting():                       # ONNX export: one chunk, the batch size stays free
@@ -83,13 +79,13 @@ def nearest_distance(q_deg, ref_deg, chunk: int = 256, leave_one_out: bool = Fal
     return torch.cat(out)
 
 
-def candidates(q, ref, k: int = None):
-    """(n, k) indices of each pose's k (NEAREST_K) nearest in ref, q (n, 5) and ref (m, 5) deg, found by
+def candidates(q, ref):
+    """(n, k) indices of each pose's k = NEAREST_K nearest in ref, q (n, 5) and ref (m, 5) deg, found by
     scipy's KD-tree on the torus of wrapped angles (boxsize 360); None where brute force is as cheap or must
     answer: fewer than TREE_ROWS poses, ref no larger than k, a non-finite angle. The exact formula then
     picks among the k, so the distance is the brute force's to the bit unless k + 1 poses of ref tie within
     rounding (the tree's arithmetic is not the formula's)."""
-    k = k or NEAREST_K
+    k = NEAREST_K
     if len(q) < TREE_ROWS or len(ref) <= k or not (np.isfinite(q).all() and np.isfinite(ref).all()):
         return None
     _, idx = cKDTree(on_torus(ref), boxsize=360.0).query(on_torus(q), k=k)
