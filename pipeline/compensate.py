@@ -30,11 +30,12 @@ from .lib.artifacts import (COMPENSATION_CSV, COMPENSATION_JSON, COMPENSATION_PA
 from .lib.campaigns import ingested_sha256, made_by_twin
 from .lib.cli import one_line
 from .lib.columns import JCOMP_DEG, JOINTS_DEG, TARGET, THEORY
-from .lib.compensation import delta_table, solve
+from .lib.compensation import delta_table, nominal_flange, orientation_targets, solve
 from .lib.config import for_stage, load_params, logger, read_json, split_timings, write_json
 from .lib.model import served
 from .lib.realtime import Realtime, check
-from .lib.kinematics import fk_numpy
+from .lib.kinematics import fk_numpy, tool_rotation
+from .lib.metrics import stats
 from .lib.geometry import theory_geometry
 from .lib.prepared import load_prepared
 from .lib.robots import load_robot
@@ -71,13 +72,14 @@ def served_model():
     return served(load_model(MODEL_WEIGHTS), workspace.network), workspace
 
 
-def solve_all(model, workspace, cfg: dict, robot, df: pd.DataFrame):
-    """Job 1 and 2: both solvers on df's targets, and the controller path on the same targets -> (the Δθ
-    table of compensate.solver, the comparison's summary, histories)."""
+def solve_all(model, workspace, cfg: dict, robot, df: pd.DataFrame, flange_rot: np.ndarray | None = None):
+    """Job 1 and 2: both solvers on df's targets (with flange_rot (n, 3, 3), their orientations too), and the
+    controller path on the same positions -> (the Δθ table of compensate.solver, the comparison's summary,
+    histories)."""
     q0, target = df[JOINTS_DEG].to_numpy(), df[TARGET].to_numpy()
-    summary, histories = {"solver": cfg["solver"], "n_points": len(df)}, {}
+    summary, histories = {"solver": cfg["solver"], "n_points": len(df), "orientation": flange_rot is not None}, {}
     for solver in SOLVERS:                                  # both, for the comparison; table from cfg
-        s = solve(model, q0, target, cfg, robot, solver)
+        s = solve(model, q0, target, cfg, robot, solver, flange_rot=flange_rot)
         res = np.linalg.norm(s.pred - target, axis=1)
         histories[solver] = s.history
         summary[solver] = {"converged_share": float(s.converged.mean()),
@@ -85,6 +87,8 @@ def solve_all(model, workspace, cfg: dict, robot, df: pd.DataFrame):
                            "iterations_max": int(s.iterations.max()), "residual_mm_mean": float(res.mean()),
                            "residual_mm_max": float(res.max()), "seconds": s.seconds,
                            "ms_per_point": 1000 * s.seconds / len(df)}
+        if s.orientation_arcsec is not None:
+            summary[solver]["orientation_residual_arcsec"] = stats(s.orientation_arcsec)
         log.info("%s: %d points, %.0f%% converged, %.1f iterations on average (max %d), "
                  "residual mean %.2e mm max %.2e mm, %.3f s", solver, len(df), 100 * s.converged.mean(),
                  s.iterations.mean(), s.iterations.max(), res.mean(), res.max(), s.seconds)
@@ -107,7 +111,8 @@ def twin_campaign(twin_json: str, files: dict) -> str | None:
     return made_by_twin(read_json(twin_json), ingested_sha256(files))
 
 
-def twin_checks(model, cfg: dict, robot, tcp: dict | None, table: pd.DataFrame, frame: dict, made: str | None):
+def twin_checks(model, cfg: dict, robot, tcp: dict | None, table: pd.DataFrame, frame: dict, made: str | None,
+                flange_rot: np.ndarray | None = None):
     """Job 3: the twin driven to the table's recorded and compensated angles (the paper's Table 9), and
     at every `robot.tcp` where the campaign has orientation, when the campaign is the twin's main one
     (`made`) -> (compensation.json's entries, the per-point errors for drive_check.csv)."""
@@ -124,7 +129,7 @@ def twin_checks(model, cfg: dict, robot, tcp: dict | None, table: pd.DataFrame, 
     errors = pd.DataFrame(e, columns=errors.columns[1:])
     errors.insert(0, "point_id", table["point_id"])
     if tcp and "tool_rot" in frame:
-        out["tcp_drive_check"] = tcp_checks(model, cfg, robot, tcp, table, frame)
+        out["tcp_drive_check"] = tcp_checks(model, cfg, robot, tcp, table, frame, flange_rot)
     b, a = out["drive_check"]["before"], out["drive_check"]["after"]
     log.info("twin drive check on %d points: 3D error mean %.4f -> %.4f mm, max %.4f -> %.4f mm, "
              "within ±%.1f mm %.0f%% -> %.0f%%", a["n"], b["3d"]["mean"], a["3d"]["mean"],
@@ -133,19 +138,26 @@ def twin_checks(model, cfg: dict, robot, tcp: dict | None, table: pd.DataFrame, 
     return out, errors
 
 
-def tcp_checks(model, cfg: dict, robot, tcp: dict, table: pd.DataFrame, frame: dict) -> dict:
-    """Per `robot.tcp`: the test poses' nominal TCP positions solved for through the served model (AtTcp)
-    and driven on the twin (lib/twin.py tcp_drive_check): Table 9 before (recorded angles) and after."""
+def tcp_checks(model, cfg: dict, robot, tcp: dict, table: pd.DataFrame, frame: dict,
+               flange_rot: np.ndarray | None = None) -> dict:
+    """Per `robot.tcp`: the test poses' nominal TCP positions (and with flange_rot, their nominal flange
+    orientations) solved for through the served model (AtTcp) and driven on the twin (lib/drive.py
+    tcp_drive_check): Table 9 before (recorded angles) and after, and the flange's orientation error."""
     twin, out = Twin.from_json(cfg["twin"]), {}
     q0 = table[JOINTS_DEG].to_numpy()
     for k, (name, o) in enumerate(probe_offsets(tcp, model.physics.geometry()).items()):
         at = AtTcp(model, o)
         target = fk_numpy(q0, robot, theory_geometry(robot, tcp[name]["xyz_mm"]))   # offline-programmed TCP
-        s = solve(at, q0, target, cfg, robot, history=False)
+        s = solve(at, q0, target, cfg, robot, history=False, flange_rot=flange_rot)
         rng = np.random.default_rng([cfg["drive_seed"], k + 1])
         out[name], _ = tcp_drive_check(twin, frame, rng, np.random.default_rng([cfg["drive_seed"], k + 1, 1]),
-                                       q0, s.q_deg, target, o)
+                                       q0, s.q_deg, target, o, tool_rotation(model.physics.geometry()).numpy(),
+                                       nominal_flange(q0, theory_geometry(robot, tcp[name]["xyz_mm"])))
         out[name]["converged_share"] = float(s.converged.mean())
+        if "orientation_arcsec" in out[name]:
+            o_b, o_a = out[name]["orientation_arcsec"]["before"], out[name]["orientation_arcsec"]["after"]
+            log.info("twin drive check at TCP %s: the flange's orientation off its nominal target, mean %.1f -> "
+                     "%.1f arcsec, max %.1f -> %.1f", name, o_b["mean"], o_a["mean"], o_b["max"], o_a["max"])
         b, a = out[name]["before"], out[name]["after"]
         log.info("twin drive check at TCP %s (%s mm in the flange) on %d points: 3D error mean %.4f -> %.4f mm, "
                  "max %.4f -> %.4f mm, within ±%.1f mm %.0f%% -> %.0f%%", name, tcp[name]["xyz_mm"], a["n"],
@@ -166,12 +178,14 @@ def run(params: dict) -> dict:
     prep = load_prepared(p["robot"], parts=False)
     cfg, robot, frame = p["compensate"], prep.robot, prep.frame
     model, workspace = served_model()
-    table, summary, histories = solve_all(model, workspace, cfg, robot, test_targets(prep.points))
+    targets = test_targets(prep.points)
+    flange_rot = nominal_flange(targets[JOINTS_DEG].to_numpy(), prep.nominal) if orientation_targets(model, cfg) else None
+    table, summary, histories = solve_all(model, workspace, cfg, robot, targets, flange_rot)
     table.to_csv(COMPENSATION_CSV, index=False, float_format="%.6f")
     table.to_parquet(COMPENSATION_PARQUET, index=False)
     convergence_table(histories).to_csv(CONVERGENCE_CSV, index=False)
     made = twin_campaign(cfg["twin"], read_json(INGEST_JSON)["files"]) if cfg["drive_check"] else None
-    checks, errors = twin_checks(model, cfg, robot, p["robot"]["tcp"], table, frame, made)
+    checks, errors = twin_checks(model, cfg, robot, p["robot"]["tcp"], table, frame, made, flange_rot)
     summary.update(checks)
     errors.to_csv(DRIVE_CSV, index=False, float_format="%.6f")   # empty: no drive check
     summary, timings = split_timings(summary)

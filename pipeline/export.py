@@ -8,6 +8,8 @@
     models/controller_physics.onnx   the same on the model's physics branch alone (model.PhysicsOnly:
                                  the calibration with its error maps, the network left out), for a
                                  controller whose cycle cannot hold the network
+    models/controller_tcp.onnx, models/controller_physics_tcp.onnx   the same two with one more input,
+                                 tcp_mm (3,): the targets are that TCP's (flange frame), not the marker's
 
 and reports/export.json, what each file was checked against, by libraries the
 pipeline does not use for its own kinematics:
@@ -29,6 +31,9 @@ squares over the campaign's poses); how far it stays from it, and what it leaves
            every test pose towards its theory position, one call each and all in one batch: the largest
            difference in angles (rad) and residual (mm), and answers whose flags differ
     controller_physics  the same for controller_physics.onnx against Realtime on PhysicsOnly(model)
+    controller_tcp, controller_physics_tcp  the same at every `robot.tcp` point (each test pose towards
+           that TCP's nominal position), against Realtime on tcp.AtTcp of the model (of PhysicsOnly(model));
+           without robot.tcp, at a point 150 mm along the flange's x
 """
 import numpy as np
 import pinocchio as pin
@@ -36,18 +41,20 @@ import torch
 import yaml
 from scipy.spatial.transform import Rotation
 
-from .lib.artifacts import (CALIBRATED_GEOMETRY, CONTROLLER_ONNX, CONTROLLER_PHYSICS_ONNX, EXPORT_JSON, MODEL_ONNX, MODEL_WEIGHTS, PARTS_JSON, UR_YAML, URDF_FILE,
-                            load_points)
+from .lib.artifacts import (CALIBRATED_GEOMETRY, CONTROLLER_ONNX, CONTROLLER_PHYSICS_ONNX, CONTROLLER_PHYSICS_TCP_ONNX,
+                            CONTROLLER_TCP_ONNX, EXPORT_JSON, MODEL_ONNX, MODEL_WEIGHTS, PARTS_JSON, UR_YAML,
+                            URDF_FILE, load_points)
 from .lib.cli import one_line
 from .lib.columns import JOINTS_DEG, THEORY
 from .lib.config import for_stage, load_params, logger, read_json, write_json
-from .lib.geometry import Calibration, with_parts
+from .lib.geometry import Calibration, theory_geometry, with_parts
 from .lib.identify import identify
 from .lib.realtime import Realtime
-from .lib.kinematics import DTYPE, RIGID_KEYS, TOOL_ROT, fk, fk_frames, fk_pose
+from .lib.kinematics import DTYPE, RIGID_KEYS, TOOL_ROT, fk, fk_frames, fk_numpy, fk_pose
 from .lib.model import PhysicsOnly
 from .lib.onnx_model import OnnxModel, OnnxRealtime, deviation, export_controller, export_onnx
 from .lib.robots import TABLES, load_robot
+from .lib.tcp import AtTcp, probe_offsets
 from .lib.checkpoint import load_model
 from .lib.urdf import UR_YAML_NAMES, base_transform, flange_residual, joint_origins, to_urdf, ur_kinematics
 
@@ -179,6 +186,21 @@ def run(params: dict) -> dict:
         log.info("%s: onnxruntime's answers vs the PyTorch controller path's on %d test poses (alone and in a "
                  "batch): max %.1e rad, residual %.1e mm; flags differ in %d", path, test.sum(),
                  dev["max_q_rad"], dev["max_residual_mm"], dev["flags_differ"])
+    tcps = {n: c["xyz_mm"] for n, c in (p["robot"]["tcp"] or {"x150": {"xyz_mm": [150.0, 0.0, 0.0]}}).items()}
+    for key, path, m in (("controller_tcp", CONTROLLER_TCP_ONNX, model),
+                         ("controller_physics_tcp", CONTROLLER_PHYSICS_TCP_ONNX, PhysicsOnly(model))):
+        export_controller(m, path, at_tcp=True)
+        summary[key] = {"file": str(path), "checked_with": "onnxruntime"}
+        for name, xyz in tcps.items():
+            o = probe_offsets({name: {"xyz_mm": xyz}}, m.physics.geometry())[name]
+            target = fk_numpy(pts.loc[test, JOINTS_DEG].to_numpy(), robot, theory_geometry(robot, xyz))
+            dev = deviation(Realtime(AtTcp(m, o), limits), OnnxRealtime(path, limits, tcp_mm=xyz), q[test].numpy(),
+                            target)
+            summary[key][name] = {**dev, "max_q_rad": size(dev["max_q_rad"]),
+                                  "max_residual_mm": size(dev["max_residual_mm"])}
+            log.info("%s at TCP %s: onnxruntime vs PyTorch (AtTcp) on %d test poses: max %.1e rad, residual "
+                     "%.1e mm; flags differ in %d", path, name, test.sum(), dev["max_q_rad"], dev["max_residual_mm"],
+                     dev["flags_differ"])
     write_json(EXPORT_JSON, summary)
     return summary
 

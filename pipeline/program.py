@@ -64,15 +64,16 @@ def urscript(table: pd.DataFrame, skipped: dict, move: str = "movej", acc: float
              f"(commented out, no move); {move}, acc and vel in {MOVES[move]}",
              "def compensated_program():", f"  acc = {float(acc):.6f}", f"  vel = {float(vel):.6f}"]
     q_rad = np.radians(table[JCOMP_DEG].to_numpy(float)).tolist()          # (n, 6), one call for the program
-    for pid, q, inside, u, res in zip(table.point_id, q_rad, table.in_workspace, table.uncertainty_mm,
-                                      table.residual_mm):
+    for pid, q, inside, u, res, ores in zip(table.point_id, q_rad, table.in_workspace, table.uncertainty_mm,
+                                            table.residual_mm, table.orientation_residual_arcsec):
         pid = pid if ID_PATTERN.fullmatch(str(pid)) else "?"                  # read_waypoints refused others
         if pid in skipped or pid == "?":
             lines.append(f"  # {pid}: NOT REACHED ({skipped.get(pid, 'invalid id')}): no move")
             continue
         q = ", ".join(f"{v:.9f}" for v in q)
         flag = "" if inside else f", outside the trained workspace (uncertainty {u:.3f} mm)"
-        lines += [f"  # {pid}: residual {res:.4f} mm{flag}", f"  {move}([{q}], a=acc, v=vel)"]
+        orient = f", orientation {float(ores):.2f} arcsec" if np.isfinite(ores) else ""
+        lines += [f"  # {pid}: residual {res:.4f} mm{orient}{flag}", f"  {move}([{q}], a=acc, v=vel)"]
     return "\n".join(lines + ["end", ""])
 
 

@@ -22,8 +22,9 @@ XML-RPC at http://HOST:PORT/RPC2 (only that path, only POST; default 127.0.0.1:5
     system.listMethods, system.methodHelp, system.methodSignature
 
 With --tcp NAME every target is that `robot.tcp` point's (lib/tcp.py AtTcp: the marker's answer moved
-along the probe's orientation), not the marker's; the controller path then runs in PyTorch (the
-exported graphs are the marker's), and a model calibrated without orientation is refused.
+along the probe's orientation), not the marker's; the controller path then runs on the export stage's
+models/controller_tcp.onnx (controller_physics_tcp.onnx), fed that point, and a model calibrated
+without orientation is refused.
 
 What a request costs and when it is answered, refused or unreachable: lib/service.py (the logic: a
 worker thread owning the model batches concurrent requests; each has a budget, serve.max_iter and
@@ -57,7 +58,8 @@ from xmlrpc.server import SimpleXMLRPCRequestHandler, SimpleXMLRPCServer
 import numpy as np
 import torch
 
-from .lib.artifacts import CONTROLLER_ONNX, CONTROLLER_PHYSICS_ONNX, MODEL_WEIGHTS, WORKSPACE_JSON
+from .lib.artifacts import (CONTROLLER_ONNX, CONTROLLER_PHYSICS_ONNX, CONTROLLER_PHYSICS_TCP_ONNX, CONTROLLER_TCP_ONNX,
+                            MODEL_WEIGHTS, WORKSPACE_JSON)
 from .lib.compensation import reach_mm
 from .lib.config import PARAMS as PARAMS_YAML, ParamsError, for_stage, load_params, logger, read_json
 from .lib.model import served
@@ -334,17 +336,18 @@ class Server(socketserver.ThreadingMixIn, SimpleXMLRPCServer):
         self.service.close()
 
 
-def fast_path(model, workspace: Workspace, limits_deg, tol_mm: float, graph=CONTROLLER_ONNX) -> OnnxRealtime | None:
+def fast_path(model, workspace: Workspace, limits_deg, tol_mm: float, graph=CONTROLLER_ONNX,
+              tcp_mm=None) -> OnnxRealtime | None:
     """The controller path on onnxruntime from `graph` (the export stage's models/controller.onnx, or
-    controller_physics.onnx for the physics alone), when it is there and answers as the PyTorch model does
-    (on 8 training poses, 0.5 mm off: an export of another model would not); else None, with a warning
-    saying why (the service then runs it in PyTorch)."""
+    controller_physics.onnx for the physics alone; their _tcp graphs fed tcp_mm, flange frame), when it is
+    there and answers as the PyTorch model does (on 8 training poses, 0.5 mm off: an export of another
+    model would not); else None, with a warning saying why (the service then runs it in PyTorch)."""
     if not graph.exists():
         log.warning("no %s (run `dvc repro`): the controller path runs in PyTorch", graph)
         return None
     limits = np.radians(limits_deg)
     try:
-        fast = OnnxRealtime(graph, limits, tol_mm, workspace)
+        fast = OnnxRealtime(graph, limits, tol_mm, workspace, tcp_mm=tcp_mm)
     except ValueError as e:
         log.warning("%s; run `dvc repro`: the controller path runs in PyTorch", e)
         return None
@@ -378,11 +381,14 @@ def make_server(params: dict, host: str | None = None, port: int | None = None,
     except ValueError as e:                               # compensate_path says so; the rest serves
         speeds = str(e)
     model = served(load_model(MODEL_WEIGHTS), workspace.network)     # evaluate's verdict on the network
-    if tcp is not None:                                   # every target a TCP's (the graphs are the marker's)
-        model = at_tcp(model, params["robot"]["tcp"], tcp, theory_geometry(robot, robot.tool))[0]
     graph = CONTROLLER_ONNX if workspace.network else CONTROLLER_PHYSICS_ONNX
+    tcp_mm = None
+    if tcp is not None:                                   # every target a TCP's, on the graph fed its point
+        model = at_tcp(model, params["robot"]["tcp"], tcp, theory_geometry(robot, robot.tool))[0]
+        graph = CONTROLLER_TCP_ONNX if workspace.network else CONTROLLER_PHYSICS_TCP_ONNX
+        tcp_mm = params["robot"]["tcp"][tcp]["xyz_mm"]
     tol = params["compensate"]["tol_mm"]
-    controller = fast_path(model, workspace, limits_deg, tol, graph) if cfg["onnx"] and tcp is None else None
+    controller = fast_path(model, workspace, limits_deg, tol, graph, tcp_mm) if cfg["onnx"] else None
     log.info("serving %s; the controller path on %s", "the whole model" if workspace.network else
              "the physics alone (the network did not lower the validation error)",
              f"onnxruntime ({graph})" if controller is not None else "PyTorch" + (", compiled" if cfg["compile"] else ""))

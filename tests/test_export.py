@@ -315,3 +315,39 @@ def test_controller_onnx_of_an_ensemble_answers_as_realtime(tmp_path):
     onnx_rt, torch_rt = OnnxRealtime(tmp_path / "controller.onnx"), Realtime(model)
     assert_same_answers([onnx_rt(a, b) for a, b in zip(q0, tgt)], [torch_rt(a, b) for a, b in zip(q0, tgt)])
     assert_same_answers(onnx_rt.batch(q0, tgt), torch_rt.batch(q0, tgt))
+
+
+def test_the_tcp_controller_graph_answers_for_any_tool_as_the_pytorch_path_at_it(in_trained_project):
+    """Issue 34: models/controller_tcp.onnx takes the TCP (flange frame) as an input; fed robot.tcp's x150, and
+    a tool the export never saw, it answers every case as the PyTorch controller path on tcp.AtTcp, alone and
+    in a batch, and the answers put that TCP, not the marker, on the target. The marker's own graph refuses
+    a tool (its inputs do not take one), and the TCP graph refuses to run without one."""
+    import onnx
+    from pipeline.lib.tcp import AtTcp, probe_offsets
+    graph = onnx.load("models/controller_tcp.onnx").graph
+    assert [i.name for i in graph.input] == ["q0_rad", "target_mm", "q_min_rad", "q_max_rad", "damping", "tcp_mm"]
+    params = in_trained_project
+    model, ws = load_model("models/boter.pt"), Workspace.from_dict(read_json("models/workspace.json"))
+    limits, tol = np.radians(load_robot(params["robot"]).limits_deg), params["compensate"]["tol_mm"]
+    q0 = controller_cases(model, params)[0][:40]
+    for xyz in (params["robot"]["tcp"]["x150"]["xyz_mm"], [20.0, -80.0, 240.0]):
+        at = AtTcp(model, probe_offsets({"t": {"xyz_mm": xyz}}, model.physics.geometry())["t"])
+        with torch.no_grad():
+            tgt = at(torch.as_tensor(q0))[0].numpy() + [0.3, -0.2, 0.25]          # 0.45 mm from each pose's TCP
+        fast = OnnxRealtime("models/controller_tcp.onnx", limits, tol, ws, tcp_mm=xyz)
+        slow = Realtime(at, limits, tol, workspace=ws)
+        single = [fast(a, b) for a, b in zip(q0, tgt)]
+        assert_same_answers(single, [slow(a, b) for a, b in zip(q0, tgt)])
+        assert_same_answers(fast.batch(q0, tgt), slow.batch(q0, tgt))
+        with torch.no_grad():
+            landed = at(torch.as_tensor(np.array([r.q for r in single])))[0].numpy()
+        ok = np.array([r.converged for r in single])
+        assert ok.mean() > 0.9 and np.linalg.norm(landed - tgt, axis=1)[ok].max() < tol
+    with pytest.raises(ValueError, match="not the controller path's"):
+        OnnxRealtime("models/controller.onnx", limits, tcp_mm=[150.0, 0, 0])
+    with pytest.raises(ValueError, match="not the controller path's"):
+        OnnxRealtime("models/controller_tcp.onnx", limits)
+    export = json.loads(Path("reports/export.json").read_text())
+    for name in ("controller_tcp", "controller_physics_tcp"):  # the export stage's read-back at each robot.tcp
+        r = export[name]["x150"]
+        assert r["max_q_rad"] < 1e-9 and r["max_residual_mm"] < 1e-6 and r["flags_differ"] == 0

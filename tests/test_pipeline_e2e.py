@@ -39,6 +39,9 @@ def test_repro_produces_contract_outputs_and_is_idempotent(reproduced):
                                   check_dtype=False, atol=1e-6)
     summary = json.loads((repo / "reports/compensation.json").read_text())
     assert summary["drive_check"]["after"]["n"] == len(comp)
+    assert summary["orientation"] and comp.orientation_residual_arcsec.max() < 1.0   # six equations (issue 34)
+    turned = summary["tcp_drive_check"]["x150"]["orientation_arcsec"]              # measured on the twin
+    assert turned["after"]["mean"] < 100 and turned["after"]["mean"] < turned["before"]["mean"] / 10
     assert summary["outside_workspace"] == int((~comp.in_workspace).sum())
     assert summary["realtime"]["outside_workspace"] == summary["outside_workspace"]
 

@@ -1,7 +1,6 @@
 """Calibrating the tool, not the marker (issue 34): orientation residuals, the probe's rotation in the
 flange, joint 6 seen only through orientation, TCPs judged and solved for, the twin's 6-DoF probe."""
 import numpy as np
-import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
@@ -10,7 +9,7 @@ from pipeline.lib import twin as T
 from pipeline.lib.compensation import solve
 from pipeline.lib.frames import probe_rotation
 from pipeline.lib.identify import identify
-from pipeline.lib.kinematics import (DTYPE, TOOL_ROT, DHChain, angular_jacobian, fk_jacobian, fk_pose, gravity_torques,
+from pipeline.lib.kinematics import (DTYPE, TOOL_ROT, DHChain, angular_jacobian, fk_pose, gravity_torques,
                                      nominal_geometry, rotation_error)
 from pipeline.lib.model import PhysicsOnly
 from pipeline.lib.robots import nominal_robot

@@ -767,7 +767,8 @@ def test_where_the_network_is_off_the_physics_alone_is_served(project, params, p
 
 def test_a_service_for_a_tcp_lands_that_tcp_on_its_target(project, params, poses):
     """serve --tcp x150: each answer puts the TCP (the marker's answer moved along the probe's
-    orientation, lib/tcp.py), not the marker, on the target; a real client calls it (issue 34)."""
+    orientation, lib/tcp.py), not the marker, on the target; a real client calls it (issue 34); the
+    controller path runs on models/controller_tcp.onnx."""
     from pipeline.lib.tcp import AtTcp, probe_offsets
     threads = torch.get_num_threads()
     s = serving(params, tcp="x150")
@@ -785,6 +786,8 @@ def test_a_service_for_a_tcp_lands_that_tcp_on_its_target(project, params, poses
                 marker = model(torch.tensor([r["q_rad"]], dtype=torch.float64))[0][0].numpy()
             assert r["converged"] and np.linalg.norm(tcp - t) < params["compensate"]["tol_mm"]
             assert np.linalg.norm(marker - t) > 100                            # the marker is elsewhere
+        assert isinstance(s.service.realtime, OnnxRealtime)                    # the TCP's own graph, fed x150
+        assert s.service.realtime.fixed["tcp_mm"].tolist() == params["robot"]["tcp"]["x150"]["xyz_mm"]
     finally:
         s.shutdown()
         s.server_close()

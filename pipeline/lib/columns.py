@@ -15,6 +15,7 @@ DJ_DEG = [f"dj{i}_deg" for i in range(1, 7)]
 JCOMP_DEG = [f"j{i}_comp_deg" for i in range(1, 7)]
 TARGET = ["target_x", "target_y", "target_z"]
 COMPENSATION = (["point_id"] + JOINTS_DEG + DJ_DEG + JCOMP_DEG + TARGET + PRED
-                + ["residual_mm", "iterations", "converged", "uncertainty_mm", "in_workspace"])
+                + ["residual_mm", "iterations", "converged", "uncertainty_mm", "in_workspace",
+                   "orientation_residual_arcsec"])
 RANDOM_SPLITS = ("train", "val", "test")                  # the 8:1:1 split
 SPLITS = RANDOM_SPLITS + ("holdout",)                      # values of the split column (holdout: split.holdout)

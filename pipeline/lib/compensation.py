@@ -4,9 +4,11 @@ from dataclasses import dataclass
 
 import numpy as np
 import pandas as pd
+import torch
 
 from .columns import COMPENSATION, DJ_DEG, JCOMP_DEG, JOINTS_DEG, PRED, TARGET
-from .solvers import compensate
+from .kinematics import DTYPE, TOOL_ROT, flange_rotations
+from .solvers import compensate, orientation_residual
 
 
 @dataclass
@@ -18,13 +20,35 @@ class Solved:
     converged: np.ndarray    # (n,) bool
     history: np.ndarray | None   # (iterations + 1, n) residual mm; None when not asked for
     seconds: float
+    orientation_arcsec: np.ndarray | None = None   # (n,) the flange's orientation off its target; None: no target
 
 
 def solve(model, q0_deg: np.ndarray, target: np.ndarray, cfg: dict, robot, solver: str | None = None,
-          history: bool = True) -> Solved:
+          history: bool = True, flange_rot: np.ndarray | None = None) -> Solved:
     """Compensate every (q0, target) with `solver` (default cfg["solver"]) within the robot's limits (the
-    model evaluated solvers.CHUNK points at a time: one batch's numbers, bounded memory)."""
-    return Solved(*compensate(model, q0_deg, target, cfg, robot, solver, history=history))
+    model evaluated solvers.CHUNK points at a time: one batch's numbers, bounded memory); with flange_rot
+    (n, 3, 3), the flange's orientation is a target too (six equations, lib/solvers.py)."""
+    if flange_rot is None:
+        return Solved(*compensate(model, q0_deg, target, cfg, robot, solver, history=history))
+    pose = np.hstack([target, flange_rot.reshape(len(target), 9)])    # (n, 12)
+    s = Solved(*compensate(model, q0_deg, pose, cfg, robot, solver, history=history))
+    e = orientation_residual(model.physics.geometry(), torch.as_tensor(np.radians(s.q_deg), dtype=DTYPE),
+                             torch.as_tensor(pose, dtype=DTYPE))
+    s.orientation_arcsec = np.degrees(e.norm(dim=1).numpy()) * 3600
+    return s
+
+
+def nominal_flange(q0_deg: np.ndarray, nominal: dict) -> np.ndarray:
+    """The flange's orientation (n, 3, 3), base frame, of joints q0 (n, 6) deg under the nominal geometry:
+    an offline-programmed waypoint's orientation target."""
+    return flange_rotations(torch.as_tensor(np.radians(q0_deg), dtype=DTYPE), nominal).numpy()
+
+
+def orientation_targets(model, cfg: dict) -> bool:
+    """Whether offline-programmed targets carry their nominal orientation (`compensate.orientation`): only
+    for a model calibrated with the probe's orientation (its geometry has a tool rotation); a
+    position-only model's orientation was never measured."""
+    return bool(cfg.get("orientation", False)) and TOOL_ROT in model.physics.geometry()
 
 
 def delta_table(point_id, q0_deg: np.ndarray, target: np.ndarray, solved: Solved, workspace) -> pd.DataFrame:
@@ -38,6 +62,7 @@ def delta_table(point_id, q0_deg: np.ndarray, target: np.ndarray, solved: Solved
     table["residual_mm"] = np.linalg.norm(solved.pred - target, axis=1)
     table["iterations"], table["converged"] = solved.iterations, solved.converged
     table["uncertainty_mm"], table["in_workspace"] = workspace(solved.q_deg)
+    table["orientation_residual_arcsec"] = np.nan if solved.orientation_arcsec is None else solved.orientation_arcsec
     return table[COMPENSATION]
 
 

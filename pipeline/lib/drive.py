@@ -2,8 +2,10 @@
 the paper's Table 9 for the compensated angles (`drive_check`) and at a TCP (`tcp_drive_check`)."""
 import numpy as np
 
-from .frames import to_base
-from .metrics import drive_table
+from scipy.spatial.transform import Rotation
+
+from .frames import ARCSEC, to_base
+from .metrics import drive_table, stats
 from .twin import Twin
 
 
@@ -19,13 +21,20 @@ def drive_check(twin: Twin, frame: dict, rng: np.random.Generator, q_before: np.
 
 
 def tcp_drive_check(twin: Twin, frame: dict, rng: np.random.Generator, orng: np.random.Generator,
-                    q_before: np.ndarray, q_after: np.ndarray, target: np.ndarray, o: np.ndarray):
+                    q_before: np.ndarray, q_after: np.ndarray, target: np.ndarray, o: np.ndarray,
+                    tool_rot: np.ndarray | None = None, flange_target: np.ndarray | None = None):
     """The drive check for a TCP o (3,) mm in the probe's frame: drive the twin to the recorded and the
     compensated angles, measure the probe's pose, and the TCP where it follows from it (P + R_meas o),
-    in the base frame; returns (Table 9 stats before and after, per-point errors (n, 6) mm)."""
+    in the base frame; returns (Table 9 stats before and after, per-point errors (n, 6) mm). With
+    flange_target (n, 3, 3) the flange's measured orientation (R_meas tool_rotᵀ, tool_rot the model's
+    probe rotation in the flange) is judged against it too: `orientation_arcsec` before and after."""
     def measured(q):
         P, R = twin.drive_pose(q, rng, orng)
-        return to_base(P + R @ o, frame)
-    before, after = measured(q_before), measured(q_after)
+        return to_base(P + R @ o, frame), np.asarray(frame["R"]).T @ R     # (n, 3), (n, 3, 3) base frame
+    (before, R_before), (after, R_after) = measured(q_before), measured(q_after)
     summary = {"before": drive_table(before, target), "after": drive_table(after, target)}
+    if flange_target is not None:
+        def off(R):                                                          # (n,) arcsec
+            return Rotation.from_matrix(R @ tool_rot.T @ flange_target.transpose(0, 2, 1)).magnitude() / ARCSEC
+        summary["orientation_arcsec"] = {"before": stats(off(R_before)), "after": stats(off(R_after))}
     return summary, np.hstack([before - target, after - target])

@@ -12,6 +12,10 @@ controller path (realtime.py: both chord steps, two evaluations of the model) as
 each request's λ (`OnnxRealtime.lm_step`: q1 is lm's trial step and r1 its residual, one run an
 iteration).
 
+`models/controller_tcp.onnx` (and `controller_physics_tcp.onnx`) take one more input, `tcp_mm` (3,)
+float64, the TCP in the flange frame (`robot.tcp`'s xyz_mm): the same two steps for that point's
+position (`OnnxRealtime(path, ..., tcp_mm=...)`, what `python -m pipeline.serve --tcp` runs).
+
 The joint limits are inputs, not constants: the graph is the model's alone, as model.onnx is, and a
 change of the robot's limits cannot leave it answering with old ones. The 3×3 linear solve of each
 step runs in closed form in the graph (solvers.solve3: ONNX has no solve), the error maps' table
@@ -38,6 +42,7 @@ from .realtime import DAMPING, Result, answers, two_steps
 from .solvers import lm_keep
 
 CONTROLLER_INPUTS = ("q0_rad", "target_mm", "q_min_rad", "q_max_rad", "damping")
+TCP_INPUT = "tcp_mm"                # export_controller(..., at_tcp=True): the TCP (3,) mm, flange frame
 CONTROLLER_OUTPUTS = ("q1_rad", "q2_rad", "r0_mm", "r1_mm")
 
 
@@ -64,21 +69,33 @@ class _Controller(nn.Module):
         return two_steps(self.model, q0_rad, target_mm, q_min_rad, q_max_rad, damping)
 
 
+class _ControllerAtTcp(_Controller):
+    """The same at a TCP given as an input (3,) mm in the flange frame: one graph for every tool."""
+
+    def forward(self, q0_rad, target_mm, q_min_rad, q_max_rad, damping, tcp_mm):
+        return two_steps(self.model, q0_rad, target_mm, q_min_rad, q_max_rad, damping, tcp_mm)
+
+
 def export_onnx(model, path) -> None:
     """Write `model` (BoTER or Ensemble, eval mode) to `path` as ONNX."""
     _export(_Poses(_exportable(model)), (torch.zeros(4, 6),), ["q_rad"], ["p_mm", "probe_rot"], ({0: "batch"},), path)
 
 
-def export_controller(model, path) -> None:
+def export_controller(model, path, at_tcp: bool = False) -> None:
     """Write the controller path of `model` (BoTER or Ensemble, eval mode) to `path` as one ONNX graph:
-    both chord steps, exactly what realtime.Realtime computes with the same damping."""
+    both chord steps, exactly what realtime.Realtime computes with the same damping; at_tcp: with the input
+    `tcp_mm` (3,), the TCP in the flange frame, whose position the targets are (Realtime on tcp.AtTcp)."""
     m = _exportable(model)
     for p in m.parameters():
         p.requires_grad_(False)
     args = (torch.zeros(4, 6, dtype=DTYPE), torch.zeros(4, 3, dtype=DTYPE), torch.full((6,), -np.pi, dtype=DTYPE),
             torch.full((6,), np.pi, dtype=DTYPE), torch.full((4,), DAMPING, dtype=DTYPE))
-    _export(_Controller(m), args, list(CONTROLLER_INPUTS), list(CONTROLLER_OUTPUTS),
-            ({0: "batch"}, {0: "batch"}, None, None, {0: "batch"}), path)
+    dynamic = ({0: "batch"}, {0: "batch"}, None, None, {0: "batch"})
+    if at_tcp:
+        _export(_ControllerAtTcp(m), args + (torch.zeros(3, dtype=DTYPE),), list(CONTROLLER_INPUTS) + [TCP_INPUT],
+                list(CONTROLLER_OUTPUTS), dynamic + (None,), path)
+    else:
+        _export(_Controller(m), args, list(CONTROLLER_INPUTS), list(CONTROLLER_OUTPUTS), dynamic, path)
 
 
 def _exportable(model):
@@ -172,15 +189,18 @@ class OnnxRealtime:
     A single pose runs on a session with the batch size held at 1, a batch on one with it free."""
 
     def __init__(self, path, limits_rad: np.ndarray | None = None, tol_mm: float = 1e-3, workspace=None,
-                 damping: float = DAMPING):
+                 damping: float = DAMPING, tcp_mm=None):
         self.session, self.tol, self.workspace, self.damping = session(path), tol_mm, workspace, float(damping)
         names = tuple(i.name for i in self.session.get_inputs())
-        if names != CONTROLLER_INPUTS:
+        want = CONTROLLER_INPUTS + (() if tcp_mm is None else (TCP_INPUT,))
+        if names != want:
             raise ValueError(f"{path}: a graph with inputs {', '.join(names)}, not the controller path's "
-                             f"{', '.join(CONTROLLER_INPUTS)} (exported by an older version?)")
+                             f"{', '.join(want)} (exported by an older version, or for another tool?)")
         self.single = session(path, {self.session.get_inputs()[0].shape[0]: 1})
         lim = np.array([[-np.inf, np.inf]] * 6) if limits_rad is None else np.asarray(limits_rad, float)
-        self.limits = {"q_min_rad": np.ascontiguousarray(lim[:, 0]), "q_max_rad": np.ascontiguousarray(lim[:, 1])}
+        self.fixed = {"q_min_rad": np.ascontiguousarray(lim[:, 0]), "q_max_rad": np.ascontiguousarray(lim[:, 1])}
+        if tcp_mm is not None:                             # the graph's inputs held for every call
+            self.fixed[TCP_INPUT] = np.array(tcp_mm, np.float64).reshape(3)
 
     def solve(self, q0_rad, target_mm, damping=None) -> list[np.ndarray]:
         """The graph's outputs for q0 (B, 6) rad, target (B, 3) mm, damping (B,) (None: the controller's):
@@ -188,7 +208,7 @@ class OnnxRealtime:
         q0 = np.asarray(q0_rad, np.float64).reshape(-1, 6)
         mu = np.full(len(q0), self.damping) if damping is None else np.asarray(damping, np.float64).reshape(-1)
         return (self.single if len(q0) == 1 else self.session).run(
-            None, {"q0_rad": q0, "target_mm": np.asarray(target_mm, np.float64).reshape(-1, 3), **self.limits,
+            None, {"q0_rad": q0, "target_mm": np.asarray(target_mm, np.float64).reshape(-1, 3), **self.fixed,
                    "damping": mu})
 
     def __call__(self, q0_rad, target_mm) -> Result:

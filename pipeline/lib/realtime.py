@@ -82,18 +82,20 @@ class Realtime:
         return answers(q1, q2, r0, r1, self.tol, self.workspace)
 
 
-def two_steps(model, q0, target, lo, hi, damping):
+def two_steps(model, q0, target, lo, hi, damping, tcp_mm=None):
     """The two chord steps from q0 (B, 6) rad towards target (B, 3) mm, joint limits lo, hi (6,) rad,
     damping μ (a float or (B,)): q1, q2 (B, 6) and |r0|, |r1| (B,) mm. What Realtime runs (eager or compiled) and what
-    onnx_model.export_controller exports as one graph."""
-    q1, r0 = chord_step(model, q0, target, lo, hi, damping)
-    q2, r1 = chord_step(model, q1, target, lo, hi, damping)
+    onnx_model.export_controller exports as one graph. tcp_mm (3,), flange frame: the target is that point's
+    (the physics branch with it as its tool, the network's correction unchanged: lib/tcp.py AtTcp)."""
+    q1, r0 = chord_step(model, q0, target, lo, hi, damping, tcp_mm)
+    q2, r1 = chord_step(model, q1, target, lo, hi, damping, tcp_mm)
     return q1, q2, r0, r1
 
 
-def chord_step(model, q, target, lo, hi, damping):
+def chord_step(model, q, target, lo, hi, damping, tcp_mm=None):
     """One chord step from q (B, 6): returns (the next q (B, 6), |residual at q| (B,) mm)."""
-    p, J = fk_jacobian(q, model.physics.geometry())        # (B, 3), (B, 3, 6)
+    g = model.physics.geometry()
+    p, J = fk_jacobian(q, g if tcp_mm is None else {**g, "tool": tcp_mm})   # (B, 3), (B, 3, 6)
     r = p + model.delta(q) - target                        # (B, 3), eq. 9
     q_next = q + min_norm_step(J, r, damping)
     return torch.clamp(q_next, lo, hi), r.norm(dim=1)

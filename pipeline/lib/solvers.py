@@ -10,6 +10,11 @@ points:
         Δθ = -Jᵀ (J Jᵀ + λI)⁻¹ r, the minimum-norm joint correction (3 equations,
         6 unknowns), λ adapted per point, joint limits respected, stop at
         |r| < tol_mm.
+A target is a position (B, 3) mm, or a pose (B, 12): the position and the flange's orientation
+(3×3, row-major, base frame). A pose adds three equations (six for six joints): the orientation
+error e (rad, kinematics.rotation_error of the physics branch's flange, the network corrects
+positions only), weighted by w = tol_mm / tol_arcsec (in rad) so that |[r, w e]| < tol_mm holds
+both to their tolerances (`residual`, `pose_weight`).
 `min_norm_step` is the damped minimum-norm step both `lm` and the controller
 path (realtime.py: two model evaluations a pose) take; `lm_step`, one lm
 iteration, is also what the service (service.py) resumes request by request.
@@ -22,7 +27,7 @@ import numpy as np
 import torch
 
 from .config import logger
-from .kinematics import DTYPE, cross, fk_jacobian
+from .kinematics import DTYPE, angular_jacobian, cross, fk_jacobian, flange_rotations, rotation_error
 
 log = logger(__name__)
 
@@ -30,13 +35,13 @@ log = logger(__name__)
 def min_norm_step(J, r, lam):
     """Damped minimum-norm joint correction Δθ = -Jᵀ (J Jᵀ + λ·mean(diag J Jᵀ)·I)⁻¹ r.
 
-    J (B, 3, 6) mm/rad, r (B, 3) mm, lam (B,) or a float -> Δθ (B, 6) rad. Shared by the
-    batched lm (λ adapted per point) and the controller path (realtime.py, λ tiny, fixed).
+    J (B, m, 6) mm/rad, r (B, m) mm (m = 3, or 6 for a pose), lam (B,) or a float -> Δθ (B, 6) rad.
+    Shared by the batched lm (λ adapted per point) and the controller path (realtime.py, λ tiny, fixed).
     """
-    JJt = J @ J.transpose(1, 2)                             # (B, 3, 3)
+    JJt = J @ J.transpose(1, 2)                             # (B, m, m)
     scale = torch.as_tensor(lam, dtype=DTYPE) * JJt.diagonal(dim1=1, dim2=2).mean(1)   # (B,)
-    damped = JJt + scale[:, None, None] * torch.eye(3, dtype=DTYPE)
-    if torch.compiler.is_exporting():                      # ONNX has no linear solve: the closed form
+    damped = JJt + scale[:, None, None] * torch.eye(J.shape[1], dtype=DTYPE)
+    if torch.compiler.is_exporting():                      # ONNX has no linear solve: the closed form (3×3)
         x = solve3(damped, r)
     else:
         x = torch.linalg.solve(damped, r.unsqueeze(-1)).squeeze(-1)
@@ -61,6 +66,25 @@ def predict(model, q):                                     # (B, 6) -> (B, 3), E
     if len(q) <= EVAL_ROWS:
         return model(q)[0]
     return torch.cat([model(q[s])[0] for s in slices(len(q), EVAL_ROWS)])
+
+
+def pose_weight(cfg: dict) -> float:
+    """w (mm/rad): the orientation error's weight in a pose's residual, tol_mm over tol_arcsec in rad."""
+    return cfg["tol_mm"] / np.radians(cfg["tol_arcsec"] / 3600)
+
+
+def residual(model, q, target, w: float):
+    """The residual lm and adam drive to zero: (B, 6) rad, target (B, 3) -> (B, 3) mm, the model's
+    position minus the target; a pose target (B, 12) -> (B, 6), with w e appended (e: the physics
+    branch's flange orientation against the target's, rad)."""
+    r = predict(model, q) - target[:, :3]
+    if target.shape[1] == 3:
+        return r
+    return torch.cat([r, w * orientation_residual(model.physics.geometry(), q, target)], 1)
+
+
+def orientation_residual(g: dict, q, target):              # (B, 6), (B, 12) -> (B, 3) rad
+    return rotation_error(flange_rotations(q, g), target[:, 3:].reshape(-1, 3, 3))
 
 
 def jacobian(f, q):
@@ -93,6 +117,7 @@ def solve_adam(model, q0, target, cfg: dict, limits=None, chunk: int | None = No
     evaluated `chunk` points at a time (`slices`; None: all at once). Returns q, prediction, iterations,
     converged, history (None when not asked for). (Joint limits are not enforced.)"""
     lr, max_iter, tol_mse = cfg["lr"], cfg["max_iter"], cfg["tol_mse"]
+    w = pose_weight(cfg) if target.shape[1] > 3 else None
     n = len(q0)
     parts = slices(n, chunk or max(n, 1))
     q = q0.clone().requires_grad_(True)
@@ -104,8 +129,8 @@ def solve_adam(model, q0, target, cfg: dict, limits=None, chunk: int | None = No
         opt.zero_grad()
         rs, ms = [], []
         for s in parts:                                     # each part's graph freed after its backward
-            r = predict(model, q[s]) - target[s]
-            mse = (r ** 2).mean(1)                          # (B,) per-point MSE, mm²
+            r = residual(model, q[s], target[s], w)
+            mse = (r ** 2).mean(1)                          # (B,) per-point MSE, mm² (a pose's: weighted, 6)
             if it < max_iter:
                 mse.sum().backward()                        # rows apart: each its own gradient
             rs.append(r.detach())
@@ -130,30 +155,35 @@ def solve_adam(model, q0, target, cfg: dict, limits=None, chunk: int | None = No
 LAM0 = 1e-3                                                 # lm's starting damping
 
 
-def lm_jacobian(model, jacobian_of: str):
+def lm_jacobian(model, jacobian_of: str, w: float | None = None):
     """The Jacobian lm steps with, q (A, 6) -> (A, 3, 6): "physics" takes the model's DH branch's
     geometric Jacobian (kinematics.fk_jacobian: exact, float64, one FK pass), leaving out the network's
     small slope (each step is then a chord step, the residual always from the whole model); "model"
-    differentiates the whole model by autograd."""
+    differentiates the whole model by autograd. For pose targets (w given) -> (A, 6, 6): the flange's
+    angular Jacobian, times w, below."""
     if jacobian_of == "physics":
-        return lambda q: fk_jacobian(q, model.physics.geometry())[1]
-    if jacobian_of == "model":
-        return lambda q: jacobian(lambda x: predict(model, x), q)
-    raise ValueError(f"params.yaml compensate.jacobian_of: {jacobian_of!r}; use physics or model")
+        position = lambda q: fk_jacobian(q, model.physics.geometry())[1]
+    elif jacobian_of == "model":
+        position = lambda q: jacobian(lambda x: predict(model, x), q)
+    else:
+        raise ValueError(f"params.yaml compensate.jacobian_of: {jacobian_of!r}; use physics or model")
+    if w is None:
+        return position
+    return lambda q: torch.cat([position(q), w * angular_jacobian(q, model.physics.geometry())], 1)
 
 
-def lm_step(model, jac, q, r, err, lam, target, limits=None, physics_steps: int = 1):
-    """One lm iteration for points q (A, 6), residual r (A, 3) mm, |r| err (A,), damping lam (A,):
+def lm_step(model, jac, q, r, err, lam, target, limits=None, physics_steps: int = 1, w: float | None = None):
+    """One lm iteration for points q (A, 6), residual r (A, 3|6) mm, |r| err (A,), damping lam (A,):
     the step is kept where it lowers |r| (then λ/3, else λ·10). Returns the new q, r, err, lam.
     physics_steps > 1 (jacobian_of physics): the trial point is the end of that many damped steps on the
     physics branch alone with the network's correction at q held (`physics_trial`), one model evaluation
-    still judging it."""
+    still judging it. w: pose targets' weight (`residual`)."""
     if physics_steps > 1:
-        q_try = physics_trial(model.physics.geometry(), q, r, lam, physics_steps, limits)
+        q_try = physics_trial(model.physics.geometry(), q, r, lam, physics_steps, limits, target, w)
     else:
         q_try = clamped(q + min_norm_step(jac(q), r, lam), limits)   # (A, 6)
     with torch.no_grad():
-        r_try = predict(model, q_try) - target
+        r_try = residual(model, q_try, target, w)
     err_try = r_try.norm(dim=1)
     ok = err_try < err
     q, err, lam = lm_keep(ok, q_try, err_try, q, err, lam)
@@ -164,18 +194,23 @@ def clamped(q, limits):
     return q if limits is None else q.clamp(limits[:, 0], limits[:, 1])
 
 
-def physics_trial(g, q, r, lam, steps: int, limits=None):
+def physics_trial(g, q, r, lam, steps: int, limits=None, target=None, w: float | None = None):
     """lm's trial point with the correction c = model(q) - physics(q) held: `steps` damped minimum-norm
     steps toward physics(q') = target - c = physics(q) - r on the physics branch (geometry g: exact
     position and Jacobian, one FK pass a step; the first step is the chord step). The network's evaluation,
     the costly part, then judges the end point once: about 2 model evaluations a point instead of 3 (the
-    network's slope over a compensation's Δθ is ~1e-5 mm). q (A, 6), r (A, 3) -> (A, 6)."""
+    network's slope over a compensation's Δθ is ~1e-5 mm). q (A, 6), r (A, 3) -> (A, 6); a pose (r (A, 6),
+    target (A, 12), w) steps on its orientation too, the physics branch's own."""
+    def rows(x, p, J):                                      # the physics branch's Jacobian and residual at x
+        if w is None:
+            return J, p - goal
+        return (torch.cat([J, w * angular_jacobian(x, g)], 1),
+                torch.cat([p - goal, w * orientation_residual(g, x, target)], 1))
     p, J = fk_jacobian(q, g)
-    goal = p - r                                            # (A, 3) mm: where the physics branch must go
-    q_try = clamped(q + min_norm_step(J, r, lam), limits)
+    goal = p - r[:, :3]                                     # (A, 3) mm: where the physics branch must go
+    q_try = clamped(q + min_norm_step(rows(q, p, J)[0], r, lam), limits)   # the chord step: r is the model's
     for _ in range(steps - 1):
-        p, J = fk_jacobian(q_try, g)
-        q_try = clamped(q_try + min_norm_step(J, p - goal, lam), limits)
+        q_try = clamped(q_try + min_norm_step(*rows(q_try, *fk_jacobian(q_try, g)), lam), limits)
     return q_try
 
 
@@ -193,7 +228,8 @@ def solve_lm(model, q0, target, cfg: dict, limits=None, lam0=LAM0, chunk: int | 
     time (`slices`; None: all at once). Returns q, prediction, iterations, converged, history (None when
     not asked for)."""
     max_iter, tol_mm = cfg["max_iter"], cfg["tol_mm"]
-    jac = lm_jacobian(model, cfg["jacobian_of"])
+    w = pose_weight(cfg) if target.shape[1] > 3 else None
+    jac = lm_jacobian(model, cfg["jacobian_of"], w)
     physics_steps = cfg.get("physics_steps", 1) if cfg["jacobian_of"] == "physics" else 1
     n = len(q0)
     chunk = chunk or max(n, 1)
@@ -202,7 +238,7 @@ def solve_lm(model, q0, target, cfg: dict, limits=None, lam0=LAM0, chunk: int | 
     iters = torch.full((n,), max_iter)
     done = torch.zeros(n, dtype=torch.bool)
     with torch.no_grad():
-        r = torch.cat([predict(model, q[s]) for s in slices(n, chunk)]) - target    # (B, 3) residual, mm
+        r = torch.cat([residual(model, q[s], target[s], w) for s in slices(n, chunk)])   # (B, 3|6) mm
     err = r.norm(dim=1)
     hist, t0 = [err.clone()] if history else None, time.perf_counter()
     for it in range(max_iter):
@@ -217,14 +253,14 @@ def solve_lm(model, q0, target, cfg: dict, limits=None, lam0=LAM0, chunk: int | 
         for s in slices(len(active), chunk):
             a = active[s]
             q[a], r[a], err[a], lam[a] = lm_step(model, jac, q[a], r[a], err[a], lam[a], target[a], limits,
-                                                   physics_steps)
+                                                   physics_steps, w)
         if history:
             hist.append(err.clone())
     else:
         new = (err < tol_mm) & ~done
         iters[new] = max_iter
         done |= new
-    return q, r + target, iters, done, torch.stack(hist) if history else None
+    return q, r[:, :3] + target[:, :3], iters, done, torch.stack(hist) if history else None
 
 
 SOLVERS = {"adam": solve_adam, "lm": solve_lm}

@@ -18,7 +18,7 @@ import pandas as pd
 
 from .cli import Refused
 from .columns import JCOMP_DEG, JOINTS_DEG, TARGET
-from .compensation import delta_table, reach_mm, solve
+from .compensation import delta_table, nominal_flange, orientation_targets, reach_mm, solve
 from .config import logger
 from .kinematics import fk_numpy
 from .readers import (AUTO_JOINTS, IngestError, find_column, headers_found, looks_like_radians, parse_number,
@@ -102,20 +102,23 @@ def read_waypoints(path, robot) -> pd.DataFrame:
 
 
 def compensate_program(df: pd.DataFrame, model, workspace, robot, nominal: dict, cfg: dict) -> pd.DataFrame:
-    """The Δθ table of the waypoints df (targets: df's, else the nominal positions of its joints)."""
+    """The Δθ table of the waypoints df (targets: df's, else the nominal poses of its joints: their positions
+    and, with `compensation.orientation_targets`, the flange's orientations)."""
     q0 = df[JOINTS_DEG].to_numpy()
-    target = df[TARGET].to_numpy() if TARGET[0] in df else fk_numpy(q0, robot, nominal)
+    offline = TARGET[0] not in df
+    target = fk_numpy(q0, robot, nominal) if offline else df[TARGET].to_numpy()
+    flange_rot = nominal_flange(q0, nominal) if offline and orientation_targets(model, cfg) else None
     reach = reach_mm(model.physics.geometry())
     far = np.linalg.norm(target, axis=1) > reach
     if far.any():
         raise Refused("unreachable: " + "; ".join(
             f"{p}: target {np.linalg.norm(t):.1f} mm from the base, beyond the arm's reach of {reach:.1f} mm"
             for p, t in zip(df.point_id[far], target[far])))
-    solved = solve(model, q0, target, cfg, robot, history=False)
+    solved = solve(model, q0, target, cfg, robot, history=False, flange_rot=flange_rot)
     table = delta_table(df["point_id"], q0, target, solved, workspace)
-    log.info("%d waypoints compensated in %.2f s: %d converged (residual max %.2e mm), %d outside the "
-             "trained workspace", len(table), solved.seconds, table.converged.sum(), table.residual_mm.max(),
-             (~table.in_workspace).sum())
+    log.info("%d waypoints compensated in %.2f s (%s): %d converged (residual max %.2e mm), %d outside the "
+             "trained workspace", len(table), solved.seconds, "position only" if flange_rot is None else
+             "position and orientation", table.converged.sum(), table.residual_mm.max(), (~table.in_workspace).sum())
     return table
 
 
