@@ -7,9 +7,13 @@ waypoints.csv, one row per waypoint (`,` `;` or tab separated, decimal point or 
     point_id (optional; default W001, W002, ...), j1_deg..j6_deg   the program's joint targets
     target_x..z (optional, base frame mm)                            the position to reach, the joints
                                                                      being where to start from
+    target_rx..rz (optional, with target_x..z; rad)                  and the orientation: a rotation
+                                                                     vector, base frame, of the probe's
+                                                                     frame (with --tcp, of the TCP's)
 Without target columns, a waypoint's target is where the nominal kinematics puts it
 (nominal DH + the frame stage's tool: an offline-programmed point), and the
-compensated joints make the trained model (the real arm) reach it. Every waypoint
+compensated joints make the trained model (the real arm) reach it: the position and, for a model
+calibrated with orientation (`compensate.orientation`), the flange's orientation. Every waypoint
 is solved by `compensate.solver` (lib/solvers.py) within the joint limits; the output CSV
 is the Δθ table (docs/data-format.md), the URScript one `movej` per waypoint.
 
@@ -44,6 +48,7 @@ from .lib.checkpoint import load_model
 from .lib.cli import Refused, one_line
 from .lib.waypoints import ID_PATTERN, compensate_program, read_waypoints, unreached
 from .lib.tcp import at_tcp
+from .lib.urdf import tcp_transforms
 from .lib.workspace import Workspace
 from .lib.writing import check_outputs, csv_text, write_together
 
@@ -117,9 +122,11 @@ def run(argv=None) -> pd.DataFrame:
     workspace = Workspace.from_dict(read_json(WORKSPACE_JSON))
     model = served(load_model(MODEL_WEIGHTS), workspace.network)
     nominal = theory_geometry(robot, read_json(FRAME_JSON)["tool_mm"])
+    frame_rot = None                                 # target_rx..rz turn the probe's frame, or the TCP's
     if a.tcp is not None:                            # targets and solve at a TCP (lib/tcp.py)
         model, nominal = at_tcp(model, p["robot"]["tcp"], a.tcp, nominal)
-    table = compensate_program(df, model, workspace, robot, nominal, p["compensate"])
+        frame_rot = tcp_transforms(p["robot"]["tcp"])[a.tcp][:3, :3]
+    table = compensate_program(df, model, workspace, robot, nominal, p["compensate"], frame_rot)
     skipped = unreached(table, robot)
     text = summary_text(table, skipped, workspace)
     if skipped and not a.comment_out_unreached:

@@ -344,3 +344,46 @@ def test_offline_waypoints_reach_their_nominal_orientation_on_the_twin(in_traine
     assert tcp_after.mean() < 0.1 and tcp_pos.mean() < 0.1
     assert turned_after.mean() < 100 and turned_before.mean() > 500 and turned_pos.mean() > 500, \
         (turned_after.mean(), turned_before.mean(), turned_pos.mean())
+
+
+def test_a_waypoint_given_an_orientation_reaches_it(in_trained_project, tmp_path, capsys):
+    """target_rx..rz (a rotation vector, rad, base frame) with target_x..z: the TCP's frame is turned there.
+    Given the nominal pose of each waypoint, the answer is the offline program's; given that pose turned
+    0.05° about the base's z axis, the model's flange ends turned with it (scipy, within 1″). Columns without
+    a position, or only two of three, are refused naming them."""
+    from scipy.spatial.transform import Rotation
+    from pipeline.lib.compensation import nominal_flange
+    from pipeline.lib.config import read_json
+    from pipeline.lib.geometry import theory_geometry
+    from pipeline.lib.kinematics import flange_rotations
+    params = in_trained_project
+    robot, frame = load_robot(params["robot"]), read_json("reports/frame.json")
+    pts = load_points().query("split == 'test'").head(8)
+    q0 = pts[JOINTS_DEG].to_numpy()
+    offline = tmp_path / "offline.csv"
+    pts[JOINTS_DEG].to_csv(offline, index=False)
+    reference = program.run([str(offline), "--tcp", "x150"])
+    flange = nominal_flange(q0, theory_geometry(robot, frame["tool_mm"]))             # the TCP x150 is not turned
+    turn = Rotation.from_euler("z", 0.05, degrees=True).as_matrix()
+    for name, R in (("same", flange), ("turned", turn @ flange)):
+        src = tmp_path / f"{name}.csv"
+        rotvec = Rotation.from_matrix(R).as_rotvec()
+        pts[JOINTS_DEG].assign(**dict(zip(TARGET, reference[TARGET].to_numpy().T)),
+                               **dict(zip(["target_rx", "target_ry", "target_rz"], rotvec.T))).to_csv(src, index=False)
+        table = program.run([str(src), "--tcp", "x150"])
+        assert table.converged.all() and table.orientation_residual_arcsec.max() < 1.0
+        with torch.no_grad():
+            got = flange_rotations(torch.as_tensor(np.radians(table[JCOMP_DEG].to_numpy())),
+                                   served_model().physics.geometry()).numpy()
+        off = np.degrees(Rotation.from_matrix(got @ R.transpose(0, 2, 1)).magnitude()) * 3600
+        assert off.max() < 1.0, off
+        if name == "same":
+            np.testing.assert_allclose(table[JCOMP_DEG].to_numpy(), reference[JCOMP_DEG].to_numpy(), atol=1e-4)
+        else:
+            assert np.abs(table[JCOMP_DEG].to_numpy() - reference[JCOMP_DEG].to_numpy()).max() > 0.01
+    for cols, said in (({"target_rx": 0.0, "target_ry": 0.0, "target_rz": 0.0}, "and a position"),
+                       ({"target_x": 1.0, "target_y": 1.0, "target_z": 1.0, "target_rx": 0.0}, "needs all of")):
+        src = tmp_path / "bad.csv"
+        pts[JOINTS_DEG].assign(**cols).to_csv(src, index=False)
+        code, text = exit_code(program.main, [str(src)], capsys)
+        assert code == 2 and said in text and "target_r" in text, text

@@ -3,7 +3,7 @@ for the program compensator (`python -m pipeline.program`), the measurement plan
 pipeline.plan`) and the benchmarks.
 
     read_waypoints(path, robot)      point_id, j1_deg..j6_deg (or j1_rad.., actual_q_0..: radians) and, if
-                                     given, target_x..z; bad input is an
+                                     given, target_x..z and target_rx..rz; bad input is an
                                      IngestError naming file, row (the header is row 1) and column: a
                                      row whose cell count does not fit the header (ingest's field_count
                                      rule, readers.shape_problems), a bad number, a duplicate id
@@ -15,12 +15,14 @@ import re
 
 import numpy as np
 import pandas as pd
+from scipy.spatial.transform import Rotation
 
 from .cli import Refused
 from .columns import JCOMP_DEG, JOINTS_DEG, TARGET
 from .compensation import delta_table, nominal_flange, orientation_targets, reach_mm, solve
 from .config import logger
-from .kinematics import fk_numpy
+from .kinematics import TOOL_ROT, fk_numpy, tool_rotation
+from .paths import ROTVEC
 from .readers import (AUTO_JOINTS, IngestError, find_column, headers_found, looks_like_radians, parse_number,
                       parse_column, read_table, shape_problems, unit_of)
 
@@ -64,15 +66,20 @@ def read_waypoints(path, robot) -> pd.DataFrame:
     targets = [c for c in TARGET if c in lower]
     if 0 < len(targets) < 3:
         raise IngestError(f"target columns need all of {TARGET}; found {targets}", file=path)
+    turned = [c for c in ROTVEC if c in lower]
+    if turned and (len(turned) < 3 or not targets):
+        raise IngestError(f"an orientation needs all of {ROTVEC} and a position, {TARGET}; found "
+                          f"{targets + turned}", file=path)
     jcols, units = joint_columns(header, path)
-    cols = jcols + [find_column(header, c, "waypoint", str(path)) for c in (TARGET if targets else [])]
+    given = (TARGET if targets else []) + (ROTVEC if turned else [])
+    cols = jcols + [find_column(header, c, "waypoint", str(path)) for c in given]
     names = [header[c] for c in cols]
     for r, problem in enumerate(shape_problems(cells, len(header))):
         if problem:                                  # its cells would be read shifted: a wrong move
             raise IngestError(problem, file=path, row=lines[r])
     values = numbers(cells, cols, names, decimal, path, lines)
     values[:, :6] = np.where(np.array(units) == "rad", np.degrees(values[:, :6]), values[:, :6])
-    df = pd.DataFrame(values, columns=JOINTS_DEG + (TARGET if targets else []))
+    df = pd.DataFrame(values, columns=JOINTS_DEG + given)
     if "point_id" in lower:
         c = find_column(header, "point_id", "point id", str(path))
         ids = [row[c].strip() if c < len(row) else "" for row in cells]
@@ -101,13 +108,24 @@ def read_waypoints(path, robot) -> pd.DataFrame:
     return df
 
 
-def compensate_program(df: pd.DataFrame, model, workspace, robot, nominal: dict, cfg: dict) -> pd.DataFrame:
+def compensate_program(df: pd.DataFrame, model, workspace, robot, nominal: dict, cfg: dict,
+                       frame_rot: np.ndarray | None = None) -> pd.DataFrame:
     """The Δθ table of the waypoints df (targets: df's, else the nominal poses of its joints: their positions
-    and, with `compensation.orientation_targets`, the flange's orientations)."""
+    and, with `compensation.orientation_targets`, the flange's orientations). df's target_rx..rz turn the
+    target's frame, whose rotation in the flange is frame_rot (3, 3) (None: the probe's, the model's
+    tool_rot); refused (Refused) for a model calibrated without orientation."""
     q0 = df[JOINTS_DEG].to_numpy()
     offline = TARGET[0] not in df
     target = fk_numpy(q0, robot, nominal) if offline else df[TARGET].to_numpy()
     flange_rot = nominal_flange(q0, nominal) if offline and orientation_targets(model, cfg) else None
+    if ROTVEC[0] in df:
+        g = model.physics.geometry()
+        if TOOL_ROT not in g:
+            raise Refused(f"columns {', '.join(ROTVEC)}: the model was calibrated without the probe's orientation, "
+                          "so an orientation cannot be compensated; leave them out, or calibrate on a campaign "
+                          "with orientation")
+        frame_rot = tool_rotation(g).numpy() if frame_rot is None else np.asarray(frame_rot, float)
+        flange_rot = Rotation.from_rotvec(df[ROTVEC].to_numpy(float, copy=True)).as_matrix() @ frame_rot.T   # (n, 3, 3)
     reach = reach_mm(model.physics.geometry())
     far = np.linalg.norm(target, axis=1) > reach
     if far.any():
