@@ -8,6 +8,11 @@ XML-RPC at http://HOST:PORT/RPC2 (only that path, only POST; default 127.0.0.1:5
                                          model's base frame: that of reports/frame.json) ->
                                          {"q_rad": [6 floats], "residual_mm": float, "converged": bool,
                                           "in_workspace": bool}
+    compensate_pose(q_rad, target_mm, target_rotvec)   and the orientation: target_rotvec, 3 numbers, the
+                                         rotation vector (rad, base frame) of the probe's frame (with --tcp,
+                                         of the TCP's); six equations, solved by lm in PyTorch -> compensate's
+                                         struct and "orientation_residual_arcsec"; refused for a model
+                                         calibrated without orientation
     compensate_list(q_rad, target_mm)    the same answer as 9 floats, for URScript: [q1..q6 rad,
                                          residual_mm, converged 1.0/0.0, in_workspace 1.0/0.0]
     compensate_many([[q_rad, target_mm], ...])   at most serve.max_items; each item answered in its
@@ -69,14 +74,16 @@ from .lib.realtime import Realtime
 from .lib.robots import load_robot
 from .lib.service import RequestError, Service
 from .lib.tcp import at_tcp
+from .lib.urdf import tcp_transforms
 from .lib.geometry import theory_geometry
+from .lib.kinematics import TOOL_ROT, tool_rotation
 from .lib.checkpoint import load_model
 from .lib.workspace import Workspace
 
 log = logger(__name__)
 PATH = "/RPC2"
 INVALID_PARAMS, NO_METHOD, INTERNAL = -32602, -32601, -32603       # the XML-RPC fault code convention
-METHODS = ("compensate", "compensate_many", "compensate_list", "compensate_path")
+METHODS = ("compensate", "compensate_many", "compensate_list", "compensate_path", "compensate_pose")
 
 PARAMS = ("robot", "compensate", "serve", "path")
 REQUIRED = [MODEL_WEIGHTS, WORKSPACE_JSON]                # the trained artifacts it reads (the checkpoint
@@ -382,11 +389,13 @@ def make_server(params: dict, host: str | None = None, port: int | None = None,
         speeds = str(e)
     model = served(load_model(MODEL_WEIGHTS), workspace.network)     # evaluate's verdict on the network
     graph = CONTROLLER_ONNX if workspace.network else CONTROLLER_PHYSICS_ONNX
-    tcp_mm = None
+    tcp_mm, g = None, model.physics.geometry()
+    frame_rot = tool_rotation(g).numpy() if TOOL_ROT in g else None     # compensate_pose: the probe's frame
     if tcp is not None:                                   # every target a TCP's, on the graph fed its point
         model = at_tcp(model, params["robot"]["tcp"], tcp, theory_geometry(robot, robot.tool))[0]
         graph = CONTROLLER_TCP_ONNX if workspace.network else CONTROLLER_PHYSICS_TCP_ONNX
         tcp_mm = params["robot"]["tcp"][tcp]["xyz_mm"]
+        frame_rot = tcp_transforms(params["robot"]["tcp"])[tcp][:3, :3]    # or the TCP's
     tol = params["compensate"]["tol_mm"]
     controller = fast_path(model, workspace, limits_deg, tol, graph, tcp_mm) if cfg["onnx"] else None
     log.info("serving %s; the controller path on %s", "the whole model" if workspace.network else
@@ -395,6 +404,7 @@ def make_server(params: dict, host: str | None = None, port: int | None = None,
     service = Service(model, workspace, limits_deg, reach_mm(model.physics.geometry()), tol_mm=tol,
                       jacobian_of=params["compensate"]["jacobian_of"], controller=controller,
                       max_deviation_mm=params["path"]["max_deviation_mm"], joint_speed_deg_s=speeds,
+                      frame_rot=frame_rot, tol_arcsec=params["compensate"]["tol_arcsec"],
                       **{k: cfg[k] for k in SERVICE_KEYS})
     try:
         server = Server((host, port), {k: cfg[k] for k in LIMIT_KEYS}, service)

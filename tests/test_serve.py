@@ -792,3 +792,46 @@ def test_a_service_for_a_tcp_lands_that_tcp_on_its_target(project, params, poses
         s.shutdown()
         s.server_close()
         torch.set_num_threads(threads)
+
+
+def test_compensate_pose_lands_the_position_and_the_orientation(server, client, params, poses):
+    """Issue 34: compensate_pose(q, target_mm, target_rotvec) solves six equations: a real client's answers
+    put the model's marker within tol_mm and the probe's frame (scipy, from the model's own chain) within
+    tol_arcsec of a target turned 0.05° from each pose's; compensate (the position alone) lands the marker and
+    leaves the probe turned. Bad orientations are a Fault naming target_rotvec; the server keeps serving; a
+    service for a model without orientation refuses it."""
+    from scipy.spatial.transform import Rotation
+    from pipeline.lib.kinematics import fk_pose
+    model = served_model()
+    q0 = poses[0][:6]
+    with torch.no_grad():
+        p, R = (x.numpy() for x in fk_pose(torch.as_tensor(q0), model.physics.geometry()))
+        target = model(torch.as_tensor(q0))[0].numpy() + [0.3, -0.2, 0.25]
+    turn = Rotation.from_euler("xyz", [0.03, -0.02, 0.035], degrees=True).as_matrix()
+    goal = turn @ R                                                          # (6, 3, 3) base frame
+    tol, tol_arcsec = params["compensate"]["tol_mm"], params["compensate"]["tol_arcsec"]
+
+    def landed(q_rad):                                                       # (marker mm, probe off the goal ″)
+        with torch.no_grad():
+            q = torch.tensor([q_rad], dtype=torch.float64)
+            at, Rq = model(q)[0][0].numpy(), fk_pose(q, model.physics.geometry())[1][0].numpy()
+        return at, np.degrees(Rotation.from_matrix(Rq @ goal[i].T).magnitude()) * 3600
+    for i in range(len(q0)):
+        r = client.compensate_pose(q0[i].tolist(), target[i].tolist(), Rotation.from_matrix(goal[i]).as_rotvec().tolist())
+        assert set(r) == {"q_rad", "residual_mm", "converged", "in_workspace", "orientation_residual_arcsec"}
+        at, off = landed(r["q_rad"])
+        assert r["converged"] and np.linalg.norm(at - target[i]) < tol and off < tol_arcsec, (r, off)
+        assert r["orientation_residual_arcsec"] < tol_arcsec and r["residual_mm"] < tol
+        at, off = landed(client.compensate(q0[i].tolist(), target[i].tolist())["q_rad"])
+        assert np.linalg.norm(at - target[i]) < tol and off > 60                # the position alone: still turned
+    for bad, said in (([0.1, 0.2], r"target_rotvec: expected 3 numbers"), ([4.0, 0.0, 0.0], r"more than π"),
+                      (["x", 0.0, 0.0], r"target_rotvec\[0\]")):
+        with pytest.raises(xmlrpc.client.Fault, match=said):
+            client.compensate_pose(q0[0].tolist(), target[0].tolist(), bad)
+    assert client.compensate(q0[0].tolist(), target[0].tolist())["converged"]   # still serving
+    kept, server.service.frame_rot = server.service.frame_rot, None          # as for a position-only model
+    try:
+        with pytest.raises(xmlrpc.client.Fault, match="calibrated without the probe's orientation"):
+            client.compensate_pose(q0[0].tolist(), target[0].tolist(), [0.0, 0.0, 0.0])
+    finally:
+        server.service.frame_rot = kept

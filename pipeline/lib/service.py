@@ -23,7 +23,9 @@ worker, in a loop:
      is spent (`call_budget_ms` from the call's start: compensate_many queues no more items then, and
      answers those not solved with an error in their place).
 Left above `unreachable_mm`, a request is a RequestError "unreachable"; within it, an answer with
-converged False. `compensate_path` queues a path's samples one at a time, each from the answer before
+converged False. A pose (`compensate_pose`: an orientation too) skips the controller path (its graphs
+solve positions) and joins a lane of its own (`Lane`): lm's six equations in PyTorch (solvers.residual),
+one iteration a loop beside the positions' lane, under the same budgets. `compensate_path` queues a path's samples one at a time, each from the answer before
 (lib/pathsolve.py), all under one call budget, and refuses the path as the path command does.
 """
 import math
@@ -36,6 +38,7 @@ from dataclasses import dataclass, field, fields
 import numpy as np
 import pandas as pd
 import torch
+from scipy.spatial.transform import Rotation
 
 from .columns import JCOMP_DEG, TARGET
 from .kinematics import DTYPE
@@ -43,7 +46,7 @@ from .model import PhysicsOnly
 from .paths import n_samples, resample, segments
 from .pathsolve import beyond_reach, deviation, model_position, refusal, servo_times
 from .realtime import Realtime, answers
-from .solvers import LAM0, lm_jacobian, lm_step, predict
+from .solvers import LAM0, lm_jacobian, lm_step, pose_weight, residual
 
 
 METRES_MM = 5.0              # an unreachable target nearer the base origin than this was likely sent in metres
@@ -98,6 +101,7 @@ class Job:
     where: str                     # the field prefix of its messages ("" or "requests[3].")
     call: object = None            # its call (compensate_many's items share one); None: a call of its own
     call_deadline: float = math.inf   # time.monotonic() at which its call's budget ends
+    rot: np.ndarray | None = None  # (9,) a pose's flange orientation (row-major, base frame); None: a position
     future: Future = field(default_factory=Future)
     deadline: float = 0.0          # time.monotonic() at which its budget ends (set when it joins lm)
     err0: float = math.inf         # |r| at its start, mm (the controller path's)
@@ -112,7 +116,7 @@ class LMSet:
     r: object                      # (A, 3) mm, the residual at q
     err: object                    # (A,) mm, |r|
     lam: object                    # (A,) lm's damping
-    target: object                 # (A, 3) mm
+    target: object                 # (A, 3) mm; a pose's (A, 12): and the flange's orientation (solvers.residual)
 
     def _map(self, f) -> "LMSet":
         return LMSet(*(None if getattr(self, k.name) is None else f(k.name) for k in fields(self)))
@@ -125,6 +129,16 @@ class LMSet:
         return self._map(lambda k: cat([getattr(self, k), getattr(other, k)]))
 
 
+@dataclass(eq=False)
+class Lane:
+    """Jobs lm solves together, one iteration a worker loop: positions (w None: 3 equations, on the graph
+    where there is one) or poses (w, solvers.pose_weight: 6 equations, in PyTorch)."""
+    w: float | None
+    jac: object                                           # solvers.lm_jacobian for this lane
+    active: list = field(default_factory=list)            # its jobs, and their state (A rows)
+    state: LMSet | None = None
+
+
 class Service:
     """The model behind one worker thread; its methods are the service's (`compensate`, ...).
 
@@ -134,13 +148,15 @@ class Service:
     None: realtime.Realtime on the model, compiled when `compile`. lm runs on the controller's graph when
     it is given and jacobian_of is physics (the graph's steps), else on the PyTorch model. compensate_path:
     at most max_path_samples samples, refused as the path command refuses (max_deviation_mm, the joint
-    speed limits joint_speed_deg_s (6,); a string: why they are unknown)."""
+    speed limits joint_speed_deg_s (6,); a string: why they are unknown). frame_rot (3, 3): the served
+    frame's rotation in the flange (the probe's, or a TCP's) for compensate_pose, None where the model was
+    calibrated without orientation (compensate_pose refused); tol_arcsec its orientation's tolerance."""
 
     def __init__(self, model, workspace, limits_deg, reach_mm: float, *, tol_mm: float, jacobian_of: str,
                  unreachable_mm: float, max_iter: int, budget_ms: float, stall_iter: int, stall_ratio: float,
                  max_batch: int, batch_wait_ms: float, max_items: int, call_budget_ms: float, lm_per_call: int,
                  compile: bool, controller=None, max_path_samples: int = 1000, max_deviation_mm: float = 0.5,
-                 joint_speed_deg_s=None):
+                 joint_speed_deg_s=None, frame_rot=None, tol_arcsec: float = 1.0):
         self.model, self.workspace, self.reach = model, workspace, float(reach_mm)
         self.limits_deg = np.asarray(limits_deg, float)
         self.limits = torch.as_tensor(np.radians(self.limits_deg), dtype=DTYPE)
@@ -155,10 +171,11 @@ class Service:
         self.realtime = controller if controller is not None else Realtime(
             model, np.radians(self.limits_deg), self.tol, workspace=workspace, compile=compile)
         self.graph = controller if controller is not None and jacobian_of == "physics" else None
-        self.jac = lm_jacobian(model, jacobian_of)
+        self.frame_rot = None if frame_rot is None else np.asarray(frame_rot, float)
+        w = pose_weight({"tol_mm": self.tol, "tol_arcsec": tol_arcsec})
+        self.lanes = {"position": Lane(None, lm_jacobian(model, jacobian_of)),
+                      "pose": Lane(w, lm_jacobian(model, jacobian_of, w))}
         self.queue: queue.Queue[Job] = queue.Queue()
-        self.active: list[Job] = []                       # the lm set, and its state (A rows)
-        self.state: LMSet | None = None
         self.waiting: list[Job] = []                      # unconverged, waiting for a slot of their call's
         self.in_lm: dict[int, int] = {}                   # id(call): its jobs in the lm set
         self.last_round = 0                               # requests in the worker's last round
@@ -196,10 +213,16 @@ class Service:
                                f"[{lo:g}, {hi:g}]° ([{np.radians(lo):.3f}, {np.radians(hi):.3f}] rad)")
         return q
 
+    @property
+    def active(self) -> list[Job]:
+        """Every job in lm now, both lanes."""
+        return [j for lane in self.lanes.values() for j in lane.active]
+
     def submit(self, q: np.ndarray, target: np.ndarray, where: str = "", call=None,
-               call_deadline: float = math.inf) -> Future:
-        """Queue a checked request for the worker; its future holds the answer or a RequestError."""
-        job = Job(q, target, where, call, call_deadline)
+               call_deadline: float = math.inf, rot: np.ndarray | None = None) -> Future:
+        """Queue a checked request for the worker (rot (3, 3): a pose's flange orientation); its future holds
+        the answer or a RequestError."""
+        job = Job(q, target, where, call, call_deadline, None if rot is None else np.asarray(rot, float).ravel())
         if self.closed.is_set():
             raise RequestError(f"{where}target_mm: the service stopped")
         self.queue.put(job)
@@ -208,6 +231,22 @@ class Service:
     def compensate(self, q_rad, target_mm) -> dict:
         """{q_rad, residual_mm, converged, in_workspace}, or a RequestError."""
         return self.submit(*self.check(q_rad, target_mm)).result()
+
+    def compensate_pose(self, q_rad, target_mm, target_rotvec) -> dict:
+        """compensate's struct and orientation_residual_arcsec, for a target orientation too: target_rotvec (3
+        numbers, rad, base frame) the served frame's (the probe's, with --tcp the TCP's) rotation vector.
+        Six equations, solved by lm in PyTorch (the controller graphs solve positions), within the same
+        budgets; a RequestError names the field."""
+        if self.frame_rot is None:
+            raise RequestError("target_rotvec: the model was calibrated without the probe's orientation, so an "
+                               "orientation cannot be compensated; call compensate with the position")
+        q, target = self.check(q_rad, target_mm)
+        rotvec = numbers(target_rotvec, "target_rotvec", 3)
+        if np.linalg.norm(rotvec) > np.pi + 1e-9:
+            raise RequestError(f"target_rotvec: |{np.linalg.norm(rotvec):.3f}| rad, more than π: a rotation vector "
+                               "in radians (degrees sent?)")
+        flange = Rotation.from_rotvec(rotvec).as_matrix() @ self.frame_rot.T
+        return self.submit(q, target, rot=flange).result()
 
     def compensate_list(self, q_rad, target_mm) -> list:
         """compensate's answer as 9 floats: q1..q6 rad, residual_mm, converged, in_workspace (1.0 / 0.0)."""
@@ -315,13 +354,16 @@ class Service:
             try:
                 if jobs:
                     self._chord(jobs)
-                if self.active:
-                    self._lm_iteration()
+                for lane in self.lanes.values():
+                    if lane.active:
+                        self._lm_iteration(lane)
             except Exception as e:                        # a bug: fail these requests, keep serving
                 for job in jobs + self.active + self.waiting:
                     if not job.future.done():
                         job.future.set_exception(e)
-                self.active, self.state, self.waiting, self.in_lm = [], None, [], {}
+                for lane in self.lanes.values():
+                    lane.active, lane.state = [], None
+                self.waiting, self.in_lm = [], {}
 
     def _take(self, wait: bool) -> list[Job]:
         """What is queued, up to max_batch; wait (the worker is idle): block for the first, then wait up to
@@ -350,7 +392,10 @@ class Service:
         for job in [j for j in jobs if start >= j.call_deadline]:
             job.future.set_exception(RequestError(self._unsolved(job.where)))
         jobs = [j for j in jobs if start < j.call_deadline]
+        self.waiting += [j for j in jobs if j.rot is not None]   # a pose: lm from its start (the graphs: positions)
+        jobs = [j for j in jobs if j.rot is None]
         if not jobs:
+            self._admit()
             return
         q0, target = np.array([j.q for j in jobs]), np.array([j.target for j in jobs])
         if self.graph is not None:
@@ -383,39 +428,47 @@ class Service:
             else:
                 wait.append(job)
         self.waiting = wait
-        if not admit:
-            return
-        q0, target = np.array([j.q for j in admit]), np.array([j.target for j in admit])   # lm from their start
-        if self.graph is not None:
+        for lane, jobs in ((self.lanes["position"], [j for j in admit if j.rot is None]),
+                           (self.lanes["pose"], [j for j in admit if j.rot is not None])):
+            if jobs:
+                self._join(lane, jobs)
+
+    def _join(self, lane: Lane, admit: list[Job]) -> None:
+        """Jobs into a lane's lm set, from their start."""
+        q0, target = np.array([j.q for j in admit]), np.array([j.target for j in admit])
+        if lane.w is None and self.graph is not None:
             new = LMSet(q0, None, np.array([j.err0 for j in admit]), np.full(len(admit), LAM0), target)
         else:
+            if lane.w is not None:                        # (A, 12): the position and the flange's orientation
+                target = np.hstack([target, np.array([j.rot for j in admit])])
             q, t = torch.tensor(q0, dtype=DTYPE), torch.tensor(target, dtype=DTYPE)
             with torch.no_grad():
-                r = predict(self.model, q) - t
+                r = residual(self.model, q, t, lane.w)
             new = LMSet(q, r, r.norm(dim=1), torch.full((len(admit),), LAM0, dtype=DTYPE), t)
         for job, e in zip(admit, new.err.tolist()):
             job.history.append(e)
-        self.active += admit
-        self.state = new if self.state is None else self.state.join(new)
-        self._finish()
+        lane.active += admit
+        lane.state = new if lane.state is None else lane.state.join(new)
+        self._finish(lane)
 
-    def _lm_iteration(self) -> None:
-        s = self.state
-        if self.graph is not None:
+    def _lm_iteration(self, lane: Lane) -> None:
+        s = lane.state
+        if lane.w is None and self.graph is not None:
             s.q, s.err, s.lam = self.graph.lm_step(s.q, s.target, s.err, s.lam)
         else:
-            s.q, s.r, s.err, s.lam = lm_step(self.model, self.jac, s.q, s.r, s.err, s.lam, s.target, self.limits)
-        for job, e in zip(self.active, s.err.tolist()):
+            s.q, s.r, s.err, s.lam = lm_step(self.model, lane.jac, s.q, s.r, s.err, s.lam, s.target, self.limits,
+                                             w=lane.w)
+        for job, e in zip(lane.active, s.err.tolist()):
             job.iters += 1
             job.history.append(e)
-        self._finish()
+        self._finish(lane)
 
-    def _finish(self) -> None:
-        """Answer the jobs of the lm set that converged, stalled or spent their budget or their call's; keep
-        the rest, and let waiting jobs into the slots freed."""
-        q = self.state.q
+    def _finish(self, lane: Lane) -> None:
+        """Answer the jobs of a lane's lm set that converged, stalled or spent their budget or their call's;
+        keep the rest, and let waiting jobs into the slots freed."""
+        q = lane.state.q
         now, keep = time.monotonic(), []
-        for i, job in enumerate(self.active):
+        for i, job in enumerate(lane.active):
             e, h = job.history[-1], job.history
             stalled = (e > self.unreachable and len(h) > self.stall_iter
                        and e > self.stall_ratio * h[-1 - self.stall_iter])
@@ -431,21 +484,31 @@ class Service:
                 job.future.set_exception(RequestError(self._unsolved(
                     job.where, f" (residual {e:.1f} mm after {job.iters} iterations)")))
                 continue
+            if lane.w is None:
+                field, said, extra = "target_mm", f"{e:.1f} mm", {}
+            else:                                         # a pose: the position's residual and the orientation's
+                r = lane.state.r[i].numpy()
+                arcsec = float(np.degrees(np.linalg.norm(r[3:]) / lane.w) * 3600)
+                field, said = "target_mm, target_rotvec", f"{np.linalg.norm(r[:3]):.1f} mm and {arcsec:.0f} arcsec"
+                extra = {"orientation_residual_arcsec": arcsec}
             if e < self.tol or e <= self.unreachable:
                 q_rad = (q[i].numpy() if isinstance(q, torch.Tensor) else q[i]).astype(float)   # a copy
                 inside = bool(self.workspace(np.degrees(q_rad)[None])[1][0])
-                job.future.set_result(self._answer(q_rad, e, e < self.tol, inside))
+                answer = self._answer(q_rad, e, e < self.tol, inside)
+                if extra:
+                    answer["residual_mm"] = float(np.linalg.norm(r[:3]))
+                job.future.set_result({**answer, **extra})
                 continue
             why = (f"no progress in {self.stall_iter} iterations" if stalled else
                    f"the budget: {job.iters} iterations, {1000 * (now - job.deadline + self.budget):.0f} ms")
             units = (" target_mm is in millimetres: a target this close to the base looks like metres."
                      if np.linalg.norm(job.target) < METRES_MM else "")
             job.future.set_exception(RequestError(
-                f"{job.where}target_mm: unreachable (residual {e:.1f} mm after compensation, tolerance "
+                f"{job.where}{field}: unreachable (residual {said} after compensation, tolerance "
                 f"{self.tol:g} mm; {why}).{units}"))
-        if len(keep) < len(self.active):
-            self.active = [self.active[i] for i in keep]
-            self.state = self.state.rows(keep) if keep else None
+        if len(keep) < len(lane.active):
+            lane.active = [lane.active[i] for i in keep]
+            lane.state = lane.state.rows(keep) if keep else None
             if self.waiting:
                 self._admit()
 
