@@ -10,6 +10,8 @@
                                  controller whose cycle cannot hold the network
     models/controller_tcp.onnx, models/controller_physics_tcp.onnx   the same two with one more input,
                                  tcp_mm (3,): the targets are that TCP's (flange frame), not the marker's
+    models/controller_pose.onnx  the whole model's at a TCP for a pose: target_rot (the flange's orientation)
+                                 and its weight too, six equations a step
 
 and reports/export.json, what each file was checked against, by libraries the
 pipeline does not use for its own kinematics:
@@ -34,6 +36,9 @@ squares over the campaign's poses); how far it stays from it, and what it leaves
     controller_tcp, controller_physics_tcp  the same at every `robot.tcp` point (each test pose towards
            that TCP's nominal position), against Realtime on tcp.AtTcp of the model (of PhysicsOnly(model));
            without robot.tcp, at a point 150 mm along the flange's x
+    controller_pose  the same two steps for each test pose's nominal pose at each such TCP (its position and
+           the flange's nominal orientation, weighted as compensate's lm weighs them), onnxruntime against
+           PyTorch's realtime.two_steps: the largest difference in angles (rad) and |r| (mm)
 """
 import numpy as np
 import pinocchio as pin
@@ -42,14 +47,16 @@ import yaml
 from scipy.spatial.transform import Rotation
 
 from .lib.artifacts import (CALIBRATED_GEOMETRY, CONTROLLER_ONNX, CONTROLLER_PHYSICS_ONNX, CONTROLLER_PHYSICS_TCP_ONNX,
-                            CONTROLLER_TCP_ONNX, EXPORT_JSON, MODEL_ONNX, MODEL_WEIGHTS, PARTS_JSON, UR_YAML,
+                            CONTROLLER_POSE_ONNX, CONTROLLER_TCP_ONNX, EXPORT_JSON, FRAME_JSON, MODEL_ONNX, MODEL_WEIGHTS, PARTS_JSON, UR_YAML,
                             URDF_FILE, load_points)
 from .lib.cli import one_line
 from .lib.columns import JOINTS_DEG, THEORY
 from .lib.config import for_stage, load_params, logger, read_json, write_json
 from .lib.geometry import Calibration, theory_geometry, with_parts
 from .lib.identify import identify
-from .lib.realtime import Realtime
+from .lib.compensation import nominal_flange
+from .lib.realtime import DAMPING, Realtime, two_steps
+from .lib.solvers import pose_weight
 from .lib.kinematics import DTYPE, RIGID_KEYS, TOOL_ROT, fk, fk_frames, fk_numpy, fk_pose
 from .lib.model import PhysicsOnly
 from .lib.onnx_model import OnnxModel, OnnxRealtime, deviation, export_controller, export_onnx
@@ -59,7 +66,7 @@ from .lib.checkpoint import load_model
 from .lib.urdf import UR_YAML_NAMES, base_transform, flange_residual, joint_origins, to_urdf, ur_kinematics
 
 log = logger(__name__)
-PARAMS = ("robot", "calibrate")
+PARAMS = ("robot", "calibrate", "compensate")
 
 
 def urdf_poses(urdf_text: str, q_rad: np.ndarray, frame_name: str = "tool0") -> tuple[np.ndarray, np.ndarray]:
@@ -201,6 +208,26 @@ def run(params: dict) -> dict:
             log.info("%s at TCP %s: onnxruntime vs PyTorch (AtTcp) on %d test poses: max %.1e rad, residual "
                      "%.1e mm; flags differ in %d", path, name, test.sum(), dev["max_q_rad"], dev["max_residual_mm"],
                      dev["flags_differ"])
+    export_controller(model, CONTROLLER_POSE_ONNX, pose=True)
+    w = pose_weight(p["compensate"])
+    nominal = theory_geometry(robot, read_json(FRAME_JSON)["tool_mm"])
+    rot = nominal_flange(pts.loc[test, JOINTS_DEG].to_numpy(), nominal)
+    summary["controller_pose"] = {"file": str(CONTROLLER_POSE_ONNX), "checked_with": "onnxruntime", "weight_mm_per_rad": w}
+    for name, xyz in tcps.items():
+        target = fk_numpy(pts.loc[test, JOINTS_DEG].to_numpy(), robot, theory_geometry(robot, xyz))
+        got = OnnxRealtime(CONTROLLER_POSE_ONNX, limits, tcp_mm=xyz, weight=w).solve(q[test].numpy(), target, rot=rot)
+        lo, hi = (torch.as_tensor(limits[:, i], dtype=DTYPE) for i in (0, 1))
+        with torch.no_grad():
+            want = [t.numpy() for t in two_steps(model.eval(), q[test], torch.as_tensor(target), lo, hi, DAMPING,
+                                                 torch.as_tensor(xyz, dtype=DTYPE), torch.as_tensor(rot), w)]
+        summary["controller_pose"][name] = {
+            "n_poses": int(test.sum()), "max_q_rad": size(max(np.abs(a - b).max() for a, b in zip(got[:2], want[:2]))),
+            "max_residual_mm": size(max(np.abs(a - b).max() for a, b in zip(got[2:], want[2:]))),
+            "verified_share": float((got[3] < p["compensate"]["tol_mm"]).mean())}
+        log.info("%s at TCP %s: onnxruntime vs PyTorch on %d test poses' nominal poses: max %.1e rad, |r| %.1e mm; "
+                 "%.0f%% verified in one step", CONTROLLER_POSE_ONNX, name, test.sum(),
+                 summary["controller_pose"][name]["max_q_rad"], summary["controller_pose"][name]["max_residual_mm"],
+                 100 * summary["controller_pose"][name]["verified_share"])
     write_json(EXPORT_JSON, summary)
     return summary
 

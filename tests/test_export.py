@@ -351,3 +351,55 @@ def test_the_tcp_controller_graph_answers_for_any_tool_as_the_pytorch_path_at_it
     for name in ("controller_tcp", "controller_physics_tcp"):  # the export stage's read-back at each robot.tcp
         r = export[name]["x150"]
         assert r["max_q_rad"] < 1e-9 and r["max_residual_mm"] < 1e-6 and r["flags_differ"] == 0
+
+
+def test_the_pose_controller_graph_solves_six_equations_as_pytorch_does(in_trained_project):
+    """Issue 34: models/controller_pose.onnx (two chord steps, six equations: a TCP's position and the flange's
+    orientation, the 6×6 solve in closed form) answers as PyTorch's realtime.two_steps, one pose and a batch,
+    at x150 and at the marker; from 0.05° off, its verified answers put the model's TCP within tol_mm and the
+    flange (scipy, from the model's chain) within tol_arcsec of the target pose."""
+    import onnx
+    from scipy.spatial.transform import Rotation
+    from pipeline.lib.kinematics import flange_rotations
+    from pipeline.lib.realtime import DAMPING, two_steps
+    from pipeline.lib.solvers import pose_weight
+    from pipeline.lib.tcp import AtTcp, probe_offsets
+    graph = onnx.load("models/controller_pose.onnx").graph
+    assert [i.name for i in graph.input] == ["q0_rad", "target_mm", "q_min_rad", "q_max_rad", "damping", "tcp_mm",
+                                             "target_rot", "weight"]
+    params = in_trained_project
+    model = load_model("models/boter.pt").eval()
+    limits = np.radians(load_robot(params["robot"]).limits_deg)
+    tol, w = params["compensate"]["tol_mm"], pose_weight(params["compensate"])
+    q_true = controller_cases(model, params)[0][:30]
+    q0 = q_true + np.radians(np.random.default_rng(5).uniform(-0.05, 0.05, q_true.shape))
+    g = model.physics.geometry()
+    for xyz in (params["robot"]["tcp"]["x150"]["xyz_mm"], g["tool"].tolist()):
+        at = AtTcp(model, probe_offsets({"t": {"xyz_mm": xyz}}, g)["t"])
+        with torch.no_grad():
+            target = at(torch.as_tensor(q_true))[0].numpy()
+            rot = flange_rotations(torch.as_tensor(q_true), g).numpy()
+        fast = OnnxRealtime("models/controller_pose.onnx", limits, tcp_mm=xyz, weight=w)
+        got = fast.solve(q0, target, rot=rot)
+        lo, hi = (torch.as_tensor(limits[:, i], dtype=DTYPE) for i in (0, 1))
+        with torch.no_grad():
+            want = [t.numpy() for t in two_steps(model, torch.as_tensor(q0), torch.as_tensor(target), lo, hi, DAMPING,
+                                                 torch.as_tensor(xyz, dtype=DTYPE), torch.as_tensor(rot), w)]
+        assert max(np.abs(a - b).max() for a, b in zip(got[:2], want[:2])) < 1e-9
+        assert max(np.abs(a - b).max() for a, b in zip(got[2:], want[2:])) < 1e-6
+        one = fast.solve(q0[:1], target[:1], rot=rot[:1])
+        assert np.abs(one[0] - got[0][:1]).max() < 1e-12
+        assert (got[2] > 10 * tol).all()                                          # real work
+        verified = got[3] < tol                                                   # q1, its residual measured
+        converged = verified | (got[3] ** 2 / got[2] < tol)                      # else q2, predicted (answers())
+        assert converged.mean() > 0.9
+        q = np.where(verified[:, None], got[0], got[1])
+        with torch.no_grad():
+            landed = at(torch.as_tensor(q))[0].numpy()
+            turned = flange_rotations(torch.as_tensor(q), g).numpy()
+        miss = np.linalg.norm(landed - target, axis=1)
+        off = np.degrees(Rotation.from_matrix(turned @ rot.transpose(0, 2, 1)).magnitude()) * 3600
+        assert miss[verified].max(initial=0) < tol and miss[converged].max() < 2 * tol, miss
+        assert off[converged].max() < 2 * params["compensate"]["tol_arcsec"], off
+    r = json.loads(Path("reports/export.json").read_text())["controller_pose"]["x150"]
+    assert r["max_q_rad"] < 1e-9 and r["max_residual_mm"] < 1e-6                 # the stage's own read-back

@@ -231,7 +231,7 @@ def angular_jacobian(q: torch.Tensor, g: dict) -> torch.Tensor:
     column i the axis of joint i (z of the frame before it), rotated by the base correction; the tool's
     rotation does not enter (a rotation of the flange turns the probe with it)."""
     frames = fk_frames(q, g)
-    z = torch.stack([frames[0].new_tensor([0.0, 0.0, 1.0]).expand(len(q), 3)]
+    z = torch.stack([frames[0].new_tensor([0.0, 0.0, 1.0]).expand(q.shape[0], 3)]
                     + [F[:, :3, 2] for F in frames[:-1]], 2)               # (B, 3, 6)
     return rotation_xyz(g["base"][:3]) @ z
 

@@ -15,6 +15,9 @@ iteration).
 `models/controller_tcp.onnx` (and `controller_physics_tcp.onnx`) take one more input, `tcp_mm` (3,)
 float64, the TCP in the flange frame (`robot.tcp`'s xyz_mm): the same two steps for that point's
 position (`OnnxRealtime(path, ..., tcp_mm=...)`, what `python -m pipeline.serve --tcp` runs).
+`models/controller_pose.onnx` takes `tcp_mm` and POSE_INPUTS: a pose, six equations a step (the 6×6 solve
+in closed form, solvers.solve_spd); |r| is then the weighted norm (`OnnxRealtime(..., tcp_mm, weight)`,
+`solve(..., rot=...)`).
 
 The joint limits are inputs, not constants: the graph is the model's alone, as model.onnx is, and a
 change of the robot's limits cannot leave it answering with old ones. The 3×3 linear solve of each
@@ -43,6 +46,8 @@ from .solvers import lm_keep
 
 CONTROLLER_INPUTS = ("q0_rad", "target_mm", "q_min_rad", "q_max_rad", "damping")
 TCP_INPUT = "tcp_mm"                # export_controller(..., at_tcp=True): the TCP (3,) mm, flange frame
+POSE_INPUTS = ("target_rot", "weight")   # export_controller(..., pose=True): the flange's orientation (batch, 3, 3)
+                                         # and its weight (1,) mm/rad (solvers.pose_weight)
 CONTROLLER_OUTPUTS = ("q1_rad", "q2_rad", "r0_mm", "r1_mm")
 
 
@@ -76,22 +81,35 @@ class _ControllerAtTcp(_Controller):
         return two_steps(self.model, q0_rad, target_mm, q_min_rad, q_max_rad, damping, tcp_mm)
 
 
+class _ControllerPose(_Controller):
+    """The same for a pose: a TCP's position and the flange's orientation, six equations."""
+
+    def forward(self, q0_rad, target_mm, q_min_rad, q_max_rad, damping, tcp_mm, target_rot, weight):
+        return two_steps(self.model, q0_rad, target_mm, q_min_rad, q_max_rad, damping, tcp_mm, target_rot, weight)
+
+
 def export_onnx(model, path) -> None:
     """Write `model` (BoTER or Ensemble, eval mode) to `path` as ONNX."""
     _export(_Poses(_exportable(model)), (torch.zeros(4, 6),), ["q_rad"], ["p_mm", "probe_rot"], ({0: "batch"},), path)
 
 
-def export_controller(model, path, at_tcp: bool = False) -> None:
+def export_controller(model, path, at_tcp: bool = False, pose: bool = False) -> None:
     """Write the controller path of `model` (BoTER or Ensemble, eval mode) to `path` as one ONNX graph:
     both chord steps, exactly what realtime.Realtime computes with the same damping; at_tcp: with the input
-    `tcp_mm` (3,), the TCP in the flange frame, whose position the targets are (Realtime on tcp.AtTcp)."""
+    `tcp_mm` (3,), the TCP in the flange frame, whose position the targets are (Realtime on tcp.AtTcp);
+    pose: that, and the flange's orientation as a target too (POSE_INPUTS; realtime.two_steps' rot, w)."""
     m = _exportable(model)
     for p in m.parameters():
         p.requires_grad_(False)
     args = (torch.zeros(4, 6, dtype=DTYPE), torch.zeros(4, 3, dtype=DTYPE), torch.full((6,), -np.pi, dtype=DTYPE),
             torch.full((6,), np.pi, dtype=DTYPE), torch.full((4,), DAMPING, dtype=DTYPE))
     dynamic = ({0: "batch"}, {0: "batch"}, None, None, {0: "batch"})
-    if at_tcp:
+    if pose:
+        args += (torch.zeros(3, dtype=DTYPE), torch.eye(3, dtype=DTYPE).expand(4, 3, 3).clone(),
+                 torch.ones(1, dtype=DTYPE))
+        _export(_ControllerPose(m), args, list(CONTROLLER_INPUTS) + [TCP_INPUT, *POSE_INPUTS],
+                list(CONTROLLER_OUTPUTS), dynamic + (None, {0: "batch"}, None), path)
+    elif at_tcp:
         _export(_ControllerAtTcp(m), args + (torch.zeros(3, dtype=DTYPE),), list(CONTROLLER_INPUTS) + [TCP_INPUT],
                 list(CONTROLLER_OUTPUTS), dynamic + (None,), path)
     else:
@@ -189,10 +207,10 @@ class OnnxRealtime:
     A single pose runs on a session with the batch size held at 1, a batch on one with it free."""
 
     def __init__(self, path, limits_rad: np.ndarray | None = None, tol_mm: float = 1e-3, workspace=None,
-                 damping: float = DAMPING, tcp_mm=None):
+                 damping: float = DAMPING, tcp_mm=None, weight: float | None = None):
         self.session, self.tol, self.workspace, self.damping = session(path), tol_mm, workspace, float(damping)
         names = tuple(i.name for i in self.session.get_inputs())
-        want = CONTROLLER_INPUTS + (() if tcp_mm is None else (TCP_INPUT,))
+        want = CONTROLLER_INPUTS + (() if tcp_mm is None else (TCP_INPUT,)) + (() if weight is None else POSE_INPUTS)
         if names != want:
             raise ValueError(f"{path}: a graph with inputs {', '.join(names)}, not the controller path's "
                              f"{', '.join(want)} (exported by an older version, or for another tool?)")
@@ -201,15 +219,18 @@ class OnnxRealtime:
         self.fixed = {"q_min_rad": np.ascontiguousarray(lim[:, 0]), "q_max_rad": np.ascontiguousarray(lim[:, 1])}
         if tcp_mm is not None:                             # the graph's inputs held for every call
             self.fixed[TCP_INPUT] = np.array(tcp_mm, np.float64).reshape(3)
+        if weight is not None:
+            self.fixed["weight"] = np.array([weight], np.float64)
 
-    def solve(self, q0_rad, target_mm, damping=None) -> list[np.ndarray]:
-        """The graph's outputs for q0 (B, 6) rad, target (B, 3) mm, damping (B,) (None: the controller's):
-        q1, q2 (B, 6), |r0|, |r1| (B,)."""
+    def solve(self, q0_rad, target_mm, damping=None, rot=None) -> list[np.ndarray]:
+        """The graph's outputs for q0 (B, 6) rad, target (B, 3) mm, damping (B,) (None: the controller's) and,
+        on a pose graph, the flange's orientations rot (B, 3, 3): q1, q2 (B, 6), |r0|, |r1| (B,)."""
         q0 = np.asarray(q0_rad, np.float64).reshape(-1, 6)
         mu = np.full(len(q0), self.damping) if damping is None else np.asarray(damping, np.float64).reshape(-1)
+        pose = {} if rot is None else {"target_rot": np.ascontiguousarray(np.asarray(rot, np.float64).reshape(-1, 3, 3))}
         return (self.single if len(q0) == 1 else self.session).run(
             None, {"q0_rad": q0, "target_mm": np.asarray(target_mm, np.float64).reshape(-1, 3), **self.fixed,
-                   "damping": mu})
+                   "damping": mu, **pose})
 
     def __call__(self, q0_rad, target_mm) -> Result:
         return self.batch(q0_rad, target_mm)[0]

@@ -32,7 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from .kinematics import DTYPE, fk_jacobian
+from .kinematics import DTYPE, angular_jacobian, fk_jacobian, flange_rotations, rotation_error
 from .solvers import min_norm_step
 
 DAMPING = 1e-9                                             # μ of the controller's chord steps (tiny, fixed)
@@ -82,21 +82,26 @@ class Realtime:
         return answers(q1, q2, r0, r1, self.tol, self.workspace)
 
 
-def two_steps(model, q0, target, lo, hi, damping, tcp_mm=None):
+def two_steps(model, q0, target, lo, hi, damping, tcp_mm=None, rot=None, w=None):
     """The two chord steps from q0 (B, 6) rad towards target (B, 3) mm, joint limits lo, hi (6,) rad,
     damping μ (a float or (B,)): q1, q2 (B, 6) and |r0|, |r1| (B,) mm. What Realtime runs (eager or compiled) and what
     onnx_model.export_controller exports as one graph. tcp_mm (3,), flange frame: the target is that point's
-    (the physics branch with it as its tool, the network's correction unchanged: lib/tcp.py AtTcp)."""
-    q1, r0 = chord_step(model, q0, target, lo, hi, damping, tcp_mm)
-    q2, r1 = chord_step(model, q1, target, lo, hi, damping, tcp_mm)
+    (the physics branch with it as its tool, the network's correction unchanged: lib/tcp.py AtTcp). rot
+    (B, 3, 3) and w (mm/rad): a pose, the flange's orientation too (six equations, solvers.residual's
+    weighting; |r| then the weighted norm)."""
+    q1, r0 = chord_step(model, q0, target, lo, hi, damping, tcp_mm, rot, w)
+    q2, r1 = chord_step(model, q1, target, lo, hi, damping, tcp_mm, rot, w)
     return q1, q2, r0, r1
 
 
-def chord_step(model, q, target, lo, hi, damping, tcp_mm=None):
+def chord_step(model, q, target, lo, hi, damping, tcp_mm=None, rot=None, w=None):
     """One chord step from q (B, 6): returns (the next q (B, 6), |residual at q| (B,) mm)."""
     g = model.physics.geometry()
     p, J = fk_jacobian(q, g if tcp_mm is None else {**g, "tool": tcp_mm})   # (B, 3), (B, 3, 6)
     r = p + model.delta(q) - target                        # (B, 3), eq. 9
+    if rot is not None:                                    # (B, 6), (B, 6, 6): the orientation's rows below
+        r = torch.cat([r, w * rotation_error(flange_rotations(q, g), rot)], 1)
+        J = torch.cat([J, w * angular_jacobian(q, g)], 1)
     q_next = q + min_norm_step(J, r, damping)
     return torch.clamp(q_next, lo, hi), r.norm(dim=1)
 

@@ -235,7 +235,7 @@ class Service:
     def compensate_pose(self, q_rad, target_mm, target_rotvec) -> dict:
         """compensate's struct and orientation_residual_arcsec, for a target orientation too: target_rotvec (3
         numbers, rad, base frame) the served frame's (the probe's, with --tcp the TCP's) rotation vector.
-        Six equations, solved by lm in PyTorch (the controller graphs solve positions), within the same
+        Six equations, solved by lm in PyTorch (not on a controller graph), within the same
         budgets; a RequestError names the field."""
         if self.frame_rot is None:
             raise RequestError("target_rotvec: the model was calibrated without the probe's orientation, so an "

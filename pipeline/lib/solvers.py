@@ -41,8 +41,8 @@ def min_norm_step(J, r, lam):
     JJt = J @ J.transpose(1, 2)                             # (B, m, m)
     scale = torch.as_tensor(lam, dtype=DTYPE) * JJt.diagonal(dim1=1, dim2=2).mean(1)   # (B,)
     damped = JJt + scale[:, None, None] * torch.eye(J.shape[1], dtype=DTYPE)
-    if torch.compiler.is_exporting():                      # ONNX has no linear solve: the closed form (3×3)
-        x = solve3(damped, r)
+    if torch.compiler.is_exporting():                      # ONNX has no linear solve: the closed forms
+        x = solve3(damped, r) if J.shape[1] == 3 else solve_spd(damped, r)
     else:
         x = torch.linalg.solve(damped, r.unsqueeze(-1)).squeeze(-1)
     return -(J.transpose(1, 2) @ x.unsqueeze(-1)).squeeze(-1)
@@ -56,6 +56,24 @@ def solve3(A, b):
     a0, a1, a2 = A[..., 0], A[..., 1], A[..., 2]           # (B, 3) columns
     rows = torch.stack([cross(a1, a2), cross(a2, a0), cross(a0, a1)], 1)   # (B, 3, 3): det · A⁻¹
     return (rows @ b.unsqueeze(-1)).squeeze(-1) / (a0 * rows[:, 0]).sum(-1, keepdim=True)
+
+
+def solve_spd(A, b):
+    """x = A⁻¹ b for symmetric positive definite systems A (B, m, m), b (B, m) by Gaussian elimination
+    without pivoting, unrolled (what the ONNX export runs for a pose's 6×6 damped J Jᵀ: stable without
+    pivots on SPD, as Cholesky is). Agrees with LAPACK to ~1e-12 relative on the chord step's systems
+    (tests/test_export.py)."""
+    m = A.shape[-1]
+    A, b = A.clone(), b.clone()
+    for k in range(m):                                      # eliminate column k below the diagonal
+        f = A[:, k + 1:, k] / A[:, k:k + 1, k]              # (B, m-k-1)
+        A = torch.cat([A[:, :k + 1], A[:, k + 1:] - f[..., None] * A[:, k:k + 1]], 1)
+        b = torch.cat([b[:, :k + 1], b[:, k + 1:] - f * b[:, k:k + 1]], 1)
+    x = []
+    for k in reversed(range(m)):                            # back substitution
+        s = b[:, k] - sum(A[:, k, j] * x[m - 1 - j] for j in range(k + 1, m)) if k < m - 1 else b[:, k]
+        x.append(s / A[:, k, k])
+    return torch.stack(x[::-1], 1)
 
 
 EVAL_ROWS = 256                     # rows the model evaluates at once: they stay in the cache (a 4096-row batch
