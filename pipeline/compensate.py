@@ -112,10 +112,11 @@ def twin_campaign(twin_json: str, files: dict) -> str | None:
 
 
 def twin_checks(model, cfg: dict, robot, tcp: dict | None, table: pd.DataFrame, frame: dict, made: str | None,
-                flange_rot: np.ndarray | None = None):
+                flange: np.ndarray, orientation: bool = False):
     """Job 3: the twin driven to the table's recorded and compensated angles (the paper's Table 9), and
     at every `robot.tcp` where the campaign has orientation, when the campaign is the twin's main one
-    (`made`) -> (compensation.json's entries, the per-point errors for drive_check.csv)."""
+    (`made`) -> (compensation.json's entries, the per-point errors for drive_check.csv). flange (n, 3, 3):
+    the table's poses' nominal flange orientations, targets too where `orientation`."""
     errors = pd.DataFrame(columns=["point_id"] + [f"{w}_{a}" for w in ("before", "after") for a in "xyz"])
     out = {}
     if cfg["drive_check"] and made != "main":                  # a real robot: no made-up twin result
@@ -129,7 +130,7 @@ def twin_checks(model, cfg: dict, robot, tcp: dict | None, table: pd.DataFrame, 
     errors = pd.DataFrame(e, columns=errors.columns[1:])
     errors.insert(0, "point_id", table["point_id"])
     if tcp and "tool_rot" in frame:
-        out["tcp_drive_check"] = tcp_checks(model, cfg, robot, tcp, table, frame, flange_rot)
+        out["tcp_drive_check"] = tcp_checks(model, cfg, robot, tcp, table, frame, flange, orientation)
     b, a = out["drive_check"]["before"], out["drive_check"]["after"]
     log.info("twin drive check on %d points: 3D error mean %.4f -> %.4f mm, max %.4f -> %.4f mm, "
              "within ±%.1f mm %.0f%% -> %.0f%%", a["n"], b["3d"]["mean"], a["3d"]["mean"],
@@ -138,21 +139,22 @@ def twin_checks(model, cfg: dict, robot, tcp: dict | None, table: pd.DataFrame, 
     return out, errors
 
 
-def tcp_checks(model, cfg: dict, robot, tcp: dict, table: pd.DataFrame, frame: dict,
-               flange_rot: np.ndarray | None = None) -> dict:
-    """Per `robot.tcp`: the test poses' nominal TCP positions (and with flange_rot, their nominal flange
-    orientations) solved for through the served model (AtTcp) and driven on the twin (lib/drive.py
-    tcp_drive_check): Table 9 before (recorded angles) and after, and the flange's orientation error."""
+def tcp_checks(model, cfg: dict, robot, tcp: dict, table: pd.DataFrame, frame: dict, flange: np.ndarray,
+               orientation: bool = False) -> dict:
+    """Per `robot.tcp`: the test poses' nominal TCP positions (and where `orientation`, their nominal flange
+    orientations, flange (n, 3, 3): the same for every tool) solved for through the served model (AtTcp) and
+    driven on the twin (lib/drive.py tcp_drive_check): Table 9 before (recorded angles) and after, and the
+    flange's orientation error."""
     twin, out = Twin.from_json(cfg["twin"]), {}
     q0 = table[JOINTS_DEG].to_numpy()
     for k, (name, o) in enumerate(probe_offsets(tcp, model.physics.geometry()).items()):
         at = AtTcp(model, o)
         target = fk_numpy(q0, robot, theory_geometry(robot, tcp[name]["xyz_mm"]))   # offline-programmed TCP
-        s = solve(at, q0, target, cfg, robot, history=False, flange_rot=flange_rot)
+        s = solve(at, q0, target, cfg, robot, history=False, flange_rot=flange if orientation else None)
         rng = np.random.default_rng([cfg["drive_seed"], k + 1])
         out[name], _ = tcp_drive_check(twin, frame, rng, np.random.default_rng([cfg["drive_seed"], k + 1, 1]),
                                        q0, s.q_deg, target, o, tool_rotation(model.physics.geometry()).numpy(),
-                                       nominal_flange(q0, theory_geometry(robot, tcp[name]["xyz_mm"])))
+                                       flange)
         out[name]["converged_share"] = float(s.converged.mean())
         if "orientation_arcsec" in out[name]:
             o_b, o_a = out[name]["orientation_arcsec"]["before"], out[name]["orientation_arcsec"]["after"]
@@ -179,13 +181,14 @@ def run(params: dict) -> dict:
     cfg, robot, frame = p["compensate"], prep.robot, prep.frame
     model, workspace = served_model()
     targets = test_targets(prep.points)
-    flange_rot = nominal_flange(targets[JOINTS_DEG].to_numpy(), prep.nominal) if orientation_targets(model, cfg) else None
-    table, summary, histories = solve_all(model, workspace, cfg, robot, targets, flange_rot)
+    flange = nominal_flange(targets[JOINTS_DEG].to_numpy(), prep.nominal)   # (n, 3, 3): the same for every tool
+    orientation = orientation_targets(model, cfg)
+    table, summary, histories = solve_all(model, workspace, cfg, robot, targets, flange if orientation else None)
     table.to_csv(COMPENSATION_CSV, index=False, float_format="%.6f")
     table.to_parquet(COMPENSATION_PARQUET, index=False)
     convergence_table(histories).to_csv(CONVERGENCE_CSV, index=False)
     made = twin_campaign(cfg["twin"], read_json(INGEST_JSON)["files"]) if cfg["drive_check"] else None
-    checks, errors = twin_checks(model, cfg, robot, p["robot"]["tcp"], table, frame, made, flange_rot)
+    checks, errors = twin_checks(model, cfg, robot, p["robot"]["tcp"], table, frame, made, flange, orientation)
     summary.update(checks)
     errors.to_csv(DRIVE_CSV, index=False, float_format="%.6f")   # empty: no drive check
     summary, timings = split_timings(summary)

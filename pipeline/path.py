@@ -13,11 +13,17 @@ PATH.csv, one row per waypoint (`,` `;` or tab separated, decimal point or comma
     move (optional; default movel)     how the path reaches the row from the one before: movel or movep (a
                                        straight line), via then movec (an arc through the via point); the
                                        first row is the start ("" or start)
-    target_rx..rz (optional)           an orientation (UR rotation vector, rad): refused, as the solver
-                                       compensates the position only, unless --ignore-orientation
+    target_rx..rz (optional)           the orientation to hold (a rotation vector, rad, base frame) of the
+                                       probe's frame (with --tcp, of the TCP's), slerped between waypoints
 Writes DIR/path.csv (per sample: sample, arc_mm, t_s, target_x..z, j1_comp_deg..j6_comp_deg,
-residual_mm, iterations, converged, in_workspace, uncertainty_mm) and DIR/path.script (URScript: movej
-to the first sample, then servoj per sample, t = its step's time at the speed in whole 2 ms cycles).
+residual_mm, iterations, converged, in_workspace, uncertainty_mm, orientation_residual_arcsec) and
+DIR/path.script (URScript: movej to the first sample, then servoj per sample, t = its step's time at the
+speed in whole 2 ms cycles).
+
+With an orientation (target_rx..rz, or for an offline path of joints the nominal flange orientation of
+each waypoint's joints, as the program compensator's `compensate.orientation`), each sample is a pose:
+six equations, position and the flange's orientation (a model calibrated with the probe's orientation;
+target_rx..rz for one without are refused). --ignore-orientation compensates the position alone.
 
 The path is resampled at most `path.spacing_mm` apart (--spacing), each step then halved while the model
 puts its joint-space middle farther than `path.chord_mm` from the path (--chord); each sample is solved
@@ -43,12 +49,14 @@ from .lib.config import for_stage, load_params, logger, read_json
 from .lib.geometry import theory_geometry
 from .lib.kinematics import fk_numpy
 from .lib.model import served
-from .lib.paths import ROTVEC, n_samples, read_path, resample
+from .lib.paths import n_samples, read_path, resample, rotations_at
 from .lib.pathsolve import (beyond_reach, deviation, finish, joint_speeds, model_position, refine, refusal,
                             solve_path, urscript)
 from .lib.robots import load_robot
 from .lib.checkpoint import load_model
 from .lib.tcp import at_tcp
+from .lib.urdf import tcp_transforms
+from .lib.waypoints import flange_targets
 from .lib.workspace import Workspace
 from .lib.writing import check_outputs, csv_text, write_together
 
@@ -74,8 +82,10 @@ def start_joints(found, start_deg, robot, src) -> np.ndarray:
 
 def summary_text(table: pd.DataFrame, dev: np.ndarray, spacing: float, speed: float) -> str:
     steps = np.diff(table.arc_mm.to_numpy())
+    held = table.orientation_residual_arcsec.notna().any()
+    orientation = f", the flange's orientation {table.orientation_residual_arcsec.max():.1e} arcsec" if held else ""
     return (f"{len(table)} samples over {table.arc_mm.iloc[-1]:.1f} mm (steps {steps.min():.3f}-{steps.max():.3f} "
-            f"mm, spacing {spacing:g} mm): residual max {table.residual_mm.max():.1e} mm; the joint-space steps "
+            f"mm, spacing {spacing:g} mm): residual max {table.residual_mm.max():.1e} mm{orientation}; the joint-space steps "
             f"within {dev.max() if len(dev) else 0.0:.4f} mm of the path at their middle (the model); "
             f"{int((~table.in_workspace).sum())} samples outside the trained workspace; "
             f"{table.t_s.iloc[-1]:.2f} s at {speed:g} mm/s")
@@ -97,7 +107,8 @@ def run(argv=None) -> pd.DataFrame:
                     help="write a path with samples outside the trained workspace (flagged) instead of refusing it")
     ap.add_argument("--tcp", default=None, help="solve for this robot.tcp point (params.yaml) instead of the marker")
     ap.add_argument("--ignore-orientation", action="store_true",
-                    help="compensate the position of a path that gives target_rx..rz, leaving its orientation")
+                    help="compensate the position alone, leaving the orientation (target_rx..rz, or an offline "
+                         "path's nominal one)")
     a = ap.parse_args(argv)
     src, out = Path(a.path), Path(a.out)
     check_outputs([out / f for f in FILES], [src])   # by inode too: a hard link to the input is the input
@@ -115,14 +126,21 @@ def run(argv=None) -> pd.DataFrame:
     nominal = theory_geometry(robot, read_json(FRAME_JSON)["tool_mm"])
     workspace = Workspace.from_dict(read_json(WORKSPACE_JSON))
     model = served(load_model(MODEL_WEIGHTS), workspace.network)
+    frame_rot = None                                 # target_rx..rz turn the probe's frame, or the TCP's
     if a.tcp is not None:
         model, nominal = at_tcp(model, p["robot"]["tcp"], a.tcp, nominal)
+        frame_rot = tcp_transforms(p["robot"]["tcp"])[a.tcp][:3, :3]
     found = read_path(src, robot, lambda q: fk_numpy(q, robot, nominal))
-    if found.rotvec is not None and not a.ignore_orientation:
-        raise Refused(f"{src}: columns {', '.join(ROTVEC)}: the solver compensates the TCP position only "
-                      "(robot.tool_mm), not its orientation; rerun with --ignore-orientation to compensate the "
-                      "position alone (the wrist then turns as the solve from sample to sample leads it); "
-                      "nothing written")
+    rotations = None                                 # arc_mm (k,) -> the flange's orientations (k, 3, 3)
+    if not a.ignore_orientation:
+        try:
+            rots = flange_targets(model, p["compensate"], found.joints_deg, nominal, found.offline, found.rotvec,
+                                  frame_rot)
+        except Refused as e:
+            raise Refused(f"{src}: {e}; rerun with --ignore-orientation to compensate the position alone; "
+                          "nothing written") from None
+        if rots is not None:
+            rotations = lambda arc: rotations_at(found.segs, rots, arc)
     q0 = start_joints(found, a.start_deg, robot, src)
     n = n_samples(found.segs, cfg["spacing_mm"])
     if n > cfg["max_samples"]:
@@ -133,9 +151,10 @@ def run(argv=None) -> pd.DataFrame:
     far = beyond_reach(targets, arc, reach_mm(model.physics.geometry()))
     if far:
         raise Refused(f"{src}: {far}; nothing written")
-    table = solve_path(model, targets, arc, q0, p["compensate"], robot)
+    table = solve_path(model, targets, arc, q0, p["compensate"], robot,
+                       None if rotations is None else rotations(arc))
     if cfg["chord_mm"] is not None and table.converged.all():
-        table = refine(model, table, found.segs, cfg["chord_mm"], p["compensate"], robot)
+        table = refine(model, table, found.segs, cfg["chord_mm"], p["compensate"], robot, rotations)
     table = finish(table, workspace, cfg["speed_mm_s"])
     dev = deviation(model_position(model), table[JCOMP_DEG].to_numpy(), found.segs)
     why = refusal(table, n, robot.limits_deg, p["compensate"]["tol_mm"], dev, cfg["max_deviation_mm"],

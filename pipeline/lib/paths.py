@@ -7,15 +7,19 @@ between waypoints, resampled along the arc length, and the distance of any point
     segments(points, moves, where)   Line and Arc segments; a bad move is a ValueError naming where(i)
     resample(segs, spacing_mm)       samples at most spacing_mm apart along the path, every waypoint one
     at(segs, arc_mm)                 the path's points at arc lengths
+    rotations_at(segs, rots, arc_mm) its orientations there, slerped from waypoint to waypoint
     distance(points, segs)           each point's distance to the path (mm)
 
 Moves, as a UR program's: `movel` and `movep` a straight line from the previous point; `via` then
 `movec` a circular arc from the previous point through the via point to the movec's (URScript
-movec(pose_via, pose_to)). A movej has no TCP path to follow, so it is refused.
+movec(pose_via, pose_to)). A movej has no TCP path to follow, so it is refused. An orientation turns
+from a segment's first waypoint's to its last's in proportion to the arc length (a movec's via point's
+orientation is not used, as in URScript's movec).
 """
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from .columns import TARGET
 from .readers import IngestError, find_column, headers_found, looks_like_radians, parse_number, read_table, \
@@ -32,6 +36,7 @@ MIN_MOVE_MM = 1e-6                                         # a move shorter than
 class Line:
     start: np.ndarray
     end: np.ndarray
+    waypoints: tuple = (0, 1)       # the waypoints (indices) it runs from and to
 
     @property
     def length(self) -> float:
@@ -53,6 +58,7 @@ class Arc:
     start: np.ndarray
     via: np.ndarray
     end: np.ndarray
+    waypoints: tuple = (0, 2)       # the waypoints (indices) it runs from and to (the via between)
 
     def __post_init__(self):
         a, b, c = self.start, self.via, self.end
@@ -111,14 +117,14 @@ def segments(points: np.ndarray, moves: list, where=lambda i: f"point {i}") -> l
             if min(np.linalg.norm(ends[1] - ends[0]), np.linalg.norm(ends[2] - ends[1])) < MIN_MOVE_MM:
                 raise ValueError(f"{where(i)}: the via point is one of the arc's ends")
             try:
-                out.append(Arc(*ends))
+                out.append(Arc(*ends, waypoints=(i - 1, i + 1)))
             except ValueError as e:
                 raise ValueError(f"{where(i)}: {e}") from None
             i += 2
             continue
         if np.linalg.norm(points[i] - points[i - 1]) < MIN_MOVE_MM:
             raise ValueError(f"{where(i)}: the same point as the one before: a move of length 0")
-        out.append(Line(points[i - 1], points[i]))
+        out.append(Line(points[i - 1], points[i], waypoints=(i - 1, i)))
         i += 1
     return out
 
@@ -144,14 +150,34 @@ def resample(segs: list, spacing_mm: float) -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate(pts), np.concatenate(arc)
 
 
-def at(segs: list, arc_mm: np.ndarray) -> np.ndarray:
-    """The path's points at arc lengths arc_mm (k,) -> (k, 3)."""
+def locate(segs: list, arc_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Arc lengths along the path (k,) -> each one's segment (k,) and arc length within it (k,) mm."""
     ends = np.cumsum([s.length for s in segs])
     k = np.minimum(np.searchsorted(ends, arc_mm), len(segs) - 1)
+    lengths = np.array([s.length for s in segs])[k]
+    return k, np.clip(arc_mm - (ends[k] - lengths), 0.0, lengths)
+
+
+def at(segs: list, arc_mm: np.ndarray) -> np.ndarray:
+    """The path's points at arc lengths arc_mm (k,) -> (k, 3)."""
+    k, s = locate(segs, arc_mm)
     out = np.empty((len(arc_mm), 3))
     for i in np.unique(k):
         sel = k == i
-        out[sel] = segs[i].at(np.clip(arc_mm[sel] - (ends[i] - segs[i].length), 0.0, segs[i].length))
+        out[sel] = segs[i].at(s[sel])
+    return out
+
+
+def rotations_at(segs: list, rots: np.ndarray, arc_mm: np.ndarray) -> np.ndarray:
+    """The path's orientations (k, 3, 3) at arc lengths arc_mm (k,), from the waypoints' rots (n, 3, 3): along
+    each segment, the rotation from its first waypoint's to its last's, slerped by the share of its length."""
+    k, s = locate(segs, arc_mm)
+    out = np.empty((len(arc_mm), 3, 3))
+    for i in np.unique(k):
+        sel, (a, b) = k == i, segs[i].waypoints
+        r0 = Rotation.from_matrix(rots[a])
+        turn = (r0.inv() * Rotation.from_matrix(rots[b])).as_rotvec()          # (3,) rad, in the first's frame
+        out[sel] = (r0 * Rotation.from_rotvec((s[sel] / segs[i].length)[:, None] * turn)).as_matrix()
     return out
 
 
@@ -170,6 +196,7 @@ class PathFile:
     lines: list                    # each waypoint's row in the file (the header is row 1)
     path: str
     segs: list | None = None       # its segments (`segments`)
+    offline: bool = False          # its points are where the nominal kinematics put its joints
 
     def where(self, i: int) -> str:
         return f"{self.path}, row {self.lines[i]}, column 'move'"
@@ -230,7 +257,7 @@ def read_path(path, robot, nominal_fk=None) -> PathFile:
     if "move" in lower:
         c = find_column(header, "move", "path", path)
         moves = [row[c] for row in cells]
-    found = PathFile(points, moves, joints, rotvec, lines, path)
+    found = PathFile(points, moves, joints, rotvec, lines, path, offline="target" not in groups)
     try:
         found.segs = segments(points, moves, found.where)
     except ValueError as e:

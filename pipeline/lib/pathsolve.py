@@ -1,7 +1,7 @@
 """A path compensated sample by sample, checked, and the URScript that drives it (docs/robot-cell.md,
 "Compensating a path"); for `python -m pipeline.path`, the service's compensate_path and bench path.
 
-    solve_sample(model, q_deg, target, cfg, robot)    the one per-sample solve (an orientation: later)
+    solve_sample(model, q_deg, target, cfg, robot)    the one per-sample solve (with rot: a pose)
     solve_path(model, targets, arc_mm, q_start, ...)  every sample from the previous sample's solution:
                                                       continuity, no branch flips; it stops at the first
                                                       sample not reached
@@ -29,29 +29,33 @@ from .solvers import CHUNK, slices
 CYCLE_S = 0.002                 # the UR controller's cycle (500 Hz): servoj's t is a whole number of them
 REFINE_ROUNDS = 12              # chord mode: halvings at most
 MIN_STEP_MM = 1e-3              # chord mode: a step this short is not halved further
-SOLVED = ["arc_mm"] + TARGET + JCOMP_DEG + ["residual_mm", "iterations", "converged"]
+SOLVED = ["arc_mm"] + TARGET + JCOMP_DEG + ["residual_mm", "iterations", "converged", "orientation_residual_arcsec"]
 PATH_COLUMNS = (["sample", "arc_mm", "t_s"] + TARGET + JCOMP_DEG
-                + ["residual_mm", "iterations", "converged", "in_workspace", "uncertainty_mm"])
+                + ["residual_mm", "iterations", "converged", "in_workspace", "uncertainty_mm",
+                   "orientation_residual_arcsec"])
 
 
-def solve_sample(model, q_deg: np.ndarray, target: np.ndarray, cfg: dict, robot, rotvec=None) -> tuple:
+def solve_sample(model, q_deg: np.ndarray, target: np.ndarray, cfg: dict, robot, rot=None) -> tuple:
     """Joints (deg) that put the model's TCP on target (mm), solved from q_deg (the previous sample's
     solution) by `compensate.solver` within the joint limits -> (q_deg (6,), residual_mm, iterations,
-    converged). rotvec, an orientation to hold too, waits for the orientation solver."""
-    if rotvec is not None:
-        raise ValueError("a TCP orientation: the solver compensates the position only (robot.tool_mm)")
-    s = solve(model, np.asarray(q_deg, float)[None], np.asarray(target, float)[None], cfg, robot, history=False)
-    return s.q_deg[0], float(np.linalg.norm(s.pred[0] - target)), int(s.iterations[0]), bool(s.converged[0])
+    converged, orientation_residual_arcsec). rot (3, 3): the flange's orientation to reach too (a pose: six
+    equations; compensation.solve), else the orientation residual is NaN."""
+    s = solve(model, np.asarray(q_deg, float)[None], np.asarray(target, float)[None], cfg, robot, history=False,
+              flange_rot=None if rot is None else np.asarray(rot, float)[None])
+    arcsec = np.nan if s.orientation_arcsec is None else float(s.orientation_arcsec[0])
+    return s.q_deg[0], float(np.linalg.norm(s.pred[0] - target)), int(s.iterations[0]), bool(s.converged[0]), arcsec
 
 
-def solve_path(model, targets: np.ndarray, arc_mm: np.ndarray, q_start_deg, cfg: dict, robot) -> pd.DataFrame:
-    """Each sample (targets (m, 3), arc_mm (m,)) solved from the previous sample's solution, the first from
-    q_start_deg; it stops after the first sample not converged (the table then ends there)."""
+def solve_path(model, targets: np.ndarray, arc_mm: np.ndarray, q_start_deg, cfg: dict, robot,
+               rots: np.ndarray | None = None) -> pd.DataFrame:
+    """Each sample (targets (m, 3), arc_mm (m,), with rots (m, 3, 3) the flange's orientations too) solved
+    from the previous sample's solution, the first from q_start_deg; it stops after the first sample not
+    converged (the table then ends there)."""
     rows, q = [], np.asarray(q_start_deg, float)
-    for x, s in zip(targets, arc_mm):
-        q, r, it, ok = solve_sample(model, q, x, cfg, robot)
-        rows.append([s, *x, *q, r, it, ok])
-        if not ok:
+    for i, (x, s) in enumerate(zip(targets, arc_mm)):
+        q, *solved = solve_sample(model, q, x, cfg, robot, None if rots is None else rots[i])
+        rows.append([s, *x, *q, *solved])
+        if not solved[2]:
             break
     return pd.DataFrame(rows, columns=SOLVED)
 
@@ -74,10 +78,11 @@ def deviation(position, q_deg: np.ndarray, segs: list) -> np.ndarray:
     return distance(position((q[:-1] + q[1:]) / 2), segs)
 
 
-def refine(model, table: pd.DataFrame, segs: list, chord_mm: float, cfg: dict, robot) -> pd.DataFrame:
+def refine(model, table: pd.DataFrame, segs: list, chord_mm: float, cfg: dict, robot, rotations=None) -> pd.DataFrame:
     """Chord mode: each step whose middle the model puts farther than chord_mm from the path gets a sample
     at its arc middle, solved from the middle of its ends' joints (continuity); until none does, a step is
-    MIN_STEP_MM short, or REFINE_ROUNDS rounds (then `refusal` judges what is left)."""
+    MIN_STEP_MM short, or REFINE_ROUNDS rounds (then `refusal` judges what is left). rotations: arc_mm (k,)
+    -> the flange's orientations there (k, 3, 3), for a path with orientation."""
     position = model_position(model)
     for _ in range(REFINE_ROUNDS):
         q, arc = table[JCOMP_DEG].to_numpy(), table.arc_mm.to_numpy()
@@ -85,10 +90,10 @@ def refine(model, table: pd.DataFrame, segs: list, chord_mm: float, cfg: dict, r
         if not len(bad):
             break
         mid = (arc[bad] + arc[bad + 1]) / 2
-        rows = []
-        for k, s, x in zip(bad, mid, at(segs, mid)):
-            qk, r, it, ok = solve_sample(model, (q[k] + q[k + 1]) / 2, x, cfg, robot)
-            rows.append([s, *x, *qk, r, it, ok])
+        rows, rots = [], [None] * len(mid) if rotations is None else rotations(mid)
+        for k, s, x, rot in zip(bad, mid, at(segs, mid), rots):
+            qk, *solved = solve_sample(model, (q[k] + q[k + 1]) / 2, x, cfg, robot, rot)
+            rows.append([s, *x, *qk, *solved])
         new = pd.DataFrame(rows, columns=SOLVED)
         table = pd.concat([table, new]).sort_values("arc_mm", kind="stable").reset_index(drop=True)
     return table
@@ -144,8 +149,10 @@ def refusal(table: pd.DataFrame, n_samples: int, limits_deg: np.ndarray, tol_mm:
     m = len(table)                                       # the samples reached
     if not table.converged.iloc[-1]:
         m -= 1
+        o = table.orientation_residual_arcsec.iloc[m] if "orientation_residual_arcsec" in table else np.nan
+        off = "" if np.isnan(o) else f"; the flange's orientation {o:.2f} arcsec off"
         found.append((m, "not reached", f"{name(m)}: not reached (residual {table.residual_mm.iloc[m]:.4f} mm, "
-                                        f"tolerance {tol_mm:g} mm), solved from sample {m}'s joints; the "
+                                        f"tolerance {tol_mm:g} mm{off}), solved from sample {m}'s joints; the "
                                         f"{n_samples - m - 1} samples after it were not solved"))
     lo, hi = np.asarray(limits_deg, float).T
     beyond = np.argwhere((q[:m] < lo) | (q[:m] > hi))
@@ -200,8 +207,11 @@ def urscript(table: pd.DataFrame, speed_mm_s: float, lookahead_s: float, gain: i
     lines = [f"# compensated path by `python -m pipeline.path`: {len(table)} samples over "
              f"{float(table.arc_mm.iloc[-1]):.3f} mm at {float(speed_mm_s):.3f} mm/s, "
              f"{float(table.t_s.iloc[-1]):.3f} s; joints in rad",
-             f"# residual max {float(table.residual_mm.max()):.6f} mm; {outside} samples outside the trained workspace",
-             "def compensated_path():",
+             f"# residual max {float(table.residual_mm.max()):.6f} mm; {outside} samples outside the trained workspace"]
+    arcsec = table.orientation_residual_arcsec.to_numpy(float)
+    if not np.isnan(arcsec).all():
+        lines.append(f"# the flange's orientation held along the path: residual max {float(np.nanmax(arcsec)):.3f} arcsec")
+    lines += ["def compensated_path():",
              "  def servo_step(a, b, n):",
              "    # from joints a to b in n controller cycles, joint-linear: one servoj a cycle",
              "    i = 1.0",

@@ -32,8 +32,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from .kinematics import DTYPE, angular_jacobian, fk_jacobian, flange_rotations, rotation_error
-from .solvers import min_norm_step
+from .kinematics import DTYPE, fk_jacobian
+from .solvers import min_norm_step, pose_jacobian, pose_residual
 
 DAMPING = 1e-9                                             # μ of the controller's chord steps (tiny, fixed)
 
@@ -100,8 +100,8 @@ def chord_step(model, q, target, lo, hi, damping, tcp_mm=None, rot=None, w=None)
     p, J = fk_jacobian(q, g if tcp_mm is None else {**g, "tool": tcp_mm})   # (B, 3), (B, 3, 6)
     r = p + model.delta(q) - target                        # (B, 3), eq. 9
     if rot is not None:                                    # (B, 6), (B, 6, 6): the orientation's rows below
-        r = torch.cat([r, w * rotation_error(flange_rotations(q, g), rot)], 1)
-        J = torch.cat([J, w * angular_jacobian(q, g)], 1)
+        r = pose_residual(r, q, g, rot, w)
+        J = pose_jacobian(J, q, g, w)
     q_next = q + min_norm_step(J, r, damping)
     return torch.clamp(q_next, lo, hi), r.norm(dim=1)
 

@@ -98,11 +98,27 @@ def residual(model, q, target, w: float):
     r = predict(model, q) - target[:, :3]
     if target.shape[1] == 3:
         return r
-    return torch.cat([r, w * orientation_residual(model.physics.geometry(), q, target)], 1)
+    return pose_residual(r, q, model.physics.geometry(), target_rotations(target), w)
+
+
+def target_rotations(target):                              # (B, 12) -> (B, 3, 3): a pose target's orientation
+    return target[:, 3:].reshape(-1, 3, 3)
 
 
 def orientation_residual(g: dict, q, target):              # (B, 6), (B, 12) -> (B, 3) rad
-    return rotation_error(flange_rotations(q, g), target[:, 3:].reshape(-1, 3, 3))
+    return rotation_error(flange_rotations(q, g), target_rotations(target))
+
+
+def pose_residual(r, q, g: dict, rot, w: float):
+    """A pose's residual [r; w e] (B, 6): the position's r (B, 3) mm and the flange's orientation error e
+    (B, 3) rad at q (B, 6) under geometry g against rot (B, 3, 3), weighted by w (`pose_weight`)."""
+    return torch.cat([r, w * rotation_error(flange_rotations(q, g), rot)], 1)
+
+
+def pose_jacobian(J, q, g: dict, w: float):
+    """A pose's Jacobian [J; w J_ω] (B, 6, 6): the position's J (B, 3, 6) and the flange's angular
+    Jacobian at q under geometry g, weighted by w (the rows of `pose_residual`)."""
+    return torch.cat([J, w * angular_jacobian(q, g)], 1)
 
 
 def jacobian(f, q):
@@ -187,7 +203,7 @@ def lm_jacobian(model, jacobian_of: str, w: float | None = None):
         raise ValueError(f"params.yaml compensate.jacobian_of: {jacobian_of!r}; use physics or model")
     if w is None:
         return position
-    return lambda q: torch.cat([position(q), w * angular_jacobian(q, model.physics.geometry())], 1)
+    return lambda q: pose_jacobian(position(q), q, model.physics.geometry(), w)
 
 
 def lm_step(model, jac, q, r, err, lam, target, limits=None, physics_steps: int = 1, w: float | None = None):
@@ -222,8 +238,7 @@ def physics_trial(g, q, r, lam, steps: int, limits=None, target=None, w: float |
     def rows(x, p, J):                                      # the physics branch's Jacobian and residual at x
         if w is None:
             return J, p - goal
-        return (torch.cat([J, w * angular_jacobian(x, g)], 1),
-                torch.cat([p - goal, w * orientation_residual(g, x, target)], 1))
+        return pose_jacobian(J, x, g, w), pose_residual(p - goal, x, g, target_rotations(target), w)
     p, J = fk_jacobian(q, g)
     goal = p - r[:, :3]                                     # (A, 3) mm: where the physics branch must go
     q_try = clamped(q + min_norm_step(rows(q, p, J)[0], r, lam), limits)   # the chord step: r is the model's

@@ -108,6 +108,24 @@ def read_waypoints(path, robot) -> pd.DataFrame:
     return df
 
 
+def flange_targets(model, cfg: dict, q0_deg: np.ndarray, nominal: dict, offline: bool, rotvec=None,
+                   frame_rot=None) -> np.ndarray | None:
+    """The flange's orientation targets (n, 3, 3), base frame, of n waypoints, or None (position only):
+    rotvec (n, 3), rotation vectors (rad, base frame) of a frame whose rotation in the flange is frame_rot
+    (3, 3) (None: the probe's, the model's tool_rot); else, for offline-programmed waypoints (offline) with
+    `compensation.orientation_targets`, the nominal flange of their joints q0_deg (n, 6). A rotvec for a
+    model calibrated without orientation is refused (Refused)."""
+    if rotvec is None:
+        return nominal_flange(q0_deg, nominal) if offline and orientation_targets(model, cfg) else None
+    g = model.physics.geometry()
+    if TOOL_ROT not in g:
+        raise Refused(f"columns {', '.join(ROTVEC)}: the model was calibrated without the probe's orientation, "
+                      "so an orientation cannot be compensated; leave them out, or calibrate on a campaign "
+                      "with orientation")
+    frame_rot = tool_rotation(g).numpy() if frame_rot is None else np.asarray(frame_rot, float)
+    return Rotation.from_rotvec(np.asarray(rotvec, float)).as_matrix() @ frame_rot.T   # (n, 3, 3)
+
+
 def compensate_program(df: pd.DataFrame, model, workspace, robot, nominal: dict, cfg: dict,
                        frame_rot: np.ndarray | None = None) -> pd.DataFrame:
     """The Δθ table of the waypoints df (targets: df's, else the nominal poses of its joints: their positions
@@ -117,15 +135,8 @@ def compensate_program(df: pd.DataFrame, model, workspace, robot, nominal: dict,
     q0 = df[JOINTS_DEG].to_numpy()
     offline = TARGET[0] not in df
     target = fk_numpy(q0, robot, nominal) if offline else df[TARGET].to_numpy()
-    flange_rot = nominal_flange(q0, nominal) if offline and orientation_targets(model, cfg) else None
-    if ROTVEC[0] in df:
-        g = model.physics.geometry()
-        if TOOL_ROT not in g:
-            raise Refused(f"columns {', '.join(ROTVEC)}: the model was calibrated without the probe's orientation, "
-                          "so an orientation cannot be compensated; leave them out, or calibrate on a campaign "
-                          "with orientation")
-        frame_rot = tool_rotation(g).numpy() if frame_rot is None else np.asarray(frame_rot, float)
-        flange_rot = Rotation.from_rotvec(df[ROTVEC].to_numpy(float, copy=True)).as_matrix() @ frame_rot.T   # (n, 3, 3)
+    flange_rot = flange_targets(model, cfg, q0, nominal, offline,
+                                df[ROTVEC].to_numpy(float, copy=True) if ROTVEC[0] in df else None, frame_rot)
     reach = reach_mm(model.physics.geometry())
     far = np.linalg.norm(target, axis=1) > reach
     if far.any():
