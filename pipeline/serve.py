@@ -23,7 +23,10 @@ XML-RPC at http://HOST:PORT/RPC2 (only that path, only POST; default 127.0.0.1:5
                                          serve.max_path_samples and serve.call_budget_ms -> {"q_rad": [[6]
                                          per sample], "target_mm", "arc_mm", "t_s", "residual_mm",
                                          "in_workspace": per sample, "all_in_workspace": bool}, or a Fault
-                                         naming the field (a sample that must not be driven: points_mm)
+                                         naming the field (a sample that must not be driven: points_mm);
+                                         a 6th argument, rotvecs (one rotation vector per point, as
+                                         target_rotvec), holds the orientation too, slerped between the
+                                         points (and "orientation_residual_arcsec" per sample)
     system.listMethods, system.methodHelp, system.methodSignature
 
 With --tcp NAME every target is that `robot.tcp` point's (lib/tcp.py AtTcp: the marker's answer moved

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
+import torch
 
 from conftest import exit_code, served_model
 from pipeline import path as path_command
@@ -414,3 +415,40 @@ def test_the_service_answers_a_whole_path(path_server, in_trained_project):
     with pytest.raises(xmlrpc.client.Fault, match=r"points_mm: sample \d+ \(arc [0-9.]+ mm\), target_mm: not solved: "
                                                    r"the call's budget of 1 ms \(serve.call_budget_ms\) was spent"):
         tight.compensate_path(q0, SEAM, [], 1.0, 20.0)
+
+
+def test_the_service_holds_a_paths_orientation(path_server, in_trained_project):
+    """Issue 34: compensate_path's rotvecs, one per point (the seam's start turning 2° about the base's z):
+    a real client's answer puts every sample's flange (the model's) within 1″ of scipy's Slerp between the
+    two, its position on target; without rotvecs the flange ends degrees off. Bad rotvecs are a Fault naming
+    the field, and the server serves on."""
+    from scipy.spatial.transform import Rotation, Slerp
+    from pipeline.lib.compensation import nominal_flange
+    from pipeline.lib.kinematics import flange_rotations, tool_rotation
+    params = in_trained_project
+    robot, frame = load_robot(params["robot"]), read_json(FRAME_JSON)
+    g = served_model().physics.geometry()
+    tool_rot = tool_rotation(g).numpy()
+    start = nominal_flange(np.array([SEAM_START]), theory_geometry(robot, frame["tool_mm"]))[0] @ tool_rot
+    probe = Rotation.from_matrix(np.stack([start, Rotation.from_euler("z", 2, degrees=True).as_matrix() @ start]))
+    c, q0 = path_server(), np.radians(SEAM_START).tolist()
+    r = c.compensate_path(q0, SEAM, [], 10.0, 20.0, probe.as_rotvec().tolist())
+    plain = c.compensate_path(q0, SEAM, [], 10.0, 20.0)
+    assert "orientation_residual_arcsec" not in plain and max(r["orientation_residual_arcsec"]) < 1.0
+    goal = Slerp([0.0, 100.0], probe)(r["arc_mm"]).as_matrix() @ tool_rot.T                 # (11, 3, 3) flange
+    tol = params["compensate"]["tol_mm"]
+    for answer, within in ((r, (0.0, 1.0)), (plain, (3600.0, np.inf))):
+        q = np.array(answer["q_rad"])
+        np.testing.assert_allclose(model_position(served_model())(np.degrees(q)), answer["target_mm"], atol=tol)
+        with torch.no_grad():
+            R = flange_rotations(torch.as_tensor(q), g).numpy()
+        off = np.degrees(Rotation.from_matrix(R @ goal.transpose(0, 2, 1)).magnitude()) * 3600
+        assert within[0] <= off[-1] and off.max() < within[1], off
+    rv = probe.as_rotvec().tolist()
+    bad = {"rotvecs: expected a list of 2 rotation vectors": (q0, SEAM, [], 10.0, 20.0, rv[:1]),
+           "rotvecs[1]: |4.000| rad, more than π": (q0, SEAM, [], 10.0, 20.0, [rv[0], [4.0, 0.0, 0.0]]),
+           "rotvecs[0][2]: not a finite number": (q0, SEAM, [], 10.0, 20.0, [[0.0, 0.0, float("nan")], rv[1]])}
+    for words, args in bad.items():
+        with pytest.raises(xmlrpc.client.Fault, match=re.escape(words)):
+            c.compensate_path(*args)
+        assert c.compensate(q0, SEAM[0])["converged"]                              # still serving

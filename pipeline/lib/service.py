@@ -43,7 +43,7 @@ from scipy.spatial.transform import Rotation
 from .columns import JCOMP_DEG, TARGET
 from .kinematics import DTYPE
 from .model import PhysicsOnly
-from .paths import n_samples, resample, segments
+from .paths import n_samples, resample, rotations_at, segments
 from .pathsolve import beyond_reach, deviation, model_position, refusal, servo_times
 from .realtime import Realtime, answers
 from .solvers import LAM0, lm_jacobian, lm_step, pose_weight, residual
@@ -237,16 +237,24 @@ class Service:
         numbers, rad, base frame) the served frame's (the probe's, with --tcp the TCP's) rotation vector.
         Six equations, solved by lm in PyTorch (not on a controller graph), within the same
         budgets; a RequestError names the field."""
-        if self.frame_rot is None:
-            raise RequestError("target_rotvec: the model was calibrated without the probe's orientation, so an "
-                               "orientation cannot be compensated; call compensate with the position")
+        self.orientation_served("target_rotvec", "call compensate with the position")
         q, target = self.check(q_rad, target_mm)
-        rotvec = numbers(target_rotvec, "target_rotvec", 3)
-        if np.linalg.norm(rotvec) > np.pi + 1e-9:
-            raise RequestError(f"target_rotvec: |{np.linalg.norm(rotvec):.3f}| rad, more than π: a rotation vector "
+        return self.submit(q, target, rot=self.flange_target(target_rotvec, "target_rotvec")).result()
+
+    def orientation_served(self, field: str, instead: str) -> None:
+        """A RequestError naming field where the model was calibrated without the probe's orientation."""
+        if self.frame_rot is None:
+            raise RequestError(f"{field}: the model was calibrated without the probe's orientation, so an "
+                               f"orientation cannot be compensated; {instead}")
+
+    def flange_target(self, rotvec, field: str) -> np.ndarray:
+        """The flange's orientation (3, 3), base frame, for the served frame's rotation vector rotvec (3 numbers,
+        rad, base frame), checked: a RequestError names field."""
+        rv = numbers(rotvec, field, 3)
+        if np.linalg.norm(rv) > np.pi + 1e-9:
+            raise RequestError(f"{field}: |{np.linalg.norm(rv):.3f}| rad, more than π: a rotation vector "
                                "in radians (degrees sent?)")
-        flange = Rotation.from_rotvec(rotvec).as_matrix() @ self.frame_rot.T
-        return self.submit(q, target, rot=flange).result()
+        return Rotation.from_rotvec(rv).as_matrix() @ self.frame_rot.T
 
     def compensate_list(self, q_rad, target_mm) -> list:
         """compensate's answer as 9 floats: q1..q6 rad, residual_mm, converged, in_workspace (1.0 / 0.0)."""
@@ -283,13 +291,15 @@ class Service:
                     out.append({"error": str(e)})
         return out
 
-    def compensate_path(self, q_rad, points_mm, moves, spacing_mm, speed_mm_s) -> dict:
+    def compensate_path(self, q_rad, points_mm, moves, spacing_mm, speed_mm_s, rotvecs=()) -> dict:
         """A TCP path (points_mm, moves as the path command's file: movel, movep, via + movec; [] every
         move movel) resampled at most spacing_mm apart, each sample solved from the previous one's answer, the
         first from q_rad, in order, within one call budget (`call_budget_ms`); refused as the path command
         refuses (lib/pathsolve.refusal; outside the trained workspace: flagged, not refused), else
         {q_rad, target_mm, arc_mm, t_s (servoj's times at speed_mm_s), residual_mm, in_workspace: per sample,
-        all_in_workspace}. A RequestError names the field."""
+        all_in_workspace}. rotvecs, one per point (as compensate_pose's target_rotvec; [] or left out: none): the
+        orientation held too, slerped between the points (paths.rotations_at), six equations a sample in the
+        pose lane; the answer then has orientation_residual_arcsec per sample. A RequestError names the field."""
         deadline = time.monotonic() + self.call_budget_ms / 1000
         if not isinstance(points_mm, (list, tuple)):
             raise RequestError(f"points_mm: expected a list of [x, y, z], got {describe(points_mm)}")
@@ -304,6 +314,12 @@ class Service:
             if not isinstance(m, str):
                 raise RequestError(f"moves[{i}]: expected a string, got {describe(m)}")
         spacing, speed = positive(spacing_mm, "spacing_mm"), positive(speed_mm_s, "speed_mm_s")
+        if not isinstance(rotvecs, (list, tuple)) or len(rotvecs) not in (0, len(points)):
+            raise RequestError(f"rotvecs: expected a list of {len(points)} rotation vectors [rx, ry, rz] (rad), one "
+                               f"per point (or [], no orientation), got {describe(rotvecs)}")
+        if len(rotvecs):
+            self.orientation_served("rotvecs", "leave them out to compensate the positions")
+        rots = np.array([self.flange_target(r, f"rotvecs[{i}]") for i, r in enumerate(rotvecs)])   # (n, 3, 3)
         q = self.joints(q_rad)
         if isinstance(self.joint_speeds, str):
             raise RequestError(f"speed_mm_s: {self.joint_speeds}")
@@ -318,6 +334,7 @@ class Service:
                                f"samples, more than the limit of {self.max_path_samples} (serve.max_path_samples): "
                                "a larger spacing, or split the path")
         targets, arc = resample(segs, spacing)
+        flange = rotations_at(segs, rots, arc) if len(rots) else [None] * len(arc)   # (m, 3, 3): per sample
         far = beyond_reach(targets, arc, self.reach)
         if far:
             raise RequestError(f"points_mm: {far}")
@@ -326,13 +343,14 @@ class Service:
             where = f"points_mm: sample {k + 1} (arc {a:.1f} mm), "
             if time.monotonic() >= deadline:
                 raise RequestError(self._unsolved(where))
-            r = self.submit(q, x, where, call, deadline).result()
+            r = self.submit(q, x, where, call, deadline, rot=flange[k]).result()
             q = np.array(r["q_rad"])
-            rows.append([a, *x, *np.degrees(q), r["residual_mm"], 0, r["converged"], r["in_workspace"]])
+            rows.append([a, *x, *np.degrees(q), r["residual_mm"], 0, r["converged"], r["in_workspace"],
+                         r.get("orientation_residual_arcsec", np.nan)])
             if not r["converged"]:
                 break
-        table = pd.DataFrame(rows, columns=["arc_mm"] + TARGET + JCOMP_DEG + ["residual_mm", "iterations",
-                                                                              "converged", "in_workspace"])
+        table = pd.DataFrame(rows, columns=["arc_mm"] + TARGET + JCOMP_DEG + ["residual_mm", "iterations", "converged",
+                                                                              "in_workspace", "orientation_residual_arcsec"])
         qd = table[JCOMP_DEG].to_numpy()
         why = refusal(table, n, self.limits_deg, self.tol, deviation(self.position, qd, segs), self.max_deviation,
                       speed, self.joint_speeds)
@@ -341,7 +359,8 @@ class Service:
         return {"q_rad": np.radians(qd).tolist(), "target_mm": targets.tolist(), "arc_mm": arc.tolist(),
                 "t_s": np.concatenate([[0.0], np.cumsum(servo_times(arc, speed))]).tolist(),
                 "residual_mm": table.residual_mm.tolist(), "in_workspace": table.in_workspace.astype(bool).tolist(),
-                "all_in_workspace": bool(table.in_workspace.all())}
+                "all_in_workspace": bool(table.in_workspace.all()),
+                **({"orientation_residual_arcsec": table.orientation_residual_arcsec.tolist()} if len(rots) else {})}
 
     def _unsolved(self, where: str, residual: str = "") -> str:
         return (f"{where}target_mm: not solved{residual}: the call's budget of {self.call_budget_ms:g} ms "
