@@ -40,11 +40,11 @@ import pandas as pd
 import torch
 from scipy.spatial.transform import Rotation
 
-from .columns import JCOMP_DEG, TARGET
+from .columns import JCOMP_DEG
 from .kinematics import DTYPE
 from .model import PhysicsOnly
 from .paths import n_samples, resample, rotations_at, segments
-from .pathsolve import beyond_reach, deviation, model_position, refusal, servo_times
+from .pathsolve import SOLVED, beyond_reach, deviation, model_position, refusal, servo_times
 from .realtime import Realtime, answers
 from .solvers import LAM0, lm_jacobian, lm_step, pose_weight, residual
 
@@ -345,12 +345,11 @@ class Service:
                 raise RequestError(self._unsolved(where))
             r = self.submit(q, x, where, call, deadline, rot=flange[k]).result()
             q = np.array(r["q_rad"])
-            rows.append([a, *x, *np.degrees(q), r["residual_mm"], 0, r["converged"], r["in_workspace"],
-                         r.get("orientation_residual_arcsec", np.nan)])
+            rows.append([a, *x, *np.degrees(q), r["residual_mm"], 0, r["converged"],
+                         r.get("orientation_residual_arcsec", np.nan), r["in_workspace"]])
             if not r["converged"]:
                 break
-        table = pd.DataFrame(rows, columns=["arc_mm"] + TARGET + JCOMP_DEG + ["residual_mm", "iterations", "converged",
-                                                                              "in_workspace", "orientation_residual_arcsec"])
+        table = pd.DataFrame(rows, columns=SOLVED + ["in_workspace"])       # the path command's, and in_workspace
         qd = table[JCOMP_DEG].to_numpy()
         why = refusal(table, n, self.limits_deg, self.tol, deviation(self.position, qd, segs), self.max_deviation,
                       speed, self.joint_speeds)
