@@ -6,15 +6,15 @@ import pandas as pd
 import pytest
 import torch
 
-from pipeline import calibrate
-from pipeline.lib import identify as C
-from pipeline.lib import twin as T
-from pipeline.lib.columns import ERR, JOINTS_DEG, MEAS, THEORY
-from pipeline.lib.config import load_params, read_json
-from pipeline.lib.config import write_json
-from pipeline.lib.config import read_json
-from pipeline.lib.geometry import Calibration
-from pipeline.lib.kinematics import DTYPE, fk, fk_numpy, nominal_geometry
+from pipeline.stages import calibrate
+from pipeline.lib.robot import identify as C
+from pipeline.lib.sim import twin as T
+from pipeline.lib.project.columns import ERR, JOINTS_DEG, MEAS, THEORY
+from pipeline.lib.project.config import load_params, read_json
+from pipeline.lib.project.config import write_json
+from pipeline.lib.project.config import read_json
+from pipeline.lib.robot.geometry import Calibration
+from pipeline.lib.robot.kinematics import DTYPE, fk, fk_numpy, nominal_geometry
 
 ROOT = Path(__file__).resolve().parents[1]
 CFG = load_params(ROOT / "params.yaml")["calibrate"]
@@ -133,7 +133,7 @@ def test_robust_loss_ignores_gross_outliers(poses, g0, truth):
 
 def test_stage_writes_model_and_report(tmp_path, monkeypatch):
     """run() on interim tables made from the twin (base frame via a Kabsch fit)."""
-    from pipeline.lib.frames import kabsch
+    from pipeline.lib.robot.frames import kabsch
     twin = T.Twin()
     q = twin.poses(150)
     theory = fk_numpy(q, T.ur5())

@@ -4,12 +4,12 @@ import pandas as pd
 import pytest
 import torch
 
-from pipeline.compensate import read_targets
-from pipeline.lib.solvers import compensate, jacobian, min_norm_step, solve3
-from pipeline.lib.kinematics import nominal_geometry
-from pipeline.lib.model import BoTER
-from pipeline.lib.realtime import Realtime
-from pipeline.lib.robots import load_robot, nominal_robot
+from pipeline.stages.compensate import read_targets
+from pipeline.lib.runtime.solvers import compensate, jacobian, min_norm_step, solve3
+from pipeline.lib.robot.kinematics import nominal_geometry
+from pipeline.lib.learning.model import BoTER
+from pipeline.lib.runtime.realtime import Realtime
+from pipeline.lib.robot.robots import load_robot, nominal_robot
 
 ROBOT = nominal_robot("ur5")
 CFG = {"lr": 1e-4, "max_iter": 500, "tol_mse": 1e-4, "tol_mm": 1e-3, "jacobian_of": "model"}
@@ -111,7 +111,7 @@ def test_realtime_lands_every_pose_within_0_001_mm_in_two_evaluations(model):
 
 
 def test_realtime_flags_answers_outside_the_trained_workspace(model):
-    from pipeline.lib.workspace import Workspace
+    from pipeline.lib.learning.workspace import Workspace
     q0, tgt = targets(model, n=3)
     ws = Workspace(q0[:1], radius_deg=5.0, u_model_mm=0.1, u_parts_mm=0.1, u_calibrated_mm=0.1,
                    fade_to=None)                                  # trained on the first pose only
@@ -143,7 +143,7 @@ def test_the_closed_form_3x3_solve_equals_lapacks(model):
     on the damped J Jᵀ of chord steps, at poses near and at a singularity (wrist: joint 5 at 0)."""
     q0, _ = targets(model, n=40)
     q = torch.as_tensor(np.radians(np.vstack([q0, [[10.0, -70, 80, -90, 0.0, 5]]])))
-    from pipeline.lib.kinematics import fk_jacobian
+    from pipeline.lib.robot.kinematics import fk_jacobian
     J = fk_jacobian(q, model.physics.geometry())[1]
     r = torch.as_tensor(np.random.default_rng(0).normal(0, 1, (len(q), 3)))
     JJt = J @ J.transpose(1, 2)
@@ -196,7 +196,7 @@ def test_physics_steps_still_land_on_a_strongly_nonlinear_model(model):
 
 
 def test_the_model_evaluated_in_cache_sized_slices_gives_one_batch_numbers(model):
-    from pipeline.lib.solvers import EVAL_ROWS, predict
+    from pipeline.lib.runtime.solvers import EVAL_ROWS, predict
     q = torch.as_tensor(np.radians(targets(model, n=3 * EVAL_ROWS + 17)[0]))
     with torch.no_grad():
         assert torch.equal(predict(model, q), model(q)[0])
@@ -205,7 +205,7 @@ def test_the_model_evaluated_in_cache_sized_slices_gives_one_batch_numbers(model
 def pose_targets(model, n=40, seed=0):
     """Targets the model reaches at known angles q_true, as poses: its position and the flange's orientation
     there; the solvers start 0.05-0.1° away. Six equations for six joints: the answer is q_true."""
-    from pipeline.lib.kinematics import flange_rotations
+    from pipeline.lib.robot.kinematics import flange_rotations
     q_start, tgt = targets(model, n, seed)
     rng = np.random.default_rng(seed)                        # `targets`' draws again: the angles it started from
     q_true = rng.uniform([-60, -120, 30, -150, 40, -90], [60, -40, 120, -30, 140, 90], (n, 6))
@@ -220,8 +220,8 @@ def test_a_pose_target_recovers_the_six_joints(model, jacobian_of, steps):
     recovers the angles the targets came from; a position-only solve lands on the position with the flange
     still turned (checked with scipy's rotations, not the solver's own error)."""
     from scipy.spatial.transform import Rotation
-    from pipeline.lib.compensation import solve
-    from pipeline.lib.kinematics import flange_rotations
+    from pipeline.lib.runtime.compensation import solve
+    from pipeline.lib.robot.kinematics import flange_rotations
     q_start, q_true, tgt, R = pose_targets(model)
     cfg = {**CFG, "jacobian_of": jacobian_of, "physics_steps": steps, "tol_arcsec": 1.0}
 
@@ -240,7 +240,7 @@ def test_a_pose_target_recovers_the_six_joints(model, jacobian_of, steps):
 
 
 def test_adam_solves_a_pose_target_too(model):
-    from pipeline.lib.compensation import solve
+    from pipeline.lib.runtime.compensation import solve
     q_start, q_true, tgt, R = pose_targets(model, n=8, seed=1)
     s = solve(model, q_start, tgt, {**CFG, "tol_arcsec": 1.0, "max_iter": 2000}, ROBOT, "adam", flange_rot=R)
     assert s.converged.all() and s.orientation_arcsec.max() < 60 and np.abs(s.q_deg - q_true).max() < 0.02

@@ -1,13 +1,13 @@
-"""Per-joint error maps (lib/errormaps.py): a known joint error is recovered through the chain, the maps
+"""Per-joint error maps (lib/robot/errormaps.py): a known joint error is recovered through the chain, the maps
 fade where a joint was never measured, and they never take over a calibration parameter."""
 import numpy as np
 import pytest
 import torch
 
-from pipeline.lib import errormaps as E
-from pipeline.lib.kinematics import DTYPE, fk, fk_jacobian, gravity_torques, nominal_geometry
-from pipeline.lib.robots import nominal_robot
-from pipeline.lib import twin as T
+from pipeline.lib.robot import errormaps as E
+from pipeline.lib.robot.kinematics import DTYPE, fk, fk_jacobian, gravity_torques, nominal_geometry
+from pipeline.lib.robot.robots import nominal_robot
+from pipeline.lib.sim import twin as T
 
 UR5 = nominal_robot("ur5")
 G = nominal_geometry(UR5)

@@ -10,20 +10,20 @@ import torch
 import yaml
 from scipy.spatial.transform import Rotation
 
-from pipeline.export import rigid_equivalent, ur_yaml_poses, urdf_positions
+from pipeline.stages.export import rigid_equivalent, ur_yaml_poses, urdf_positions
 from conftest import project_points
-from pipeline.lib.columns import JOINTS_DEG, THEORY
-from pipeline.lib.config import load_params, read_json
-from pipeline.lib.kinematics import DTYPE, fk, fk_frames, fk_pose, nominal_geometry
-from pipeline.lib.model import Ensemble, PhysicsOnly
-from pipeline.lib.onnx_model import OnnxModel, OnnxRealtime, export_controller, export_onnx
-from pipeline.lib.realtime import Realtime
-from pipeline.lib.solvers import lm_jacobian, lm_step, predict
-from pipeline.lib.robots import UR_JOINTS, load_robot, nominal_robot
-from pipeline.lib.checkpoint import load_model, make_model
-from pipeline.lib.workspace import Workspace
-from pipeline.lib.twin import sample_poses
-from pipeline.lib.urdf import base_transform, flange_residual, joint_origins, to_urdf, ur_kinematics
+from pipeline.lib.project.columns import JOINTS_DEG, THEORY
+from pipeline.lib.project.config import load_params, read_json
+from pipeline.lib.robot.kinematics import DTYPE, fk, fk_frames, fk_pose, nominal_geometry
+from pipeline.lib.learning.model import Ensemble, PhysicsOnly
+from pipeline.lib.learning.onnx_model import OnnxModel, OnnxRealtime, export_controller, export_onnx
+from pipeline.lib.runtime.realtime import Realtime
+from pipeline.lib.runtime.solvers import lm_jacobian, lm_step, predict
+from pipeline.lib.robot.robots import UR_JOINTS, load_robot, nominal_robot
+from pipeline.lib.learning.checkpoint import load_model, make_model
+from pipeline.lib.learning.workspace import Workspace
+from pipeline.lib.sim.twin import sample_poses
+from pipeline.lib.robot.urdf import base_transform, flange_residual, joint_origins, to_urdf, ur_kinematics
 
 ROOT = Path(__file__).resolve().parents[1]
 PARAMS = load_params(ROOT / "params.yaml")
@@ -61,8 +61,8 @@ def test_urdf_read_by_pinocchio_matches_the_chain_to_1e6_mm():
 def test_the_urdf_and_yaml_carry_the_probe_and_tcp_frames():
     """tool0 is the probe's frame (its rotation in the flange included) and each robot.tcp a link on the
     flange: read back by Pinocchio, against the chain's own poses (issue 34)."""
-    from pipeline.export import urdf_poses
-    from pipeline.lib.kinematics import TOOL_ROT, fk_pose
+    from pipeline.stages.export import urdf_poses
+    from pipeline.lib.robot.kinematics import TOOL_ROT, fk_pose
     g = {**calibrated_like(), TOOL_ROT: torch.tensor([0.01, -0.02, -1.5707], dtype=DTYPE)}
     tcp = {"torch": {"xyz_mm": [150.0, 0.0, 80.0], "rxyz_deg": [0.0, 30.0, 0.0]}}
     q = poses(50)
@@ -323,7 +323,7 @@ def test_the_tcp_controller_graph_answers_for_any_tool_as_the_pytorch_path_at_it
     in a batch, and the answers put that TCP, not the marker, on the target. The marker's own graph refuses
     a tool (its inputs do not take one), and the TCP graph refuses to run without one."""
     import onnx
-    from pipeline.lib.tcp import AtTcp, probe_offsets
+    from pipeline.lib.robot.tcp import AtTcp, probe_offsets
     graph = onnx.load("models/controller_tcp.onnx").graph
     assert [i.name for i in graph.input] == ["q0_rad", "target_mm", "q_min_rad", "q_max_rad", "damping", "tcp_mm"]
     params = in_trained_project
@@ -360,10 +360,10 @@ def test_the_pose_controller_graph_solves_six_equations_as_pytorch_does(in_train
     flange (scipy, from the model's chain) within tol_arcsec of the target pose."""
     import onnx
     from scipy.spatial.transform import Rotation
-    from pipeline.lib.kinematics import flange_rotations
-    from pipeline.lib.realtime import DAMPING, two_steps
-    from pipeline.lib.solvers import pose_weight
-    from pipeline.lib.tcp import AtTcp, probe_offsets
+    from pipeline.lib.robot.kinematics import flange_rotations
+    from pipeline.lib.runtime.realtime import DAMPING, two_steps
+    from pipeline.lib.runtime.solvers import pose_weight
+    from pipeline.lib.robot.tcp import AtTcp, probe_offsets
     graph = onnx.load("models/controller_pose.onnx").graph
     assert [i.name for i in graph.input] == ["q0_rad", "target_mm", "q_min_rad", "q_max_rad", "damping", "tcp_mm",
                                              "target_rot", "weight"]

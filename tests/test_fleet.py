@@ -3,8 +3,8 @@ from pathlib import Path
 
 import pytest
 
-from pipeline import fleet
-from pipeline.lib.config import load_params
+from pipeline.commands import fleet
+from pipeline.lib.project.config import load_params
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -14,14 +14,14 @@ from hypothesis import HealthCheck, event, example, given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from pipeline.lib.columns import JOINTS_DEG, MEAS, MEAS_Q
-from pipeline.lib.config import ParamsError, load_params
-from pipeline.ingest import run
-from pipeline.lib import readers
-from pipeline.lib.readers import IngestError
-from pipeline.lib.kinematics import fk_numpy
-from pipeline.lib.presets import merged_params
-from pipeline.lib.robots import load_robot
+from pipeline.lib.project.columns import JOINTS_DEG, MEAS, MEAS_Q
+from pipeline.lib.project.config import ParamsError, load_params
+from pipeline.stages.ingest import run
+from pipeline.lib.reading import readers
+from pipeline.lib.reading.readers import IngestError
+from pipeline.lib.robot.kinematics import fk_numpy
+from pipeline.lib.reading.presets import merged_params
+from pipeline.lib.robot.robots import load_robot
 
 
 def ingest(params: dict):
@@ -792,7 +792,7 @@ def test_the_bundled_campaign_ingests_to_the_bytes_dvc_lock_records(tmp_path, mo
 def test_a_campaign_with_orientation_joins_one_without(tmp_path, monkeypatch):
     """campaigns.more: the further campaign measures orientation, the ingest section's does not: meas_q*
     follow meas_z, NaN on the points without."""
-    from pipeline.ingest import run_campaign
+    from pipeline.stages.ingest import run_campaign
     monkeypatch.chdir(tmp_path)
     ids, q, m = campaign(15, seed=14)
     write_pair(tmp_path, ids, q, m)

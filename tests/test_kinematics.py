@@ -10,8 +10,8 @@ import torch
 
 import pipeline
 from conftest import background
-from pipeline.lib.kinematics import DHChain, fk, fk_jacobian, fk_numpy, nominal_geometry
-from pipeline.lib.robots import load_robot, nominal_robot
+from pipeline.lib.robot.kinematics import DHChain, fk, fk_jacobian, fk_numpy, nominal_geometry
+from pipeline.lib.robot.robots import load_robot, nominal_robot
 
 UR5 = nominal_robot("ur5")
 
@@ -107,7 +107,7 @@ FK_HASH = """
 import hashlib, numpy as np, torch
 import pipeline
 from pipeline.lib import kinematics as K
-from pipeline.lib.twin import ur5
+from pipeline.lib.sim.twin import ur5
 q = torch.as_tensor(np.random.default_rng(0).uniform(-3, 3, (719, 6)), dtype=K.DTYPE)
 g = K.nominal_geometry(ur5())
 with torch.no_grad():

@@ -1,6 +1,7 @@
-"""The architecture, checked. Everything under pipeline/ but the library (pipeline/lib/) is a stage
-that ./dvc.yaml runs or a declared command (pipeline.COMMANDS), never both. The library imports only
-itself; a stage imports only the library; a command (a module, or a package such as pipeline/bench/)
+"""The architecture, checked. pipeline/ holds three packages and nothing else: the stages
+(pipeline/stages/, exactly the modules ./dvc.yaml runs), the commands (pipeline/commands/, run by hand)
+and the library (pipeline/lib/, one package per topic). The library imports only
+itself; a stage imports only the library; a command (a module, or a package such as pipeline/commands/bench/)
 only the library and its own modules: no stage or command imports another. Every stage's dvc.yaml deps
 cover exactly the project code it runs and its params exactly the sections it reads (the opt-in
 ablation/dvc.yaml's too, whose stages run a command); every command has a [project.scripts] entry."""
@@ -17,15 +18,14 @@ from pathlib import Path
 import pytest
 import yaml
 
-from pipeline import COMMANDS
-from pipeline.lib.config import for_stage, load_params
+from pipeline.lib.project.config import for_stage, load_params
 
 ROOT = Path(__file__).resolve().parents[1]
 PKG = ROOT / "pipeline"
 
 
 def module_path(name: str) -> Path:
-    """pipeline.lib.model -> pipeline/lib/model.py (a package -> its __init__.py)."""
+    """pipeline.lib.learning.model -> pipeline/lib/learning/model.py (a package -> its __init__.py)."""
     p = ROOT.joinpath(*name.split("."))
     return p / "__init__.py" if p.is_dir() else p.with_suffix(".py")
 
@@ -102,21 +102,25 @@ def package_modules(folder: Path) -> list[str]:
     return out
 
 
-def top_level() -> dict[str, list[str]]:
-    """{pipeline.<name>: its modules} for every module pipeline/<name>.py and package pipeline/<name>/
-    but the library: the stages and commands."""
-    out = {f"pipeline.{p.stem}": [f"pipeline.{p.stem}"] for p in PKG.glob("*.py") if p.stem != "__init__"}
-    for d in PKG.iterdir():
-        if d.is_dir() and d.name != "lib" and (d / "__init__.py").exists():
-            out[f"pipeline.{d.name}"] = package_modules(d)
+def top_level(kind: str) -> dict[str, list[str]]:
+    """{pipeline.<kind>.<name>: its modules} for every module pipeline/<kind>/<name>.py and package
+    pipeline/<kind>/<name>/: the stages (kind "stages") or the commands ("commands")."""
+    folder = PKG / kind
+    out = {f"pipeline.{kind}.{p.stem}": [f"pipeline.{kind}.{p.stem}"] for p in folder.glob("*.py")
+           if p.stem != "__init__"}
+    for d in folder.iterdir():
+        if d.is_dir() and (d / "__init__.py").exists():
+            out[f"pipeline.{kind}.{d.name}"] = package_modules(d)
     return out
 
 
 STAGES = {name: stage_module(s) for name, s in dvc_stages().items()}           # ablation's too
 PIPELINE = {stage_module(s) for s in yaml.safe_load((ROOT / "dvc.yaml").read_text())["stages"].values()}
-CMDS = {f"pipeline.{c}" for c in COMMANDS}
+STAGE_MODULES, COMMAND_MODULES = top_level("stages"), top_level("commands")
+CMDS = set(COMMAND_MODULES)
+COMMANDS = {c.rsplit(".", 1)[1] for c in CMDS}
 LIB = package_modules(PKG / "lib")
-TOP = top_level()
+TOP = {**STAGE_MODULES, **COMMAND_MODULES}
 MODULES = sorted((top, m) for top, mods in TOP.items() for m in mods)            # (its stage or command, module)
 
 
@@ -124,8 +128,7 @@ def test_every_stage_is_a_pipeline_module():
     """STAGES, which the deps and params tests below run over, holds every stage of every dvc.yaml that
     lists its code file by file (fleet/dvc.yaml depends on the whole package), each once under its own
     name (an ablation stage as ablation/<name>, so no stage hides another); ./dvc.yaml's stages run a
-    stage module, an existing pipeline/<name>.py or package that is not a command, ablation/dvc.yaml's a
-    command."""
+    stage module (pipeline/stages/<name>.py), ablation/dvc.yaml's a command."""
     files = subprocess.run(["git", "ls-files", "--cached", "--others", "--exclude-standard", "*dvc.yaml"], cwd=ROOT,
                            capture_output=True, text=True, check=True).stdout.split()
     by_file = {f: yaml.safe_load((ROOT / f).read_text())["stages"] for f in sorted(set(files))}
@@ -141,17 +144,22 @@ def test_every_stage_is_a_pipeline_module():
             assert STAGES[key] in TOP and (STAGES[key] in CMDS) == (f != "dvc.yaml"), \
                 f"{f}: stage {name} runs {STAGES[key]}: want {want}"
     assert {"ingest", "train", "report", "validate", "ablation/group"} <= set(STAGES)
-    assert {"pipeline.ingest", "pipeline.train", "pipeline.report"} <= set(STAGES.values())
+    assert {"pipeline.stages.ingest", "pipeline.stages.train", "pipeline.stages.report"} <= set(STAGES.values())
 
 
-def test_everything_but_the_library_is_a_stage_or_a_command_never_both():
-    assert not PIPELINE & CMDS, f"{sorted(PIPELINE & CMDS)}: run by dvc.yaml and declared a command"
-    assert set(TOP) == PIPELINE | CMDS, (f"neither a stage of dvc.yaml nor in pipeline.COMMANDS: "
-                                         f"{sorted(set(TOP) - PIPELINE - CMDS)}; declared but absent: "
-                                         f"{sorted((PIPELINE | CMDS) - set(TOP))}")
-    assert {"pipeline.bench", "pipeline.bench.__main__", "pipeline.bench.real"} <= {m for _, m in MODULES}
-    strays = [d.name for d in PKG.iterdir() if d.is_dir() and d.name != "lib" and not (d / "__init__.py").exists()
-              and any(d.rglob("*.py"))]
+def test_the_tree_is_stages_commands_and_the_library():
+    """pipeline/ holds its __init__.py and three packages; pipeline/stages/ holds exactly the modules
+    ./dvc.yaml runs; the library's modules sit in topic packages, none loose in pipeline/lib/."""
+    assert {p.name for p in PKG.iterdir() if p.name != "__pycache__"} == {"__init__.py", "stages", "commands", "lib"}
+    assert set(STAGE_MODULES) == PIPELINE, (f"in pipeline/stages/ but not run by dvc.yaml: "
+                                            f"{sorted(set(STAGE_MODULES) - PIPELINE)}; run but absent: "
+                                            f"{sorted(PIPELINE - set(STAGE_MODULES))}")
+    assert all(len(mods) == 1 for mods in STAGE_MODULES.values()), "a stage is one module"
+    assert {"pipeline.commands.bench", "pipeline.commands.bench.__main__", "pipeline.commands.bench.real"} <= {m for _, m in MODULES}
+    loose = sorted(p.name for p in (PKG / "lib").glob("*.py") if p.name != "__init__.py")
+    assert not loose, f"pipeline/lib/{loose}: a library module outside a topic package"
+    strays = [str(d.relative_to(PKG)) for d in PKG.rglob("*") if d.is_dir() and d.name != "__pycache__"
+              and not (d / "__init__.py").exists() and any(d.glob("*.py"))]
     assert not strays, f"pipeline/{strays}: a folder of code that is not a package"
 
 
@@ -185,12 +193,12 @@ def scripts() -> dict:
 
 @pytest.mark.parametrize("script", sorted(scripts()))
 def test_every_script_is_a_command_main(script):
-    """[project.scripts] spi-boter-<command> = the module `python -m pipeline.<command>` runs, :main, a
+    """[project.scripts] spi-boter-<command> = the module `python -m pipeline.commands.<command>` runs, :main, a
     callable taking argv=None (the module calls it under __name__ == "__main__")."""
     target = scripts()[script]
     mod, _, attr = target.partition(":")
     command = script.removeprefix("spi-boter-")
-    runs = f"pipeline.{command}" + (".__main__" if (PKG / command).is_dir() else "")
+    runs = f"pipeline.commands.{command}" + (".__main__" if (PKG / "commands" / command).is_dir() else "")
     assert command in COMMANDS and mod == runs and attr == "main", f"{script} = {target!r}: want {runs}:main"
     fn = getattr(importlib.import_module(mod), attr)
     argv = inspect.signature(fn).parameters.get("argv")
@@ -205,7 +213,7 @@ def test_every_command_has_a_script():
 
 
 def test_pyproject_packages_are_every_package():
-    """A non-editable install ships every package under pipeline/ (pipeline.bench included)."""
+    """A non-editable install ships every package under pipeline/ (pipeline.commands.bench included)."""
     listed = set(tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
     found = {".".join(p.parent.relative_to(ROOT).parts) for p in PKG.rglob("__init__.py")}
     assert listed == found
@@ -240,7 +248,7 @@ def test_stage_params_are_exactly_the_sections_it_reads(name):
 
 
 def test_a_stage_sees_only_its_declared_sections():
-    from pipeline import split
+    from pipeline.stages import split
     params = load_params(ROOT / "params.yaml")
     with pytest.raises(KeyError):
         for_stage(params, split.PARAMS)["model"]
@@ -249,10 +257,10 @@ def test_a_stage_sees_only_its_declared_sections():
 
 def test_closure_sees_function_local_and_transitive_imports(tmp_path):
     """The walk behind the deps test: train reaches robots.py only through the library."""
-    c = closure("pipeline.train")
-    assert {"pipeline.lib.robots", "pipeline.lib.kinematics", "pipeline.lib.model",
-            "pipeline.lib.config", "pipeline"} <= c
-    assert "pipeline.lib.readers" not in c and "pipeline.ingest" not in c
+    c = closure("pipeline.stages.train")
+    assert {"pipeline.lib.robot.robots", "pipeline.lib.robot.kinematics", "pipeline.lib.learning.model",
+            "pipeline.lib.project.config", "pipeline"} <= c
+    assert "pipeline.lib.reading.readers" not in c and "pipeline.stages.ingest" not in c
 
 
 def git_dvc_repo(tmp: Path) -> dict:
@@ -291,8 +299,8 @@ def git_dvc_repo(tmp: Path) -> dict:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("edited", ["pipeline/lib/robots.py", "pipeline/lib/kinematics.py",
-                                    "pipeline/lib/model.py"])
+@pytest.mark.parametrize("edited", ["pipeline/lib/robot/robots.py", "pipeline/lib/robot/kinematics.py",
+                                    "pipeline/lib/learning/model.py"])
 def test_editing_library_code_makes_dvc_status_report_its_stages(tmp_path, edited):
     repo = git_dvc_repo(tmp_path)
     assert "Data and pipelines are up to date" in repo["run"]("dvc", "status").stdout
@@ -312,7 +320,7 @@ def test_editing_library_code_makes_dvc_status_report_its_stages(tmp_path, edite
                          "compensate", "validate@twin_side", "validation", "export", "report"}
 
 
-STANDS_ALONE_EXCEPT = ("data/presets/", "pipeline/bench/", "tests/test_ingest.py", "tests/test_preset.py",
+STANDS_ALONE_EXCEPT = ("data/presets/", "pipeline/commands/bench/", "tests/test_ingest.py", "tests/test_preset.py",
                        "tests/test_layout.py", "README.md", "docs/data-format.md", "docs/experiments.md",
                        "CHANGELOG.md")
 

@@ -4,7 +4,7 @@ import math
 import pytest
 import torch
 
-from pipeline.lib.loss import SPILoss, data_loss, physics_loss
+from pipeline.lib.learning.loss import SPILoss, data_loss, physics_loss
 
 T = lambda rows: torch.tensor(rows, dtype=torch.float64)
 # theory (0,0,0),(1,0,0),(0,2,0): squared distances 1, 4, 5 -> / 5

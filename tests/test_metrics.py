@@ -4,7 +4,7 @@ import math
 import numpy as np
 import pytest
 
-from pipeline.lib.metrics import drive_table, regression_metrics
+from pipeline.lib.learning.metrics import drive_table, regression_metrics
 
 
 def test_metrics_hand_computed():

@@ -3,10 +3,11 @@ import numpy as np
 import pytest
 import torch
 
-from pipeline.lib.kinematics import nominal_geometry
-from pipeline.lib.model import Ensemble, BODY_MASK, BoTER, attention_mask, check_config, encoder_for_export
-from pipeline.lib.robots import nominal_robot
-from pipeline.lib.workspace import nearest_distance
+from pipeline.lib.robot.kinematics import nominal_geometry
+from pipeline.lib.learning.model import (Ensemble, BODY_MASK, BoTER, attention_mask, check_config,
+                                         encoder_for_export)
+from pipeline.lib.robot.robots import nominal_robot
+from pipeline.lib.learning.workspace import nearest_distance
 
 G = nominal_geometry(nominal_robot("ur5"))
 SMALL = dict(d_model=12, n_layer=1, n_head=2, d_hidden=16, head="resnet", encoder=True, alpha0=0.1,

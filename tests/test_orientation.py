@@ -1,9 +1,9 @@
-"""lib/orientation.py: rotation columns -> unit quaternions, and rigid multi-marker targets (Kabsch)."""
+"""lib/reading/orientation.py: rotation columns -> unit quaternions, and rigid multi-marker targets (Kabsch)."""
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from pipeline.lib import orientation
+from pipeline.lib.reading import orientation
 
 S = np.sqrt(0.5)
 RX90 = np.array([[1, 0, 0], [0, 0, -1], [0, 1, 0]], float)          # about x by +90°: y -> z

@@ -7,8 +7,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from pipeline import split
-from pipeline.lib.config import SECTIONS, ParamsError, load_params, section
+from pipeline.stages import split
+from pipeline.lib.project.config import SECTIONS, ParamsError, load_params, section
 
 ROOT = Path(__file__).resolve().parents[1]
 PARAMS = load_params(ROOT / "params.yaml")

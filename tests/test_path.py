@@ -1,4 +1,4 @@
-"""Issue 36: a path compensated sample by sample (python -m pipeline.path, the service's compensate_path),
+"""Issue 36: a path compensated sample by sample (python -m pipeline.commands.path, the service's compensate_path),
 its geometry, its refusals, its URScript, judged on the twin along the whole motion."""
 import re
 import threading
@@ -11,20 +11,20 @@ import pytest
 import torch
 
 from conftest import exit_code, served_model
-from pipeline import path as path_command
-from pipeline.bench.path import Judge, joint_motion
-from pipeline.lib import pathsolve
-from pipeline.lib.columns import JCOMP_DEG, JOINTS_DEG, TARGET
-from pipeline.lib.artifacts import FRAME_JSON, WORKSPACE_JSON
-from pipeline.lib.config import ParamsError, load_params, read_json, section
-from pipeline.lib.geometry import theory_geometry
-from pipeline.lib.kinematics import fk_numpy
-from pipeline.lib.paths import Arc, at, distance, n_samples, read_path, resample, segments
-from pipeline.lib.pathsolve import deviation, model_position
-from pipeline.lib.robots import load_robot
-from pipeline.lib.twin import sample_poses
-from pipeline.lib.workspace import Workspace
-from pipeline.serve import make_server, url
+from pipeline.commands import path as path_command
+from pipeline.commands.bench.path import Judge, joint_motion
+from pipeline.lib.runtime import pathsolve
+from pipeline.lib.project.columns import JCOMP_DEG, JOINTS_DEG, TARGET
+from pipeline.lib.project.artifacts import FRAME_JSON, WORKSPACE_JSON
+from pipeline.lib.project.config import ParamsError, load_params, read_json, section
+from pipeline.lib.robot.geometry import theory_geometry
+from pipeline.lib.robot.kinematics import fk_numpy
+from pipeline.lib.runtime.paths import Arc, at, distance, n_samples, read_path, resample, segments
+from pipeline.lib.runtime.pathsolve import deviation, model_position
+from pipeline.lib.robot.robots import load_robot
+from pipeline.lib.sim.twin import sample_poses
+from pipeline.lib.learning.workspace import Workspace
+from pipeline.commands.serve import make_server, url
 
 ROOT = Path(__file__).resolve().parents[1]
 UR5 = {"model": "ur5", "dh": None, "joint_limits_deg": None, "tool_mm": [0, 0, 0], "tcp": None}
@@ -32,7 +32,7 @@ SEAM_START = [2.5, -60.4, 91.1, -182.3, -61.2, -100.7]          # a training pos
 SEAM = [[-650.0, -200.0, 250.0], [-650.0, -100.0, 250.0]]        # 100 mm of bench path's seam, inside the workspace
 CIRCLE_START = [-19.8, -63.6, 81.1, 88.5, 105.4, -155.0]
 SCRIPT_LINE = re.compile(                                        # every line the path's URScript may hold
-    r"# compensated path by `python -m pipeline\.path`: \d+ samples over [0-9.]+ mm at [0-9.]+ mm/s, [0-9.]+ s; "
+    r"# compensated path by `python -m pipeline\.commands\.path`: \d+ samples over [0-9.]+ mm at [0-9.]+ mm/s, [0-9.]+ s; "
     r"joints in rad|# residual max [0-9.]+ mm; \d+ samples outside the trained workspace|def compensated_path\(\):|"
     r"# the flange's orientation held along the path: residual max [0-9.]+ arcsec|"
     r"  def servo_step\(a, b, n\):|    # from joints a to b in n controller cycles, joint-linear: one servoj a cycle|"
@@ -295,10 +295,10 @@ def test_a_path_holds_its_orientation_on_the_twin(in_trained_project, tmp_path, 
     orientation accuracy (< 150″), where --ignore-orientation leaves it degrees off. The TCP's position is
     held either way. Inputs are kept."""
     from scipy.spatial.transform import Rotation, Slerp
-    from pipeline.lib.compensation import nominal_flange
-    from pipeline.lib.frames import to_base
-    from pipeline.lib.kinematics import tool_rotation
-    from pipeline.lib.twin import Twin
+    from pipeline.lib.runtime.compensation import nominal_flange
+    from pipeline.lib.robot.frames import to_base
+    from pipeline.lib.robot.kinematics import tool_rotation
+    from pipeline.lib.sim.twin import Twin
     params = in_trained_project
     robot, frame = load_robot(params["robot"]), read_json(FRAME_JSON)
     g = served_model().physics.geometry()
@@ -339,7 +339,7 @@ def test_orientations_along_a_path_are_slerped_between_its_waypoints():
     """paths.rotations_at against scipy's Slerp: along a line and an arc (whose via point's orientation is
     not used), by the share of each segment's length."""
     from scipy.spatial.transform import Rotation, Slerp
-    from pipeline.lib.paths import rotations_at
+    from pipeline.lib.runtime.paths import rotations_at
     points = np.array([[0.0, 0, 0], [100, 0, 0], [150, 50, 0], [100, 100, 0]])
     segs = segments(points, ["", "movel", "via", "movec"])
     rots = Rotation.from_rotvec([[0.0, 0, 0], [0, 0.3, 0], [2.0, 2.0, 2.0], [0.1, -0.2, 0.4]])
@@ -423,8 +423,8 @@ def test_the_service_holds_a_paths_orientation(path_server, in_trained_project):
     two, its position on target; without rotvecs the flange ends degrees off. Bad rotvecs are a Fault naming
     the field, and the server serves on."""
     from scipy.spatial.transform import Rotation, Slerp
-    from pipeline.lib.compensation import nominal_flange
-    from pipeline.lib.kinematics import flange_rotations, tool_rotation
+    from pipeline.lib.runtime.compensation import nominal_flange
+    from pipeline.lib.robot.kinematics import flange_rotations, tool_rotation
     params = in_trained_project
     robot, frame = load_robot(params["robot"]), read_json(FRAME_JSON)
     g = served_model().physics.geometry()

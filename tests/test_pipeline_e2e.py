@@ -14,7 +14,7 @@ import pytest
 import yaml
 
 from conftest import project_copy, repo_copy, sh
-from pipeline.lib.columns import COMPENSATION
+from pipeline.lib.project.columns import COMPENSATION
 
 
 @pytest.mark.slow
@@ -144,7 +144,7 @@ def test_repro_from_two_tracker_stations(tmp_path):
     """The twin-2stations preset through dvc: the second campaign's own ingest stage, one frame
     per station, per-campaign metrics and report, and an edit of its export re-runs its stages."""
     repo = project_copy(tmp_path)
-    sh("python -m pipeline.preset twin-2stations && git commit -qam preset", repo)
+    sh("python -m pipeline.commands.preset twin-2stations && git commit -qam preset", repo)
     out = sh("dvc repro", repo).stdout
     assert "Running stage 'ingest_campaign@station_b'" in out
     frame = json.loads((repo / "reports/frame.json").read_text())

@@ -1,8 +1,8 @@
 """The measurement planner (issue 23): what to measure so that a program lies inside the trained workspace.
 
-`python -m pipeline.plan PROGRAM.csv --n N --out DIR` on a small trained project (conftest.trained_project),
+`python -m pipeline.commands.plan PROGRAM.csv --n N --out DIR` on a small trained project (conftest.trained_project),
 for a program at the side of the arm, where the twin's default campaign never went; and the library
-(lib/planning.py, lib/poses.py) on the twin: acceptability, the tour, D-optimality against random
+(lib/planner/planning.py, lib/robot/poses.py) on the twin: acceptability, the tour, D-optimality against random
 choice, and the predicted standard errors against a Monte Carlo identification.
 """
 import json
@@ -14,17 +14,18 @@ import pytest
 import torch
 
 from conftest import exit_code
-from pipeline import plan as plan_cmd
-from pipeline.lib import design, planning, poses, tour
-from pipeline.lib.columns import JOINTS_DEG
-from pipeline.lib.config import load_params, read_json
-from pipeline.lib.errormaps import coverage as angle_coverage
-from pipeline.lib.identify import geometry_jacobian, identifiability, identify
-from pipeline.lib.kinematics import DTYPE, fk, nominal_geometry
-from pipeline.lib.robots import load_robot
-from pipeline.lib.poses import RULES
-from pipeline.lib.twin import REGIONS, Twin, sample_poses, true_geometry
-from pipeline.lib.workspace import Workspace
+from pipeline.commands import plan as plan_cmd
+from pipeline.lib.planner import design, planning, tour
+from pipeline.lib.robot import poses
+from pipeline.lib.project.columns import JOINTS_DEG
+from pipeline.lib.project.config import load_params, read_json
+from pipeline.lib.robot.errormaps import coverage as angle_coverage
+from pipeline.lib.robot.identify import geometry_jacobian, identifiability, identify
+from pipeline.lib.robot.kinematics import DTYPE, fk, nominal_geometry
+from pipeline.lib.robot.robots import load_robot
+from pipeline.lib.robot.poses import RULES
+from pipeline.lib.sim.twin import REGIONS, Twin, sample_poses, true_geometry
+from pipeline.lib.learning.workspace import Workspace
 
 N = 16
 TRACKER_MM = [-1200.0, -2600.0, 900.0]          # a new tracker placement facing the side of the arm
@@ -79,7 +80,7 @@ def test_the_urscript_holds_only_formatted_numbers_and_fixed_text(side_plan):
     out, *_ = side_plan
     script = (out / "measure.script").read_text()
     number = r"-?[0-9]+\.[0-9]+"
-    allowed = [r"# measurement campaign planned by `python -m pipeline\.plan`: [0-9]+ poses, [0-9.]+ s at each for "
+    allowed = [r"# measurement campaign planned by `python -m pipeline\.commands\.plan`: [0-9]+ poses, [0-9.]+ s at each for "
                r"the tracker", r"def measure_campaign\(\):", rf"  (acc|vel|settle) = {number}", r"  # M[0-9]{3,}",
                rf"  movej\(\[{number}(, {number}){{5}}\], a=acc, v=vel\)", r"  sleep\(settle\)", r"end"]
     lines = script.rstrip("\n").split("\n")
@@ -289,7 +290,7 @@ def test_the_criterion_gain_is_the_log_det_increase():
 def test_a_learning_curve_is_extended_only_with_the_settings_it_was_run_with(tmp_path, monkeypatch):
     """bench plan --curve --extend: the sizes it lacks are added to the curve already in plan.json, its runs
     kept; other seeds, overrides, epochs or work region are refused (they would mix two curves)."""
-    from pipeline.bench import plan as bench
+    from pipeline.commands.bench import plan as bench
     monkeypatch.setattr(bench, "OUT", tmp_path / "plan.json")
     rec = {"overrides": [], "epochs": None, "seeds": [139, 140], "work_waypoints": 40, "machine": {"cpu": "x"}}
     with pytest.raises(SystemExit, match="holds no 'learning_curve'"):

@@ -4,17 +4,17 @@ import numpy as np
 import torch
 from scipy.spatial.transform import Rotation
 
-from pipeline.lib import errormaps as E
-from pipeline.lib import twin as T
-from pipeline.lib.compensation import solve
-from pipeline.lib.frames import probe_rotation
-from pipeline.lib.identify import identify
-from pipeline.lib.kinematics import (DTYPE, TOOL_ROT, DHChain, angular_jacobian, fk_pose, gravity_torques,
-                                     nominal_geometry, rotation_error)
-from pipeline.lib.model import PhysicsOnly
-from pipeline.lib.robots import nominal_robot
-from pipeline.lib.tcp import AtTcp, pose_errors, probe_offsets
-from pipeline.parts import chain_residual
+from pipeline.lib.robot import errormaps as E
+from pipeline.lib.sim import twin as T
+from pipeline.lib.runtime.compensation import solve
+from pipeline.lib.robot.frames import probe_rotation
+from pipeline.lib.robot.identify import identify
+from pipeline.lib.robot.kinematics import (DTYPE, TOOL_ROT, DHChain, angular_jacobian, fk_pose,
+                                           gravity_torques, nominal_geometry, rotation_error)
+from pipeline.lib.learning.model import PhysicsOnly
+from pipeline.lib.robot.robots import nominal_robot
+from pipeline.lib.robot.tcp import AtTcp, pose_errors, probe_offsets
+from pipeline.stages.parts import chain_residual
 
 UR5 = nominal_robot("ur5")
 ARCSEC = np.pi / (180 * 3600)
@@ -167,7 +167,7 @@ def test_validate_judges_the_nominal_chain_with_the_measured_probe_mount(in_trai
     as evaluate's does, so its orientation error on the twin's side campaign is the chain's own, of the
     test split's size (before: the probe's mount on its flange was counted as the chain's error, 2.4x;
     on the IPA probe, turned 90° on its flange, 324 000″)."""
-    from pipeline.lib.config import read_json
+    from pipeline.lib.project.config import read_json
     side = read_json("reports/validation/twin_side.json")["pose"]["nominal"]["orientation"]["mean_arcsec"]
     test = read_json("reports/metrics.json")["pose"]["nominal_dh"]["test"]["orientation"]["mean_arcsec"]
     assert side < 1.5 * test, (side, test)

@@ -9,12 +9,12 @@ import pytest
 import torch
 
 from conftest import exit_code, served_model
-from pipeline import plan, program
-from pipeline.lib.artifacts import load_points
-from pipeline.lib.columns import JCOMP_DEG, JOINTS_DEG, TARGET, THEORY
-from pipeline.lib.kinematics import DTYPE
-from pipeline.lib.robots import load_robot
-from pipeline.lib.waypoints import read_waypoints
+from pipeline.commands import plan, program
+from pipeline.lib.project.artifacts import load_points
+from pipeline.lib.project.columns import JCOMP_DEG, JOINTS_DEG, TARGET, THEORY
+from pipeline.lib.robot.kinematics import DTYPE
+from pipeline.lib.robot.robots import load_robot
+from pipeline.lib.runtime.waypoints import read_waypoints
 
 
 def model_at(params, q_deg):
@@ -279,10 +279,10 @@ def test_a_program_compensated_at_a_tcp_lands_the_tcp_on_the_twin(in_trained_pro
     """--tcp: the waypoints' nominal TCP positions solved for through the probe's pose (issue 34); the twin,
     driven there (noise-free), puts that TCP (fixed to its probe) within a tenth of a millimetre, where the
     uncompensated program misses by about a millimetre."""
-    from pipeline.lib.config import read_json
-    from pipeline.lib.frames import to_base
-    from pipeline.lib.tcp import probe_offsets
-    from pipeline.lib.twin import Twin
+    from pipeline.lib.project.config import read_json
+    from pipeline.lib.robot.frames import to_base
+    from pipeline.lib.robot.tcp import probe_offsets
+    from pipeline.lib.sim.twin import Twin
     params = in_trained_project
     pts = load_points().query("split == 'test'").head(20)
     src = tmp_path / "prog.csv"
@@ -309,13 +309,13 @@ def test_offline_waypoints_reach_their_nominal_orientation_on_the_twin(in_traine
     accuracy of it (~50″), where the uncompensated program and a position-only solve leave it ~1000″ off;
     the TCP 150 mm off the flange axis lands within a tenth of a millimetre either way."""
     from scipy.spatial.transform import Rotation
-    from pipeline.lib.compensation import nominal_flange, solve
-    from pipeline.lib.config import read_json
-    from pipeline.lib.frames import to_base
-    from pipeline.lib.geometry import theory_geometry
-    from pipeline.lib.kinematics import fk_numpy, tool_rotation
-    from pipeline.lib.tcp import probe_offsets
-    from pipeline.lib.twin import Twin
+    from pipeline.lib.runtime.compensation import nominal_flange, solve
+    from pipeline.lib.project.config import read_json
+    from pipeline.lib.robot.frames import to_base
+    from pipeline.lib.robot.geometry import theory_geometry
+    from pipeline.lib.robot.kinematics import fk_numpy, tool_rotation
+    from pipeline.lib.robot.tcp import probe_offsets
+    from pipeline.lib.sim.twin import Twin
     params = in_trained_project
     pts = load_points().query("split == 'test'").head(20)
     src = tmp_path / "prog.csv"
@@ -338,7 +338,7 @@ def test_offline_waypoints_reach_their_nominal_orientation_on_the_twin(in_traine
                 np.degrees(turned) * 3600)
     tcp_after, turned_after = on_twin(table[JCOMP_DEG].to_numpy())
     _, turned_before = on_twin(q0)
-    from pipeline.lib.tcp import AtTcp
+    from pipeline.lib.robot.tcp import AtTcp
     position_only = solve(AtTcp(served_model(), o), q0, tcp_goal, params["compensate"], robot, history=False)
     tcp_pos, turned_pos = on_twin(position_only.q_deg)
     assert tcp_after.mean() < 0.1 and tcp_pos.mean() < 0.1
@@ -352,10 +352,10 @@ def test_a_waypoint_given_an_orientation_reaches_it(in_trained_project, tmp_path
     0.05° about the base's z axis, the model's flange ends turned with it (scipy, within 1″). Columns without
     a position, or only two of three, are refused naming them."""
     from scipy.spatial.transform import Rotation
-    from pipeline.lib.compensation import nominal_flange
-    from pipeline.lib.config import read_json
-    from pipeline.lib.geometry import theory_geometry
-    from pipeline.lib.kinematics import flange_rotations
+    from pipeline.lib.runtime.compensation import nominal_flange
+    from pipeline.lib.project.config import read_json
+    from pipeline.lib.robot.geometry import theory_geometry
+    from pipeline.lib.robot.kinematics import flange_rotations
     params = in_trained_project
     robot, frame = load_robot(params["robot"]), read_json("reports/frame.json")
     pts = load_points().query("split == 'test'").head(8)

@@ -13,17 +13,17 @@ import pandas as pd
 import pytest
 import yaml
 
-from pipeline import report
-from pipeline.lib import figures, page
-from pipeline.lib.errormaps import as_geometry
-from pipeline.lib import summary as sheet
-from pipeline.lib.columns import AXES, JOINTS_DEG, MEAS, PRED, THEORY
-from pipeline.lib.config import for_stage, load_params, read_json, write_json
-from pipeline.lib.kinematics import nominal_geometry
-from pipeline.lib.metrics import drive_table, regression_metrics
-from pipeline.lib.robots import nominal_robot
-from pipeline.lib.checkpoint import make_model, save_model
-from pipeline.lib.validation import summary
+from pipeline.stages import report
+from pipeline.lib.reporting import figures, page
+from pipeline.lib.robot.errormaps import as_geometry
+from pipeline.lib.reporting import summary as sheet
+from pipeline.lib.project.columns import AXES, JOINTS_DEG, MEAS, PRED, THEORY
+from pipeline.lib.project.config import for_stage, load_params, read_json, write_json
+from pipeline.lib.robot.kinematics import nominal_geometry
+from pipeline.lib.learning.metrics import drive_table, regression_metrics
+from pipeline.lib.robot.robots import nominal_robot
+from pipeline.lib.learning.checkpoint import make_model, save_model
+from pipeline.lib.learning.validation import summary
 
 ROOT = Path(__file__).resolve().parents[1]
 SMALL_MODEL = {"d_model": 12, "n_head": 2, "n_layer": 2, "d_hidden": 16}
@@ -189,7 +189,7 @@ def test_missing_optional_inputs_are_skipped_with_a_note(tmp_path, monkeypatch):
     assert "no trained model" in text and "No drive check" in text      # the checkpoint says encoder or not
     assert "calibration.json not found" in text and "train.json not found" in text
     assert not (tmp_path / "reports/ablation.json").exists()   # no ablation run, yet a full page
-    assert "`python -m pipeline.ablation` (`--engine ray` in parallel)" in text
+    assert "`python -m pipeline.commands.ablation` (`--engine ray` in parallel)" in text
     import open3d as o3d
     assert len(o3d.io.read_point_cloud(str(tmp_path / "reports/points_error.ply")).points) == len(df)
 
@@ -208,7 +208,7 @@ def test_page_sections_take_the_loaded_summaries():
 
 
 def test_ablation_summary_writes_table_with_paper_epochs_and_figure(tmp_path, monkeypatch):
-    from pipeline import ablation
+    from pipeline.commands import ablation
     monkeypatch.chdir(tmp_path)
     for g, mae in (("baseline", 0.25), ("no_mask", 0.28), ("paper_weights", 0.26)):
         runs = [{"seed": s, "test": {"3d": {"mae": mae + 0.01 * k, "rmse": 0.3, "r2": 0.9}},
@@ -238,7 +238,7 @@ def test_scatter_r2_is_the_metrics_r2():
 
 
 def test_figures_are_one_registry_with_captions():
-    assert "ablation" not in figures.FIGURES                 # drawn by pipeline.ablation, not the report
+    assert "ablation" not in figures.FIGURES                 # drawn by pipeline.commands.ablation, not the report
     for name, fn in figures.FIGURES.items():
         assert re.fullmatch(r"[a-z0-9_]+", name)
         assert len(figures.caption(fn)) > 20, name
@@ -250,7 +250,7 @@ def test_figures_are_one_registry_with_captions():
 SUMMARY_INPUTS = ["params.yaml", "data/interim/predictions.parquet", "data/interim/baselines.parquet",
                   "data/interim/ingest.parquet"] + [f"reports/{n}.json" for n in (
                       "metrics", "ingest", "frame", "theory", "split", "calibration", "parts", "validation")]
-WRITE_SUMMARY = ("from pipeline import report; from pipeline.lib.config import for_stage, load_params; "
+WRITE_SUMMARY = ("from pipeline.stages import report; from pipeline.lib.project.config import for_stage, load_params; "
                  "report.Context(for_stage(load_params(), report.PARAMS)).write_summary()")
 
 

@@ -3,8 +3,8 @@ import numpy as np
 import pytest
 import torch
 
-from pipeline.lib.kinematics import DTYPE, fk_numpy, fk_poses, nominal_geometry
-from pipeline.lib.robots import TABLES, UR_JOINTS, load_robot, nominal_robot
+from pipeline.lib.robot.kinematics import DTYPE, fk_numpy, fk_poses, nominal_geometry
+from pipeline.lib.robot.robots import TABLES, UR_JOINTS, load_robot, nominal_robot
 
 # Universal Robots' published DH lengths (mm): d1, a2, a3, d4, d5, d6; and the datasheet reach (mm)
 UR = {

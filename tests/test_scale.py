@@ -8,13 +8,13 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pipeline.lib import readers
-from pipeline.lib.config import load_params
-from pipeline.lib.kinematics import fk_numpy, nominal_geometry
-from pipeline.lib.model import BoTER
-from pipeline.lib.robots import load_robot, nominal_robot
-from pipeline.lib.solvers import compensate
-from pipeline.lib.writing import csv_text
+from pipeline.lib.reading import readers
+from pipeline.lib.project.config import load_params
+from pipeline.lib.robot.kinematics import fk_numpy, nominal_geometry
+from pipeline.lib.learning.model import BoTER
+from pipeline.lib.robot.robots import load_robot, nominal_robot
+from pipeline.lib.runtime.solvers import compensate
+from pipeline.lib.project.writing import csv_text
 
 ROOT = Path(__file__).resolve().parents[1]
 ROBOT_CFG = {"model": "ur5", "tool_mm": [10.0, -5.0, 120.0], "dh": None, "joint_limits_deg": None, "tcp": None}
@@ -167,7 +167,7 @@ def test_csv_text_takes_the_fast_path_on_a_plain_table(monkeypatch):
 def test_nearest_distance_in_chunks_is_the_plain_formula_exactly():
     """The workspace distance, chunked and in place (numpy) or chunked (torch), equals the one-line
     formula min_j |wrapped(q - ref_j)| bit for bit, at the wrap's edges too (±180°, multiples of 360°)."""
-    from pipeline.lib.workspace import JOINTS, nearest_distance, wrapped
+    from pipeline.lib.learning.workspace import JOINTS, nearest_distance, wrapped
     rng = np.random.default_rng(3)
     ref = rng.uniform(-360, 360, (300, 6))
     q = np.concatenate([rng.uniform(-360, 360, (700, 6)), ref[:50] + 360.0, ref[:50] - 180.0,
@@ -187,7 +187,7 @@ def test_the_kd_tree_candidates_give_the_brute_force_distance_to_the_bit():
     """From TREE_ROWS poses on, the periodic KD-tree picks NEAREST_K candidates and the formula the nearest:
     the same bits as the formula over all of ref, numpy and torch (its gradient too), near the training
     poses and far, across the wrap, with duplicated references; a NaN pose still answers NaN."""
-    from pipeline.lib.workspace import JOINTS, TREE_ROWS, candidates, nearest_distance, wrapped
+    from pipeline.lib.learning.workspace import JOINTS, TREE_ROWS, candidates, nearest_distance, wrapped
     rng = np.random.default_rng(5)
     ref = rng.uniform(-200, 200, (576, 6))
     ref[100:110] = ref[:10]                                                  # duplicates: exact ties

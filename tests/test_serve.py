@@ -1,4 +1,4 @@
-"""The compensation service (pipeline/serve.py, lib/service.py) with real XML-RPC clients: answers the
+"""The compensation service (pipeline/commands/serve.py, lib/runtime/service.py) with real XML-RPC clients: answers the
 model verifies, a Fault naming the field for every bad request, the limits (work per call, request
 size, socket timeout, echo length), and the server keeps serving.
 
@@ -19,15 +19,15 @@ import onnx
 import pytest
 import torch
 
-from pipeline.lib.columns import JOINTS_DEG, THEORY
-from pipeline.lib.config import load_params
-from pipeline.lib.checkpoint import load_model
+from pipeline.lib.project.columns import JOINTS_DEG, THEORY
+from pipeline.lib.project.config import load_params
+from pipeline.lib.learning.checkpoint import load_model
 from conftest import ENV, project_points, served_model
-from pipeline import serve as serve_module
-from pipeline.lib.model import PhysicsOnly
-from pipeline.lib.onnx_model import OnnxRealtime
-from pipeline.lib.realtime import Realtime
-from pipeline.serve import make_server, url
+from pipeline.commands import serve as serve_module
+from pipeline.lib.learning.model import PhysicsOnly
+from pipeline.lib.learning.onnx_model import OnnxRealtime
+from pipeline.lib.runtime.realtime import Realtime
+from pipeline.commands.serve import make_server, url
 
 ROOT = Path(__file__).resolve().parents[1]
 @pytest.fixture(scope="module")
@@ -194,7 +194,7 @@ def test_serve_only_on_rpc2(server):
 
 def test_the_command_serves(project, poses):
     port = free_port()
-    proc = subprocess.Popen([sys.executable, "-m", "pipeline.serve", "--port", str(port)], cwd=project, env=ENV,
+    proc = subprocess.Popen([sys.executable, "-m", "pipeline.commands.serve", "--port", str(port)], cwd=project, env=ENV,
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         c, deadline = xmlrpc.client.ServerProxy(f"http://127.0.0.1:{port}/RPC2"), time.monotonic() + 60
@@ -405,7 +405,7 @@ def test_malformed_http_is_a_4xx_and_the_server_keeps_serving(server, client, po
 
 
 def test_the_command_outside_a_project_is_one_line(tmp_path):
-    r = subprocess.run([sys.executable, "-m", "pipeline.serve", "--port", str(free_port())], cwd=tmp_path, env=ENV,
+    r = subprocess.run([sys.executable, "-m", "pipeline.commands.serve", "--port", str(free_port())], cwd=tmp_path, env=ENV,
                        capture_output=True, text=True, timeout=120)
     err = r.stderr.strip()
     assert r.returncode != 0 and "Traceback" not in err and len(err.splitlines()) == 1, err
@@ -733,7 +733,7 @@ def test_good_clients_keep_their_calls_beside_any_one_hostile_client(server, pos
     unreachable single targets; each in a loop), 3 s each, alternating with as long alone: they keep at least
     half their calls/s and their p99 stays within 4x (bench serve --hostile: docs/robot-cell.md; here server
     and good clients share one process, and CI the cores with another worker)."""
-    from pipeline.bench.serve import HOSTILE, hostile_load
+    from pipeline.commands.bench.serve import HOSTILE, hostile_load
     r = hostile_load(url(server), poses[0].tolist(), poses[1].tolist(), seconds=3.0, clients=4)
     assert set(r["beside"]) == set(HOSTILE)
     shares = {k: (round(v["calls_per_s_share"], 2), round(v["p99_ratio"], 1)) for k, v in r["beside"].items()}
@@ -773,9 +773,9 @@ def test_where_the_network_is_off_the_physics_alone_is_served(project, params, p
 
 def test_a_service_for_a_tcp_lands_that_tcp_on_its_target(project, params, poses):
     """serve --tcp x150: each answer puts the TCP (the marker's answer moved along the probe's
-    orientation, lib/tcp.py), not the marker, on the target; a real client calls it (issue 34); the
+    orientation, lib/robot/tcp.py), not the marker, on the target; a real client calls it (issue 34); the
     controller path runs on models/controller_tcp.onnx."""
-    from pipeline.lib.tcp import AtTcp, probe_offsets
+    from pipeline.lib.robot.tcp import AtTcp, probe_offsets
     threads = torch.get_num_threads()
     s = serving(params, tcp="x150")
     try:
@@ -807,7 +807,7 @@ def test_compensate_pose_lands_the_position_and_the_orientation(server, client, 
     leaves the probe turned. Bad orientations are a Fault naming target_rotvec; the server keeps serving; a
     service for a model without orientation refuses it."""
     from scipy.spatial.transform import Rotation
-    from pipeline.lib.kinematics import fk_pose
+    from pipeline.lib.robot.kinematics import fk_pose
     model = served_model()
     q0 = poses[0][:6]
     with torch.no_grad():

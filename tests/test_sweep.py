@@ -1,4 +1,4 @@
-"""Sweeps on Ray: the same numbers as the sequential path (lib/sweep.py, pipeline.ablation), on a local
+"""Sweeps on Ray: the same numbers as the sequential path (lib/learning/sweep.py, pipeline.commands.ablation), on a local
 Ray and on a two-node cluster that shares nothing of the project with the jobs: the code travels in
 Ray's runtime environment, the tables in the object store, folders as bytes."""
 import json
@@ -7,10 +7,10 @@ from pathlib import Path
 
 import pytest
 
-from pipeline import ablation, fleet
-from pipeline.bench.real import localized
-from pipeline.lib import sweep
-from pipeline.lib.config import load_params
+from pipeline.commands import ablation, fleet
+from pipeline.commands.bench.real import localized
+from pipeline.lib.learning import sweep
+from pipeline.lib.project.config import load_params
 
 FILES = ["data/interim/points.parquet", "data/interim/split.parquet", "reports/frame.json",
          "models/calibration.json", "models/parts.json"]
@@ -72,7 +72,7 @@ def small_ablation(trained_project, folder, monkeypatch, epochs: int) -> dict:
 def test_bench_real_seeds_on_ray_equal_sequential():
     """`bench real`'s seed sweep (twin, two seeds, a small model, 3 epochs): each seed a job run in
     process, in order or as a Ray task, the same numbers either way, validation included."""
-    from pipeline.bench.real import run_set
+    from pipeline.commands.bench.real import run_set
     over = ["model.d_model=12", "model.n_head=2", "model.n_layer=1", "model.d_hidden=32", "train.patience=3"]
     out = {e: run_set("twin", [5, 6], 3, False, overrides=over, engine=e, threads=1)
            for e in ("sequential", "ray")}
@@ -124,7 +124,7 @@ def test_sweep_and_fleet_on_a_two_node_cluster(trained_project, tmp_path, monkey
     assert set(nodes) == {n.node_id for n in two_nodes.list_all_nodes()}            # one run on each node
     project = Path(__file__).resolve().parents[1]
     for code in ray_["timing"]["job_code"]:                  # the shipped copy of the package, not this tree
-        assert Path(code, "pipeline/lib/sweep.py").exists() and Path(code).resolve() != project
+        assert Path(code, "pipeline/lib/learning/sweep.py").exists() and Path(code).resolve() != project
     assert seq["timing"]["job_code"] == [str(sweep.CODE_ROOT)] * 2
     # two robots, their folders there and back as bytes; one campaign broken
     robots = fleet.demo("fleet_in", robots=2, n=150)                     # ur5_01, ur10_02

@@ -1,0 +1,133 @@
+"""The paper's ablations (sec. 4.2.3-4.2.4) as opt-in DVC matrix stages, over several seeds.
+
+    python -m pipeline.commands.ablation [--engine ray]   run what changed (dvc repro ablation/dvc.yaml), then summarise
+    python -m pipeline.commands.ablation sweep --engine ray [--address HOST:6379]
+                                                 every group x seed at once as Ray tasks, then summarise
+
+`ablation/dvc.yaml` holds one matrix stage per group (`python -m pipeline.commands.ablation
+group NAME`), each training the group over `ablation.seeds` (lib/learning/sweep.py: in order,
+or one Ray task per seed), and a summary stage writing reports/ablation.json and
+reports/ablation.md. `sweep` runs every group's seeds as one pool of tasks (the
+most parallel, outside DVC) and writes the same files. Plain `dvc repro` never runs it (it reads ./dvc.yaml only).
+Each group is the main settings with the changes below; a seed sets both the
+weight init and the data order.
+"""
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.lib.learning import sweep
+from pipeline.lib.learning.ablations import GROUPS, Data, Job, train_one
+from pipeline.lib.project.artifacts import REPORTS, TIMINGS
+from pipeline.lib.project.config import for_stage, load_params, logger, read_json, split_timings, write_json
+from pipeline.lib.reporting.figures import fig_ablation, save
+from pipeline.lib.reporting.paper import PAPER_ABLATION, PAPER_ABLATION_EPOCHS
+from pipeline.lib.reading.prepared import load_prepared
+
+log = logger(__name__)
+OUT = REPORTS / "ablation"
+PARAMS = {"group": ("robot", "model", "loss", "train", "ablation", "workspace"),   # ablation/dvc.yaml
+          "summary": ()}
+
+
+def jobs_for(params: dict, groups: list[str]) -> tuple[list[Job], Data]:
+    """A Job per (group, seed of `ablation.seeds`), and the Data they train on: the pipeline's aligned
+    points and geometries."""
+    unknown = [g for g in groups if g not in GROUPS]
+    if unknown:
+        raise ValueError(f"unknown ablation group(s) {unknown}; use {list(GROUPS)}")
+    p = for_stage(params, PARAMS["group"])
+    prep = load_prepared(p["robot"])
+    return [Job(p, g, s) for g in groups for s in p["ablation"]["seeds"]], Data(prep.points, prep.geometries())
+
+
+def run_groups(params: dict, groups: list[str], engine: str = "sequential", address: str | None = None,
+               threads: int | None = None) -> dict:
+    """Every (group, seed) of `ablation.seeds` as one job (lib/learning/sweep.py: in order, or Ray tasks);
+    writes reports/ablation/<group>.json per group. threads: torch threads per job (default:
+    every core when sequential, 1 on Ray)."""
+    jobs, data = jobs_for(params, groups)
+    seeds = params["ablation"]["seeds"]
+    threads = sweep.threads_per_job(engine, threads)
+    runs, timing = sweep.run(train_one, jobs, engine, address, threads, desc="ablation", shared=data)
+    out = {}
+    for k, g in enumerate(groups):
+        mine = slice(k * len(seeds), (k + 1) * len(seeds))
+        out[g], times = split_timings({"group": g, "changes": GROUPS[g], "runs": runs[mine],
+                                       "seconds": sum(timing["job_seconds"][mine]), "engine": engine,
+                                       "threads_per_job": threads})
+        write_json(OUT / f"{g}.json", out[g])
+        write_json(TIMINGS / f"ablation_{g}.json", times)
+    log.info("%d runs (%d groups x %d seeds) on %s in %.0f s (%.0f s of training)", len(jobs), len(groups),
+             len(seeds), engine, timing["seconds"], sum(timing["job_seconds"]))
+    return {"groups": out, "timing": timing}
+
+
+def summarise() -> dict:
+    """reports/ablation.json (the issue's layout), a markdown table beside the paper's numbers
+    (reports/ablation.md) and its figure (reports/ablation.png)."""
+    groups = {}
+    for g in GROUPS:
+        path = OUT / f"{g}.json"
+        if not path.exists():
+            continue
+        r = read_json(path)
+        mae = [run["test"]["3d"]["mae"] for run in r["runs"]]
+        groups[g] = {"seeds": [run["seed"] for run in r["runs"]], "runs": mae,
+                     "test_3d_mae_mean": float(np.mean(mae)), "test_3d_mae_std": float(np.std(mae)),
+                     "test_3d_rmse_mean": float(np.mean([run["test"]["3d"]["rmse"] for run in r["runs"]])),
+                     "test_3d_r2_mean": float(np.mean([run["test"]["3d"]["r2"] for run in r["runs"]])),
+                     "epochs_to_best": [run["epochs_to_best"] for run in r["runs"]],
+                     "params": r["runs"][0]["n_params"], "changes": r["changes"],
+                     "paper_test_3d_mae": PAPER_ABLATION.get(g)}
+    summary = {"groups": groups}
+    write_json(REPORTS / "ablation.json", summary)
+    rows = ["| group | changes | test 3D MAE mm (mean ± std) | paper | epochs to best | paper epochs "
+            "| parameters |", "|---|---|---|---|---|---|---|"]
+    for g, s in groups.items():
+        paper = "–" if s["paper_test_3d_mae"] is None else f"{s['paper_test_3d_mae']:.4f}"
+        rows.append(f"| {g} | `{json.dumps(s['changes'])}` | {s['test_3d_mae_mean']:.4f} ± "
+                    f"{s['test_3d_mae_std']:.4f} | {paper} | "
+                    f"{int(np.mean(s['epochs_to_best']))} | {PAPER_ABLATION_EPOCHS.get(g, '–')} | "
+                    f"{s['params']:,} |")
+    (REPORTS / "ablation.md").write_text("\n".join(rows) + "\n")
+    if groups:
+        save(fig_ablation(summary), REPORTS / "ablation.png")
+    log.info("ablation summary over %d groups\n%s", len(groups), "\n".join(rows))
+    return summary
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(prog="python -m pipeline.commands.ablation", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("what", nargs="?", default="all", choices=["all", "group", "sweep", "summary"])
+    ap.add_argument("group", nargs="*", help="group name(s) (with `group`; `sweep`: default all)")
+    ap.add_argument("--engine", choices=sweep.ENGINES, default=os.environ.get("ABLATION_ENGINE", "sequential"),
+                    help="sequential, or ray: one Ray task per (group, seed)")
+    ap.add_argument("--address", default=None, help="a Ray cluster's address (default: RAY_ADDRESS, else a "
+                                                    "local Ray started here)")
+    ap.add_argument("--threads", type=int, default=None, help="torch threads per run (default: all cores "
+                                                              "sequential, 1 on Ray)")
+    a = ap.parse_args(argv)
+    if a.what in ("group", "sweep"):          # group: one DVC matrix stage; sweep: every group at once
+        run_groups(load_params(), a.group or list(GROUPS), a.engine, a.address, a.threads)
+        if a.what == "sweep":
+            summarise()
+    elif a.what == "summary":
+        summarise()
+    else:                                    # the DVC way: only what changed reruns
+        env = {**os.environ, "ABLATION_ENGINE": a.engine}
+        t0 = time.perf_counter()
+        r = subprocess.run(["dvc", "repro", str(Path("ablation") / "dvc.yaml")], env=env)
+        log.info("ablation finished in %.0f s", time.perf_counter() - t0)
+        sys.exit(r.returncode)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,193 @@
+"""Calibrate a fleet: every robot's campaign through the pipeline, in parallel on Ray.
+
+    python -m pipeline.commands.fleet demo [--robots 4] [--dir data/fleet]     a demo fleet of twins
+    python -m pipeline.commands.fleet run data/fleet [--engine ray] [--address HOST:6379] [--out fleet/robots] [--bench]
+
+A fleet is a folder with one folder per robot, each holding its campaign (the
+tracker/controller exports) and a `params.yaml` override, like a preset: merged
+over the project's params.yaml, paths relative to the robot's folder. Each robot
+is one job (lib/learning/sweep.py: in order, or a Ray task on a local instance or a cluster),
+which carries the robot's folder as bytes and its merged params: on its node, in a
+scratch folder (the robot's files under `campaign/`), the pipeline's stages (ingest ..
+evaluate, export, report), each `python -m pipeline.stages.<stage>` as `dvc repro` runs
+them. The scratch folder comes back as bytes and is written here to `<out>/<robot>/`,
+which then holds that robot's params.yaml, campaign, artifacts (models/, data/interim/),
+report (reports/index.md) and logs: no filesystem is shared with the nodes. A robot
+that fails is reported with its stage and error message (its folder, logs included,
+still comes back), and the others finish. reports/fleet.json and reports/fleet.md: per
+robot the test 3D MAE of nominal DH, the classical calibration and the model.
+
+DVC: `fleet/dvc.yaml` (opt-in, like ablation/) is one stage whose output is the
+per-robot folders: Ray runs the robots in parallel inside it, where a `foreach`
+stage per robot would be run by `dvc repro` one at a time. Its deps are the whole
+`pipeline/` package (it runs every stage), params.yaml and the fleet folder, so any
+change reruns the fleet.
+"""
+import argparse
+import math
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from pipeline.lib.learning import sweep
+from pipeline.lib.reading.campaigns import write_pair
+from pipeline.lib.project.config import load_params, logger, read_json, write_json
+from pipeline.lib.reading.presets import deep_merge
+from pipeline.lib.sim.twin import Twin
+
+log = logger(__name__)
+CAMPAIGN = "campaign"               # a robot's working folder: its fleet folder's files are copied here
+STAGES = ["ingest", "frame", "theory", "split", "calibrate", "parts", "train", "baselines", "evaluate", "export", "report"]
+FLEET_JSON, FLEET_MD = Path("reports/fleet.json"), Path("reports/fleet.md")
+BENCH_JSON = Path("reports/bench/fleet.json")
+DEMO_SEED = 2000
+
+
+def robot_params(base: dict, robot_dir: Path) -> dict:
+    """The project's params with the robot's params.yaml merged over it; its campaign paths made
+    relative to the robot's working folder, where its folder's files are copied to `campaign/`; no
+    further campaigns, no validation campaigns, no twin drive check unless it says so."""
+    over = yaml.safe_load((robot_dir / "params.yaml").read_text()) if (robot_dir / "params.yaml").exists() else {}
+    p = deep_merge({**base, "campaigns": {**base["campaigns"], "more": {}},
+                    "validate": {**base["validate"], "campaigns": {}},
+                    "compensate": {**base["compensate"], "drive_check": False}}, over or {})
+    for k in ("joints", "tracker"):
+        p["ingest"][k] = (Path(CAMPAIGN) / p["ingest"][k]).as_posix()
+    return p
+
+
+def robot_job(base: dict, robot_dir: Path, threads: int) -> dict:
+    """One robot as a job that carries all it needs, so its node shares no filesystem with this one:
+    its name, its params (robot_params) and its folder's files as bytes (lib/learning/sweep.py: pack)."""
+    return {"robot": robot_dir.name, "params": robot_params(base, robot_dir), "files": sweep.pack(robot_dir),
+            "threads": threads}
+
+
+def calibrate_robot(job: dict) -> dict:
+    """One robot: its folder's files unpacked to `campaign/` of a scratch folder, every stage run there
+    (`python -m pipeline.stages.<stage>` with the code this process runs: on Ray, the package shipped with
+    the task; the job's torch threads), and the whole folder (params, campaign, models, tables,
+    reports, logs) returned as bytes under "files", for the driver to write where it wants it."""
+    name, params, threads = job["robot"], job["params"], job["threads"]
+    env = {**os.environ, "OMP_NUM_THREADS": str(threads),
+           "PYTHONPATH": os.pathsep.join([str(sweep.CODE_ROOT), os.environ.get("PYTHONPATH", "")])}
+    t0 = time.perf_counter()
+    with tempfile.TemporaryDirectory(prefix=f"fleet-{name}-") as tmp:
+        out = sweep.unpack(job["files"], Path(tmp) / CAMPAIGN).parent
+        (out / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+        result = None
+        for stage in STAGES:
+            r = subprocess.run([sys.executable, "-m", f"pipeline.stages.{stage}"], cwd=out, env=env, capture_output=True,
+                               text=True)
+            (out / "logs").mkdir(exist_ok=True)
+            (out / "logs" / f"{stage}.log").write_text(r.stdout + r.stderr)
+            if r.returncode:
+                lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+                result = {"robot": name, "status": "failed", "stage": stage, "reason": lines[-1] if lines else
+                          f"exit code {r.returncode}"}
+                break
+        if result is None:
+            m = read_json(out / "reports/metrics.json")
+            test = lambda method: m["baselines"][method]["test"]["3d"]["mae"]
+            result = {"robot": name, "status": "ok", "model": params["robot"]["model"],
+                      "n_points": read_json(out / "reports/theory.json")["n_points"],
+                      "test_3d_mae_mm": {"nominal": test("nominal_dh"), "calibrated": test("calibrated_dh"),
+                                         "model": m["test"]["3d"]["mae"]}}
+        result["seconds"] = time.perf_counter() - t0
+        result["files"] = sweep.pack(out)
+    return result
+
+
+def fleet_estimate(summary: dict, threads: int, robots: int = 100, nodes=(1, 4, 10, 25)) -> dict:
+    """A paper estimate of a `robots`-robot fleet's wall time on N nodes like this machine, from the
+    measured per-robot time: ceil(robots / (N * slots)) * robot seconds, slots = cores / threads
+    (Ray's ~7 s start-up and ms per task left out)."""
+    slots = max(1, (os.cpu_count() or 1) // threads)
+    per = summary["robot_seconds_mean"]
+    return {"measured": {k: summary[k] for k in ("engine", "n_robots", "n_ok", "seconds", "robot_seconds_mean")},
+            "threads_per_robot": threads, "slots_per_node": slots,
+            "estimate": {f"{robots}_robots_on_{n}_nodes_h": math.ceil(robots / (n * slots)) * per / 3600
+                         for n in nodes},
+            "assumes": "nodes like this one (cores, speed); each robot's campaign like the demo's"}
+
+
+def run_fleet(fleet_dir, out="fleet/robots", engine: str = "sequential", address: str | None = None,
+              threads: int | None = None, base: dict | None = None, bench: bool = False) -> dict:
+    fleet_dir = Path(fleet_dir)
+    robots = sorted(d for d in fleet_dir.iterdir() if d.is_dir()) if fleet_dir.is_dir() else []
+    if not robots:
+        raise FileNotFoundError(f"{fleet_dir}: no robot folders (one per robot: its campaign and params.yaml)")
+    base = base or load_params()
+    threads = sweep.threads_per_job(engine, threads)
+    jobs = [robot_job(base, d, threads) for d in robots]
+
+    def arrived(i, r):                          # the robot's folder, written here as it comes back
+        sweep.unpack(r.pop("files"), Path(out) / r["robot"])
+    results, timing = sweep.run(calibrate_robot, jobs, engine, address, threads, desc="fleet", on_result=arrived)
+    ok = [r for r in results if r["status"] == "ok"]
+    summary = {"fleet": str(fleet_dir), "out": str(out), "engine": engine, "n_robots": len(results),
+               "n_ok": len(ok), "failed": {r["robot"]: f"{r['stage']}: {r['reason']}" for r in results
+                                          if r["status"] != "ok"},
+               "robots": results, "seconds": timing["seconds"],
+               "nodes": {r["robot"]: n for r, n in zip(results, timing["job_nodes"])},
+               "robot_seconds_mean": float(np.mean([r["seconds"] for r in ok])) if ok else None}
+    write_json(FLEET_JSON, summary)
+    if bench and ok:
+        write_json(BENCH_JSON, fleet_estimate(summary, threads))
+    rows = ["| robot | status | nominal mm | calibrated mm | model mm | seconds |", "|---|---|---|---|---|---|"]
+    for r in results:
+        e = r.get("test_3d_mae_mm")
+        rows.append(f"| {r['robot']} | {r['status'] if e else 'failed in ' + r['stage'] + ': ' + r['reason']} | "
+                    + (" | ".join(f"{e[k]:.4f}" for k in ("nominal", "calibrated", "model")) if e else "– | – | –")
+                    + f" | {r['seconds']:.0f} |")
+    FLEET_MD.write_text("# Fleet calibration (test 3D MAE)\n\n" + "\n".join(rows) + "\n")
+    log.info("fleet of %d robots on %s in %.0f s: %d calibrated, %d failed %s\n%s", len(results), engine,
+             timing["seconds"], len(ok), len(results) - len(ok), summary["failed"], "\n".join(rows))
+    return summary
+
+
+def demo(fleet_dir="data/fleet", robots: int = 4, n: int = 300, models=("ur5", "ur10")) -> list[Path]:
+    """A demo fleet of twins, each its own error seed DEMO_SEED + k, the arm models taken in turn,
+    n poses each."""
+    out = []
+    for k in range(robots):
+        model = models[k % len(models)]
+        d = Path(fleet_dir) / f"{model}_{k + 1:02d}"
+        joints, tracker, _ = Twin(DEMO_SEED + k, robot=model).campaign(n)
+        write_pair(d, joints, tracker)
+        (d / "params.yaml").write_text(f"# twin seed {DEMO_SEED + k}: a demo {model.upper()} of the fleet\n"
+                                       f"robot: {{model: {model}}}\n"
+                                       "ingest: {joints: joints.csv, tracker: tracker.csv}\n")
+        out.append(d)
+    log.info("demo fleet: %d twins (%s, seeds %d..%d), %d poses each, in %s", robots, "/".join(models),
+             DEMO_SEED, DEMO_SEED + robots - 1, n, fleet_dir)
+    return out
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(prog="python -m pipeline.commands.fleet", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("what", choices=["run", "demo"])
+    ap.add_argument("fleet", nargs="?", default="data/fleet", help="the fleet folder (one folder per robot)")
+    ap.add_argument("--out", default="fleet/robots", help="where each robot's folder is written (run)")
+    ap.add_argument("--engine", choices=sweep.ENGINES, default="ray")
+    ap.add_argument("--address", default=None, help="a Ray cluster (default: RAY_ADDRESS, else local)")
+    ap.add_argument("--threads", type=int, default=None, help="torch threads per robot (default: 1 on Ray)")
+    ap.add_argument("--robots", type=int, default=4, help="demo: how many twins")
+    ap.add_argument("--bench", action="store_true", help="also write reports/bench/fleet.json: the measured "
+                                                         "per-robot time and a 100-robot estimate")
+    a = ap.parse_args(argv)
+    if a.what == "demo":
+        demo(a.fleet, a.robots)
+    else:
+        run_fleet(a.fleet, a.out, a.engine, a.address, a.threads, bench=a.bench)
+
+
+if __name__ == "__main__":
+    main()

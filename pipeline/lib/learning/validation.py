@@ -1,0 +1,224 @@
+"""Judging a calibration on an independent campaign (docs/data-format.md, "Validation").
+
+Every method predicts the marker in the robot's base frame; the campaign
+measured it in its tracker's frame. Two ways to compare them:
+
+    same    the tracker did not move: map the measurements with the training campaign's
+            frame (reports/frame.json); every point is judged.
+    refit   the tracker moved (or may have): each method gets its own rigid frame, fitted
+            by robust Kabsch (eqs. 20-26, misreads rejected) on the same registration
+            points, and is judged on the others. Registration rule: `register_points`
+            points spread over the measured cloud by farthest-point sampling (from the
+            point nearest the centroid), so the frame is well conditioned and most of the
+            campaign is left to judge. Only the frame is refitted, not the tool. The
+            nominal method's registration is checked like the frame stage's fit
+            (frames.check_fit): a mirrored or far-off campaign stops.
+    The registration's residual (rms per point, corrected for the parameters fitted) is the part of a
+    new campaign's error that no training campaign shows (the tracker set up again, drift, the
+    temperature): the model's uncertainty on the campaign is sqrt(uncertainty_mm² + that²) (refit
+    modes; `same` adds nothing).
+    refit_tool  the tracker moved and the probe may have been re-mounted: as refit, and a tool
+            offset dt (flange frame) fitted with each method's frame on the same points, every
+            method's marker moved by R_flange(q) dt (its own chain's flange). Only where the
+            campaign's orientations fix dt (several tool orientations: the fit's condition
+            number is reported); the methods are registered alike. Where the campaign measures
+            the probe's orientation, the registration fits it too (the frame, dt and the probe's
+            re-mounted rotation dR, weighted by `calibrate.pose_noise`), and each method is judged
+            also on the orientation and at every TCP (`judge_poses`, lib/robot/tcp.py).
+
+ISO 9283 position accuracy where the campaign commands one position several
+times (a `commanded` column group): per commanded position, with the
+deviations d_i = x_i - c_i of the attained marker positions from where the
+command put the marker (its orientation may differ between visits),
+AP_P = |mean d_i| and the spread RP = mean |d_i - mean d|, both from the
+measurements and from each method's predictions, and bar_error =
+|predicted mean - measured mean|: how well the method knows where the robot
+really goes for that command.
+"""
+import numpy as np
+import pandas as pd
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
+
+from pipeline.lib.robot.frames import check_fit, robust_kabsch, to_base
+from pipeline.lib.robot.identify import identifiability
+from pipeline.lib.learning.metrics import stats
+from pipeline.lib.robot.tcp import pose_errors
+
+METHODS = ("nominal", "calibrated", "calibrated_parts", "model")
+
+
+def registration_subset(P: np.ndarray, n: int) -> np.ndarray:
+    """Bool mask of n points of P (m, 3) spread by farthest-point sampling (deterministic)."""
+    n = min(n, len(P))
+    chosen = [int(np.argmin(np.linalg.norm(P - P.mean(0), axis=1)))]
+    d = np.linalg.norm(P - P[chosen[0]], axis=1)
+    for _ in range(n - 1):
+        chosen.append(int(np.argmax(d)))
+        d = np.minimum(d, np.linalg.norm(P - P[chosen[-1]], axis=1))
+    mask = np.zeros(len(P), bool)
+    mask[chosen] = True
+    return mask
+
+
+MODES = ("same", "refit", "refit_tool")
+
+
+FRAME_TOOL = ["rx", "ry", "rz", "tx", "ty", "tz", "tool_x", "tool_y", "tool_z"]
+PROBE_ROT = ["tool_rx", "tool_ry", "tool_rz"]
+
+
+def small_rotation(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """kinematics.rotation_error in numpy: vee of the skew part of A Bᵀ, (k, 3, 3) x2 -> (k, 3) rad."""
+    M = A @ np.swapaxes(B, -1, -2)
+    return 0.5 * np.stack([M[..., 2, 1] - M[..., 1, 2], M[..., 0, 2] - M[..., 2, 0], M[..., 1, 0] - M[..., 0, 1]], -1)
+
+
+def refit_tool(p: np.ndarray, Rf: np.ndarray, P: np.ndarray, R0: np.ndarray, t0: np.ndarray, rank_tol: float,
+               R_probe: np.ndarray | None = None, R_world: np.ndarray | None = None, weight: float = 0.0):
+    """Frame and tool offset jointly, P ≈ R (p + Rf dt) + t, from the start (R0, t0): p (k, 3) predicted
+    markers, Rf (k, 3, 3) the flange rotations (base frame). Only the offset components the poses'
+    orientations determine are fitted (identify.identifiability at rank_tol: an offset along an axis
+    the flange never turns away from is a translation of the frame); the others stay 0. With measured
+    orientations R_world (k, 3, 3, tracker frame) and the predicted ones R_probe, also R R_probe dR ≈ R_world,
+    weight mm/rad, and the probe's re-mounted rotation dR.
+    Returns R, t, dt (3,) mm, dR (3, 3) and the names of the components held at 0."""
+    poses = R_world is not None
+    names = FRAME_TOOL + (PROBE_ROT if poses else [])
+
+    def residuals(x):
+        R = Rotation.from_rotvec(x[:3]).as_matrix()
+        r = ((p + np.einsum("kij,j->ki", Rf, x[6:9])) @ R.T + x[3:6] - P).ravel()
+        if not poses:
+            return r
+        dR = Rotation.from_rotvec(x[9:12]).as_matrix()
+        return np.r_[r, weight * small_rotation(R @ R_probe @ dR, R_world).ravel()]
+    x0 = np.r_[Rotation.from_matrix(R0).as_rotvec(), t0, np.zeros(len(names) - 6)]
+    r0 = residuals(x0)
+    steps = [1e-6] * 3 + [1e-3] * 6 + [1e-6] * (len(names) - 9)
+    J = np.stack([(residuals(x0 + h * e) - r0) / h for e, h in zip(np.eye(len(names)), steps)], 1)
+    keep = identifiability(J, names, rank_tol)["keep"]
+    keep[:6] = True                                       # the frame is always fitted
+    def sub(xk):
+        x = x0.copy()
+        x[keep] = xk
+        return residuals(x)
+    sol = least_squares(sub, x0[keep], x_scale="jac")
+    x = x0.copy()
+    x[keep] = sol.x
+    dR = Rotation.from_rotvec(x[9:12]).as_matrix() if poses else np.eye(3)
+    return (Rotation.from_rotvec(x[:3]).as_matrix(), x[3:6], x[6:9], dR,
+            [n for n, k in zip(names, keep) if not k])
+
+
+def judge(pred: dict, P_world: np.ndarray, mode: str, frame: dict, n_register: int, frame_cfg: dict,
+          flange_R: dict | None = None, tool_rank_tol: float | None = None, probe_R: dict | None = None,
+          R_world: np.ndarray | None = None, weight: float = 0.0):
+    """Each method's 3D error per point and the frame it was judged in.
+
+    pred: {method: (m, 3) base frame}; P_world: (m, 3) tracker frame; flange_R {method: (m, 3, 3)}: the
+    flange rotations each method's chain gives (refit_tool). Returns (errors {method: (m,)}, registered
+    (m,) bool, frames {method: {"R", "t", "tool_offset_mm"}}); registered points are not judged (their
+    errors are the registration residuals). refit_tool: the frame and a tool offset dt (the probe
+    re-mounted) on the registration points, every method's prediction moved by R_flange dt; with measured
+    orientations R_world (m, 3, 3) and each method's probe orientations probe_R, fitted on them too
+    (frames[method]["probe_rotation"]: the re-mounted probe's dR).
+    """
+    if mode == "same":
+        P = to_base(P_world, frame)
+        return ({m: np.linalg.norm(p - P, axis=1) for m, p in pred.items()}, np.zeros(len(P), bool),
+                {m: {"R": np.asarray(frame["R"]), "t": np.asarray(frame["t"]), "tool_offset_mm": np.zeros(3)}
+                 for m in pred})
+    if mode not in MODES:
+        raise ValueError(f"params.yaml validate.campaigns.*.frame: {mode!r}; use one of {MODES}")
+    reg = registration_subset(P_world, n_register)
+    errors, frames = {}, {}
+    for m, p in pred.items():
+        R, t, inl, _ = robust_kabsch(p[reg], P_world[reg], frame_cfg["outlier_k"], frame_cfg["outlier_min_mm"])
+        if m == "nominal":
+            check_fit(p[reg][inl], P_world[reg][inl], R, t, "the refit registration (nominal)", frame_cfg)
+        frames[m] = {"R": R, "t": t, "tool_offset_mm": np.zeros(3)}
+        if mode == "refit_tool":
+            k = np.flatnonzero(reg)[inl]
+            poses = R_world is not None
+            R, t, dt, dR, held = refit_tool(p[k], flange_R[m][k], P_world[k], R, t, tool_rank_tol,
+                                            probe_R[m][k] if poses else None, R_world[k] if poses else None, weight)
+            p = p + np.einsum("mij,j->mi", flange_R[m], dt)
+            frames[m] = {"R": R, "t": t, "tool_offset_mm": dt, "tool_held": held,
+                         **({"probe_rotation": dR} if poses else {})}
+        errors[m] = np.linalg.norm(p @ R.T + t - P_world, axis=1)
+        k = np.flatnonzero(reg)[inl]                      # the registration's own residual, per degree of freedom
+        dof = max(3 * len(k) - (6 + 3 - len(frames[m].get("tool_held", ["x"] * 3))), 1)
+        frames[m]["registration_rms_mm"] = float(np.sqrt((errors[m][k] ** 2).sum() / dof * 3))
+    return errors, reg, frames
+
+
+def judge_poses(pred: dict, probe_R: dict, flange_R: dict, frames: dict, P_world: np.ndarray,
+                R_world: np.ndarray, offsets: dict, judged: np.ndarray) -> dict:
+    """Each method's orientation and TCP errors (lib/robot/tcp.py pose_errors) on the judged points, in the frame
+    it was registered in (its tool offset dt and re-mounted probe rotation dR applied)."""
+    out = {}
+    for m, p in pred.items():
+        f = frames[m]
+        R, t = np.asarray(f["R"]), np.asarray(f["t"])
+        p_m = p + np.einsum("mij,j->mi", flange_R[m], f["tool_offset_mm"])
+        R_m = probe_R[m] @ f.get("probe_rotation", np.eye(3))
+        out[m] = pose_errors(p_m[judged], R_m[judged], to_base(P_world, f)[judged],
+                             np.einsum("ji,njk->nik", R, R_world)[judged], offsets)
+    return out
+
+
+def summary(table: pd.DataFrame, mode: str) -> dict:
+    """validation.json's entry for one campaign (docs/data-format.md keys, then the in/out split)."""
+    j = table[~table.registered]
+    s = {m: stats(j[f"error_{m}_mm"].to_numpy()) for m in METHODS}
+    inside = j.in_workspace.to_numpy()
+    return {
+        "n": len(table), "n_judged": len(j), "frame": mode, "n_register": int(table.registered.sum()),
+        "mean_3d_mm": {m: s[m]["mean"] for m in METHODS},
+        "p95_3d_mm": {m: s[m]["p95"] for m in METHODS},
+        "max_3d_mm": {m: s[m]["max"] for m in METHODS},
+        "in_workspace_share": float(inside.mean()) if len(j) else None,
+        "uncertainty_mm_mean": float(j.uncertainty_mm.mean()) if len(j) else None,
+        "by_workspace": {w: {m: stats(j.loc[inside == (w == "in"), f"error_{m}_mm"].to_numpy())
+                             for m in METHODS} for w in ("in", "out")},
+        "uncertainty_coverage": {w: (float((k.error_model_mm <= k.uncertainty_mm).mean()) if len(k) else None)
+                                 for w, k in (("all", j), ("in", j[inside]), ("out", j[~inside]))},
+        "angle_map": {"in_range_share": float(j.in_range_angle_map.mean()) if len(j) else None,
+                      **{w: {m: stats(j.loc[j.in_range_angle_map == (w == "in"), f"error_{m}_mm"].to_numpy())
+                             for m in METHODS} for w in ("in", "out")}},
+    }
+
+
+def position_accuracy(commanded: np.ndarray, group: np.ndarray, measured: dict, pred: dict,
+                      judged: np.ndarray) -> dict:
+    """ISO 9283 AP_P and RP per method, measured and predicted, averaged over commanded positions.
+
+    commanded (m, 3): each point's commanded marker position (base frame, mm); group (m, k): what
+    was commanded (points with equal rows reached the same commanded position, maybe in another
+    joint configuration and orientation); measured {method: (m, 3) in that method's base frame};
+    pred {method: (m, 3)}. Per position, with deviations d_i = x_i - c_i: AP_P = |mean d_i|,
+    bar_error = |mean(pred) - mean(measured)| over every judged position; RP = mean |d_i - mean d|
+    over the positions reached at least twice (a campaign that visits each position once, as
+    Series_D's cubes, has an AP per position and no RP).
+    """
+    _, g = np.unique(np.round(group[judged], 6), axis=0, return_inverse=True)
+    g = g.ravel()
+    c = commanded[judged]
+    out = {}
+    for m in pred:
+        rows = {"ap_measured": [], "ap_predicted": [], "rp_measured": [], "rp_predicted": [], "bar_error": []}
+        for k in np.unique(g):
+            idx = np.flatnonzero(g == k)
+            bars = {}
+            for kind, x in (("measured", measured[m][judged][idx]), ("predicted", pred[m][judged][idx])):
+                d = x - c[idx]
+                bars[kind] = d.mean(0)
+                rows[f"ap_{kind}"].append(np.linalg.norm(bars[kind]))
+                if len(idx) > 1:
+                    rows[f"rp_{kind}"].append(np.linalg.norm(d - bars[kind], axis=1).mean())
+            rows["bar_error"].append(np.linalg.norm(bars["predicted"] - bars["measured"]))
+        out[m] = {"positions": len(rows["ap_measured"]), "positions_repeated": len(rows["rp_measured"]),
+                  **{f"{k}_mm": (float(np.mean(v)) if v else None) for k, v in rows.items()},   # means over positions
+                  "ap_measured_max_mm": float(np.max(rows["ap_measured"])) if rows["ap_measured"] else None}
+    return out

@@ -1,0 +1,312 @@
+"""params.yaml (the one owner of every setting), JSON writing, logging.
+
+`section(params, name)` hands a stage its section after checking the keys:
+an unknown or misspelt key, or a missing one, stops the stage with a message
+that lists the valid keys. The code never falls back to a default of its own.
+"""
+import json
+import logging
+import math
+import re
+import sys
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+PARAMS = Path("params.yaml")
+
+# The keys of every section (names only; the values live in params.yaml).
+SECTIONS = {
+    "robot": ("model", "dh", "joint_limits_deg", "tool_mm", "tcp"),
+    "ingest": ("joints", "tracker", "skip_lines", "sep", "decimal", "angle_unit", "length_unit", "columns",
+               "gross_outlier_mm", "orientation", "target", "target_residual_mm"),
+    "ingest.columns": ("point_id", "joints", "position", "orientation", "marker"),
+    "ingest.orientation": ("kind", "sequence", "angle_unit", "scalar_first"),
+    "campaigns": ("name", "station", "more"),
+    "campaigns.campaign": ("ingest", "station"),
+    "frame": ("outlier_k", "outlier_min_mm", "estimate_tool", "tool_per_station", "robust_loss", "robust_scale_mm",
+              "max_rms_mm"),
+    "split": ("seed", "fractions", "holdout"),
+    "split.holdout": ("joints", "quantile"),
+    "calibrate": ("loss", "loss_scale_mm", "params", "tilt_joints", "pose_noise", "rank_tol", "tol", "max_nfev"),
+    "calibrate.pose_noise": ("mm", "arcsec"),
+    "parts": ("noise_mm", "angle_map", "load_map", "thermal"),
+    "parts.thermal": ("column", "cte_per_k"),
+    "parts.angle_map": ("joints", "knot_deg", "prior_arcsec", "smooth_arcsec", "reach_deg", "fade_deg"),
+    "parts.load_map": ("joints", "knots", "prior_arcsec", "smooth_arcsec"),
+    "model": ("d_model", "n_layer", "n_head", "d_hidden", "mask", "head", "encoder", "physics",
+              "alpha0", "dropout", "fade_to", "init_seed"),
+    "loss": ("weighting", "physics", "lambda_data", "lambda_physics"),
+    "train": ("lr", "weight_decay", "batch_size", "grad_clip", "max_epochs", "patience", "seed", "ema",
+              "members", "lr_drop", "lr_patience", "device"),
+    "baselines": ("dnn", "other_physics"),
+    "workspace": ("radius_quantile", "coverage"),
+    "validate": ("register_points", "tool_rank_tol", "campaigns"),
+    "validate.campaign": ("ingest", "frame", "commanded"),
+    "validate.commanded": ("columns", "unit", "rz_deg", "orientation", "euler", "planned_tool_mm"),
+    "compensate": ("solver", "lr", "max_iter", "tol_mse", "tol_mm", "tol_arcsec", "orientation", "jacobian_of",
+                   "physics_steps", "drive_check", "twin", "drive_seed"),
+    "ablation": ("seeds", "max_epochs"),
+    "summary": ("instrument",),
+    "program": ("move", "movej", "movel"),
+    "program.movej": ("acc", "vel"),
+    "program.movel": ("acc", "vel"),
+    "plan": ("cover_k", "per_waypoint", "region", "region_margin_deg", "seed", "rules", "settle_s", "handshake_io",
+             "acc", "vel"),
+    "plan.rules": ("radius_mm", "height_mm", "elbow_up", "elbow_min_mm", "table_mm", "column_mm", "sin_elbow",
+                   "sin_wrist", "tracker_side_deg"),
+    "path": ("spacing_mm", "chord_mm", "speed_mm_s", "max_deviation_mm", "joint_speed_deg_s", "max_samples",
+             "lookahead_s", "gain"),
+    "serve": ("host", "port", "unreachable_mm", "onnx", "torch_threads", "compile", "max_iter", "budget_ms", "stall_iter",
+              "stall_ratio", "max_batch", "batch_wait_ms", "max_items", "call_budget_ms", "lm_per_call", "max_body_bytes", "timeout_s",
+              "max_connections", "echo_chars", "max_path_samples", "refusal_delay_ms"),
+}
+
+
+OPTIONAL = ("holdout",)        # nested sections that may be null (off)
+
+
+# The allowed values of the settings a typo in would otherwise surface deep in NumPy, torch or a server
+# thread: "section.key" -> (check, what it must be). Checked with the keys, by `section`.
+def _int(lo, hi=None):
+    return lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= lo and (hi is None or v <= hi)
+
+
+def _num(lo, hi=None, open_lo=False):
+    return lambda v: (isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+                      and (v > lo if open_lo else v >= lo) and (hi is None or v <= hi))
+
+
+def _fractions(v):
+    return (isinstance(v, list) and len(v) == 3 and all(_num(0, 1, open_lo=True)(x) for x in v)
+            and abs(sum(v) - 1) < 1e-9)
+
+
+def _speeds(v):
+    return v is None or _num(0, open_lo=True)(v) or (isinstance(v, list) and len(v) == 6
+                                                      and all(_num(0, open_lo=True)(x) for x in v))
+
+
+def _joints(v):
+    return isinstance(v, list) and len(v) > 0 and all(_int(1, 6)(j) for j in v) and len(set(v)) == len(v)
+
+
+def _vec3(v):
+    return isinstance(v, list) and len(v) == 3 and all(_num(-math.inf)(x) for x in v)
+
+
+def _tcps(v):
+    return (isinstance(v, dict) and len(v) > 0 and all(
+        isinstance(k, str) and re.fullmatch(r"[A-Za-z0-9_-]{1,40}", k) and isinstance(t, dict)
+        and set(t) <= {"xyz_mm", "rxyz_deg"} and _vec3(t.get("xyz_mm")) and _vec3(t.get("rxyz_deg", [0, 0, 0]))
+        for k, t in v.items()))
+
+
+RULES = {
+    "robot.tcp": (lambda v: v is None or _tcps(v), "null, or name: {xyz_mm: [x, y, z], rxyz_deg: [rx, ry, rz]} "
+                  "(a tool centre point in the flange frame; rxyz_deg optional), names of letters, digits, _ or -"),
+    "calibrate.pose_noise.mm": (_num(0, open_lo=True), "a position noise > 0 mm"),
+    "calibrate.pose_noise.arcsec": (_num(0, open_lo=True), "an orientation noise > 0 arcsec"),
+    "split.seed": (_int(0), "an integer >= 0"),
+    "split.fractions": (_fractions, "three fractions > 0 (train, val, test) that sum to 1"),
+    "split.holdout.joints": (_joints, "a list of distinct joint numbers 1-6"),
+    "split.holdout.quantile": (_num(0, 1, open_lo=True), "a quantile in (0, 1]"),
+    "train.batch_size": (_int(1), "an integer >= 1"),
+    "train.max_epochs": (_int(1), "an integer >= 1"),
+    "train.patience": (_int(1), "an integer >= 1"),
+    "train.seed": (_int(0), "an integer >= 0"),
+    "train.members": (_int(1), "an integer >= 1"),
+    "train.lr": (_num(0, open_lo=True), "a learning rate > 0"),
+    "compensate.max_iter": (_int(1), "an integer >= 1"),
+    "compensate.tol_mm": (_num(0, open_lo=True), "a tolerance > 0 mm"),
+    "compensate.physics_steps": (_int(1, 20), "an integer 1-20"),
+    "compensate.tol_arcsec": (_num(0, open_lo=True), "a tolerance > 0 arcsec"),
+    "compensate.orientation": (lambda v: isinstance(v, bool), "true or false"),
+    "program.move": (lambda v: v in ("movej", "movel"), "movej or movel"),
+    "program.movej.acc": (_num(0, open_lo=True), "an acceleration > 0 rad/s²"),
+    "program.movej.vel": (_num(0, open_lo=True), "a speed > 0 rad/s"),
+    "program.movel.acc": (_num(0, open_lo=True), "an acceleration > 0 m/s²"),
+    "program.movel.vel": (_num(0, open_lo=True), "a speed > 0 m/s"),
+    "path.spacing_mm": (_num(0, open_lo=True), "a spacing > 0 mm"),
+    "path.chord_mm": (lambda v: v is None or _num(0, open_lo=True)(v), "null or a tolerance > 0 mm"),
+    "path.speed_mm_s": (_num(0, open_lo=True), "a speed > 0 mm/s"),
+    "path.max_deviation_mm": (_num(0, open_lo=True), "a distance > 0 mm"),
+    "path.joint_speed_deg_s": (_speeds, "null (the robot's), a speed > 0 deg/s or 6 of them"),
+    "path.max_samples": (_int(2), "an integer >= 2"),
+    "path.lookahead_s": (_num(0.03, 0.2), "servoj's lookahead_time, 0.03-0.2 s"),
+    "path.gain": (_int(100, 2000), "servoj's gain, an integer 100-2000"),
+    "serve.port": (_int(0, 65535), "a TCP port 0-65535 (0: any free port)"),
+    "serve.torch_threads": (_int(1), "an integer >= 1"),
+    "serve.unreachable_mm": (_num(0, open_lo=True), "a distance > 0 mm"),
+    "serve.max_iter": (_int(1), "an integer >= 1"),
+    "serve.budget_ms": (_num(0, open_lo=True), "a time > 0 ms"),
+    "serve.stall_iter": (_int(1), "an integer >= 1"),
+    "serve.stall_ratio": (_num(0, 1, open_lo=True), "a ratio in (0, 1]"),
+    "serve.max_batch": (_int(1), "an integer >= 1"),
+    "serve.batch_wait_ms": (_num(0), "a time >= 0 ms"),
+    "serve.max_items": (_int(1), "an integer >= 1"),
+    "serve.max_body_bytes": (_int(1), "an integer >= 1"),
+    "serve.timeout_s": (_num(0, open_lo=True), "a time > 0 s"),
+    "serve.echo_chars": (_int(20), "an integer >= 20"),
+    "serve.refusal_delay_ms": (_num(0, 1000), "a time in 0..1000 ms"),
+    "ingest.columns.orientation": (lambda v: v is None or (isinstance(v, list) and len(v) in (3, 4, 9) and all(
+        isinstance(h, (str, int)) and not isinstance(h, bool) for h in v) and len({str(h) for h in v}) == len(v)),
+        "null, or 3 (Euler angles), 4 (quaternion) or 9 (rotation matrix, row-major) distinct headers"),
+    "ingest.columns.marker": (lambda v: v is None or (isinstance(v, (str, int)) and not isinstance(v, bool)
+                                                      and str(v).strip() != ""), "null, or the header naming each row's marker"),
+    "ingest.orientation.kind": (lambda v: v in ("euler", "quaternion", "matrix"), "euler, quaternion or matrix"),
+    "ingest.orientation.sequence": (lambda v: isinstance(v, str) and len(v) == 3 and (set(v) <= set("XYZ") or set(v) <= set("xyz"))
+                                    and v[0] != v[1] and v[1] != v[2],
+                                    "three axes as scipy's Rotation.from_euler: XYZ, ZYX, ZXZ, ... upper case intrinsic "
+                                    "(about the turning probe's axes), lower case extrinsic (about the tracker's); "
+                                    "no axis twice in a row, no mixed case"),
+    "ingest.orientation.angle_unit": (lambda v: v in ("deg", "rad"), "deg or rad"),
+    "ingest.orientation.scalar_first": (lambda v: isinstance(v, bool), "true (w x y z) or false (x y z w)"),
+    "ingest.target": (lambda v: v is None or (isinstance(v, dict) and set(v) == {"markers"} and isinstance(v["markers"], dict)
+                                              and len(v["markers"]) >= 3 and all(isinstance(k, (str, int)) and _vec3(p)
+                                                                                 for k, p in v["markers"].items())),
+                      "null (estimated from the poses), or {markers: {name: [x, y, z] mm}} with at least 3 markers"),
+    "ingest.target_residual_mm": (_num(0, open_lo=True), "a distance > 0 mm"),
+    "serve.max_path_samples": (_int(2), "an integer >= 2"),
+}
+
+
+class ParamsError(ValueError):
+    """A params.yaml section with an unknown, misspelt or missing key."""
+
+
+def check_keys(cfg, name: str) -> dict:
+    """cfg (the section `name`, e.g. "ingest.columns") if its keys are exactly SECTIONS[name]."""
+    valid = SECTIONS[name]
+    if not isinstance(cfg, dict):
+        raise ParamsError(f"params.yaml {name}: expected a mapping with keys {list(valid)}, got {cfg!r}")
+    unknown = [k for k in cfg if k not in valid]
+    missing = [k for k in valid if k not in cfg]
+    if unknown or missing:
+        what = "; ".join(([f"unknown key(s) {unknown}"] if unknown else [])
+                         + ([f"missing key(s) {missing}"] if missing else []))
+        raise ParamsError(f"params.yaml {name}: {what}. Valid keys: {', '.join(valid)}")
+    return cfg
+
+
+def check_values(cfg: dict, name: str) -> None:
+    """A ParamsError naming the key for a value of the section `name` that breaks its RULES."""
+    for key, (ok, what) in RULES.items():
+        path = key.split(".")
+        if ".".join(path[:-1]) != name:
+            continue
+        if not ok(cfg[path[-1]]):
+            raise ParamsError(f"params.yaml {key}: {what}, got {cfg[path[-1]]!r}")
+
+
+def section(params: dict, name: str) -> dict:
+    """params[name], its keys checked (and those of its nested sections), and their values (RULES)."""
+    if not isinstance(params, dict):
+        raise ParamsError(f"params.yaml: expected a mapping of sections, got {params!r}")
+    if name not in params:
+        raise ParamsError(f"params.yaml: missing section {name!r} (keys: {', '.join(SECTIONS[name])})")
+    cfg = check_keys(params[name], name)
+    check_values(cfg, name)
+    for sub in SECTIONS:                               # nested sections (not validate.campaign / campaigns.campaign: one per entry)
+        key = sub.split(".", 1)[1] if sub.startswith(name + ".") else None
+        if key in SECTIONS[name] and not (key in OPTIONAL and cfg[key] is None):
+            check_keys(cfg[key], sub)
+            check_values(cfg[key], sub)
+    return cfg
+
+
+def sections(params: dict, *names: str) -> list[dict]:
+    """The sections `names`, each checked by `section`."""
+    return [section(params, n) for n in names]
+
+
+def for_stage(params: dict, names) -> dict:
+    """Only the sections `names` of params (each checked): what a stage may read. A stage declares
+    them in its module's PARAMS, and tests/test_layout.py holds dvc.yaml's `params:` to the same list,
+    so a setting a stage reads is always one that re-runs it."""
+    return {n: section(params, n) for n in names}
+
+
+class _UniqueKeys(yaml.SafeLoader):
+    """YAML's safe loader, refusing a key given twice in one mapping (YAML would keep the last)."""
+
+    def construct_mapping(self, node, deep=False):
+        seen = set()
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=deep)
+            if key in seen:
+                raise ParamsError(f"params.yaml line {key_node.start_mark.line + 1}: the key {key!r} is given "
+                                  "twice in one section (one would silently win)")
+            seen.add(key)
+        return super().construct_mapping(node, deep)
+
+
+
+def load_params(path: Path | str = PARAMS) -> dict:
+    """params.yaml as a dict of sections (each section's keys and values are checked by `section`)."""
+    with open(path) as f:
+        params = yaml.load(f, Loader=_UniqueKeys)
+    if not isinstance(params, dict):
+        raise ParamsError(f"{path}: expected a mapping of sections ({', '.join(s for s in SECTIONS if '.' not in s)}), "
+                          f"got {'an empty file' if params is None else repr(params)[:80]}")
+    return params
+
+
+def _jsonable(o):
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, (np.floating, np.integer, np.bool_)):
+        return o.item()
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"not JSON-serialisable: {type(o)}")
+
+
+def json_text(obj) -> str:
+    """obj as the project's JSON files hold it (indented, numpy values as Python's)."""
+    return json.dumps(obj, indent=2, default=_jsonable) + "\n"
+
+
+def write_json(path: Path | str, obj) -> None:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json_text(obj))
+
+
+TIMING_KEYS = ("seconds", "seconds_per_epoch", "ms_per_point")   # wall-clock: never in a hashed output
+
+
+def split_timings(obj):
+    """(obj without its TIMING_KEYS, those values in the same nesting): a stage writes the first to
+    its DVC-hashed summary and the second to reports/timings/, so the same params and seed give the
+    same bytes however busy the machine was."""
+    if not isinstance(obj, dict):
+        if isinstance(obj, list):
+            pairs = [split_timings(v) for v in obj]
+            return [a for a, _ in pairs], [b for _, b in pairs]
+        return obj, None
+    kept, times = {}, {}
+    for k, v in obj.items():
+        if k in TIMING_KEYS:
+            times[k] = v
+            continue
+        kept[k], t = split_timings(v)
+        if t not in (None, {}, []) and not (isinstance(t, list) and not any(t)):
+            times[k] = t
+    return kept, times
+
+
+def read_json(path: Path | str):
+    return json.loads(Path(path).read_text())
+
+
+def logger(name: str) -> logging.Logger:
+    """A stage's logger, named after its module even when run as `python -m pipeline.stages.<stage>`."""
+    if name == "__main__":
+        spec = getattr(sys.modules["__main__"], "__spec__", None)
+        name = spec.name if spec else name
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s",
+                        datefmt="%H:%M:%S")
+    short = name.removeprefix("pipeline.").removeprefix("stages.").removeprefix("commands.")
+    return logging.getLogger(short.split(".", 2)[2] if short.startswith("lib.") else short)   # lib.robot.x -> x

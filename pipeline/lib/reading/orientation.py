@@ -1,0 +1,162 @@
+"""The probe's measured orientation: rotation columns and rigid multi-marker targets -> unit quaternions.
+
+Every orientation leaves the ingest as a unit quaternion (w, x, y, z), scalar first, w >= 0, of the
+rotation R that maps probe-frame vectors to tracker-frame vectors (p_tracker = R p_probe + t). All
+conversions are scipy's (scipy.spatial.transform.Rotation); nothing here re-derives them.
+
+Rotation columns (`ingest.columns.orientation`, read as `ingest.orientation` says):
+    euler       3 angles, `sequence` as scipy's Rotation.from_euler: upper case (XYZ) intrinsic
+                (about the turning body's axes), lower case (xyz) extrinsic (about the fixed tracker
+                axes); `angle_unit` deg or rad. Intrinsic XYZ = extrinsic zyx of the reversed angles.
+    quaternion  4 numbers, w x y z (`scalar_first: true`) or x y z w (false). A norm off 1 by more
+                than NORM_TOL (relative) is a bad rotation, not normalised away.
+    matrix      9 numbers, row-major r11 r12 r13 r21 ... r33. Rows not orthonormal within ORTHO_TOL
+                (max |R Rᵀ - I|) or det < 0 (a reflection) is a bad rotation.
+
+Rigid multi-marker targets (optical trackers export one row per marker): each pose's markers are fitted
+by Kabsch (frames.kabsch) to the target's geometry {name: (3,)} in its own frame. The pose is that frame:
+its origin (t) and its rotation (R). `fit_pose` removes the worst marker while its residual exceeds the
+limit and refits; fewer than MIN_MARKERS left (or collinear ones) and the pose has no fit.
+`estimate_geometry`: the geometry when none is given: the first pose holding every marker, centred on
+its markers' centroid, then each marker's mean position over all poses (of >= 3 markers) in that pose's
+frame fitted to the first, centred again: one refinement. Its axes are the tracker's at that first pose,
+its origin the markers' centroid. A marker off in one pose moves the mean by 1/n of it; fit_pose then
+removes it there.
+"""
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from pipeline.lib.robot.frames import DegenerateFit, kabsch
+
+KINDS = {"euler": 3, "quaternion": 4, "matrix": 9}     # kind -> number of columns
+NORM_TOL = 1e-3              # a quaternion whose norm is off 1 by more (relative) is a bad rotation
+ORTHO_TOL = 1e-3             # a matrix with max |R Rᵀ - I| above this is a bad rotation
+MIN_MARKERS = 3              # a rigid fit needs three (non-collinear) markers
+
+
+def canonical(rot: Rotation) -> np.ndarray:
+    """Rotations -> (n, 4) unit quaternions w, x, y, z with w >= 0."""
+    return rot.as_quat(canonical=True, scalar_first=True).reshape(-1, 4)
+
+
+def quaternion(R: np.ndarray) -> np.ndarray:
+    """One rotation matrix (3, 3) -> its unit quaternion (4,) w, x, y, z with w >= 0."""
+    return canonical(Rotation.from_matrix(R))[0]
+
+
+def quaternion_problems(q: np.ndarray) -> list:
+    """(n, 4) -> per row None, or why it is not a unit quaternion (norm off 1 by > NORM_TOL)."""
+    norm = np.linalg.norm(q, axis=1)
+    return [None if abs(n - 1.0) <= NORM_TOL else f"quaternion norm {n:.6g}, not 1 (tolerance {NORM_TOL:g})"
+            for n in norm]
+
+
+def matrix_problems(M: np.ndarray) -> list:
+    """(n, 3, 3) -> per row None, or why it is not a rotation (not orthonormal, or a reflection)."""
+    off = np.abs(M @ np.swapaxes(M, 1, 2) - np.eye(3)).max(axis=(1, 2))
+    det = np.linalg.det(M)
+    return [f"not orthonormal: max |R Rᵀ - I| = {o:.3g} > {ORTHO_TOL:g}" if o > ORTHO_TOL else
+            f"a reflection (det {d:.6g} < 0)" if d < 0 else None for o, d in zip(off, det)]
+
+
+def read(v: np.ndarray, spec: dict) -> tuple[list, Rotation | None]:
+    """Finite rotation columns (n, k) read as `spec` -> (per row None or why it is no rotation, the
+    rotations of the rows without a problem, None if there are none)."""
+    if spec["kind"] == "euler":
+        bad, make = [None] * len(v), lambda x: Rotation.from_euler(spec["sequence"], x,
+                                                                    degrees=spec["angle_unit"] == "deg")
+    elif spec["kind"] == "quaternion":
+        bad, make = quaternion_problems(v), lambda x: Rotation.from_quat(x, scalar_first=spec["scalar_first"])
+    else:
+        v = v.reshape(-1, 3, 3)
+        bad, make = matrix_problems(v), Rotation.from_matrix
+    good = np.array([b is None for b in bad], bool)
+    return bad, make(v[good]) if good.any() else None
+
+
+def rotations(values: np.ndarray, spec: dict) -> tuple[np.ndarray, list]:
+    """Rotation columns (n, k) read as `spec` (the ingest.orientation section) -> (quaternions (n, 4),
+    NaN where bad; per row None or why it is a bad rotation). Rows holding NaN give NaN, no problem
+    (their cells are already a row problem)."""
+    values = np.asarray(values, float).reshape(len(values), KINDS[spec["kind"]])
+    out, problems = np.full((len(values), 4), np.nan), [None] * len(values)
+    rows = np.flatnonzero(np.isfinite(values).all(axis=1))
+    bad, rot = read(values[rows], spec)
+    if rot is not None:
+        out[[r for r, b in zip(rows, bad) if b is None]] = canonical(rot)
+    for r, b in zip(rows, bad):
+        problems[r] = b
+    return out, problems
+
+
+# -------------------------------------------------------------------- rigid multi-marker targets
+
+@dataclass
+class PoseFit:
+    """One pose's fit to the target geometry: R, t (None: no fit), each marker's residual (file units)."""
+    R: np.ndarray | None
+    t: np.ndarray | None
+    residual: dict = field(default_factory=dict)     # name -> residual of the markers kept
+    removed: list = field(default_factory=list)      # [(name, residual when removed)], worst first
+    why: str | None = None                           # no fit: why
+
+
+def fit_pose(geometry: dict, points: dict, limit: float) -> PoseFit:
+    """Fit a pose's markers {name: (3,)} to the geometry {name: (3,)} (every name in it): P = R G + t.
+    While the worst marker's residual exceeds `limit` it is removed and the pose refitted."""
+    names, removed = list(points), []
+    while True:
+        if len(names) < MIN_MARKERS:
+            return PoseFit(None, None, {}, removed, f"{len(names)} usable marker(s), need {MIN_MARKERS}")
+        G = np.array([geometry[n] for n in names])
+        P = np.array([points[n] for n in names])
+        try:
+            R, t = kabsch(G, P)
+        except DegenerateFit:
+            return PoseFit(None, None, {}, removed, f"markers {', '.join(names)} are collinear in the target")
+        res = np.linalg.norm(G @ R.T + t - P, axis=1)
+        worst = int(np.argmax(res))
+        if res[worst] <= limit:
+            return PoseFit(R, t, dict(zip(names, res.tolist())), removed)
+        removed.append((names.pop(worst), float(res[worst])))
+
+
+def estimate_geometry(poses: list) -> dict:
+    """The target's geometry {name: (3,)} from poses [{name: (3,)}] (module docstring); ValueError when
+    no pose holds every marker."""
+    names = list(dict.fromkeys(n for p in poses for n in p))
+    first = next((p for p in poses if len(p) == len(names)), None)
+    if first is None:
+        raise ValueError(f"no pose holds all {len(names)} markers ({', '.join(names)})")
+    g0 = centred({n: first[n] for n in names})
+    if collinear(g0):
+        raise ValueError(f"the {len(names)} markers ({', '.join(names)}) lie on a line")
+    seen = {n: [] for n in names}
+    for p in poses:
+        common = [n for n in p if n in g0]
+        if len(common) < MIN_MARKERS:
+            continue
+        try:
+            R, t = kabsch(np.array([g0[n] for n in common]), np.array([p[n] for n in common]))
+        except DegenerateFit:
+            continue
+        for n in common:
+            seen[n].append(R.T @ (np.asarray(p[n]) - t))
+    return centred({n: np.mean(v, axis=0) for n, v in seen.items()})
+
+
+def centred(geometry: dict) -> dict:
+    """The geometry moved so that its markers' centroid is the origin."""
+    c = np.mean(list(geometry.values()), axis=0)
+    return {n: np.asarray(p, float) - c for n, p in geometry.items()}
+
+
+def collinear(geometry: dict) -> bool:
+    """True when the geometry's markers cannot fix a rotation (fewer than 3, or on a line)."""
+    G = np.array(list(geometry.values()), float)
+    if len(G) < MIN_MARKERS:
+        return True
+    s = np.linalg.svd(G - G.mean(0), compute_uv=False)
+    return bool(s[1] <= 1e-9 * max(s[0], 1e-12))

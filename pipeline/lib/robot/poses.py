@@ -1,0 +1,97 @@
+"""Which joint configurations an arm may be measured in: the acceptability rules the twin samples its
+campaigns by (twin.sample_poses) and the measurement planner (planning.py) chooses poses by.
+
+A pose q (deg) passes, on the nominal chain (kinematics.link_frames: frame origins o_0..o_6, o_6 the
+flange), every rule whose setting is not None (`rules`, the keys of RULES):
+
+    radius_mm      [lo, hi]  the flange's distance from the base axis (hypot of o_6 x, y) strictly between
+    height_mm      [lo, hi]  the flange's height above the base plane strictly between
+    elbow_up       true      the elbow (o_2) above the wrist (o_3) ...
+    elbow_min_mm   h         ... and above h
+    table_mm       h         every wrist frame (o_3..o_6) above h: clear of the table the base stands on
+    column_mm      r         every wrist frame farther than r from the base axis: clear of the base column
+    sin_elbow      s         |sin q3| > s: away from the elbow singularity (arm stretched or folded)
+    sin_wrist      s         |sin q5| > s: away from the wrist singularity (joints 4 and 6 aligned)
+and, when given:
+    limits_deg     (6, 2)    every joint within its limits (inclusive)
+    azimuth_deg    (lo, hi)  the flange's azimuth, atan2(y, -x) in degrees, strictly between (a region)
+    tracker_mm     (3,)      the marker's side: seen from the base axis, the flange's azimuth lies within
+                             `tracker_side_deg` of the tracker's (no rule when the tracker stands within
+                             `column_mm` of the axis, straight above or below the arm)
+"""
+import numpy as np
+import torch
+
+from pipeline.lib.robot.kinematics import DTYPE, link_frames
+
+# The twin's rules (a UR5 on a table, docs/method.md): every key a planner's settings may set.
+RULES = {"radius_mm": (300.0, 850.0), "height_mm": (0.0, 750.0), "elbow_up": True, "elbow_min_mm": 150.0,
+         "table_mm": 40.0, "column_mm": 180.0, "sin_elbow": 0.15, "sin_wrist": 0.2, "tracker_side_deg": 90.0}
+
+
+def origins(q_deg: np.ndarray, geometry: dict) -> np.ndarray:
+    """Frame origins o_0..o_6 (n, 7, 3) mm of the rigid chain `geometry` at joint angles q (n, 6) deg."""
+    with torch.no_grad():
+        F = link_frames(torch.as_tensor(np.radians(np.asarray(q_deg, float)), dtype=DTYPE), geometry).numpy()
+    return F[:, :, :3, 3]
+
+
+def azimuth(p: np.ndarray) -> np.ndarray:
+    """Azimuth (deg) of points (n, 3) about the base axis, measured from -x (the twin's front)."""
+    return np.degrees(np.arctan2(p[..., 1], -p[..., 0]))
+
+
+def checks(q_deg: np.ndarray, geometry: dict, rules: dict, limits_deg=None, azimuth_deg=None,
+           tracker_mm=None) -> dict:
+    """{rule: (n,) bool, True where the pose passes it} for every rule that applies (module docstring)."""
+    q = np.atleast_2d(np.asarray(q_deg, float))
+    o = origins(q, geometry)
+    p = o[:, 6]
+    r = np.hypot(p[:, 0], p[:, 1])
+    out = {}
+    if limits_deg is not None:
+        lim = np.asarray(limits_deg, float)
+        out["limits_deg"] = ((q >= lim[:, 0]) & (q <= lim[:, 1])).all(1)
+    if azimuth_deg is not None:
+        a = azimuth(p)
+        out["azimuth_deg"] = (a > azimuth_deg[0]) & (a < azimuth_deg[1])
+    if rules.get("radius_mm") is not None:
+        out["radius_mm"] = (r > rules["radius_mm"][0]) & (r < rules["radius_mm"][1])
+    if rules.get("height_mm") is not None:
+        out["height_mm"] = (p[:, 2] > rules["height_mm"][0]) & (p[:, 2] < rules["height_mm"][1])
+    if rules.get("elbow_up"):
+        out["elbow_up"] = o[:, 2, 2] > o[:, 3, 2]
+    if rules.get("elbow_min_mm") is not None:
+        out["elbow_min_mm"] = o[:, 2, 2] > rules["elbow_min_mm"]
+    if rules.get("table_mm") is not None:
+        out["table_mm"] = o[:, 3:, 2].min(1) > rules["table_mm"]
+    if rules.get("column_mm") is not None:
+        out["column_mm"] = np.hypot(o[:, 3:, 0], o[:, 3:, 1]).min(1) > rules["column_mm"]
+    if rules.get("sin_elbow") is not None:
+        out["sin_elbow"] = np.abs(np.sin(np.radians(q[:, 2]))) > rules["sin_elbow"]
+    if rules.get("sin_wrist") is not None:
+        out["sin_wrist"] = np.abs(np.sin(np.radians(q[:, 4]))) > rules["sin_wrist"]
+    if tracker_mm is not None and rules.get("tracker_side_deg") is not None:
+        t = np.asarray(tracker_mm, float)
+        if np.hypot(t[0], t[1]) > (rules.get("column_mm") or 0.0):
+            d = (azimuth(p) - azimuth(t) + 180.0) % 360.0 - 180.0
+            out["tracker_side_deg"] = np.abs(d) <= rules["tracker_side_deg"]
+    return out
+
+
+def acceptable(q_deg: np.ndarray, geometry: dict, rules: dict, limits_deg=None, azimuth_deg=None,
+               tracker_mm=None) -> np.ndarray:
+    """(n,) bool: the poses q (n, 6) deg that pass every rule that applies (`checks`)."""
+    q = np.atleast_2d(np.asarray(q_deg, float))
+    ok = np.ones(len(q), bool)
+    for v in checks(q, geometry, rules, limits_deg, azimuth_deg, tracker_mm).values():
+        ok &= v
+    return ok
+
+
+def rejected(q_deg: np.ndarray, geometry: dict, rules: dict, limits_deg=None, azimuth_deg=None,
+             tracker_mm=None) -> list[list[str]]:
+    """Per pose, the rules it fails (empty: acceptable): for messages."""
+    c = checks(q_deg, geometry, rules, limits_deg, azimuth_deg, tracker_mm)
+    n = len(np.atleast_2d(q_deg))
+    return [[k for k, v in c.items() if not v[i]] for i in range(n)]

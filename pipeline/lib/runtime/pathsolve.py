@@ -1,0 +1,231 @@
+"""A path compensated sample by sample, checked, and the URScript that drives it (docs/robot-cell.md,
+"Compensating a path"); for `python -m pipeline.commands.path`, the service's compensate_path and bench path.
+
+    solve_sample(model, q_deg, target, cfg, robot)    the one per-sample solve (with rot: a pose)
+    solve_path(model, targets, arc_mm, q_start, ...)  every sample from the previous sample's solution:
+                                                      continuity, no branch flips; it stops at the first
+                                                      sample not reached
+    refine(...)                                       halve each step whose joint-space middle leaves the
+                                                      path by more than a chordal tolerance
+    deviation(position, q_deg, segs)                  how far each joint-linear step's middle leaves the path
+    servo_times(arc_mm, speed)                        each step's servoj time, in whole 2 ms cycles
+    refusal(...)                                      the first sample that must stop the path, and why
+    urscript(table, ...)                              movej to the start, then servoj every 2 ms cycle,
+                                                      joint-linear from sample to sample
+
+The arm is driven joint-linearly between samples (servoj interpolates in joint space), so what lies
+between two samples is the model's joint-space chord: `deviation` measures it on the model.
+"""
+import numpy as np
+import pandas as pd
+import torch
+
+from pipeline.lib.project.columns import JCOMP_DEG, TARGET
+from pipeline.lib.runtime.compensation import solve
+from pipeline.lib.robot.kinematics import DTYPE
+from pipeline.lib.runtime.paths import at, distance
+from pipeline.lib.runtime.solvers import CHUNK, slices
+
+CYCLE_S = 0.002                 # the UR controller's cycle (500 Hz): servoj's t is a whole number of them
+REFINE_ROUNDS = 12              # chord mode: halvings at most
+MIN_STEP_MM = 1e-3              # chord mode: a step this short is not halved further
+SOLVED = ["arc_mm"] + TARGET + JCOMP_DEG + ["residual_mm", "iterations", "converged", "orientation_residual_arcsec"]
+PATH_COLUMNS = (["sample", "arc_mm", "t_s"] + TARGET + JCOMP_DEG
+                + ["residual_mm", "iterations", "converged", "in_workspace", "uncertainty_mm",
+                   "orientation_residual_arcsec"])
+
+
+def solve_sample(model, q_deg: np.ndarray, target: np.ndarray, cfg: dict, robot, rot=None) -> tuple:
+    """Joints (deg) that put the model's TCP on target (mm), solved from q_deg (the previous sample's
+    solution) by `compensate.solver` within the joint limits -> (q_deg (6,), residual_mm, iterations,
+    converged, orientation_residual_arcsec). rot (3, 3): the flange's orientation to reach too (a pose: six
+    equations; compensation.solve), else the orientation residual is NaN."""
+    s = solve(model, np.asarray(q_deg, float)[None], np.asarray(target, float)[None], cfg, robot, history=False,
+              flange_rot=None if rot is None else np.asarray(rot, float)[None])
+    arcsec = np.nan if s.orientation_arcsec is None else float(s.orientation_arcsec[0])
+    return s.q_deg[0], float(np.linalg.norm(s.pred[0] - target)), int(s.iterations[0]), bool(s.converged[0]), arcsec
+
+
+def solve_path(model, targets: np.ndarray, arc_mm: np.ndarray, q_start_deg, cfg: dict, robot,
+               rots: np.ndarray | None = None) -> pd.DataFrame:
+    """Each sample (targets (m, 3), arc_mm (m,), with rots (m, 3, 3) the flange's orientations too) solved
+    from the previous sample's solution, the first from q_start_deg; it stops after the first sample not
+    converged (the table then ends there)."""
+    rows, q = [], np.asarray(q_start_deg, float)
+    for i, (x, s) in enumerate(zip(targets, arc_mm)):
+        q, *solved = solve_sample(model, q, x, cfg, robot, None if rots is None else rots[i])
+        rows.append([s, *x, *q, *solved])
+        if not solved[2]:
+            break
+    return pd.DataFrame(rows, columns=SOLVED)
+
+
+def model_position(model):
+    """q_deg (k, 6) -> the model's TCP (k, 3) mm, solvers.CHUNK poses at a time."""
+    def position(q_deg):
+        q = torch.as_tensor(np.radians(np.asarray(q_deg, float)), dtype=DTYPE)
+        with torch.no_grad():
+            return torch.cat([model(q[s])[0] for s in slices(len(q), CHUNK)]).numpy()
+    return position
+
+
+def deviation(position, q_deg: np.ndarray, segs: list) -> np.ndarray:
+    """(m - 1,) mm: how far `position` puts the middle of each joint-linear step between samples q_deg
+    (m, 6) from the path. A branch flip between two samples is tens of millimetres there."""
+    q = np.asarray(q_deg, float)
+    if len(q) < 2:
+        return np.zeros(0)
+    return distance(position((q[:-1] + q[1:]) / 2), segs)
+
+
+def refine(model, table: pd.DataFrame, segs: list, chord_mm: float, cfg: dict, robot, rotations=None) -> pd.DataFrame:
+    """Chord mode: each step whose middle the model puts farther than chord_mm from the path gets a sample
+    at its arc middle, solved from the middle of its ends' joints (continuity); until none does, a step is
+    MIN_STEP_MM short, or REFINE_ROUNDS rounds (then `refusal` judges what is left). rotations: arc_mm (k,)
+    -> the flange's orientations there (k, 3, 3), for a path with orientation."""
+    position = model_position(model)
+    for _ in range(REFINE_ROUNDS):
+        q, arc = table[JCOMP_DEG].to_numpy(), table.arc_mm.to_numpy()
+        bad = np.flatnonzero((deviation(position, q, segs) > chord_mm) & (np.diff(arc) > MIN_STEP_MM))
+        if not len(bad):
+            break
+        mid = (arc[bad] + arc[bad + 1]) / 2
+        rows, rots = [], [None] * len(mid) if rotations is None else rotations(mid)
+        for k, s, x, rot in zip(bad, mid, at(segs, mid), rots):
+            qk, *solved = solve_sample(model, (q[k] + q[k + 1]) / 2, x, cfg, robot, rot)
+            rows.append([s, *x, *qk, *solved])
+        new = pd.DataFrame(rows, columns=SOLVED)
+        table = pd.concat([table, new]).sort_values("arc_mm", kind="stable").reset_index(drop=True)
+    return table
+
+
+def servo_times(arc_mm: np.ndarray, speed_mm_s: float) -> np.ndarray:
+    """(m - 1,) s: each step's servoj time at speed_mm_s, a whole number of controller cycles (at least one)."""
+    return np.maximum(1, np.round(np.diff(arc_mm) / speed_mm_s / CYCLE_S)) * CYCLE_S
+
+
+def finish(table: pd.DataFrame, workspace, speed_mm_s: float) -> pd.DataFrame:
+    """path.csv's table (PATH_COLUMNS): samples numbered from 1, each one's time along the path (s),
+    in_workspace and uncertainty_mm at its joints."""
+    table = table.copy()
+    table.insert(0, "sample", np.arange(1, len(table) + 1))
+    table.insert(2, "t_s", np.concatenate([[0.0], np.cumsum(servo_times(table.arc_mm.to_numpy(), speed_mm_s))]))
+    table["uncertainty_mm"], table["in_workspace"] = workspace(table[JCOMP_DEG].to_numpy())
+    table["converged"] = table.converged.astype(bool)
+    return table[PATH_COLUMNS]
+
+
+def joint_speeds(robot, setting) -> np.ndarray:
+    """The joint speed limits (6,) deg/s: path.joint_speed_deg_s (a number, or 6), else the robot's."""
+    if setting is not None:
+        return np.broadcast_to(np.asarray(setting, float), (6,)).copy()
+    v = np.degrees(np.asarray(robot.velocity_rad_s, float))
+    if not (v > 0).all():
+        raise ValueError("params.yaml path.joint_speed_deg_s: the robot's joint speed limits are unknown "
+                         "(a custom robot): set them")
+    return v
+
+
+def beyond_reach(targets: np.ndarray, arc_mm: np.ndarray, reach_mm: float) -> str | None:
+    """The first sample (numbered from 1) farther from the base than the arm reaches, said; else None."""
+    far = np.flatnonzero(np.linalg.norm(targets, axis=1) > reach_mm)
+    if not len(far):
+        return None
+    k = int(far[0])
+    return (f"sample {k + 1} (arc {arc_mm[k]:.1f} mm): target {np.linalg.norm(targets[k]):.1f} mm from the base, "
+            f"beyond the arm's reach of {reach_mm:.1f} mm")
+
+
+def refusal(table: pd.DataFrame, n_samples: int, limits_deg: np.ndarray, tol_mm: float, dev: np.ndarray,
+            max_deviation_mm: float, speed_mm_s: float, speeds_deg_s: np.ndarray, workspace=None) -> str | None:
+    """Why the path must stop, naming its first sample that must not be driven (numbered from 1), or None:
+    not reached (the table's last sample: solve_path stops there), beyond the joint limits, a joint step
+    faster than the joint's speed limit at speed_mm_s, or a joint-space step whose middle leaves the path by
+    more than max_deviation_mm (dev: `deviation`: a branch flip), and, with a workspace, outside the trained
+    workspace; the kinds found after the first are named with their first sample."""
+    found = []                                           # (sample index, kind, message)
+    arc, q = table.arc_mm.to_numpy(), table[JCOMP_DEG].to_numpy()
+    name = lambda k: f"sample {k + 1} (arc {arc[k]:.1f} mm)"
+    m = len(table)                                       # the samples reached
+    if not table.converged.iloc[-1]:
+        m -= 1
+        o = table.orientation_residual_arcsec.iloc[m] if "orientation_residual_arcsec" in table else np.nan
+        off = "" if np.isnan(o) else f"; the flange's orientation {o:.2f} arcsec off"
+        found.append((m, "not reached", f"{name(m)}: not reached (residual {table.residual_mm.iloc[m]:.4f} mm, "
+                                        f"tolerance {tol_mm:g} mm{off}), solved from sample {m}'s joints; the "
+                                        f"{n_samples - m - 1} samples after it were not solved"))
+    lo, hi = np.asarray(limits_deg, float).T
+    beyond = np.argwhere((q[:m] < lo) | (q[:m] > hi))
+    if len(beyond):
+        k, j = map(int, beyond[0])
+        found.append((k, "beyond the joint limits",
+                      f"{name(k)}: joint {j + 1} at {q[k, j]:.1f}°, beyond its limits [{lo[j]:g}, {hi[j]:g}]°"))
+    dt = servo_times(arc[:m], speed_mm_s)
+    rate = np.abs(np.diff(q[:m], axis=0)) / dt[:, None]                  # deg/s
+    fast = np.argwhere(rate > speeds_deg_s)
+    if len(fast):
+        k, j = map(int, fast[0])
+        found.append((k + 1, "a joint too fast",
+                      f"{name(k + 1)}: joint {j + 1} turns {abs(q[k + 1, j] - q[k, j]):.2f}° from sample {k + 1} in "
+                      f"{dt[k]:.3f} s ({rate[k, j]:.0f}°/s, beyond its {speeds_deg_s[j]:.0f}°/s at "
+                      f"{speed_mm_s:g} mm/s): a branch flip?"))
+    off = np.flatnonzero(dev[:max(m - 1, 0)] > max_deviation_mm)
+    if len(off):
+        k = int(off[0])
+        found.append((k + 1, "leaving the path",
+                      f"samples {k + 1}-{k + 2} (arc {arc[k]:.1f}-{arc[k + 1]:.1f} mm): the joint-space step between "
+                      f"them leaves the path by {dev[k]:.2f} mm at its middle (path.max_deviation_mm "
+                      f"{max_deviation_mm:g}): a branch flip?"))
+    outside = np.flatnonzero(~table.in_workspace.to_numpy(bool)[:m]) if workspace is not None else []
+    if len(outside):
+        k = int(outside[0])
+        radii = float(workspace.distance(q[k])[0] / workspace.radius)
+        found.append((k, "outside the trained workspace",
+                      f"{name(k)}: outside the trained workspace ({radii:.2f} workspace radii from the nearest "
+                      f"training pose; {len(outside)} of {m} samples are), where the correction has faded to the "
+                      "calibration: rerun with --allow-outside-workspace to write it with those samples flagged"))
+    if not found:
+        return None
+    found.sort(key=lambda f: f[0])
+    return found[0][2] + "".join(f"; then {kind} at sample {k + 1}" for k, kind, _ in found[1:])
+
+
+def fmt(values) -> str:
+    """Joint angles (deg) as URScript's list of radians: only digits, signs and points."""
+    return "[" + ", ".join(f"{v:.9f}" for v in np.radians(np.asarray(values, float))) + "]"
+
+
+def urscript(table: pd.DataFrame, speed_mm_s: float, lookahead_s: float, gain: int, acc: float, vel: float) -> str:
+    """The compensated path: movej (acc rad/s², vel rad/s) to its first sample, then each step driven by
+    servoj every controller cycle (2 ms), the joints interpolated linearly from sample to sample over the
+    step's time at speed_mm_s (`servo_times`); the last sample held for the lookahead, then stopj. Only
+    numbers formatted here and this fixed text reach it."""
+    q, cycles = table[JCOMP_DEG].to_numpy(), np.round(servo_times(table.arc_mm.to_numpy(), speed_mm_s) / CYCLE_S)
+    hold = int(np.ceil(lookahead_s / CYCLE_S - 1e-9))
+    outside = int((~table.in_workspace.to_numpy(bool)).sum())
+    mix = ", ".join(f"a[{j}] + s * (b[{j}] - a[{j}])" for j in range(6))
+    lines = [f"# compensated path by `python -m pipeline.commands.path`: {len(table)} samples over "
+             f"{float(table.arc_mm.iloc[-1]):.3f} mm at {float(speed_mm_s):.3f} mm/s, "
+             f"{float(table.t_s.iloc[-1]):.3f} s; joints in rad",
+             f"# residual max {float(table.residual_mm.max()):.6f} mm; {outside} samples outside the trained workspace"]
+    arcsec = table.orientation_residual_arcsec.to_numpy(float)
+    if not np.isnan(arcsec).all():
+        lines.append(f"# the flange's orientation held along the path: residual max {float(np.nanmax(arcsec)):.3f} arcsec")
+    lines += ["def compensated_path():",
+             "  def servo_step(a, b, n):",
+             "    # from joints a to b in n controller cycles, joint-linear: one servoj a cycle",
+             "    i = 1.0",
+             "    while i <= n:",
+             "      s = i / n",
+             f"      servoj([{mix}], t={CYCLE_S:.3f}, lookahead_time={float(lookahead_s):.3f}, gain={int(gain)})",
+             "      i = i + 1.0",
+             "    end",
+             "  end",
+             f"  movej({fmt(q[0])}, a={float(acc):.6f}, v={float(vel):.6f})"]
+    for k in range(1, len(q)):
+        if not table.in_workspace.iloc[k]:
+            lines.append(f"  # sample {k + 1}: outside the trained workspace (uncertainty "
+                         f"{float(table.uncertainty_mm.iloc[k]):.3f} mm)")
+        lines.append(f"  servo_step({fmt(q[k - 1])}, {fmt(q[k])}, {int(cycles[k - 1])})")
+    lines += [f"  servo_step({fmt(q[-1])}, {fmt(q[-1])}, {hold})", f"  stopj({float(acc):.6f})", "end", ""]
+    return "\n".join(lines)

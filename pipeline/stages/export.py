@@ -1,0 +1,245 @@
+"""Stage export: the calibration into the robot cell (docs/data-format.md, "Exports for the robot cell").
+
+    models/calibrated.urdf       the calibrated rigid chain (lib/robot/urdf.py), base_link .. flange, tool0
+    models/ur_calibration.yaml   UR robots: the UR ROS description's kinematics calibration
+    models/model.onnx            the trained model, q_rad -> p_mm (lib/learning/onnx_model.py)
+    models/controller.onnx       the controller path (lib/runtime/realtime.py: two chord steps) as one graph,
+                                 q0_rad, target_mm, joint limits -> q1, q2, |r0|, |r1| (lib/learning/onnx_model.py)
+    models/controller_physics.onnx   the same on the model's physics branch alone (model.PhysicsOnly:
+                                 the calibration with its error maps, the network left out), for a
+                                 controller whose cycle cannot hold the network
+    models/controller_tcp.onnx, models/controller_physics_tcp.onnx   the same two with one more input,
+                                 tcp_mm (3,): the targets are that TCP's (flange frame), not the marker's
+    models/controller_pose.onnx  the whole model's at a TCP for a pose: target_rot (the flange's orientation)
+                                 and its weight too, six equations a step
+
+and reports/export.json, what each file was checked against, by libraries the
+pipeline does not use for its own kinematics:
+    urdf   Pinocchio loads the URDF; its tool0 vs the pipeline's FK of the exported chain, every
+           pose of the campaign
+    yaml   the chain the UR description builds from the YAML (joint i's origin = entry i, axis z,
+           tool0 on joint 6's frame), built in Pinocchio, vs the exported chain up to joint 6;
+           the flange transform after joint 6 the format cannot hold is reported
+
+A URDF has no joint compliance and no per-joint error maps. When the model's physics branch (the
+calibration, with the parts stage's maps when they hold) has them, its rigid part alone is
+millimetres off (the sag's mean is absorbed in the joint offsets), so the exported chain is the
+rigid one that best reproduces that physics at the commanded angles (`rigid_equivalent`, least
+squares over the campaign's poses); how far it stays from it, and what it leaves out, is
+`rigid_fit` in export.json. The ONNX model carries every part.
+    onnx   onnxruntime vs PyTorch on every test pose: on the same float32 angles, and on the
+           float64 angles PyTorch is fed otherwise (the float32 input's rounding)
+    controller  onnxruntime's answers (OnnxRealtime) vs the PyTorch controller path's (Realtime) on
+           every test pose towards its theory position, one call each and all in one batch: the largest
+           difference in angles (rad) and residual (mm), and answers whose flags differ
+    controller_physics  the same for controller_physics.onnx against Realtime on PhysicsOnly(model)
+    controller_tcp, controller_physics_tcp  the same at every `robot.tcp` point (each test pose towards
+           that TCP's nominal position), against Realtime on tcp.AtTcp of the model (of PhysicsOnly(model));
+           without robot.tcp, at a point 150 mm along the flange's x
+    controller_pose  the same two steps for each test pose's nominal pose at each such TCP (its position and
+           the flange's nominal orientation, weighted as compensate's lm weighs them), onnxruntime against
+           PyTorch's realtime.two_steps: the largest difference in angles (rad) and |r| (mm)
+"""
+import numpy as np
+import pinocchio as pin
+import torch
+import yaml
+from scipy.spatial.transform import Rotation
+
+from pipeline.lib.project.artifacts import (CALIBRATED_GEOMETRY, CONTROLLER_ONNX, CONTROLLER_PHYSICS_ONNX,
+                                            CONTROLLER_PHYSICS_TCP_ONNX, CONTROLLER_POSE_ONNX,
+                                            CONTROLLER_TCP_ONNX, EXPORT_JSON, FRAME_JSON, MODEL_ONNX,
+                                            MODEL_WEIGHTS, PARTS_JSON, UR_YAML, URDF_FILE, load_points)
+from pipeline.lib.project.cli import one_line
+from pipeline.lib.project.columns import JOINTS_DEG, THEORY
+from pipeline.lib.project.config import for_stage, load_params, logger, read_json, write_json
+from pipeline.lib.robot.geometry import Calibration, theory_geometry, with_parts
+from pipeline.lib.robot.identify import identify
+from pipeline.lib.runtime.compensation import nominal_flange
+from pipeline.lib.runtime.realtime import DAMPING, Realtime, two_steps
+from pipeline.lib.runtime.solvers import pose_weight
+from pipeline.lib.robot.kinematics import DTYPE, RIGID_KEYS, TOOL_ROT, fk, fk_frames, fk_numpy, fk_pose
+from pipeline.lib.learning.model import PhysicsOnly
+from pipeline.lib.learning.onnx_model import (OnnxModel, OnnxRealtime, deviation, export_controller,
+                                              export_onnx)
+from pipeline.lib.robot.robots import TABLES, load_robot
+from pipeline.lib.robot.tcp import AtTcp, probe_offsets
+from pipeline.lib.learning.checkpoint import load_model
+from pipeline.lib.robot.urdf import (UR_YAML_NAMES, base_transform, flange_residual, joint_origins, to_urdf,
+                                     ur_kinematics)
+
+log = logger(__name__)
+PARAMS = ("robot", "calibrate", "compensate")
+
+
+def urdf_poses(urdf_text: str, q_rad: np.ndarray, frame_name: str = "tool0") -> tuple[np.ndarray, np.ndarray]:
+    """A frame's positions (n, 3) mm and rotations (n, 3, 3) by Pinocchio from URDF text at joint angles q (n, 6) rad."""
+    m = pin.buildModelFromXML(urdf_text)
+    d, frame = m.createData(), m.getFrameId(frame_name)
+    p, R = [], []
+    for q in q_rad:
+        pin.framesForwardKinematics(m, d, q)
+        p.append(d.oMf[frame].translation * 1000.0)
+        R.append(d.oMf[frame].rotation.copy())
+    return np.array(p), np.array(R)
+
+
+def urdf_positions(urdf_text: str, q_rad: np.ndarray) -> np.ndarray:
+    """tool0 positions (n, 3) mm by Pinocchio from URDF text at joint angles q (n, 6) rad."""
+    return urdf_poses(urdf_text, q_rad)[0]
+
+
+def ur_yaml_poses(kinematics: dict, q_rad: np.ndarray) -> np.ndarray:
+    """Joint 6's frame (n, 4, 4), mm, by Pinocchio from the UR kinematics YAML: joint i's origin is
+    entry i (x y z m, roll pitch yaw rad), revolute about its z, as the UR description builds it."""
+    m, parent = pin.Model(), 0
+    for name in UR_YAML_NAMES:                                               # by name, as a YAML reader would
+        e = kinematics["kinematics"][name]
+        placement = pin.SE3(pin.rpy.rpyToMatrix(e["roll"], e["pitch"], e["yaw"]), np.array([e["x"], e["y"], e["z"]]))
+        parent = m.addJoint(parent, pin.JointModelRZ(), placement, name)
+    d, out = m.createData(), []
+    for q in q_rad:
+        pin.forwardKinematics(m, d, q)
+        T = d.oMi[parent].homogeneous.copy()
+        T[:3, 3] *= 1000.0
+        out.append(T)
+    return np.array(out)
+
+
+def rigid_equivalent(g: dict, q: torch.Tensor, cfg: dict) -> tuple[dict, dict]:
+    """The rigid chain (no compliance, no error maps) closest to geometry g's positions at poses q: g
+    itself when it is rigid, else identified (calibrate's groups but compliance) on g's own positions.
+    Returns (geometry, {"mean_mm", "max_mm"} of its distance to g's positions, "left_out": what g has
+    that the chain cannot hold})."""
+    with torch.no_grad():
+        p = fk(q, g).numpy()
+    left_out = (["joint compliance under gravity"] if g["compliance"].any() else []) + \
+        [name for key, name in (("amap_coef", "per-joint angle error maps"), ("lmap_coef", "per-joint load error maps"))
+         if key in g]
+    rigid = {k: v for k, v in g.items() if k in RIGID_KEYS} | {"compliance": torch.zeros(6, dtype=DTYPE)}
+    if left_out:                                  # g's orientations too, where it has a probe rotation
+        cfg = {**cfg, "params": [k for k in cfg["params"] if k != "compliance"], "loss": "linear"}
+        with torch.no_grad():
+            R = fk_pose(q, g)[1].numpy() if TOOL_ROT in g else None
+        rigid = identify(q, p, rigid, cfg, R_meas=R)[0]
+    with torch.no_grad():
+        e = np.linalg.norm(fk(q, rigid).numpy() - p, axis=1)
+    return rigid, {"mean_mm": float(e.mean()), "max_mm": float(e.max()), "left_out": left_out}
+
+
+def run(params: dict) -> dict:
+    p = for_stage(params, PARAMS)
+    robot = load_robot(p["robot"])
+    pts = load_points()
+    q = torch.as_tensor(np.radians(pts[JOINTS_DEG].to_numpy()), dtype=DTYPE)
+    calibrated = with_parts(Calibration.from_dict(read_json(CALIBRATED_GEOMETRY)).geometry, read_json(PARTS_JSON))
+    g, fit = rigid_equivalent(calibrated, q, p["calibrate"])      # the model's physics branch, as a rigid chain
+    with torch.no_grad():
+        p_rigid, flange6 = fk(q, g).numpy(), fk_frames(q, g)[-1].numpy()      # flange6 (n, 4, 4) before the base
+    summary = {"n_poses": len(pts), "rigid_fit": fit}
+    log.info("the calibrated model as a rigid chain: %.4f mm mean, %.4f mm max from it on %d poses",
+             fit["mean_mm"], fit["max_mm"], len(pts))
+
+    text = to_urdf(g, robot, tcp=p["robot"]["tcp"])
+    URDF_FILE.write_text(text)
+    p_urdf, R_urdf = urdf_poses(text, q.numpy())
+    dev = np.linalg.norm(p_urdf - p_rigid, axis=1)
+    summary["urdf"] = {"file": str(URDF_FILE), "checked_with": f"pinocchio {pin.__version__}",
+                       "max_deviation_mm": float(dev.max())}
+    if TOOL_ROT in g:                               # tool0 is the probe's frame: its orientation checked too
+        with torch.no_grad():
+            R_rigid = fk_pose(q, g)[1].numpy()
+        summary["urdf"]["max_rotation_deviation_arcsec"] = size(
+            Rotation.from_matrix(np.einsum("nji,njk->nik", R_urdf, R_rigid)).magnitude().max() * 206264.806)
+    log.info("%s: Pinocchio's tool0 vs the exported chain's FK on %d poses: max %.2e mm", URDF_FILE, len(pts),
+             dev.max())
+
+    if robot.name in TABLES:
+        kin = ur_kinematics(g, p["robot"]["tcp"])
+        UR_YAML.write_text(yaml.safe_dump(kin, sort_keys=False))
+        truth = base_transform(g) @ flange6 @ np.linalg.inv(joint_origins(g)[1])   # joint 6's frame
+        poses = ur_yaml_poses(kin, q.numpy())
+        dev = np.linalg.norm(poses[:, :3, 3] - truth[:, :3, 3], axis=1)
+        summary["ur_yaml"] = {"file": str(UR_YAML), "checked_with": f"pinocchio {pin.__version__}",
+                              "max_deviation_mm": float(dev.max()),
+                              "not_held_after_joint_6": flange_residual(g)}
+        log.info("%s: joint 6's frame from the YAML vs the exported chain: max %.2e mm; the flange "
+                 "transform after joint 6 it cannot hold: %s", UR_YAML, dev.max(),
+                 summary["ur_yaml"]["not_held_after_joint_6"])
+
+    model = load_model(MODEL_WEIGHTS)
+    export_onnx(model, MODEL_ONNX)
+    test = (pts["split"] == "test").to_numpy()
+    q32 = q[test].float().clone()
+    onnx_p = OnnxModel(MODEL_ONNX)(q32.numpy())
+    with torch.no_grad():
+        same, f64 = model(q32.double())[0].numpy(), model(q[test])[0].numpy()
+        R_same = fk_pose(q32.double(), model.physics.geometry())[1].numpy()
+    R_onnx = OnnxModel(MODEL_ONNX).pose(q32.numpy())[1]
+    summary["onnx"] = {"file": str(MODEL_ONNX), "checked_with": "onnxruntime", "n_test_poses": int(test.sum()),
+                       "max_deviation_mm": size(np.abs(onnx_p - same).max()),
+                       "max_deviation_from_float64_angles_mm": size(np.abs(onnx_p - f64).max()),
+                       "max_rotation_deviation_arcsec": size(Rotation.from_matrix(np.einsum(
+                           "nji,njk->nik", R_onnx, R_same)).magnitude().max() * 206264.806)}
+    log.info("%s: onnxruntime vs PyTorch on %d test poses: max %.2e mm on the same float32 angles, %.2e mm "
+             "from the float64 angles", MODEL_ONNX, test.sum(), summary["onnx"]["max_deviation_mm"],
+             summary["onnx"]["max_deviation_from_float64_angles_mm"])
+
+    limits = np.radians(robot.limits_deg)
+    for key, path, m in (("controller", CONTROLLER_ONNX, model),
+                         ("controller_physics", CONTROLLER_PHYSICS_ONNX, PhysicsOnly(model))):
+        export_controller(m, path)
+        dev = deviation(Realtime(m, limits), OnnxRealtime(path, limits), q[test].numpy(),
+                        pts.loc[test, THEORY].to_numpy())
+        dev.update(max_q_rad=size(dev["max_q_rad"]), max_residual_mm=size(dev["max_residual_mm"]))
+        summary[key] = {"file": str(path), "checked_with": "onnxruntime", **dev}
+        log.info("%s: onnxruntime's answers vs the PyTorch controller path's on %d test poses (alone and in a "
+                 "batch): max %.1e rad, residual %.1e mm; flags differ in %d", path, test.sum(),
+                 dev["max_q_rad"], dev["max_residual_mm"], dev["flags_differ"])
+    tcps = {n: c["xyz_mm"] for n, c in (p["robot"]["tcp"] or {"x150": {"xyz_mm": [150.0, 0.0, 0.0]}}).items()}
+    for key, path, m in (("controller_tcp", CONTROLLER_TCP_ONNX, model),
+                         ("controller_physics_tcp", CONTROLLER_PHYSICS_TCP_ONNX, PhysicsOnly(model))):
+        export_controller(m, path, at_tcp=True)
+        summary[key] = {"file": str(path), "checked_with": "onnxruntime"}
+        for name, xyz in tcps.items():
+            o = probe_offsets({name: {"xyz_mm": xyz}}, m.physics.geometry())[name]
+            target = fk_numpy(pts.loc[test, JOINTS_DEG].to_numpy(), robot, theory_geometry(robot, xyz))
+            dev = deviation(Realtime(AtTcp(m, o), limits), OnnxRealtime(path, limits, tcp_mm=xyz), q[test].numpy(),
+                            target)
+            summary[key][name] = {**dev, "max_q_rad": size(dev["max_q_rad"]),
+                                  "max_residual_mm": size(dev["max_residual_mm"])}
+            log.info("%s at TCP %s: onnxruntime vs PyTorch (AtTcp) on %d test poses: max %.1e rad, residual "
+                     "%.1e mm; flags differ in %d", path, name, test.sum(), dev["max_q_rad"], dev["max_residual_mm"],
+                     dev["flags_differ"])
+    export_controller(model, CONTROLLER_POSE_ONNX, pose=True)
+    w = pose_weight(p["compensate"])
+    nominal = theory_geometry(robot, read_json(FRAME_JSON)["tool_mm"])
+    rot = nominal_flange(pts.loc[test, JOINTS_DEG].to_numpy(), nominal)
+    summary["controller_pose"] = {"file": str(CONTROLLER_POSE_ONNX), "checked_with": "onnxruntime", "weight_mm_per_rad": w}
+    for name, xyz in tcps.items():
+        target = fk_numpy(pts.loc[test, JOINTS_DEG].to_numpy(), robot, theory_geometry(robot, xyz))
+        got = OnnxRealtime(CONTROLLER_POSE_ONNX, limits, tcp_mm=xyz, weight=w).solve(q[test].numpy(), target, rot=rot)
+        lo, hi = (torch.as_tensor(limits[:, i], dtype=DTYPE) for i in (0, 1))
+        with torch.no_grad():
+            want = [t.numpy() for t in two_steps(model.eval(), q[test], torch.as_tensor(target), lo, hi, DAMPING,
+                                                 torch.as_tensor(xyz, dtype=DTYPE), torch.as_tensor(rot), w)]
+        summary["controller_pose"][name] = {
+            "n_poses": int(test.sum()), "max_q_rad": size(max(np.abs(a - b).max() for a, b in zip(got[:2], want[:2]))),
+            "max_residual_mm": size(max(np.abs(a - b).max() for a, b in zip(got[2:], want[2:]))),
+            "verified_share": float((got[3] < p["compensate"]["tol_mm"]).mean())}
+        log.info("%s at TCP %s: onnxruntime vs PyTorch on %d test poses' nominal poses: max %.1e rad, |r| %.1e mm; "
+                 "%.0f%% verified in one step", CONTROLLER_POSE_ONNX, name, test.sum(),
+                 summary["controller_pose"][name]["max_q_rad"], summary["controller_pose"][name]["max_residual_mm"],
+                 100 * summary["controller_pose"][name]["verified_share"])
+    write_json(EXPORT_JSON, summary)
+    return summary
+
+
+def size(x) -> float:
+    """A deviation onnxruntime measured, to 2 significant digits: its last bits follow the kernels
+    onnxruntime picks for the CPU it finds, and export.json is a DVC output (docs/decisions.md)."""
+    return float(f"{float(x):.2g}")
+
+
+if __name__ == "__main__":
+    one_line("pipeline.stages.export", lambda argv: run(load_params()))

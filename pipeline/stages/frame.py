@@ -1,0 +1,88 @@
+"""Stage frame: fit the base-to-world (tracker) frame, P_world = R Q_base + t (eqs. 20-26).
+
+Robust Kabsch on the nominal theory points (lib/robot/frames.py), one frame per
+tracker station (the `station` column; campaigns.station / campaigns.more),
+optionally refined jointly with the tool offset (`frame.estimate_tool`): one
+shared by every station, or one per station (`frame.tool_per_station`).
+Writes reports/frame.json (docs/data-format.md): R, t, rms_mm, n_used of the first
+station (the base frame the later stages work in), outliers of every station,
+tool_mm (the first station's tool offset: the one the model predicts), fit
+diagnostics, and under "stations" every station's frame, tool and fit. Where the campaign
+measures orientation: tool_rot, the probe's rotation in the flange (lib/robot/frames.py probe_rotation,
+per station), and the scatter of the measured orientations about it.
+"""
+import numpy as np
+import pandas as pd
+
+from pipeline.lib.project.artifacts import FRAME_JSON, INGEST_TABLE
+from pipeline.lib.project.cli import one_line
+from pipeline.lib.project.columns import CAMPAIGN, JOINTS_DEG, MEAS, STATION
+from pipeline.lib.project.config import for_stage, load_params, logger, write_json
+from pipeline.lib.robot.frames import fit_frames, flange_poses, measured_rotations, probe_rotation
+from pipeline.lib.robot.kinematics import nominal_geometry
+from pipeline.lib.robot.robots import load_robot
+
+log = logger(__name__)
+PARAMS = ("robot", "frame")
+
+
+def fit_stats(r: np.ndarray, inl: np.ndarray) -> dict:
+    return {"rms_mm": float(np.sqrt(np.mean(r[inl] ** 2))), "n_used": int(inl.sum()),
+            "mean_mm": float(r[inl].mean()), "max_mm": float(r[inl].max())}
+
+
+def orientation_fit(Rf: np.ndarray, R_world: np.ndarray, R: np.ndarray, k: float) -> dict:
+    """The probe's rotation in the flange for one station's poses (flange rotations Rf, measured
+    orientations R_world in the tracker frame, the station's frame rotation R), with its scatter."""
+    R_tool, rxyz, inl, dev = probe_rotation(Rf, np.einsum("ji,njk->nik", R, R_world), k)
+    return {"tool_rot": rxyz, "tool_R": R_tool, "orientation_n_used": int(inl.sum()),
+            "orientation_scatter_arcsec": {"mean": float(dev[inl].mean()), "median": float(np.median(dev)),
+                                           "max": float(dev.max())}}
+
+
+def run(params: dict) -> dict:
+    p = for_stage(params, PARAMS)
+    robot = load_robot(p["robot"])
+    df = pd.read_parquet(INGEST_TABLE)
+    fit = fit_frames(df[JOINTS_DEG].to_numpy(), df[MEAS].to_numpy(), df[STATION].to_numpy(), robot, p["frame"])
+    inl, r = fit["inliers"], fit["residual_mm"]
+    outliers = df.loc[~inl, "point_id"].tolist()
+    R_world = measured_rotations(df)
+    Rf = None if R_world is None else flange_poses(df[JOINTS_DEG].to_numpy(), nominal_geometry(robot))[0]
+    stations = {}
+    for s, f in fit["stations"].items():
+        m = f["points"]
+        stations[s] = {"R": f["R"], "t": f["t"], "tool_mm": f["tool_mm"], **fit_stats(r[m], inl[m]), "n": int(m.sum()),
+                       "campaigns": sorted(df.loc[m, CAMPAIGN].unique()),
+                       "outliers": df.loc[m & ~inl, "point_id"].tolist()}
+        if R_world is not None:
+            k = m & inl
+            stations[s].update(orientation_fit(Rf[k], R_world[k], np.asarray(f["R"]), p["frame"]["outlier_k"]))
+    first = next(iter(stations.values()))
+    summary = {
+        "R": first["R"], "t": first["t"],
+        **{k: first[k] for k in ("rms_mm", "n_used")},
+        "outliers": outliers,
+        "outlier_residual_mm": {p: round(float(v), 4) for p, v in zip(outliers, r[~inl])},
+        **{k: first[k] for k in ("mean_mm", "max_mm")},
+        "tool_mm": fit["tool_mm"], "method": fit["method"], "condition": fit["condition"],
+        "det_R": float(np.linalg.det(first["R"])),
+        **({"tool_rot": first["tool_rot"]} if R_world is not None else {}),
+        "stations": stations,
+    }
+    write_json(FRAME_JSON, summary)
+    for s, f in stations.items():
+        log.info("station %s (%s): fitted base frame (%s) on %d of %d points: rms %.4f mm, mean %.4f mm; "
+                 "%d outliers rejected %s", s, ", ".join(f["campaigns"]), fit["method"], f["n_used"], f["n"],
+                 f["rms_mm"], f["mean_mm"], len(f["outliers"]), f["outliers"])
+    for s, f in stations.items():
+        log.info("tool of station %s: %s mm", s, np.round(f["tool_mm"], 3).tolist())
+        if "tool_rot" in f:
+            log.info("probe rotation in the flange, station %s: %s deg (xyz); orientation scatter about it "
+                     "%.0f arcsec mean on %d poses", s, np.round(np.degrees(f["tool_rot"]), 4).tolist(),
+                     f["orientation_scatter_arcsec"]["mean"], f["orientation_n_used"])
+    return summary
+
+
+if __name__ == "__main__":
+    one_line("pipeline.stages.frame", lambda argv: run(load_params()))

@@ -1,0 +1,112 @@
+"""Stage ingest: the tracker/controller exports -> data/interim/ingest.parquet (docs/data-format.md).
+
+    python -m pipeline.stages.ingest                  dvc stage ingest: the ingest section's campaign,
+                                               joined with every campaigns.more campaign
+    python -m pipeline.stages.ingest campaign NAME    dvc stage ingest_campaign@NAME (foreach campaigns.more)
+
+Reads `ingest.joints` and `ingest.tracker` (one table when both name the same
+file); pairing, units, checks and the dropped-row list are lib/reading/readers.py's.
+A `more` campaign is read the same way with its own overrides (lib/reading/campaigns.py)
+into data/interim/campaigns/NAME.parquet and reports/campaigns/NAME.json.
+Writes the table (with each point's campaign and station) and reports/ingest.json:
+every dropped row, of every campaign, with its reason. Where a campaign measures the probe's
+orientation (meas_qw..meas_qz), those columns follow meas_z, NaN for a campaign that does not.
+"""
+import argparse
+from collections import Counter
+
+import pandas as pd
+
+from pipeline.lib.project.artifacts import CAMPAIGNS_DIR, CAMPAIGNS_REPORTS, INGEST_JSON, INGEST_TABLE
+from pipeline.lib.reading.campaigns import (campaign_entry, campaign_ingest, campaign_stations, file_sha256,
+                                            point_id)
+from pipeline.lib.project.cli import one_line
+from pipeline.lib.project.columns import CAMPAIGN, MEAS, MEAS_Q, STATION
+from pipeline.lib.project.config import for_stage, load_params, logger, read_json, write_json
+from pipeline.lib.reading.readers import ingest
+from pipeline.lib.robot.robots import load_robot
+
+log = logger(__name__)
+PARAMS = ("robot", "ingest", "campaigns")
+
+
+def labelled(df: pd.DataFrame, campaign: str, station: str) -> pd.DataFrame:
+    """df with its campaign and station columns (last)."""
+    return df.assign(**{CAMPAIGN: campaign, STATION: station})
+
+
+def joined(parts: list) -> pd.DataFrame:
+    """The campaigns' tables as one; meas_q* (where any campaign has them) right after meas_z."""
+    out = pd.concat(parts, ignore_index=True)
+    if MEAS_Q[0] not in out.columns:
+        return out
+    rest = [c for c in out.columns if c not in MEAS_Q]
+    k = rest.index(MEAS[-1]) + 1
+    return out[rest[:k] + MEAS_Q + rest[k:]]
+
+
+def run_campaign(params: dict, name: str) -> dict:
+    """Ingest one campaigns.more campaign; ids become NAME:id."""
+    p = for_stage(params, PARAMS)
+    station = campaign_entry(p["campaigns"], name)["station"]
+    df, summary = ingest(campaign_ingest(p["ingest"], p["campaigns"], name), load_robot(p["robot"]))
+    df["point_id"] = [point_id(name, p) for p in df["point_id"]]
+    CAMPAIGNS_DIR.mkdir(parents=True, exist_ok=True)
+    labelled(df, name, station).to_parquet(CAMPAIGNS_DIR / f"{name}.parquet", index=False)
+    write_json(CAMPAIGNS_REPORTS / f"{name}.json", {"campaign": name, "station": station, **summary})
+    log.info("campaign %s (station %s): %d points", name, station, len(df))
+    return summary
+
+
+def run(params: dict) -> dict:
+    p = for_stage(params, PARAMS)
+    stations = campaign_stations(p["campaigns"])
+    first, *more = stations
+    df, summary = ingest(p["ingest"], load_robot(p["robot"]))
+    for info in summary["files"].values():             # the campaign's identity (the twin's drive check)
+        info["sha256"] = file_sha256(info["path"])
+    parts = [labelled(df, first, stations[first])]
+    summary["campaigns"] = {first: {"station": stations[first], "n_kept": len(df),
+                                    "n_dropped": len(summary["dropped"])}}
+    for name in more:
+        path = CAMPAIGNS_DIR / f"{name}.parquet"
+        if not path.exists():
+            raise FileNotFoundError(f"{path}: campaign {name!r} (params.yaml campaigns.more) is not ingested; "
+                                    f"run dvc repro, or python -m pipeline.stages.ingest campaign {name}")
+        part, rep = pd.read_parquet(path), read_json(CAMPAIGNS_REPORTS / f"{name}.json")
+        if (part[STATION] != stations[name]).any():
+            raise ValueError(f"{path}: ingested for station {part[STATION].iloc[0]!r}, params.yaml "
+                             f"campaigns.more.{name}.station says {stations[name]!r}; re-run its ingest")
+        parts.append(part)
+        summary["dropped"] += [{**d, "campaign": name} for d in rep["dropped"]]
+        summary["campaigns"][name] = {"station": stations[name], "n_kept": len(part),
+                                      "n_dropped": len(rep["dropped"]), "files": rep["files"]}
+    out = joined(parts)
+    if more:
+        summary["n_kept"] = len(out)
+        summary["dropped_counts"] = dict(Counter(d["reason"] for d in summary["dropped"]))
+    INGEST_TABLE.parent.mkdir(parents=True, exist_ok=True)
+    out.to_parquet(INGEST_TABLE, index=False)
+    write_json(INGEST_JSON, summary)
+    log.info("wrote %s (%d rows: %s) and %s", INGEST_TABLE, len(out),
+             ", ".join(f"{c} {v['n_kept']} (station {v['station']})" for c, v in summary["campaigns"].items()),
+             INGEST_JSON)
+    return summary
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(prog="python -m pipeline.stages.ingest", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("what", nargs="?", choices=["campaign"], help="ingest one campaigns.more campaign")
+    ap.add_argument("name", nargs="?")
+    a = ap.parse_args(argv)
+    if a.what == "campaign":
+        if not a.name:
+            ap.error("campaign: give its name (params.yaml campaigns.more)")
+        run_campaign(load_params(), a.name)
+    else:
+        run(load_params())
+
+
+if __name__ == "__main__":
+    one_line("pipeline.stages.ingest", main)

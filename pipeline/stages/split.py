@@ -1,0 +1,53 @@
+"""Stage split: random 8:1:1 train/val/test split, seed 7, torch's random_split semantics.
+
+Several training campaigns: each campaign is split on its own (8:1:1, seed 7,
+in its table order), so every campaign has test points and a campaign's split
+does not change when another campaign is added. One campaign: the paper's split.
+
+With `split.holdout` (a development check of extrapolation), the poses of a region of joint space
+(splits.region: every listed joint above its quantile) are held out first, split "holdout": nothing
+trains or validates on them, and evaluate reports every method on them beside the random test split.
+
+Writes data/interim/split.parquet (point_id, split) and reports/split.json.
+"""
+import numpy as np
+import pandas as pd
+
+from pipeline.lib.project.artifacts import POINTS_TABLE, SPLIT_JSON, SPLIT_TABLE
+from pipeline.lib.project.cli import one_line
+from pipeline.lib.project.columns import CAMPAIGN, JOINTS_DEG, SPLITS
+from pipeline.lib.project.config import for_stage, json_text, load_params, logger
+from pipeline.lib.learning.splits import region, split_indices
+from pipeline.lib.project.writing import write_together
+
+log = logger(__name__)
+PARAMS = ("split",)
+
+
+def run(params: dict) -> dict:
+    cfg = for_stage(params, PARAMS)["split"]
+    pts = pd.read_parquet(POINTS_TABLE, columns=["point_id", CAMPAIGN] + JOINTS_DEG)
+    split = pd.Series("", index=pts.index)
+    per = {}
+    for campaign in pts[CAMPAIGN].unique():
+        rows = np.flatnonzero(pts[CAMPAIGN] == campaign)                           # positions, table order
+        held = region(pts[JOINTS_DEG].to_numpy()[rows], cfg["holdout"])
+        split.iloc[rows[held]] = "holdout"
+        rows = rows[~held]
+        idx = split_indices(len(rows), cfg["fractions"], cfg["seed"])
+        for name, r in idx.items():
+            split.iloc[rows[r]] = name
+        per[campaign] = {**{k: len(v) for k, v in idx.items()}, "holdout": int(held.sum())}
+    summary = {"seed": cfg["seed"], "fractions": cfg["fractions"], "holdout": cfg["holdout"],
+               "counts": {k: sum(c[k] for c in per.values()) for k in SPLITS},
+               "per_campaign": per}
+    for path in (SPLIT_TABLE, SPLIT_JSON):
+        path.parent.mkdir(parents=True, exist_ok=True)
+    table = pd.DataFrame({"point_id": pts["point_id"], "split": split}).to_parquet(None, index=False)
+    write_together({SPLIT_TABLE: table, SPLIT_JSON: json_text(summary)})     # both, or neither
+    log.info("split %d points with seed %d: %s", len(pts), cfg["seed"], summary["counts"])
+    return summary
+
+
+if __name__ == "__main__":
+    one_line("pipeline.stages.split", lambda argv: run(load_params()))
