@@ -18,6 +18,9 @@ from pathlib import Path
 import pytest
 import yaml
 
+from pipeline import stages
+from pipeline.lib.project.artifacts import (FRAME_JSON, INGEST_TABLE, PARAMS_FILE, POINTS_TABLE, SPLIT_JSON,
+                                            SPLIT_TABLE, THEORY_JSON)
 from pipeline.lib.project.config import for_stage, load_params
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -163,6 +166,34 @@ def test_the_tree_is_stages_commands_and_the_library():
     assert not strays, f"pipeline/{strays}: a folder of code that is not a package"
 
 
+def test_the_runner_runs_every_stage_and_only_stages():
+    """pipeline.stages.run is the one way to run a stage in a process: it knows every stage module, in
+    dvc.yaml's order, and names the stages when asked for another; the runner imports the library only."""
+    dvc_order = [stage_module(s).rsplit(".", 1)[1] for s in yaml.safe_load((ROOT / "dvc.yaml").read_text())["stages"].values()]
+    assert list(stages.NAMES) == list(dict.fromkeys(dvc_order))
+    assert {f"pipeline.stages.{n}" for n in stages.NAMES} == set(STAGE_MODULES)
+    assert {m for m in imports("pipeline.stages") if m != "pipeline"} <= {m for m in LIB}
+    with pytest.raises(ValueError, match="no stage 'serve'; the stages: ingest, frame"):
+        stages.run("serve")
+
+
+def test_a_stage_runs_on_the_project_its_root_names(trained_project, tmp_path, monkeypatch):
+    """stages.run(name, argv, root) reads and writes the project at `root` whatever the working directory
+    (nothing lands there): frame, theory and split re-run on a copy of a trained project's ingest table
+    give the bytes dvc repro gave."""
+    root, cwd = tmp_path / "project", tmp_path / "elsewhere"
+    cwd.mkdir()
+    for f in [PARAMS_FILE, INGEST_TABLE]:
+        (root / f).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy(trained_project / f, root / f)
+    monkeypatch.chdir(cwd)
+    for name in ("frame", "theory", "split"):
+        stages.run(name, (), root)
+    for f in (FRAME_JSON, POINTS_TABLE, THEORY_JSON, SPLIT_TABLE, SPLIT_JSON):
+        assert (root / f).read_bytes() == (trained_project / f).read_bytes(), f
+    assert not any(cwd.iterdir())
+
+
 def test_opt_in_dvc_files_run_only_commands():
     """ablation/dvc.yaml and fleet/dvc.yaml run a command (dvc repro of ./dvc.yaml never does)."""
     for f in ["ablation/dvc.yaml", "fleet/dvc.yaml"]:
@@ -178,11 +209,13 @@ def test_library_imports_only_the_library(lib):
 
 @pytest.mark.parametrize("top,mod", MODULES, ids=[m for _, m in MODULES])
 def test_stages_and_commands_import_only_the_library_and_their_own_modules(top, mod):
-    """A stage imports only pipeline.lib; a command also its own package's modules (bench's each other):
-    no stage or command imports another."""
-    own = (lambda m: m == top or m.startswith(top + ".")) if top in CMDS else (lambda m: False)
+    """A stage imports only pipeline.lib; a command also its own package's modules (bench's each other)
+    and the stage runner (the package pipeline.stages, never a stage module): no stage or command
+    imports another."""
+    own = (lambda m: m == top or m.startswith(top + ".") or m == "pipeline.stages") if top in CMDS else \
+        (lambda m: False)
     outside = {m for m in imports(mod) if not (m.startswith("pipeline.lib") or m == "pipeline" or own(m))}
-    kind = "a command imports only pipeline.lib and its own package" if top in CMDS else \
+    kind = "a command imports only pipeline.lib, its own package and the runner" if top in CMDS else \
         "a stage imports only pipeline.lib"
     assert not outside, f"{mod} imports {sorted(outside)}: {kind}"
 

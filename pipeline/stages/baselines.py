@@ -12,9 +12,12 @@ The opt-in ones are the paper's comparison, one `-S` away; `bench real` trains t
 Writes data/interim/baselines.parquet (point_id, <name>_x, <name>_y, <name>_z)
 for evaluate, and reports/baselines_train.json.
 """
+import argparse
+from pathlib import Path
+
 import pandas as pd
 
-from pipeline.lib.project.artifacts import BASELINES_JSON, BASELINES_TABLE, TIMINGS
+from pipeline.lib.project.artifacts import BASELINES_JSON, BASELINES_TABLE, HERE, PARAMS_FILE, TIMINGS
 from pipeline.lib.project.cli import one_line
 from pipeline.lib.project.columns import JOINTS_DEG
 from pipeline.lib.project.config import for_stage, load_params, logger, split_timings, write_json
@@ -28,10 +31,10 @@ log = logger(__name__)
 PARAMS = ("robot", "model", "loss", "train", "baselines", "workspace")
 
 
-def run(params: dict) -> dict:
+def run(params: dict, root: Path = HERE) -> dict:
     p = for_stage(params, PARAMS)
     cfg = p["baselines"]
-    prep = load_prepared(p["robot"])
+    prep = load_prepared(p["robot"], root)
     df, nominal, parts, calibrated = prep.points, prep.nominal, prep.parts, prep.calibrated
     out, summary = pd.DataFrame({"point_id": df["point_id"]}), {}
 
@@ -50,15 +53,20 @@ def run(params: dict) -> dict:
             df, physics_geometry(other, calibrated, nominal), {**p["model"], "physics": other}, p["loss"],
             p["train"], p["workspace"]["radius_quantile"])
         add(f"spi_boter_{other}", predict(model.eval(), df))
-    out.to_parquet(BASELINES_TABLE, index=False)
+    out.to_parquet(root / BASELINES_TABLE, index=False)
     summary, timings = split_timings(summary)
-    write_json(BASELINES_JSON, summary)
-    write_json(TIMINGS / "baselines.json", timings)
+    write_json(root / BASELINES_JSON, summary)
+    write_json(root / TIMINGS / "baselines.json", timings)
     log.info("baselines on %d points: calibrated_dh%s", len(df),
              "".join(f", {k} (best val 3D MAE {v['best_val_mae_3d_mm']:.4f} mm at epoch {v['best_epoch']})"
                      for k, v in summary.items()))
     return summary
 
 
+def main(argv=None, root: Path = HERE) -> dict:
+    """The stage on the project at `root` (its params.yaml); it takes no arguments."""
+    argparse.ArgumentParser(prog="python -m pipeline.stages.baselines", description=__doc__).parse_args(argv)
+    return run(load_params(root / PARAMS_FILE), root)
+
 if __name__ == "__main__":
-    one_line("pipeline.stages.baselines", lambda argv: run(load_params()))
+    one_line("pipeline.stages.baselines", main)

@@ -11,11 +11,14 @@ base frame and tool: lib/robot/geometry.py aligned) and
 reports/calibration.json (the identification report and the error per split
 and per campaign, nominal vs calibrated, on the aligned points).
 """
+import argparse
+from pathlib import Path
+
 import numpy as np
 import torch
 
-from pipeline.lib.project.artifacts import (CALIBRATED_GEOMETRY, CALIBRATION_JSON, FRAME_JSON, TIMINGS,
-                                            load_points)
+from pipeline.lib.project.artifacts import (CALIBRATED_GEOMETRY, CALIBRATION_JSON, FRAME_JSON, HERE,
+                                            PARAMS_FILE, TIMINGS, load_points)
 from pipeline.lib.project.cli import one_line
 from pipeline.lib.project.columns import CAMPAIGN, JOINTS_DEG, MEAS, SPLITS, STATION
 from pipeline.lib.project.config import for_stage, load_params, logger, read_json, split_timings, write_json
@@ -29,11 +32,11 @@ log = logger(__name__)
 PARAMS = ("robot", "frame", "calibrate")
 
 
-def run(params: dict) -> dict:
+def run(params: dict, root: Path = HERE) -> dict:
     params = for_stage(params, PARAMS)
     cfg = params["calibrate"]
-    frame = read_json(FRAME_JSON)
-    pts = load_points()
+    frame = read_json(root / FRAME_JSON)
+    pts = load_points(root)
     q = np.radians(pts[JOINTS_DEG].to_numpy())
     stations = list(pts[STATION].unique())            # theory keeps the ingest order: the first station first
     train = (pts["split"] == "train").to_numpy()
@@ -62,12 +65,12 @@ def run(params: dict) -> dict:
                 for s in SPLITS if (k := m & (pts["split"] == s).to_numpy()).any()}
     report["splits"] = errors(np.ones(len(pts), bool))
     report["campaigns"] = {c: errors((pts[CAMPAIGN] == c).to_numpy()) for c in pts[CAMPAIGN].unique()}
-    save_geometry(CALIBRATED_GEOMETRY, geometry, {"robot": params["robot"]["model"],
+    save_geometry(root / CALIBRATED_GEOMETRY, geometry, {"robot": params["robot"]["model"],
                                                 "identified": report["identified"],
                                                 **corrections})
     report, timings = split_timings(report)
-    write_json(CALIBRATION_JSON, report)
-    write_json(TIMINGS / "calibrate.json", timings)
+    write_json(root / CALIBRATION_JSON, report)
+    write_json(root / TIMINGS / "calibrate.json", timings)
     sp = report["splits"]
     last = sp.get("test", sp["train"])
     log.info("identified %d of %d parameters (fixed %s) in %.1f s, %d evaluations; cond %.3g; "
@@ -79,5 +82,10 @@ def run(params: dict) -> dict:
     return report
 
 
+def main(argv=None, root: Path = HERE) -> dict:
+    """The stage on the project at `root` (its params.yaml); it takes no arguments."""
+    argparse.ArgumentParser(prog="python -m pipeline.stages.calibrate", description=__doc__).parse_args(argv)
+    return run(load_params(root / PARAMS_FILE), root)
+
 if __name__ == "__main__":
-    one_line("pipeline.stages.calibrate", lambda argv: run(load_params()))
+    one_line("pipeline.stages.calibrate", main)

@@ -26,8 +26,8 @@ import numpy as np
 import pandas as pd
 
 from pipeline.lib.project.artifacts import (COMPENSATION_CSV, COMPENSATION_JSON, COMPENSATION_PARQUET,
-                                            CONVERGENCE_CSV, DRIVE_CSV, INGEST_JSON, MODEL_WEIGHTS, REPORTS,
-                                            TIMINGS, WORKSPACE_JSON)
+                                            CONVERGENCE_CSV, DRIVE_CSV, HERE, INGEST_JSON, MODEL_WEIGHTS,
+                                            PARAMS_FILE, REPORTS, TIMINGS, WORKSPACE_JSON, rooted)
 from pipeline.lib.reading.campaigns import ingested_sha256, made_by_twin
 from pipeline.lib.project.cli import one_line
 from pipeline.lib.project.columns import JCOMP_DEG, JOINTS_DEG, TARGET, THEORY
@@ -66,11 +66,11 @@ def read_targets(path: str) -> pd.DataFrame:
     return df
 
 
-def served_model():
+def served_model(root: Path):
     """The model the robot cell gets (model.served: the physics alone where evaluate switched the network
     off) and its workspace."""
-    workspace = Workspace.from_dict(read_json(WORKSPACE_JSON))
-    return served(load_model(MODEL_WEIGHTS), workspace.network), workspace
+    workspace = Workspace.from_dict(read_json(root / WORKSPACE_JSON))
+    return served(load_model(root / MODEL_WEIGHTS), workspace.network), workspace
 
 
 def solve_all(model, workspace, cfg: dict, robot, df: pd.DataFrame, flange_rot: np.ndarray | None = None):
@@ -176,40 +176,40 @@ def convergence_table(histories: dict) -> pd.DataFrame:
                          for s, h in histories.items() for i in range(len(h))])
 
 
-def run(params: dict) -> dict:
+def run(params: dict, root: Path = HERE) -> dict:
     p = for_stage(params, PARAMS)
-    prep = load_prepared(p["robot"], parts=False)
-    cfg, robot, frame = p["compensate"], prep.robot, prep.frame
-    model, workspace = served_model()
+    prep = load_prepared(p["robot"], root, parts=False)
+    cfg, robot, frame = {**p["compensate"], "twin": rooted(root, p["compensate"]["twin"])}, prep.robot, prep.frame
+    model, workspace = served_model(root)
     targets = test_targets(prep.points)
     flange = nominal_flange(targets[JOINTS_DEG].to_numpy(), prep.nominal)   # (n, 3, 3): the same for every tool
     orientation = orientation_targets(model, cfg)
     table, summary, histories = solve_all(model, workspace, cfg, robot, targets, flange if orientation else None)
-    table.to_csv(COMPENSATION_CSV, index=False, float_format="%.6f")
-    table.to_parquet(COMPENSATION_PARQUET, index=False)
-    convergence_table(histories).to_csv(CONVERGENCE_CSV, index=False)
-    made = twin_campaign(cfg["twin"], read_json(INGEST_JSON)["files"]) if cfg["drive_check"] else None
+    table.to_csv(root / COMPENSATION_CSV, index=False, float_format="%.6f")
+    table.to_parquet(root / COMPENSATION_PARQUET, index=False)
+    convergence_table(histories).to_csv(root / CONVERGENCE_CSV, index=False)
+    made = twin_campaign(cfg["twin"], read_json(root / INGEST_JSON)["files"]) if cfg["drive_check"] else None
     checks, errors = twin_checks(model, cfg, robot, p["robot"]["tcp"], table, frame, made, flange, orientation)
     summary.update(checks)
-    errors.to_csv(DRIVE_CSV, index=False, float_format="%.6f")   # empty: no drive check
+    errors.to_csv(root / DRIVE_CSV, index=False, float_format="%.6f")   # empty: no drive check
     summary, timings = split_timings(summary)
-    write_json(COMPENSATION_JSON, summary)
-    write_json(TIMINGS / "compensate.json", timings)
+    write_json(root / COMPENSATION_JSON, summary)
+    write_json(root / TIMINGS / "compensate.json", timings)
     return summary
 
 
-def main(argv=None):
+def main(argv=None, root: Path = HERE):
     ap = argparse.ArgumentParser(prog="python -m pipeline.stages.compensate", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--targets", help="CSV of your own targets (not a DVC stage run)")
     a = ap.parse_args(argv)
-    params = load_params()
+    params = load_params(root / PARAMS_FILE)
     if a.targets is None:
-        return run(params)
+        return run(params, root)
     p = for_stage(params, PARAMS)
-    model, workspace = served_model()
+    model, workspace = served_model(root)
     table, summary, _ = solve_all(model, workspace, p["compensate"], load_robot(p["robot"]), read_targets(a.targets))
-    out = REPORTS / f"compensation_{Path(a.targets).stem}.csv"
+    out = root / REPORTS / f"compensation_{Path(a.targets).stem}.csv"
     table.to_csv(out, index=False, float_format="%.6f")
     log.info("wrote %s (%d targets)", out, len(table))
 

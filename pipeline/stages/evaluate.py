@@ -23,11 +23,14 @@ Where the campaign measures the probe's orientation, metrics.json["pose"] holds 
 the flange orientation error (arcsec) and the position error at every `robot.tcp` point (lib/robot/tcp.py);
 the model's orientation is its physics branch's (the network corrects the marker's position).
 """
+import argparse
+from pathlib import Path
+
 import numpy as np
 import pandas as pd
 
-from pipeline.lib.project.artifacts import (BASELINES_MD, BASELINES_TABLE, HEADLINE_JSON, METRICS_JSON,
-                                            MODEL_WEIGHTS, PREDICTIONS_TABLE, WORKSPACE_JSON)
+from pipeline.lib.project.artifacts import (BASELINES_MD, BASELINES_TABLE, HEADLINE_JSON, HERE, METRICS_JSON,
+                                            MODEL_WEIGHTS, PARAMS_FILE, PREDICTIONS_TABLE, WORKSPACE_JSON)
 from pipeline.lib.project.cli import one_line
 from pipeline.lib.project.columns import CAMPAIGN, JOINTS_DEG, MEAS, PRED, SPLITS, STATION, THEORY
 from pipeline.lib.robot.frames import measured_rotations
@@ -115,17 +118,17 @@ def pose_metrics(df: pd.DataFrame, R_meas: np.ndarray, geometries: dict, model_p
                 for s in SPLITS if (m := (df.split == s).to_numpy()).any()} for k, (p, R) in poses.items()}
 
 
-def run(params: dict) -> dict:
+def run(params: dict, root: Path = HERE) -> dict:
     p = for_stage(params, PARAMS)
     cfg = p["workspace"]
-    prep = load_prepared(p["robot"])
+    prep = load_prepared(p["robot"], root)
     df, frame, cal, parts = prep.points, prep.frame, prep.calibration, prep.parts
-    model = load_model(MODEL_WEIGHTS)
+    model = load_model(root / MODEL_WEIGHTS)
     pred = predict(model, df)
     q = df[JOINTS_DEG].to_numpy()
     name = f"spi_boter_{model.config['physics']}"
     methods = {"nominal_dh": df[THEORY].to_numpy(), name: pred}
-    base = df[["point_id"]].merge(pd.read_parquet(BASELINES_TABLE), on="point_id", how="left")
+    base = df[["point_id"]].merge(pd.read_parquet(root / BASELINES_TABLE), on="point_id", how="left")
     for col in base.columns[1::3]:
         stem = col.removesuffix("_x")
         methods.setdefault(stem, base[[f"{stem}_{a}" for a in "xyz"]].to_numpy())
@@ -138,13 +141,13 @@ def run(params: dict) -> dict:
     ws = Workspace.fit(q[(df.split == "train").to_numpy()], {k: v[val] for k, v in maps.items()}, cfg,
                        model.config["fade_to"], parts["geometry"].get("amap_cover") if parts["enabled"] else None,
                        network)
-    write_json(WORKSPACE_JSON, ws.to_dict())
+    write_json(root / WORKSPACE_JSON, ws.to_dict())
     out = df[["point_id", CAMPAIGN, STATION, "split"] + JOINTS_DEG + THEORY + MEAS].copy()
     out[PRED] = pred
     u, inside = ws(q)
     out["uncertainty_mm"], out["in_workspace"] = u, inside
     out["in_range_angle_map"] = ws.parts(q)["angle_map"]
-    out.to_parquet(PREDICTIONS_TABLE, index=False)
+    out.to_parquet(root / PREDICTIONS_TABLE, index=False)
 
     metrics = split_metrics(df, pred)
     metrics["baselines"] = {k: split_metrics(df, v) for k, v in methods.items()}
@@ -175,12 +178,12 @@ def run(params: dict) -> dict:
             log.info("test split, %s: orientation %.0f arcsec mean (p95 %.0f); TCP mean %s mm", reported,
                      r["orientation"]["mean_arcsec"], r["orientation"]["p95_arcsec"],
                      {k: round(v["mean_mm"], 4) for k, v in r["tcp"].items()})
-    write_json(METRICS_JSON, metrics)
-    write_json(HEADLINE_JSON, headline(metrics))
+    write_json(root / METRICS_JSON, metrics)
+    write_json(root / HEADLINE_JSON, headline(metrics))
     table = markdown_table(metrics["baselines"])
     if len(metrics["campaigns"]) > 1:
         table += "\n" + campaign_table(metrics["campaigns"])
-    BASELINES_MD.write_text(table)
+    (root / BASELINES_MD).write_text(table)
     log.info("evaluated %s on %s points\n%s", name,
              {s: int((df.split == s).sum()) for s in SPLITS}, table)
     log.info("workspace: radius %.1f deg over joints %s; uncertainty %.4f (model), %.4f (calibration + error maps), "
@@ -190,5 +193,10 @@ def run(params: dict) -> dict:
     return metrics
 
 
+def main(argv=None, root: Path = HERE) -> dict:
+    """The stage on the project at `root` (its params.yaml); it takes no arguments."""
+    argparse.ArgumentParser(prog="python -m pipeline.stages.evaluate", description=__doc__).parse_args(argv)
+    return run(load_params(root / PARAMS_FILE), root)
+
 if __name__ == "__main__":
-    one_line("pipeline.stages.evaluate", lambda argv: run(load_params()))
+    one_line("pipeline.stages.evaluate", main)

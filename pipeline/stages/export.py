@@ -40,6 +40,9 @@ squares over the campaign's poses); how far it stays from it, and what it leaves
            the flange's nominal orientation, weighted as compensate's lm weighs them), onnxruntime against
            PyTorch's realtime.two_steps: the largest difference in angles (rad) and |r| (mm)
 """
+import argparse
+from pathlib import Path
+
 import numpy as np
 import pinocchio as pin
 import torch
@@ -48,8 +51,9 @@ from scipy.spatial.transform import Rotation
 
 from pipeline.lib.project.artifacts import (CALIBRATED_GEOMETRY, CONTROLLER_ONNX, CONTROLLER_PHYSICS_ONNX,
                                             CONTROLLER_PHYSICS_TCP_ONNX, CONTROLLER_POSE_ONNX,
-                                            CONTROLLER_TCP_ONNX, EXPORT_JSON, FRAME_JSON, MODEL_ONNX,
-                                            MODEL_WEIGHTS, PARTS_JSON, UR_YAML, URDF_FILE, load_points)
+                                            CONTROLLER_TCP_ONNX, EXPORT_JSON, FRAME_JSON, HERE, MODEL_ONNX,
+                                            MODEL_WEIGHTS, PARAMS_FILE, PARTS_JSON, URDF_FILE, UR_YAML,
+                                            load_points)
 from pipeline.lib.project.cli import one_line
 from pipeline.lib.project.columns import JOINTS_DEG, THEORY
 from pipeline.lib.project.config import for_stage, load_params, logger, read_json, write_json
@@ -127,12 +131,12 @@ def rigid_equivalent(g: dict, q: torch.Tensor, cfg: dict) -> tuple[dict, dict]:
     return rigid, {"mean_mm": float(e.mean()), "max_mm": float(e.max()), "left_out": left_out}
 
 
-def run(params: dict) -> dict:
+def run(params: dict, root: Path = HERE) -> dict:
     p = for_stage(params, PARAMS)
     robot = load_robot(p["robot"])
-    pts = load_points()
+    pts = load_points(root)
     q = torch.as_tensor(np.radians(pts[JOINTS_DEG].to_numpy()), dtype=DTYPE)
-    calibrated = with_parts(Calibration.from_dict(read_json(CALIBRATED_GEOMETRY)).geometry, read_json(PARTS_JSON))
+    calibrated = with_parts(Calibration.from_dict(read_json(root / CALIBRATED_GEOMETRY)).geometry, read_json(root / PARTS_JSON))
     g, fit = rigid_equivalent(calibrated, q, p["calibrate"])      # the model's physics branch, as a rigid chain
     with torch.no_grad():
         p_rigid, flange6 = fk(q, g).numpy(), fk_frames(q, g)[-1].numpy()      # flange6 (n, 4, 4) before the base
@@ -141,7 +145,7 @@ def run(params: dict) -> dict:
              fit["mean_mm"], fit["max_mm"], len(pts))
 
     text = to_urdf(g, robot, tcp=p["robot"]["tcp"])
-    URDF_FILE.write_text(text)
+    (root / URDF_FILE).write_text(text)
     p_urdf, R_urdf = urdf_poses(text, q.numpy())
     dev = np.linalg.norm(p_urdf - p_rigid, axis=1)
     summary["urdf"] = {"file": str(URDF_FILE), "checked_with": f"pinocchio {pin.__version__}",
@@ -151,12 +155,12 @@ def run(params: dict) -> dict:
             R_rigid = fk_pose(q, g)[1].numpy()
         summary["urdf"]["max_rotation_deviation_arcsec"] = size(
             Rotation.from_matrix(np.einsum("nji,njk->nik", R_urdf, R_rigid)).magnitude().max() * 206264.806)
-    log.info("%s: Pinocchio's tool0 vs the exported chain's FK on %d poses: max %.2e mm", URDF_FILE, len(pts),
+    log.info("%s: Pinocchio's tool0 vs the exported chain's FK on %d poses: max %.2e mm", root / URDF_FILE, len(pts),
              dev.max())
 
     if robot.name in TABLES:
         kin = ur_kinematics(g, p["robot"]["tcp"])
-        UR_YAML.write_text(yaml.safe_dump(kin, sort_keys=False))
+        (root / UR_YAML).write_text(yaml.safe_dump(kin, sort_keys=False))
         truth = base_transform(g) @ flange6 @ np.linalg.inv(joint_origins(g)[1])   # joint 6's frame
         poses = ur_yaml_poses(kin, q.numpy())
         dev = np.linalg.norm(poses[:, :3, 3] - truth[:, :3, 3], axis=1)
@@ -164,30 +168,30 @@ def run(params: dict) -> dict:
                               "max_deviation_mm": float(dev.max()),
                               "not_held_after_joint_6": flange_residual(g)}
         log.info("%s: joint 6's frame from the YAML vs the exported chain: max %.2e mm; the flange "
-                 "transform after joint 6 it cannot hold: %s", UR_YAML, dev.max(),
+                 "transform after joint 6 it cannot hold: %s", root / UR_YAML, dev.max(),
                  summary["ur_yaml"]["not_held_after_joint_6"])
 
-    model = load_model(MODEL_WEIGHTS)
+    model = load_model(root / MODEL_WEIGHTS)
     export_onnx(model, MODEL_ONNX)
     test = (pts["split"] == "test").to_numpy()
     q32 = q[test].float().clone()
-    onnx_p = OnnxModel(MODEL_ONNX)(q32.numpy())
+    onnx_p = OnnxModel(root / MODEL_ONNX)(q32.numpy())
     with torch.no_grad():
         same, f64 = model(q32.double())[0].numpy(), model(q[test])[0].numpy()
         R_same = fk_pose(q32.double(), model.physics.geometry())[1].numpy()
-    R_onnx = OnnxModel(MODEL_ONNX).pose(q32.numpy())[1]
+    R_onnx = OnnxModel(root / MODEL_ONNX).pose(q32.numpy())[1]
     summary["onnx"] = {"file": str(MODEL_ONNX), "checked_with": "onnxruntime", "n_test_poses": int(test.sum()),
                        "max_deviation_mm": size(np.abs(onnx_p - same).max()),
                        "max_deviation_from_float64_angles_mm": size(np.abs(onnx_p - f64).max()),
                        "max_rotation_deviation_arcsec": size(Rotation.from_matrix(np.einsum(
                            "nji,njk->nik", R_onnx, R_same)).magnitude().max() * 206264.806)}
     log.info("%s: onnxruntime vs PyTorch on %d test poses: max %.2e mm on the same float32 angles, %.2e mm "
-             "from the float64 angles", MODEL_ONNX, test.sum(), summary["onnx"]["max_deviation_mm"],
+             "from the float64 angles", root / MODEL_ONNX, test.sum(), summary["onnx"]["max_deviation_mm"],
              summary["onnx"]["max_deviation_from_float64_angles_mm"])
 
     limits = np.radians(robot.limits_deg)
-    for key, path, m in (("controller", CONTROLLER_ONNX, model),
-                         ("controller_physics", CONTROLLER_PHYSICS_ONNX, PhysicsOnly(model))):
+    for key, path, m in (("controller", root / CONTROLLER_ONNX, model),
+                         ("controller_physics", root / CONTROLLER_PHYSICS_ONNX, PhysicsOnly(model))):
         export_controller(m, path)
         dev = deviation(Realtime(m, limits), OnnxRealtime(path, limits), q[test].numpy(),
                         pts.loc[test, THEORY].to_numpy())
@@ -197,8 +201,8 @@ def run(params: dict) -> dict:
                  "batch): max %.1e rad, residual %.1e mm; flags differ in %d", path, test.sum(),
                  dev["max_q_rad"], dev["max_residual_mm"], dev["flags_differ"])
     tcps = {n: c["xyz_mm"] for n, c in (p["robot"]["tcp"] or {"x150": {"xyz_mm": [150.0, 0.0, 0.0]}}).items()}
-    for key, path, m in (("controller_tcp", CONTROLLER_TCP_ONNX, model),
-                         ("controller_physics_tcp", CONTROLLER_PHYSICS_TCP_ONNX, PhysicsOnly(model))):
+    for key, path, m in (("controller_tcp", root / CONTROLLER_TCP_ONNX, model),
+                         ("controller_physics_tcp", root / CONTROLLER_PHYSICS_TCP_ONNX, PhysicsOnly(model))):
         export_controller(m, path, at_tcp=True)
         summary[key] = {"file": str(path), "checked_with": "onnxruntime"}
         for name, xyz in tcps.items():
@@ -211,14 +215,14 @@ def run(params: dict) -> dict:
             log.info("%s at TCP %s: onnxruntime vs PyTorch (AtTcp) on %d test poses: max %.1e rad, residual "
                      "%.1e mm; flags differ in %d", path, name, test.sum(), dev["max_q_rad"], dev["max_residual_mm"],
                      dev["flags_differ"])
-    export_controller(model, CONTROLLER_POSE_ONNX, pose=True)
+    export_controller(model, root / CONTROLLER_POSE_ONNX, pose=True)
     w = pose_weight(p["compensate"])
-    nominal = theory_geometry(robot, read_json(FRAME_JSON)["tool_mm"])
+    nominal = theory_geometry(robot, read_json(root / FRAME_JSON)["tool_mm"])
     rot = nominal_flange(pts.loc[test, JOINTS_DEG].to_numpy(), nominal)
     summary["controller_pose"] = {"file": str(CONTROLLER_POSE_ONNX), "checked_with": "onnxruntime", "weight_mm_per_rad": w}
     for name, xyz in tcps.items():
         target = fk_numpy(pts.loc[test, JOINTS_DEG].to_numpy(), robot, theory_geometry(robot, xyz))
-        got = OnnxRealtime(CONTROLLER_POSE_ONNX, limits, tcp_mm=xyz, weight=w).solve(q[test].numpy(), target, rot=rot)
+        got = OnnxRealtime(root / CONTROLLER_POSE_ONNX, limits, tcp_mm=xyz, weight=w).solve(q[test].numpy(), target, rot=rot)
         lo, hi = (torch.as_tensor(limits[:, i], dtype=DTYPE) for i in (0, 1))
         with torch.no_grad():
             want = [t.numpy() for t in two_steps(model.eval(), q[test], torch.as_tensor(target), lo, hi, DAMPING,
@@ -228,10 +232,10 @@ def run(params: dict) -> dict:
             "max_residual_mm": size(max(np.abs(a - b).max() for a, b in zip(got[2:], want[2:]))),
             "verified_share": float((got[3] < p["compensate"]["tol_mm"]).mean())}
         log.info("%s at TCP %s: onnxruntime vs PyTorch on %d test poses' nominal poses: max %.1e rad, |r| %.1e mm; "
-                 "%.0f%% verified in one step", CONTROLLER_POSE_ONNX, name, test.sum(),
+                 "%.0f%% verified in one step", root / CONTROLLER_POSE_ONNX, name, test.sum(),
                  summary["controller_pose"][name]["max_q_rad"], summary["controller_pose"][name]["max_residual_mm"],
                  100 * summary["controller_pose"][name]["verified_share"])
-    write_json(EXPORT_JSON, summary)
+    write_json(root / EXPORT_JSON, summary)
     return summary
 
 
@@ -241,5 +245,10 @@ def size(x) -> float:
     return float(f"{float(x):.2g}")
 
 
+def main(argv=None, root: Path = HERE) -> dict:
+    """The stage on the project at `root` (its params.yaml); it takes no arguments."""
+    argparse.ArgumentParser(prog="python -m pipeline.stages.export", description=__doc__).parse_args(argv)
+    return run(load_params(root / PARAMS_FILE), root)
+
 if __name__ == "__main__":
-    one_line("pipeline.stages.export", lambda argv: run(load_params()))
+    one_line("pipeline.stages.export", main)

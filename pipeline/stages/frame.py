@@ -11,10 +11,13 @@ diagnostics, and under "stations" every station's frame, tool and fit. Where the
 measures orientation: tool_rot, the probe's rotation in the flange (lib/robot/frames.py probe_rotation,
 per station), and the scatter of the measured orientations about it.
 """
+import argparse
+from pathlib import Path
+
 import numpy as np
 import pandas as pd
 
-from pipeline.lib.project.artifacts import FRAME_JSON, INGEST_TABLE
+from pipeline.lib.project.artifacts import FRAME_JSON, HERE, INGEST_TABLE, PARAMS_FILE
 from pipeline.lib.project.cli import one_line
 from pipeline.lib.project.columns import CAMPAIGN, JOINTS_DEG, MEAS, STATION
 from pipeline.lib.project.config import for_stage, load_params, logger, write_json
@@ -40,10 +43,10 @@ def orientation_fit(Rf: np.ndarray, R_world: np.ndarray, R: np.ndarray, k: float
                                            "max": float(dev.max())}}
 
 
-def run(params: dict) -> dict:
+def run(params: dict, root: Path = HERE) -> dict:
     p = for_stage(params, PARAMS)
     robot = load_robot(p["robot"])
-    df = pd.read_parquet(INGEST_TABLE)
+    df = pd.read_parquet(root / INGEST_TABLE)
     fit = fit_frames(df[JOINTS_DEG].to_numpy(), df[MEAS].to_numpy(), df[STATION].to_numpy(), robot, p["frame"])
     inl, r = fit["inliers"], fit["residual_mm"]
     outliers = df.loc[~inl, "point_id"].tolist()
@@ -70,7 +73,7 @@ def run(params: dict) -> dict:
         **({"tool_rot": first["tool_rot"]} if R_world is not None else {}),
         "stations": stations,
     }
-    write_json(FRAME_JSON, summary)
+    write_json(root / FRAME_JSON, summary)
     for s, f in stations.items():
         log.info("station %s (%s): fitted base frame (%s) on %d of %d points: rms %.4f mm, mean %.4f mm; "
                  "%d outliers rejected %s", s, ", ".join(f["campaigns"]), fit["method"], f["n_used"], f["n"],
@@ -84,5 +87,10 @@ def run(params: dict) -> dict:
     return summary
 
 
+def main(argv=None, root: Path = HERE) -> dict:
+    """The stage on the project at `root` (its params.yaml); it takes no arguments."""
+    argparse.ArgumentParser(prog="python -m pipeline.stages.frame", description=__doc__).parse_args(argv)
+    return run(load_params(root / PARAMS_FILE), root)
+
 if __name__ == "__main__":
-    one_line("pipeline.stages.frame", lambda argv: run(load_params()))
+    one_line("pipeline.stages.frame", main)

@@ -14,10 +14,12 @@ orientation (meas_qw..meas_qz), those columns follow meas_z, NaN for a campaign 
 """
 import argparse
 from collections import Counter
+from pathlib import Path
 
 import pandas as pd
 
-from pipeline.lib.project.artifacts import CAMPAIGNS_DIR, CAMPAIGNS_REPORTS, INGEST_JSON, INGEST_TABLE
+from pipeline.lib.project.artifacts import (CAMPAIGNS_DIR, CAMPAIGNS_REPORTS, HERE, INGEST_JSON,
+                                            INGEST_TABLE, PARAMS_FILE, rooted_files)
 from pipeline.lib.reading.campaigns import (campaign_entry, campaign_ingest, campaign_stations, file_sha256,
                                             point_id)
 from pipeline.lib.project.cli import one_line
@@ -45,35 +47,36 @@ def joined(parts: list) -> pd.DataFrame:
     return out[rest[:k] + MEAS_Q + rest[k:]]
 
 
-def run_campaign(params: dict, name: str) -> dict:
+def run_campaign(params: dict, name: str, root: Path = HERE) -> dict:
     """Ingest one campaigns.more campaign; ids become NAME:id."""
     p = for_stage(params, PARAMS)
     station = campaign_entry(p["campaigns"], name)["station"]
-    df, summary = ingest(campaign_ingest(p["ingest"], p["campaigns"], name), load_robot(p["robot"]))
+    df, summary = ingest(rooted_files(campaign_ingest(p["ingest"], p["campaigns"], name), root),
+                         load_robot(p["robot"]))
     df["point_id"] = [point_id(name, p) for p in df["point_id"]]
-    CAMPAIGNS_DIR.mkdir(parents=True, exist_ok=True)
-    labelled(df, name, station).to_parquet(CAMPAIGNS_DIR / f"{name}.parquet", index=False)
-    write_json(CAMPAIGNS_REPORTS / f"{name}.json", {"campaign": name, "station": station, **summary})
+    (root / CAMPAIGNS_DIR).mkdir(parents=True, exist_ok=True)
+    labelled(df, name, station).to_parquet(root / CAMPAIGNS_DIR / f"{name}.parquet", index=False)
+    write_json(root / CAMPAIGNS_REPORTS / f"{name}.json", {"campaign": name, "station": station, **summary})
     log.info("campaign %s (station %s): %d points", name, station, len(df))
     return summary
 
 
-def run(params: dict) -> dict:
+def run(params: dict, root: Path = HERE) -> dict:
     p = for_stage(params, PARAMS)
     stations = campaign_stations(p["campaigns"])
     first, *more = stations
-    df, summary = ingest(p["ingest"], load_robot(p["robot"]))
+    df, summary = ingest(rooted_files(p["ingest"], root), load_robot(p["robot"]))
     for info in summary["files"].values():             # the campaign's identity (the twin's drive check)
         info["sha256"] = file_sha256(info["path"])
     parts = [labelled(df, first, stations[first])]
     summary["campaigns"] = {first: {"station": stations[first], "n_kept": len(df),
                                     "n_dropped": len(summary["dropped"])}}
     for name in more:
-        path = CAMPAIGNS_DIR / f"{name}.parquet"
+        path = root / CAMPAIGNS_DIR / f"{name}.parquet"
         if not path.exists():
             raise FileNotFoundError(f"{path}: campaign {name!r} (params.yaml campaigns.more) is not ingested; "
                                     f"run dvc repro, or python -m pipeline.stages.ingest campaign {name}")
-        part, rep = pd.read_parquet(path), read_json(CAMPAIGNS_REPORTS / f"{name}.json")
+        part, rep = pd.read_parquet(path), read_json(root / CAMPAIGNS_REPORTS / f"{name}.json")
         if (part[STATION] != stations[name]).any():
             raise ValueError(f"{path}: ingested for station {part[STATION].iloc[0]!r}, params.yaml "
                              f"campaigns.more.{name}.station says {stations[name]!r}; re-run its ingest")
@@ -85,16 +88,16 @@ def run(params: dict) -> dict:
     if more:
         summary["n_kept"] = len(out)
         summary["dropped_counts"] = dict(Counter(d["reason"] for d in summary["dropped"]))
-    INGEST_TABLE.parent.mkdir(parents=True, exist_ok=True)
-    out.to_parquet(INGEST_TABLE, index=False)
-    write_json(INGEST_JSON, summary)
-    log.info("wrote %s (%d rows: %s) and %s", INGEST_TABLE, len(out),
+    (root / INGEST_TABLE).parent.mkdir(parents=True, exist_ok=True)
+    out.to_parquet(root / INGEST_TABLE, index=False)
+    write_json(root / INGEST_JSON, summary)
+    log.info("wrote %s (%d rows: %s) and %s", root / INGEST_TABLE, len(out),
              ", ".join(f"{c} {v['n_kept']} (station {v['station']})" for c, v in summary["campaigns"].items()),
              INGEST_JSON)
     return summary
 
 
-def main(argv=None):
+def main(argv=None, root: Path = HERE):
     ap = argparse.ArgumentParser(prog="python -m pipeline.stages.ingest", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("what", nargs="?", choices=["campaign"], help="ingest one campaigns.more campaign")
@@ -103,9 +106,9 @@ def main(argv=None):
     if a.what == "campaign":
         if not a.name:
             ap.error("campaign: give its name (params.yaml campaigns.more)")
-        run_campaign(load_params(), a.name)
+        return run_campaign(load_params(root / PARAMS_FILE), a.name, root)
     else:
-        run(load_params())
+        return run(load_params(root / PARAMS_FILE), root)
 
 
 if __name__ == "__main__":

@@ -10,13 +10,16 @@ network learns what remains. reports/parts.json: each part's size, whether it ho
 per split with and without the maps, and how far each part could re-learn a calibration parameter
 (the share of its displacement the calibration's own parameters explain).
 """
+import argparse
+from pathlib import Path
+
 import numpy as np
 import pandas as pd
 import torch
 
 from pipeline.lib.robot import errormaps
-from pipeline.lib.project.artifacts import (CALIBRATED_GEOMETRY, CALIBRATION_JSON, FRAME_JSON, INGEST_TABLE,
-                                            PARTS_JSON, PARTS_REPORT, load_points)
+from pipeline.lib.project.artifacts import (CALIBRATED_GEOMETRY, CALIBRATION_JSON, FRAME_JSON, HERE,
+                                            INGEST_TABLE, PARAMS_FILE, PARTS_JSON, PARTS_REPORT, load_points)
 from pipeline.lib.project.cli import one_line
 from pipeline.lib.project.columns import JOINTS_DEG, MEAS, SPLITS
 from pipeline.lib.project.config import for_stage, load_params, logger, read_json, write_json
@@ -41,12 +44,12 @@ def relearned_share(contrib: np.ndarray, Jg: np.ndarray) -> float:
     return float((proj @ proj) / (contrib @ contrib))
 
 
-def thermal_reference(train: pd.DataFrame, cfg: dict) -> dict | None:
+def thermal_reference(train: pd.DataFrame, cfg: dict, root: Path) -> dict | None:
     """The temperature the arm was calibrated at (the mean over the training points of the ingest
     table's `parts.thermal.column`), with its expansion coefficient; None without a column."""
     if cfg["column"] is None:
         return None
-    T = pd.read_parquet(INGEST_TABLE, columns=["point_id", cfg["column"]]).set_index("point_id")[cfg["column"]]
+    T = pd.read_parquet(root / INGEST_TABLE, columns=["point_id", cfg["column"]]).set_index("point_id")[cfg["column"]]
     T = T.reindex(train["point_id"]).astype(float)
     if T.isna().any():
         raise ValueError(f"params.yaml parts.thermal.column: {cfg['column']!r} has no value for "
@@ -100,12 +103,12 @@ def fit_parts(df: pd.DataFrame, g: dict, identified: list, cfg: dict, calibrate_
     return {**g, **errormaps.as_geometry(maps)}, maps, report, in_units(spec, total)
 
 
-def run(params: dict) -> dict:
+def run(params: dict, root: Path = HERE) -> dict:
     p = for_stage(params, PARAMS)
-    cal_json = read_json(CALIBRATED_GEOMETRY)
+    cal_json = read_json(root / CALIBRATED_GEOMETRY)
     cal = Calibration.from_dict(cal_json)
-    nominal = theory_geometry(load_robot(p["robot"]), read_json(FRAME_JSON)["tool_mm"])
-    df = aligned(load_points(), cal, nominal)
+    nominal = theory_geometry(load_robot(p["robot"]), read_json(root / FRAME_JSON)["tool_mm"])
+    df = aligned(load_points(root), cal, nominal)
     g, maps, report, deltas = fit_parts(df, cal.geometry, cal_json["identified"], p["parts"], p["calibrate"])
     q_deg = df[JOINTS_DEG].to_numpy()
     q = torch.as_tensor(np.radians(q_deg), dtype=DTYPE)
@@ -127,15 +130,15 @@ def run(params: dict) -> dict:
     if maps and not report["enabled"]:
         log.info("the error maps do not lower the validation error (%.4f -> %.4f mm): switched off",
                  val["calibrated"]["mean_mm"], val["calibrated_parts"]["mean_mm"])
-    se = {k: v["se"] for k, v in read_json(CALIBRATION_JSON)["estimates"].items()}
+    se = {k: v["se"] for k, v in read_json(root / CALIBRATION_JSON)["estimates"].items()}
     report["calibration_corrections"] = {k: {"delta": v, "calibration_se": se.get(k)} for k, v in deltas.items()}
     report["in_range_share"] = {s: {k: float(v.mean()) for k, v in errormaps.in_range(q_deg[m], tau[m], maps).items()}
                                 for s, m in split.items() if m.any()}
-    report["thermal"] = thermal_reference(df[split["train"]], p["parts"]["thermal"])
-    save_geometry(PARTS_JSON, g if report["enabled"] else cal.geometry,
+    report["thermal"] = thermal_reference(df[split["train"]], p["parts"]["thermal"], root)
+    save_geometry(root / PARTS_JSON, g if report["enabled"] else cal.geometry,
                   {"enabled": report["enabled"], "thermal": report["thermal"],
                    "maps_units": "amap_coef, lmap_coef rad; amap_cover 0..1 per degree; lmap_lo, lmap_step N·m"})
-    write_json(PARTS_REPORT, report)
+    write_json(root / PARTS_REPORT, report)
     s = report["splits"]
     log.info("error maps (%d coefficients, %s): mean 3D error train %.4f -> %.4f, val %.4f -> %.4f mm; "
              "largest re-learned share %.3f", report["n_coefficients"], "on" if report["enabled"] else "off",
@@ -151,5 +154,10 @@ def run(params: dict) -> dict:
     return report
 
 
+def main(argv=None, root: Path = HERE) -> dict:
+    """The stage on the project at `root` (its params.yaml); it takes no arguments."""
+    argparse.ArgumentParser(prog="python -m pipeline.stages.parts", description=__doc__).parse_args(argv)
+    return run(load_params(root / PARAMS_FILE), root)
+
 if __name__ == "__main__":
-    one_line("pipeline.stages.parts", lambda argv: run(load_params()))
+    one_line("pipeline.stages.parts", main)

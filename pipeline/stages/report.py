@@ -14,6 +14,7 @@ Every other input is optional; a figure or section whose input is missing is
 skipped with a note in index.md (and in the log). The opt-in ablation's outputs
 (`python -m pipeline.commands.ablation`) are linked from index.md, never read.
 """
+import argparse
 from functools import cached_property
 from pathlib import Path
 
@@ -24,9 +25,9 @@ import pyarrow.parquet as pq
 from pipeline.lib.reporting import figures, page, summary
 from pipeline.lib.project.artifacts import (BASELINES_MD, BASELINES_TABLE, CALIBRATION_JSON,
                                             COMPENSATION_JSON, CONVERGENCE_CSV, DRIVE_CSV, EXPORT_JSON,
-                                            FRAME_JSON, INGEST_JSON, INGEST_TABLE, LIVE, METRICS_JSON,
-                                            MODEL_WEIGHTS, PARTS_REPORT, PREDICTIONS_TABLE, REPORTS,
-                                            SPLIT_JSON, THEORY_JSON, TRAIN_JSON, VALIDATION_JSON,
+                                            FRAME_JSON, HERE, INGEST_JSON, INGEST_TABLE, LIVE, METRICS_JSON,
+                                            MODEL_WEIGHTS, PARAMS_FILE, PARTS_REPORT, PREDICTIONS_TABLE,
+                                            REPORTS, SPLIT_JSON, THEORY_JSON, TRAIN_JSON, VALIDATION_JSON,
                                             VALIDATION_TABLE)
 from pipeline.lib.project.cli import one_line
 from pipeline.lib.project.columns import MEAS, PRED, THEORY
@@ -63,10 +64,10 @@ def optional_csv(path: Path) -> pd.DataFrame | None:
 class Context:
     """The run's inputs, read on first use; an optional one is None when missing."""
 
-    def __init__(self, params: dict):
-        self.params = params
-        self.pred = pd.read_parquet(PREDICTIONS_TABLE)
-        self.metrics = read_json(METRICS_JSON)
+    def __init__(self, params: dict, root: Path = HERE):
+        self.params, self.root = params, root
+        self.pred = pd.read_parquet(root / PREDICTIONS_TABLE)
+        self.metrics = read_json(root / METRICS_JSON)
         missing = [c for c in ["point_id", "split"] + THEORY + MEAS + PRED if c not in self.pred]
         if missing:
             raise ValueError(f"{PREDICTIONS_TABLE}: missing column(s) {missing}")
@@ -74,41 +75,44 @@ class Context:
     @cached_property
     def summaries(self) -> dict:
         """Each stage's JSON summary by SUMMARIES name."""
-        return {name: optional_json(path) for name, path in SUMMARIES.items()}
+        return {name: optional_json(self.root / path) for name, path in SUMMARIES.items()}
 
     @cached_property
     def baselines_md(self) -> str | None:
-        path = BASELINES_MD
+        path = self.root / BASELINES_MD
         return path.read_text() if path.exists() else None
 
     @cached_property
     def convergence(self):
-        return optional_csv(CONVERGENCE_CSV)
+        return optional_csv(self.root / CONVERGENCE_CSV)
 
     @cached_property
     def drive(self):
-        return optional_csv(DRIVE_CSV)
+        return optional_csv(self.root / DRIVE_CSV)
 
     @cached_property
     def validation(self) -> pd.DataFrame | None:
         """reports/validation.parquet (every campaign's points), None when missing."""
-        return pd.read_parquet(VALIDATION_TABLE) if VALIDATION_TABLE.exists() else None
+        path = self.root / VALIDATION_TABLE
+        return pd.read_parquet(path) if path.exists() else None
 
     @cached_property
     def baseline_predictions(self) -> pd.DataFrame | None:
         """data/interim/baselines.parquet (the calibration's, and with its maps, predictions), None when missing."""
-        return pd.read_parquet(BASELINES_TABLE) if BASELINES_TABLE.exists() else None
+        path = self.root / BASELINES_TABLE
+        return pd.read_parquet(path) if path.exists() else None
 
     @cached_property
     def ingest_table(self) -> pd.DataFrame | None:
         """Of data/interim/ingest.parquet, the columns the summary shows: campaign, the temperature
         (parts.thermal.column) and a time column; None when missing. attrs["all_columns"]: every header."""
-        if not INGEST_TABLE.exists():
+        path = self.root / INGEST_TABLE
+        if not path.exists():
             return None
-        names = pq.read_schema(INGEST_TABLE).names
+        names = pq.read_schema(path).names
         temperature = self.params["parts"]["thermal"]["column"]
         want = [c for c in dict.fromkeys(["campaign", temperature, summary.time_column(names)]) if c in names]
-        df = pd.read_parquet(INGEST_TABLE, columns=want)
+        df = pd.read_parquet(path, columns=want)
         df.attrs["all_columns"] = names
         return df
 
@@ -120,27 +124,30 @@ class Context:
                                 summary.split_accuracy(self.pred, self.baseline_predictions),
                                 summary.conditions(table, self.params["parts"]["thermal"]["column"]),
                                 summary.orientation_columns(names), summary.split_counts(self.pred))
-        SUMMARY_MD.write_text(summary.markdown(blocks))
-        return summary.write_pdf(blocks, SUMMARY_PDF)
+        (self.root / SUMMARY_MD).write_text(summary.markdown(blocks))
+        return summary.write_pdf(blocks, self.root / SUMMARY_PDF)
 
     @cached_property
     def model(self):
-        return load_model(MODEL_WEIGHTS) if MODEL_WEIGHTS.exists() else None
+        path = self.root / MODEL_WEIGHTS
+        return load_model(path) if path.exists() else None
 
     def live(self, name: str) -> pd.DataFrame | None:
         """A dvclive curve: columns step, <name>."""
-        path = CURVES / f"{name}.tsv"
+        path = self.root / CURVES / f"{name}.tsv"
         if not path.exists():
             return None
         df = pd.read_csv(path, sep="\t")
         return df if {"step", name} <= set(df.columns) and df[name].notna().any() else None
 
 
-def run(params: dict) -> dict:
-    ctx = Context(for_stage(params, PARAMS))
-    figs = figures.render_figures(ctx, PLOTS)
-    ply = figures.write_ply(ctx, PLY)
-    INDEX.write_text(page.write_index(ctx, figs, ply))
+def run(params: dict, root: Path = HERE) -> dict:
+    ctx = Context(for_stage(params, PARAMS), root)
+    figs = {n: (st, Path(x).relative_to(root) if st == "ok" else x)              # the page links them
+            for n, (st, x) in figures.render_figures(ctx, root / PLOTS).items()}
+    ply = figures.write_ply(ctx, root / PLY)
+    ply["path"] = Path(ply["path"]).relative_to(root)
+    (root / INDEX).write_text(page.write_index(ctx, figs, ply))
     sheet = ctx.write_summary()
     made = [n for n, (s, _) in figs.items() if s == "ok"]
     log.info("wrote %d figures to %s (%d skipped), %s, %s (%d points, colour 0-%.3f mm), %s and %s (%.2f pt)",
@@ -150,5 +157,11 @@ def run(params: dict) -> dict:
             "ply_scale_mm": [ply["lo"], ply["hi"]], "summary": sheet}
 
 
+def main(argv=None, root: Path = HERE) -> dict:
+    """The stage on the project at `root` (its params.yaml); it takes no arguments."""
+    argparse.ArgumentParser(prog="python -m pipeline.stages.report", description=__doc__).parse_args(argv)
+    return run(load_params(root / PARAMS_FILE), root)
+
+
 if __name__ == "__main__":
-    one_line("pipeline.stages.report", lambda argv: run(load_params()))
+    one_line("pipeline.stages.report", main)

@@ -10,10 +10,13 @@ trains or validates on them, and evaluate reports every method on them beside th
 
 Writes data/interim/split.parquet (point_id, split) and reports/split.json.
 """
+import argparse
+from pathlib import Path
+
 import numpy as np
 import pandas as pd
 
-from pipeline.lib.project.artifacts import POINTS_TABLE, SPLIT_JSON, SPLIT_TABLE
+from pipeline.lib.project.artifacts import HERE, PARAMS_FILE, POINTS_TABLE, SPLIT_JSON, SPLIT_TABLE
 from pipeline.lib.project.cli import one_line
 from pipeline.lib.project.columns import CAMPAIGN, JOINTS_DEG, SPLITS
 from pipeline.lib.project.config import for_stage, json_text, load_params, logger
@@ -24,9 +27,9 @@ log = logger(__name__)
 PARAMS = ("split",)
 
 
-def run(params: dict) -> dict:
+def run(params: dict, root: Path = HERE) -> dict:
     cfg = for_stage(params, PARAMS)["split"]
-    pts = pd.read_parquet(POINTS_TABLE, columns=["point_id", CAMPAIGN] + JOINTS_DEG)
+    pts = pd.read_parquet(root / POINTS_TABLE, columns=["point_id", CAMPAIGN] + JOINTS_DEG)
     split = pd.Series("", index=pts.index)
     per = {}
     for campaign in pts[CAMPAIGN].unique():
@@ -41,13 +44,18 @@ def run(params: dict) -> dict:
     summary = {"seed": cfg["seed"], "fractions": cfg["fractions"], "holdout": cfg["holdout"],
                "counts": {k: sum(c[k] for c in per.values()) for k in SPLITS},
                "per_campaign": per}
-    for path in (SPLIT_TABLE, SPLIT_JSON):
+    for path in (root / SPLIT_TABLE, root / SPLIT_JSON):
         path.parent.mkdir(parents=True, exist_ok=True)
     table = pd.DataFrame({"point_id": pts["point_id"], "split": split}).to_parquet(None, index=False)
-    write_together({SPLIT_TABLE: table, SPLIT_JSON: json_text(summary)})     # both, or neither
+    write_together({root / SPLIT_TABLE: table, root / SPLIT_JSON: json_text(summary)})     # both, or neither
     log.info("split %d points with seed %d: %s", len(pts), cfg["seed"], summary["counts"])
     return summary
 
 
+def main(argv=None, root: Path = HERE) -> dict:
+    """The stage on the project at `root` (its params.yaml); it takes no arguments."""
+    argparse.ArgumentParser(prog="python -m pipeline.stages.split", description=__doc__).parse_args(argv)
+    return run(load_params(root / PARAMS_FILE), root)
+
 if __name__ == "__main__":
-    one_line("pipeline.stages.split", lambda argv: run(load_params()))
+    one_line("pipeline.stages.split", main)

@@ -8,10 +8,14 @@ meas_q* = the measured orientation in the base frame, R^T R_world (where the cam
 Points the frame fit rejected as gross outliers are dropped here and listed
 in reports/theory.json with their residual.
 """
+import argparse
+from pathlib import Path
+
 import numpy as np
 import pandas as pd
 
-from pipeline.lib.project.artifacts import FRAME_JSON, INGEST_TABLE, POINTS_TABLE, THEORY_JSON
+from pipeline.lib.project.artifacts import (FRAME_JSON, HERE, INGEST_TABLE, PARAMS_FILE, POINTS_TABLE,
+                                            THEORY_JSON)
 from pipeline.lib.project.cli import one_line
 from pipeline.lib.project.columns import CAMPAIGN, ERR, JOINTS_DEG, MEAS, MEAS_Q, STATION, THEORY
 from pipeline.lib.project.config import for_stage, load_params, logger, read_json, write_json
@@ -24,10 +28,10 @@ log = logger(__name__)
 PARAMS = ("robot",)
 
 
-def run(params: dict) -> dict:
+def run(params: dict, root: Path = HERE) -> dict:
     robot = load_robot(for_stage(params, PARAMS)["robot"])
-    frame = read_json(FRAME_JSON)
-    df = pd.read_parquet(INGEST_TABLE)
+    frame = read_json(root / FRAME_JSON)
+    df = pd.read_parquet(root / INGEST_TABLE)
     out = df[["point_id", CAMPAIGN, STATION] + JOINTS_DEG].copy()
     theo, meas = np.full((len(df), 3), np.nan), np.full((len(df), 3), np.nan)
     for s, f in frame["stations"].items():           # the station's frame and tool (frame.tool_per_station)
@@ -47,19 +51,24 @@ def run(params: dict) -> dict:
     dropped = [{"point_id": p, "reason": "frame outlier",
                 "residual_mm": frame["outlier_residual_mm"][p]} for p in out.loc[bad, "point_id"]]
     out = out[~bad].reset_index(drop=True)
-    POINTS_TABLE.parent.mkdir(parents=True, exist_ok=True)
-    out.to_parquet(POINTS_TABLE, index=False)
+    (root / POINTS_TABLE).parent.mkdir(parents=True, exist_ok=True)
+    out.to_parquet(root / POINTS_TABLE, index=False)
     e = np.linalg.norm(out[ERR].to_numpy(), axis=1)
     summary = {"n_points": len(out), "n_dropped": len(dropped), "dropped": dropped,
                "nominal_error_mm": {"mean": float(e.mean()), "rms": float(np.sqrt((e ** 2).mean())),
                                     "max": float(e.max())},
                "campaigns": {c: {"n": int(m.sum()), "nominal_error_mean_mm": float(e[m].mean())}
                              for c in out[CAMPAIGN].unique() if (m := (out[CAMPAIGN] == c).to_numpy()).any()}}
-    write_json(THEORY_JSON, summary)
+    write_json(root / THEORY_JSON, summary)
     log.info("theory points for %d poses (%d frame outliers dropped); nominal DH error after "
              "frame fit: mean %.3f mm, max %.3f mm", len(out), len(dropped), e.mean(), e.max())
     return summary
 
 
+def main(argv=None, root: Path = HERE) -> dict:
+    """The stage on the project at `root` (its params.yaml); it takes no arguments."""
+    argparse.ArgumentParser(prog="python -m pipeline.stages.theory", description=__doc__).parse_args(argv)
+    return run(load_params(root / PARAMS_FILE), root)
+
 if __name__ == "__main__":
-    one_line("pipeline.stages.theory", lambda argv: run(load_params()))
+    one_line("pipeline.stages.theory", main)

@@ -6,9 +6,12 @@ geometry; nominal: the paper's). Per-epoch curves go to dvclive
 from) to models/boter.pt; the summary to reports/train.json, its wall-clock
 times to reports/timings/train.json.
 """
+import argparse
+from pathlib import Path
+
 from dvclive import Live
 
-from pipeline.lib.project.artifacts import LIVE, MODEL_WEIGHTS, TIMINGS, TRAIN_JSON
+from pipeline.lib.project.artifacts import HERE, LIVE, MODEL_WEIGHTS, PARAMS_FILE, TIMINGS, TRAIN_JSON
 from pipeline.lib.project.cli import one_line
 from pipeline.lib.project.config import for_stage, load_params, logger, split_timings, write_json
 from pipeline.lib.robot.geometry import physics_geometry
@@ -21,23 +24,23 @@ log = logger(__name__)
 PARAMS = ("robot", "model", "loss", "train", "workspace")
 
 
-def run(params: dict) -> dict:
+def run(params: dict, root: Path = HERE) -> dict:
     p = for_stage(params, PARAMS)
     check_config(p["model"])                       # before dvclive resets reports/live: a bad setting
     resolve_device(p["train"]["device"])           # leaves the last run's curves as they were
-    prep = load_prepared(p["robot"])
+    prep = load_prepared(p["robot"], root)
     df = prep.points
     geometry = physics_geometry(p["model"]["physics"], prep.calibrated, prep.nominal)
     # save_dvc_exp: dvclive needs a git repo with a commit; no system monitor and no timestamps: the curves
     # are hashed in dvc.lock, so the same params give the same bytes (issue 21)
-    with Live(dir=str(LIVE), save_dvc_exp=False, dvcyaml=False, report=None, monitor_system=False) as live:
+    with Live(dir=str(root / LIVE), save_dvc_exp=False, dvcyaml=False, report=None, monitor_system=False) as live:
         model, summary = train_boter(df, geometry, p["model"], p["loss"], p["train"],
                                      p["workspace"]["radius_quantile"], live)
-    MODEL_WEIGHTS.parent.mkdir(parents=True, exist_ok=True)
-    save_model(model, MODEL_WEIGHTS, p["model"])
+    (root / MODEL_WEIGHTS).parent.mkdir(parents=True, exist_ok=True)
+    save_model(model, root / MODEL_WEIGHTS, p["model"])
     summary, timings = split_timings(summary)
-    write_json(TRAIN_JSON, summary)
-    write_json(TIMINGS / "train.json", timings)
+    write_json(root / TRAIN_JSON, summary)
+    write_json(root / TIMINGS / "train.json", timings)
     log.info("trained SPI-BoTER (%d parameters) on %d points: best val 3D MAE %.4f mm at epoch "
              "%s of %d, %.1f s (%.3f s/epoch); alpha %s", summary["n_params"], summary["n_train"],
              summary["best_val_mae_3d_mm"], summary["best_epoch"], summary["epochs_run"],
@@ -45,5 +48,10 @@ def run(params: dict) -> dict:
     return summary
 
 
+def main(argv=None, root: Path = HERE) -> dict:
+    """The stage on the project at `root` (its params.yaml); it takes no arguments."""
+    argparse.ArgumentParser(prog="python -m pipeline.stages.train", description=__doc__).parse_args(argv)
+    return run(load_params(root / PARAMS_FILE), root)
+
 if __name__ == "__main__":
-    one_line("pipeline.stages.train", lambda argv: run(load_params()))
+    one_line("pipeline.stages.train", main)

@@ -21,9 +21,10 @@ import pandas as pd
 import torch
 from scipy.spatial.transform import Rotation
 
-from pipeline.lib.project.artifacts import (CALIBRATED_GEOMETRY, FRAME_JSON, MODEL_WEIGHTS, PARTS_JSON,
-                                            VALIDATION_DIR, INGEST_JSON, VALIDATION_HEADLINE,
-                                            VALIDATION_JSON, VALIDATION_TABLE, WORKSPACE_JSON)
+from pipeline.lib.project.artifacts import (CALIBRATED_GEOMETRY, FRAME_JSON, HERE, INGEST_JSON,
+                                            MODEL_WEIGHTS, PARAMS_FILE, PARTS_JSON, VALIDATION_DIR,
+                                            VALIDATION_HEADLINE, VALIDATION_JSON, VALIDATION_TABLE,
+                                            WORKSPACE_JSON, rooted, rooted_files)
 from pipeline.lib.project.cli import one_line
 from pipeline.lib.reading.campaigns import ingested_sha256, made_by_twin, named_campaign, pair_sha256
 from pipeline.lib.project.columns import JOINTS_DEG, MEAS
@@ -96,37 +97,37 @@ def per_joint_coverage(ws: Workspace, q: np.ndarray, table: pd.DataFrame) -> dic
     return out
 
 
-def twin_only(name: str, c: dict, twin_json: str) -> str | None:
+def twin_only(name: str, c: dict, twin_json: str, root: Path) -> str | None:
     """Why campaign `name` is not judged, or None: the twin made it (its files' SHA-256 are in the twin's
     record) but not the campaign trained on (ingest.json `files`), so it says nothing of this robot."""
-    if not Path(twin_json).exists():                 # no twin here: it made nothing
+    if not Path(rooted(root, twin_json)).exists():   # no twin here: it made nothing
         return None
-    record = read_json(twin_json)
+    record = read_json(rooted(root, twin_json))
     joints, tracker = c["ingest"]["joints"], c["ingest"]["tracker"]
     if made_by_twin(record, pair_sha256(joints, tracker)) is None:
         return None
-    if made_by_twin(record, ingested_sha256(read_json(INGEST_JSON)["files"])) is not None:
+    if made_by_twin(record, ingested_sha256(read_json(root / INGEST_JSON)["files"])) is not None:
         return None
     return (f"validate.campaigns.{name} is the twin's campaign ({joints}, {tracker}; {twin_json}) and the robot "
             "was calibrated on another: not judged (remove it from validate.campaigns to silence this)")
 
 
-def run_campaign(params: dict, name: str) -> dict:
+def run_campaign(params: dict, name: str, root: Path = HERE) -> dict:
     p = for_stage(params, PARAMS["campaign"])
     frame_cfg, cfg = p["frame"], p["validate"]
     c = named_campaign(cfg["campaigns"], name, "validate.campaigns", "validate.campaign")
-    skipped = twin_only(name, c, p["compensate"]["twin"])
+    skipped = twin_only(name, c, p["compensate"]["twin"], root)
     if skipped:                                      # before reading it: it may not fit the user's ingest settings
-        VALIDATION_DIR.mkdir(parents=True, exist_ok=True)
-        empty_table().to_parquet(VALIDATION_DIR / f"{name}.parquet", index=False)
-        write_json(VALIDATION_DIR / f"{name}.json", {"skipped": skipped})
+        (root / VALIDATION_DIR).mkdir(parents=True, exist_ok=True)
+        empty_table().to_parquet(root / VALIDATION_DIR / f"{name}.parquet", index=False)
+        write_json(root / VALIDATION_DIR / f"{name}.json", {"skipped": skipped})
         log.info("%s", skipped)
         return {"skipped": skipped}
-    robot, frame = load_robot(p["robot"]), read_json(FRAME_JSON)
-    cal, parts = Calibration.from_dict(read_json(CALIBRATED_GEOMETRY)), read_json(PARTS_JSON)
-    df, ingested = ingest(deep_merge(p["ingest"], c["ingest"]), robot)
+    robot, frame = load_robot(p["robot"]), read_json(root / FRAME_JSON)
+    cal, parts = Calibration.from_dict(read_json(root / CALIBRATED_GEOMETRY)), read_json(root / PARTS_JSON)
+    df, ingested = ingest(rooted_files(deep_merge(p["ingest"], c["ingest"]), root), robot)
     q = df[JOINTS_DEG].to_numpy()
-    model = load_model(MODEL_WEIGHTS)
+    model = load_model(root / MODEL_WEIGHTS)
     thermal = thermal_change(df, parts)
     geometries = {"nominal": theory_geometry(robot, frame["tool_mm"], frame.get("tool_rot")), "calibrated": cal.geometry,
                   "calibrated_parts": with_parts(cal.geometry, parts), "model": model.physics.geometry()}
@@ -144,7 +145,7 @@ def run_campaign(params: dict, name: str) -> dict:
     P = df[MEAS].to_numpy()
     errors, registered, frames = judge(pred, P, c["frame"], frame, cfg["register_points"], frame_cfg, flange,
                                        cfg["tool_rank_tol"], probe, R_world, orientation_weight(p["calibrate"]["pose_noise"]))
-    ws = Workspace.from_dict(read_json(WORKSPACE_JSON))
+    ws = Workspace.from_dict(read_json(root / WORKSPACE_JSON))
     u, inside = ws(q)
     u = np.sqrt(u ** 2 + frames["model"].get("registration_rms_mm", 0.0) ** 2)     # validation.py: the campaign's own
     table = pd.DataFrame({"point_id": df.point_id, "campaign": name, "registered": registered,
@@ -174,9 +175,9 @@ def run_campaign(params: dict, name: str) -> dict:
         commanded = commanded_positions(df, c["commanded"], frame["tool_mm"], name)
         out["position_accuracy"] = position_accuracy(commanded, df[c["commanded"]["columns"]].to_numpy(float),
                                                      measured, pred, ~registered)
-    VALIDATION_DIR.mkdir(parents=True, exist_ok=True)
-    table.to_parquet(VALIDATION_DIR / f"{name}.parquet", index=False)
-    write_json(VALIDATION_DIR / f"{name}.json", out)
+    (root / VALIDATION_DIR).mkdir(parents=True, exist_ok=True)
+    table.to_parquet(root / VALIDATION_DIR / f"{name}.parquet", index=False)
+    write_json(root / VALIDATION_DIR / f"{name}.json", out)
     m = out["mean_3d_mm"]
     log.info("%s (%s frame): %d points, %d judged, %.0f%% in the trained workspace; mean 3D error "
              "nominal %.3f, calibrated %.3f, model %.3f mm; %d rows dropped at ingest", name, c["frame"],
@@ -194,35 +195,35 @@ def empty_table() -> pd.DataFrame:
                          "in_range_angle_map": pd.Series(dtype=bool)})
 
 
-def run_summary(params: dict) -> dict:
+def run_summary(params: dict, root: Path = HERE) -> dict:
     """reports/validation.json and .parquet from the campaigns params.yaml lists now (those not judged
     under "skipped", with the reason)."""
     names = sorted(for_stage(params, PARAMS["summary"])["validate"]["campaigns"] or {})
-    each = {n: read_json(VALIDATION_DIR / f"{n}.json") for n in names}
+    each = {n: read_json(root / VALIDATION_DIR / f"{n}.json") for n in names}
     judged = [n for n in names if "skipped" not in each[n]]
     out = {"campaigns": {n: each[n] for n in judged}}
     if len(judged) < len(names):
         out["skipped"] = {n: each[n]["skipped"] for n in names if n not in judged}
-    tables = [pd.read_parquet(VALIDATION_DIR / f"{n}.parquet") for n in judged]
-    pd.concat(tables or [empty_table()], ignore_index=True).to_parquet(VALIDATION_TABLE, index=False)
-    write_json(VALIDATION_JSON, out)
-    write_json(VALIDATION_HEADLINE, {n: {"n_judged": c["n_judged"], "mean_3d_mm": c["mean_3d_mm"]}
+    tables = [pd.read_parquet(root / VALIDATION_DIR / f"{n}.parquet") for n in judged]
+    pd.concat(tables or [empty_table()], ignore_index=True).to_parquet(root / VALIDATION_TABLE, index=False)
+    write_json(root / VALIDATION_JSON, out)
+    write_json(root / VALIDATION_HEADLINE, {n: {"n_judged": c["n_judged"], "mean_3d_mm": c["mean_3d_mm"]}
                                      for n, c in out["campaigns"].items()})
     log.info("validation summary: %d campaign(s) %s", len(names), names)
     return out
 
 
-def main(argv=None):
+def main(argv=None, root: Path = HERE):
     ap = argparse.ArgumentParser(prog="python -m pipeline.stages.validate", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("what", choices=["campaign", "summary"])
     ap.add_argument("name", nargs="?", help="campaign name (with `campaign`)")
     a = ap.parse_args(argv)
-    params = load_params()
+    params = load_params(root / PARAMS_FILE)
     if a.what == "campaign":
-        run_campaign(params, a.name)
+        return run_campaign(params, a.name, root)
     else:
-        run_summary(params)
+        return run_summary(params, root)
 
 
 if __name__ == "__main__":

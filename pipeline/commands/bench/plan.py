@@ -53,8 +53,9 @@ import torch
 import yaml
 from scipy.spatial.transform import Rotation
 
+from pipeline import stages
 from pipeline.lib.project.artifacts import (CALIBRATED_GEOMETRY, CALIBRATION_JSON, COMPENSATION_JSON,
-                                            FRAME_JSON, METRICS_JSON, MODEL_WEIGHTS, VALIDATION_DIR,
+                                            FRAME_JSON, METRICS_JSON, MODEL_WEIGHTS, PARAMS_FILE, VALIDATION_DIR,
                                             WORKSPACE_JSON)
 from pipeline.lib.reading.campaigns import write_pair
 from pipeline.lib.project.columns import JCOMP_DEG, JOINTS_DEG
@@ -71,7 +72,7 @@ from pipeline.lib.sim.twin import REGIONS, Twin, sample_poses
 from pipeline.lib.runtime.waypoints import compensate_program
 from pipeline.lib.learning.workspace import Workspace, workspace_radius
 from pipeline.commands.bench.common import BENCH, ROOT, machine
-from pipeline.commands.bench.real import absolute_paths, overridden, stage_here
+from pipeline.commands.bench.real import absolute_paths, overridden
 
 log = logger(__name__)
 OUT = BENCH / "plan.json"
@@ -109,32 +110,27 @@ def run_pipeline(folder: Path, params: dict, compensate: bool = True) -> dict:
     """The pipeline's stages in `folder` (made), on params written to its params.yaml, in this process;
     returns what the benchmark reads back."""
     folder.mkdir(parents=True, exist_ok=True)
-    cwd = os.getcwd()
-    os.chdir(folder)
-    try:
-        Path("params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
-        for name in params["campaigns"]["more"] or {}:
-            stage_here("ingest", "campaign", name)
-        for name in STAGES:
-            stage_here(name)
-        if compensate:
-            stage_here("compensate")
-        for name in params["validate"]["campaigns"] or {}:
-            stage_here("validate", "campaign", name)
-        metrics, cal = read_json(METRICS_JSON), read_json(CALIBRATION_JSON)
-        out = {"test_3d_mae": {k: v["test"]["3d"]["mae"] for k, v in metrics["baselines"].items()},
-               "test_3d_mae_per_campaign": {c: {k: v[k]["test"]["mae"] for k in v if k not in ("station", "n")}
-                                            for c, v in metrics["campaigns"].items()},
-               "validation": {n: {"mean_3d_mm": (v := read_json(VALIDATION_DIR / f"{n}.json"))["mean_3d_mm"],
-                                  "in_workspace_share": v["in_workspace_share"]}
-                              for n in params["validate"]["campaigns"] or {}},
-               "calibration": {k: {"delta": e["delta"], "se": e["se"], "unit": e["unit"]}
-                               for k, e in cal["estimates"].items()},
-               "residual_sigma_mm": cal["residual_sigma_mm"]}
-        if compensate and "drive_check" in (c := read_json(COMPENSATION_JSON)):
-            out["drive_check_test_points_mm"] = c["drive_check"]["after"]["3d"]["mean"]
-    finally:
-        os.chdir(cwd)
+    (folder / PARAMS_FILE).write_text(yaml.safe_dump(params, sort_keys=False))
+    for name in params["campaigns"]["more"] or {}:
+        stages.run("ingest", ["campaign", name], folder)
+    for name in STAGES:
+        stages.run(name, (), folder)
+    if compensate:
+        stages.run("compensate", (), folder)
+    for name in params["validate"]["campaigns"] or {}:
+        stages.run("validate", ["campaign", name], folder)
+    metrics, cal = read_json(folder / METRICS_JSON), read_json(folder / CALIBRATION_JSON)
+    out = {"test_3d_mae": {k: v["test"]["3d"]["mae"] for k, v in metrics["baselines"].items()},
+           "test_3d_mae_per_campaign": {c: {k: v[k]["test"]["mae"] for k in v if k not in ("station", "n")}
+                                        for c, v in metrics["campaigns"].items()},
+           "validation": {n: {"mean_3d_mm": (v := read_json(folder / VALIDATION_DIR / f"{n}.json"))["mean_3d_mm"],
+                              "in_workspace_share": v["in_workspace_share"]}
+                          for n in params["validate"]["campaigns"] or {}},
+           "calibration": {k: {"delta": e["delta"], "se": e["se"], "unit": e["unit"]}
+                           for k, e in cal["estimates"].items()},
+           "residual_sigma_mm": cal["residual_sigma_mm"]}
+    if compensate and "drive_check" in (c := read_json(folder / COMPENSATION_JSON)):
+        out["drive_check_test_points_mm"] = c["drive_check"]["after"]["3d"]["mean"]
     return out
 
 
@@ -143,18 +139,13 @@ def drive_program(folder: Path, params: dict, program: pd.DataFrame, twin: Twin,
     on the twin: its 3D error before and after (mm), in the trained workspace, uncertainty; and, at the
     compensated joints against the twin's noise-free truth (base frame by the fitted frame), the error
     of the model, of its physics branch (calibration + error maps) and of the calibration alone."""
-    cwd = os.getcwd()
-    os.chdir(folder)
-    try:
-        robot = load_robot(params["robot"])
-        frame = read_json(FRAME_JSON)
-        ws = Workspace.from_dict(read_json(WORKSPACE_JSON))
-        model = load_model(MODEL_WEIGHTS)
-        table = compensate_program(program, model, ws, robot, theory_geometry(robot, frame["tool_mm"]),
-                                   params["compensate"])
-        calibration = Calibration.from_dict(read_json(CALIBRATED_GEOMETRY)).geometry
-    finally:
-        os.chdir(cwd)
+    robot = load_robot(params["robot"])
+    frame = read_json(folder / FRAME_JSON)
+    ws = Workspace.from_dict(read_json(folder / WORKSPACE_JSON))
+    model = load_model(folder / MODEL_WEIGHTS)
+    table = compensate_program(program, model, ws, robot, theory_geometry(robot, frame["tool_mm"]),
+                               params["compensate"])
+    calibration = Calibration.from_dict(read_json(folder / CALIBRATED_GEOMETRY)).geometry
     q0, q1 = program[JOINTS_DEG].to_numpy(), table[JCOMP_DEG].to_numpy()
     target = table[["target_x", "target_y", "target_z"]].to_numpy()
     before = np.linalg.norm(to_base(twin.drive(q0, rng), frame) - target, axis=1)

@@ -5,7 +5,7 @@ finishes.
     python -m pipeline.commands.bench real  [--seeds 139 140 ...] [--engine ray]   the real sets in ../shared/datasets
     python -m pipeline.commands.bench real --sets twin twin-2stations   the twin, from one and two stations
 
-It runs the pipeline's stages (`python -m pipeline.stages.<stage>`, as dvc repro
+It runs the pipeline's stages in this process (`pipeline.stages.run`, as dvc repro
 would) in a scratch directory per set (preset merged over params.yaml, split
 seed 7) and reports test 3D MAE for
 nominal DH (no frame fit; only where the data are in the base frame), nominal
@@ -22,11 +22,7 @@ carries the prepared directory as bytes (with the campaigns' input files under i
 the object store, once per node), so Ray's nodes need no shared filesystem.
 """
 import copy
-import os
-import runpy
 import shutil
-import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -36,7 +32,8 @@ import pandas as pd
 import yaml
 
 from pipeline.lib.learning import sweep
-from pipeline.lib.project.artifacts import (INGEST_JSON, INGEST_TABLE, METRICS_JSON, PREDICTIONS_TABLE,
+from pipeline import stages
+from pipeline.lib.project.artifacts import (INGEST_JSON, INGEST_TABLE, METRICS_JSON, PARAMS_FILE, PREDICTIONS_TABLE,
                                             VALIDATION_DIR)
 from pipeline.lib.project.columns import JOINTS_DEG, MEAS, PRED
 from pipeline.lib.project.config import load_params, logger, read_json, write_json
@@ -73,32 +70,20 @@ def absolute_paths(params: dict) -> dict:
     return p
 
 
-def stage(name: str, params: dict, *args: str) -> None:
-    """Run one stage as dvc repro would, on params written to ./params.yaml, with this tree's code
-    (not whichever checkout pip installed)."""
-    Path("params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
-    subprocess.run([sys.executable, "-m", f"pipeline.stages.{name}", *args], check=True, env=env)
+def stage(name: str, params: dict, root: Path, *args: str) -> None:
+    """One stage in this process on the project at `root`, on `params` written to its params.yaml, as
+    dvc repro would run it there."""
+    (root / PARAMS_FILE).write_text(yaml.safe_dump(params, sort_keys=False))
+    stages.run(name, args, root)
 
 
-def stage_here(name: str, *args: str) -> None:
-    """Run one stage in this process as `python -m pipeline.stages.<name> args` would (runpy: the module as
-    __main__, on ./params.yaml): a sweep's run is then a Ray task with no subprocess."""
-    argv = sys.argv
-    sys.argv = [f"pipeline/stages/{name}.py", *args]
-    try:
-        runpy.run_module(f"pipeline.stages.{name}", run_name="__main__", alter_sys=True)
-    finally:
-        sys.argv = argv
-
-
-def validation_runs(params: dict) -> dict:
+def validation_runs(params: dict, root: Path) -> dict:
     """Every validate campaign of params, judged with the current models: mean 3D error per method
     (all judged points, and inside / outside the trained workspace)."""
     out = {}
     for name in params["validate"]["campaigns"] or {}:
-        stage_here("validate", "campaign", name)
-        v = read_json(VALIDATION_DIR / f"{name}.json")
+        stages.run("validate", ["campaign", name], root)
+        v = read_json(root / VALIDATION_DIR / f"{name}.json")
         out[name] = {"n_judged": v["n_judged"], "frame": v["frame"], "in_workspace_share": v["in_workspace_share"],
                      "mean_3d_mm": v["mean_3d_mm"], "angle_map_in_range_share": v["angle_map"]["in_range_share"],
                      "uncertainty_coverage": v["uncertainty_coverage"]["all"],
@@ -139,19 +124,14 @@ def seed_run(job, files: dict) -> dict:
     store once per node) unpacked to a scratch directory; there train, baselines, evaluate and every
     validate campaign, in this process."""
     p, test_ids = job
-    cwd = os.getcwd()
     with tempfile.TemporaryDirectory() as tmp:
-        sweep.unpack(files, tmp)
-        os.chdir(tmp)
-        try:
-            Path("params.yaml").write_text(yaml.safe_dump(p, sort_keys=False))
-            for name in ("train", "baselines", "evaluate"):
-                stage_here(name)
-            valid = validation_runs(p)
-            metrics = read_json(METRICS_JSON)
-            pred = pd.read_parquet(PREDICTIONS_TABLE).set_index("point_id").loc[test_ids][PRED].to_numpy()
-        finally:
-            os.chdir(cwd)
+        root = Path(tmp)
+        sweep.unpack(files, root)
+        for name in ("train", "baselines", "evaluate"):
+            stage(name, p, root)
+        valid = validation_runs(p, root)
+        metrics = read_json(root / METRICS_JSON)
+        pred = pd.read_parquet(root / PREDICTIONS_TABLE).set_index("point_id").loc[test_ids][PRED].to_numpy()
     return {"runs": {k: v["test"]["3d"]["mae"] for k, v in metrics["baselines"].items()},
             "per_campaign": {c: {k: v[k]["test"]["mae"] for k in v if k not in ("station", "n")}
                              for c, v in metrics["campaigns"].items()},
@@ -192,33 +172,30 @@ def run_set(name: str, seeds: list[int], epochs: int | None, other_physics: bool
     if epochs:
         params["train"]["max_epochs"] = epochs
     threads = sweep.threads_per_job(engine, threads)
-    t0, cwd = time.perf_counter(), os.getcwd()
+    t0 = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
-        os.chdir(tmp)
-        try:
-            if REAL_SETS[name].get("twin_fine") is False:   # the twin's campaigns without the fine structure
-                generate("twin", SEED, fine=False)
-                for ingest in [params["ingest"]] + [c["ingest"] for c in params["validate"]["campaigns"].values()]:
-                    for k in ("joints", "tracker"):
-                        ingest[k] = str(Path(tmp, "twin", Path(ingest[k]).relative_to(ROOT / "data/raw")))
-                params["compensate"]["twin"] = str(Path(tmp, "twin/twin.json"))
-            for campaign in params["campaigns"]["more"] or {}:
-                stage("ingest", params, "campaign", campaign)
-            for name_ in ("ingest", "frame", "theory", "split", "calibrate", "parts"):
-                stage(name_, params)
-            n_kept = read_json(INGEST_JSON)["n_kept"]
-            df = load_prepared(params["robot"], parts=False).points
-            test = df[df.split == "test"]
-            raw = pd.read_parquet(INGEST_TABLE).set_index("point_id").loc[test.point_id]
-            nominal = None
-            if REAL_SETS[name]["base_frame"]:             # no frame fit: measured as recorded
-                robot = load_robot(params["robot"])
-                e = fk_numpy(raw[JOINTS_DEG].to_numpy(), robot) - raw[MEAS].to_numpy()
-                nominal = float(np.linalg.norm(e, axis=1).mean())
-        finally:
-            os.chdir(cwd)
-        local = localized(params, Path(tmp))
-        prepared_files = sweep.pack(tmp)                # the prepared directory, a value: no shared filesystem
+        root = Path(tmp)
+        if REAL_SETS[name].get("twin_fine") is False:   # the twin's campaigns without the fine structure
+            generate(root / "twin", SEED, fine=False)
+            for ingest in [params["ingest"]] + [c["ingest"] for c in params["validate"]["campaigns"].values()]:
+                for k in ("joints", "tracker"):
+                    ingest[k] = str(root / "twin" / Path(ingest[k]).relative_to(ROOT / "data/raw"))
+            params["compensate"]["twin"] = str(root / "twin/twin.json")
+        for campaign in params["campaigns"]["more"] or {}:
+            stage("ingest", params, root, "campaign", campaign)
+        for name_ in ("ingest", "frame", "theory", "split", "calibrate", "parts"):
+            stage(name_, params, root)
+        n_kept = read_json(root / INGEST_JSON)["n_kept"]
+        df = load_prepared(params["robot"], root, parts=False).points
+        test = df[df.split == "test"]
+        raw = pd.read_parquet(root / INGEST_TABLE).set_index("point_id").loc[test.point_id]
+        nominal = None
+        if REAL_SETS[name]["base_frame"]:             # no frame fit: measured as recorded
+            robot = load_robot(params["robot"])
+            e = fk_numpy(raw[JOINTS_DEG].to_numpy(), robot) - raw[MEAS].to_numpy()
+            nominal = float(np.linalg.norm(e, axis=1).mean())
+        local = localized(params, root)
+        prepared_files = sweep.pack(root)                # the prepared directory, a value: no shared filesystem
         jobs = []
         for i, seed in enumerate(seeds):
             p = copy.deepcopy(local)

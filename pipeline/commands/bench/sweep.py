@@ -2,15 +2,10 @@
 local Ray instance, their wall times and speed-up, and the per-task overhead Ray adds (trivial tasks, with
 and without its startup). Writes reports/bench/sweep.json. Needs a finished `dvc repro` in the project."""
 import os
-import shutil
-import tempfile
 import time
-from pathlib import Path
 
 from pipeline.lib.learning import sweep                                   # lib/learning/sweep.py: jobs in order or as Ray tasks
 from pipeline.lib.learning.ablations import Data, Job, train_one
-from pipeline.lib.project.artifacts import (CALIBRATED_GEOMETRY, FRAME_JSON, PARTS_JSON, POINTS_TABLE,
-                                            SPLIT_TABLE)
 from pipeline.lib.project.config import load_params, logger, write_json
 from pipeline.lib.reading.prepared import load_prepared
 from pipeline.commands.bench.common import BENCH, machine
@@ -24,8 +19,8 @@ def noop(x):
 
 def bench_sweep(groups=("baseline", "no_resnet"), seeds=(139, 140), epochs: int = 40) -> dict:
     """A reduced ablation (groups x seeds, `epochs` each) run sequentially (torch on every core) and as
-    Ray tasks on a local Ray instance (one thread each, a task per core), on the project's trained
-    artifacts copied to a scratch directory; and the per-task overhead Ray adds (trivial tasks).
+    Ray tasks on a local Ray instance (one thread each, a task per core), on the project's prepared inputs
+    (a value each job shares; nothing is written); and the per-task overhead Ray adds (trivial tasks).
     Needs a finished `dvc repro` in the project."""
     params = load_params()
     params["ablation"].update(seeds=list(seeds), max_epochs=epochs)
@@ -34,22 +29,11 @@ def bench_sweep(groups=("baseline", "no_resnet"), seeds=(139, 140), epochs: int 
     df, geometries = prep.points, prep.geometries()
     p = {k: params[k] for k in ("model", "loss", "train", "workspace", "ablation")}
     jobs, data = [Job(p, g, s) for g in groups for s in seeds], Data(df, geometries)
-    files = [POINTS_TABLE, SPLIT_TABLE, FRAME_JSON, CALIBRATED_GEOMETRY, PARTS_JSON]
     out = {"machine": machine(), "what": f"ablation groups {list(groups)} x seeds {list(seeds)}, {epochs} epochs "
                                          "each (the full ablation: 8 groups x 5 seeds, up to 400 epochs)"}
-    cwd = os.getcwd()
-    with tempfile.TemporaryDirectory() as tmp:
-        for f in files:
-            (Path(tmp) / f).parent.mkdir(parents=True, exist_ok=True)
-            shutil.copy(f, Path(tmp) / f)
-        os.chdir(tmp)
-        try:
-            for engine, threads in (("sequential", cores), ("ray", 1)):
-                runs, timing = sweep.run(train_one, jobs, engine, None, threads, desc=f"sweep {engine}",
-                                         shared=data)
-                out[engine] = {**timing, "test_3d_mae": [r["test"]["3d"]["mae"] for r in runs]}
-        finally:
-            os.chdir(cwd)
+    for engine, threads in (("sequential", cores), ("ray", 1)):
+        runs, timing = sweep.run(train_one, jobs, engine, None, threads, desc=f"sweep {engine}", shared=data)
+        out[engine] = {**timing, "test_3d_mae": [r["test"]["3d"]["mae"] for r in runs]}
     out["speedup_ray_over_sequential"] = out["sequential"]["seconds"] / out["ray"]["seconds"]
     n = 64
     _, seq = sweep.run(noop, list(range(n)), "sequential", desc="noop")

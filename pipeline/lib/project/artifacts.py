@@ -1,12 +1,15 @@
 """Where every pipeline artifact lives, and how a stage reads one back.
 
-Paths are relative to the project root (DVC runs every stage there). Each
-file here is an output of exactly one stage in dvc.yaml.
+Paths are relative to a project's root, which every stage is handed (`root`; DVC runs
+the stages with the root as working directory, HERE). Each file here is an output of
+exactly one stage in dvc.yaml.
 """
 from pathlib import Path
 
 import pandas as pd
 
+HERE = Path(".")                                      # the root when the working directory is the project
+PARAMS_FILE = Path("params.yaml")
 INTERIM, MODELS, REPORTS = Path("data/interim"), Path("models"), Path("reports")
 
 INGEST_TABLE = INTERIM / "ingest.parquet"             # ingest
@@ -54,6 +57,17 @@ TIMINGS = REPORTS / "timings"                         # every stage: <stage>.jso
                                                       #   DVC output (git-ignored), so outputs hash the same
 
 
-def load_points() -> pd.DataFrame:
+def rooted(root: Path, path: str | Path) -> str:
+    """A path from params.yaml (relative to the project's root, or absolute) as this process opens it;
+    unchanged at HERE, so what a stage records of it is the string params.yaml gave."""
+    return str(path) if root == HERE or Path(path).is_absolute() else str(root / path)
+
+
+def rooted_files(ingest: dict, root: Path) -> dict:
+    """An ingest section whose joints and tracker files are opened from the project at `root`."""
+    return {**ingest, "joints": rooted(root, ingest["joints"]), "tracker": rooted(root, ingest["tracker"])}
+
+
+def load_points(root: Path = HERE) -> pd.DataFrame:
     """points.parquet joined with its split column."""
-    return pd.read_parquet(POINTS_TABLE).merge(pd.read_parquet(SPLIT_TABLE), on="point_id")
+    return pd.read_parquet(root / POINTS_TABLE).merge(pd.read_parquet(root / SPLIT_TABLE), on="point_id")

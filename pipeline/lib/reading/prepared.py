@@ -3,10 +3,11 @@ the calibration's base frame and tool (geometry.aligned), the robot, the nominal
 and the per-joint error maps. The outputs of frame, theory, split, calibrate and parts (lib/project/artifacts.py);
 train, baselines, evaluate, compensate, ablation, the benchmarks and the tests read them here."""
 from dataclasses import dataclass
+from pathlib import Path
 
 import pandas as pd
 
-from pipeline.lib.project.artifacts import CALIBRATED_GEOMETRY, FRAME_JSON, PARTS_JSON, load_points
+from pipeline.lib.project.artifacts import CALIBRATED_GEOMETRY, FRAME_JSON, HERE, PARTS_JSON, load_points
 from pipeline.lib.project.config import read_json
 from pipeline.lib.robot.geometry import Calibration, aligned, theory_geometry, with_parts
 from pipeline.lib.robot.robots import Robot, load_robot
@@ -31,10 +32,10 @@ class Prepared:
         return {"calibrated": self.calibrated, "nominal": self.nominal}
 
 
-def load_prepared(robot_params: dict, parts: bool = True) -> Prepared:
-    """The prepared inputs of the project in the working directory (parts: read the error maps too)."""
-    robot, frame = load_robot(robot_params), read_json(FRAME_JSON)
+def load_prepared(robot_params: dict, root: Path = HERE, parts: bool = True) -> Prepared:
+    """The prepared inputs of the project at `root` (parts: read the error maps too)."""
+    robot, frame = load_robot(robot_params), read_json(root / FRAME_JSON)
     nominal = theory_geometry(robot, frame["tool_mm"])
-    calibration = Calibration.from_dict(read_json(CALIBRATED_GEOMETRY))
-    return Prepared(aligned(load_points(), calibration, nominal), robot, frame, nominal, calibration,
-                    read_json(PARTS_JSON) if parts else None)
+    calibration = Calibration.from_dict(read_json(root / CALIBRATED_GEOMETRY))
+    return Prepared(aligned(load_points(root), calibration, nominal), robot, frame, nominal, calibration,
+                    read_json(root / PARTS_JSON) if parts else None)

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.lib.project.artifacts import (BASELINES_MD, CALIBRATION_JSON, COMPENSATION_CSV,
+from pipeline.lib.project.artifacts import (HERE, BASELINES_MD, CALIBRATION_JSON, COMPENSATION_CSV,
                                             COMPENSATION_JSON, DRIVE_CSV, FRAME_JSON, INGEST_JSON,
                                             METRICS_JSON, PARTS_REPORT, REPORTS, THEORY_JSON, TRAIN_JSON)
 from pipeline.lib.project.columns import AXES
@@ -52,14 +52,14 @@ def rel(path: Path) -> str:
         return Path("..", path).as_posix()
 
 
-def link(path: Path, text: str | None = None) -> str:
-    """A relative link to `path` if it exists, else the bare name."""
+def link(path: Path, text: str | None = None, root: Path = HERE) -> str:
+    """A relative link to `path` if it exists in the project at `root`, else the bare name."""
     path = Path(path)
-    return f"[{text or rel(path)}]({rel(path)})" if path.exists() else f"`{text or path.as_posix()}` (not found)"
+    return f"[{text or rel(path)}]({rel(path)})" if (root / path).exists() else f"`{text or path.as_posix()}` (not found)"
 
 
-def section_settings(params: dict) -> str:
-    lines = ["## Settings", "", f"From {link(PARAMS)} (one line per section):", "", "```yaml"]
+def section_settings(params: dict, root: Path = HERE) -> str:
+    lines = ["## Settings", "", f"From {link(PARAMS, root=root)} (one line per section):", "", "```yaml"]
     for sec, v in params.items():
         if isinstance(v, dict):
             body = ", ".join(f"{k}: {_yaml_inline(x)}" for k, x in v.items())
@@ -81,10 +81,10 @@ def _yaml_inline(v) -> str:
     return str(v)
 
 
-def section_metrics(m: dict, counts: dict) -> str:
+def section_metrics(m: dict, counts: dict, root: Path = HERE) -> str:
     name = m.get("model", "model")
     out = ["## Model metrics", "",
-           f"`{name}` per split and axis ({link(METRICS_JSON)}; eqs. 27-42). Errors are "
+           f"`{name}` per split and axis ({link(METRICS_JSON, root=root)}; eqs. 27-42). Errors are "
            "prediction − measurement in mm; R² compares the predicted error Δ̂ = pred − theory "
            "with the real one Δ = meas − theory. The paper's SPI-BoTER test numbers (UR5, 724 "
            "samples; Tables 6 and 8, the baseline rows) are beside this run's test rows.", ""]
@@ -109,11 +109,11 @@ def section_metrics(m: dict, counts: dict) -> str:
     return "\n".join(out)
 
 
-def section_baselines(m: dict, md: str | None) -> str:
+def section_baselines(m: dict, md: str | None, root: Path = HERE) -> str:
     """md: reports/baselines.md's text, or None."""
     out = ["## Comparison methods (test split)", ""]
     if md is not None:
-        out += [f"From {link(BASELINES_MD)}:", "", md.strip(), ""]
+        out += [f"From {link(BASELINES_MD, root=root)}:", "", md.strip(), ""]
     elif m.get("baselines"):
         out += ["From reports/metrics.json \"baselines\":", ""]
         rows = [[n, s["test"]["3d"]["mae"], s["test"]["3d"]["rmse"], s["test"]["3d"]["r2"]]
@@ -130,12 +130,12 @@ def section_baselines(m: dict, md: str | None) -> str:
 
 
 def section_data(ing: dict | None, fr: dict | None, th: dict | None, sp: dict | None,
-                 counts: dict) -> str:
+                 counts: dict, root: Path = HERE) -> str:
     """The ingest, frame, theory and split summaries; counts: points per split (if no split.json)."""
     out = ["## Data: ingest, frame, theory, split", ""]
     if ing:
         dropped = ing.get("dropped_counts") or {}
-        out += [f"**Ingest** ({link(INGEST_JSON)}): rows read "
+        out += [f"**Ingest** ({link(INGEST_JSON, root=root)}): rows read "
                 + ", ".join(f"{k} {v}" for k, v in (ing.get("n_read") or {}).items())
                 + f"; points kept **{ing.get('n_kept')}**; dropped: "
                 + (", ".join(f"{n} {r}" for r, n in dropped.items()) if dropped else "none") + ".", ""]
@@ -151,7 +151,7 @@ def section_data(ing: dict | None, fr: dict | None, th: dict | None, sp: dict | 
     if fr:
         outl = fr.get("outliers") or []
         res = fr.get("outlier_residual_mm") or {}
-        out += [f"**Frame** ({link(FRAME_JSON)}, base → tracker, {fr.get('method', 'kabsch')}): "
+        out += [f"**Frame** ({link(FRAME_JSON, root=root)}, base → tracker, {fr.get('method', 'kabsch')}): "
                 f"rms {fmt(fr.get('rms_mm'))} mm, mean {fmt(fr.get('mean_mm'))} mm, max "
                 f"{fmt(fr.get('max_mm'))} mm over n_used = {fr.get('n_used')} points; "
                 f"tool offset {fmt(fr.get('tool_mm'), 3)} mm (flange frame); "
@@ -170,7 +170,7 @@ def section_data(ing: dict | None, fr: dict | None, th: dict | None, sp: dict | 
         out += ["_reports/frame.json not found._", ""]
     if th:
         e = th.get("nominal_error_mm") or {}
-        out += [f"**Theory** ({link(THEORY_JSON)}): {th.get('n_points')} points, "
+        out += [f"**Theory** ({link(THEORY_JSON, root=root)}): {th.get('n_points')} points, "
                 f"{th.get('n_dropped', 0)} dropped as frame outliers; nominal DH error after the "
                 f"frame fit: mean {fmt(e.get('mean'))}, rms {fmt(e.get('rms'))}, max "
                 f"{fmt(e.get('max'))} mm.", ""]
@@ -183,13 +183,13 @@ def section_data(ing: dict | None, fr: dict | None, th: dict | None, sp: dict | 
     return "\n".join(out)
 
 
-def section_parts(r: dict | None) -> str:
+def section_parts(r: dict | None, root: Path = HERE) -> str:
     """reports/parts.json: the per-joint error maps, what they gained, what they moved."""
     out = ["## Per-joint error maps (parts stage)", ""]
     if not r:
         return "\n".join(out + ["_reports/parts.json not found (parts stage not run)._", ""])
     s = r["splits"]
-    out += [f"{link(PARTS_REPORT)}: {r.get('n_coefficients')} coefficients, "
+    out += [f"{link(PARTS_REPORT, root=root)}: {r.get('n_coefficients')} coefficients, "
             + ("**on**" if r.get("enabled") else "**off** (they did not lower the validation error)")
             + ". Each joint's angle error as a function of its own angle, and of the gravity torque it "
               "carries, fitted on the calibration's residual with the calibration's parameters re-estimated "
@@ -216,14 +216,14 @@ def section_parts(r: dict | None) -> str:
     return "\n".join(out)
 
 
-def section_calibration(c: dict | None) -> str:
+def section_calibration(c: dict | None, root: Path = HERE) -> str:
     out = ["## Classical kinematic calibration", ""]
     if not c:
         return "\n".join(out + ["_reports/calibration.json not found (calibrate stage not run)._", ""])
     fixed = c.get("fixed") or []
     fixed_txt = (", ".join(f"{k} ({v})" for k, v in fixed.items()) if isinstance(fixed, dict)
                  else ", ".join(map(str, fixed)))
-    out += [f"{link(CALIBRATION_JSON)}: {len(c.get('identified', []))} of "
+    out += [f"{link(CALIBRATION_JSON, root=root)}: {len(c.get('identified', []))} of "
             f"{c.get('n_candidates')} parameters identified (rank {c.get('rank')}), condition number "
             f"{fmt(c.get('condition_number'))}, residual σ {fmt(c.get('residual_sigma_mm'))} mm, "
             f"loss {c.get('loss')} (scale {fmt(c.get('loss_scale_mm'))} mm), {c.get('nfev')} evaluations.",
@@ -256,11 +256,11 @@ def section_calibration(c: dict | None) -> str:
     return "\n".join(out)
 
 
-def section_training(tr: dict | None) -> str:
+def section_training(tr: dict | None, root: Path = HERE) -> str:
     if not tr:
         return "## Training\n\n_reports/train.json not found._\n"
     return ("## Training\n\n"
-            f"{link(TRAIN_JSON)}: {tr.get('n_params')} parameters, {tr.get('n_train')} "
+            f"{link(TRAIN_JSON, root=root)}: {tr.get('n_params')} parameters, {tr.get('n_train')} "
             f"training / {tr.get('n_val')} validation points; best validation 3D MAE "
             f"{fmt(tr.get('best_val_mae_3d_mm'))} mm at epoch {tr.get('best_epoch')} of "
             f"{tr.get('epochs_run')} run (wall-clock times: reports/timings/train.json, kept out of the "
@@ -298,13 +298,13 @@ def drive_summary(comp: dict | None, d) -> dict | None:
             for w in ("before", "after")}
 
 
-def section_compensation(comp: dict | None, drive) -> str:
+def section_compensation(comp: dict | None, drive, root: Path = HERE) -> str:
     """comp: compensation.json; drive: the drive_check.csv table (or None)."""
     out = ["## Inverse compensation", ""]
     if comp:
         solvers = [s for s in ("adam", "lm") if s in comp]
-        out += [f"{link(COMPENSATION_JSON)}: {comp.get('n_points')} points; the Δθ table "
-                f"{link(COMPENSATION_CSV)} comes from solver `{comp.get('solver')}`. "
+        out += [f"{link(COMPENSATION_JSON, root=root)}: {comp.get('n_points')} points; the Δθ table "
+                f"{link(COMPENSATION_CSV, root=root)} comes from solver `{comp.get('solver')}`. "
                 "The paper (Adam): 147 iterations on average to 0.01 mm.", ""]
         rows = [[s, f"{100 * comp[s]['converged_share']:.1f} %", comp[s]["iterations_mean"],
                  comp[s]["iterations_max"], comp[s]["residual_mm_mean"], comp[s]["residual_mm_max"]]
@@ -326,7 +326,7 @@ def section_compensation(comp: dict | None, drive) -> str:
         nf = dc.get("noise_floor_mm")
         out += ["### Drive check (the paper's Table 9 layout)", "",
                 f"The compensated angles driven on the digital twin and measured "
-                f"({link(DRIVE_CSV)}); achieved − target in the base frame, mm: "
+                f"({link(DRIVE_CSV, root=root)}); achieved − target in the base frame, mm: "
                 "std of the signed error, max and min of its absolute value per axis. (The paper's text "
                 "gives a max deviation of 0.62 mm, below its own table's Y and Z maxima.)"
                 + (f" Twin measurement noise floor {fmt(nf)} mm." if nf is not None else ""), "",
@@ -360,9 +360,9 @@ def section_figures(figs: dict) -> str:
     return "\n".join(out)
 
 
-def section_pointcloud(ply: dict) -> str:
+def section_pointcloud(ply: dict, root: Path = HERE) -> str:
     return ("## Point cloud\n\n"
-            f"{link(ply['path'])}: the {ply['n']} measured points (all splits; base frame, mm) coloured by "
+            f"{link(ply['path'], root=root)}: the {ply['n']} measured points (all splits; base frame, mm) coloured by "
             f"their residual |pred − meas| with the `{PLY_CMAP}` colormap, linear from "
             f"{ply['lo']:g} mm (dark purple) to {ply['hi']:.4f} mm (yellow; the "
             f"{PLY_PERCENTILE:g}th percentile, larger residuals clipped to yellow). Open it in "
@@ -460,12 +460,14 @@ def write_index(ctx, figs: dict, ply: dict) -> str:
     head += ["Contents: settings · model metrics · comparison methods · data · calibration · "
              "training · compensation · validation · exports · ablation · point cloud · figures"
              + (f" (skipped: {', '.join(skipped)})" if skipped else ""), ""]
-    parts = ["\n".join(head), section_settings(ctx.params), section_metrics(m, counts),
-             section_baselines(m, ctx.baselines_md),
-             section_data(s["ingest"], s["frame"], s["theory"], s["split"], counts),
-             section_calibration(s["calibration"]), section_parts(s["parts"]), section_training(s["train"]),
-             section_compensation(s["compensation"], ctx.drive),
+    parts = ["\n".join(head), section_settings(ctx.params, root=ctx.root),
+             section_metrics(m, counts, root=ctx.root),
+             section_baselines(m, ctx.baselines_md, root=ctx.root),
+             section_data(s["ingest"], s["frame"], s["theory"], s["split"], counts, root=ctx.root),
+             section_calibration(s["calibration"], root=ctx.root), section_parts(s["parts"], root=ctx.root),
+             section_training(s["train"], root=ctx.root),
+             section_compensation(s["compensation"], ctx.drive, root=ctx.root),
              section_validation(s["validation"], m.get("uncertainty")), section_export(s["export"]),
              section_ablation(),
-             section_pointcloud(ply), section_figures(figs)]
+             section_pointcloud(ply, root=ctx.root), section_figures(figs)]
     return "\n".join(p.rstrip() + "\n" for p in parts)
