@@ -19,11 +19,11 @@ import pytest
 import yaml
 from filelock import FileLock
 
-from pipeline.lib.project.config import load_params, read_json
-from pipeline.lib.learning.model import served
-from pipeline.lib.reading.prepared import load_prepared
 from pipeline.lib.learning.checkpoint import load_model
+from pipeline.lib.learning.model import served
 from pipeline.lib.learning.workspace import Workspace
+from pipeline.lib.project.config import load_params, read_json
+from pipeline.lib.reading.prepared import load_prepared
 
 ROOT = Path(__file__).resolve().parents[1]
 ENV = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}

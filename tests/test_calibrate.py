@@ -6,15 +6,15 @@ import pandas as pd
 import pytest
 import torch
 
-from pipeline.stages import calibrate
-from pipeline.lib.robot import identify as C
-from pipeline.lib.sim import twin as T
 from pipeline.lib.project.columns import ERR, JOINTS_DEG, MEAS, THEORY
 from pipeline.lib.project.config import load_params, read_json
 from pipeline.lib.project.config import write_json
 from pipeline.lib.project.config import read_json
+from pipeline.lib.robot import identify as C
 from pipeline.lib.robot.geometry import Calibration
 from pipeline.lib.robot.kinematics import DTYPE, fk, fk_numpy, nominal_geometry
+from pipeline.lib.sim import twin as T
+from pipeline.stages import calibrate
 
 ROOT = Path(__file__).resolve().parents[1]
 CFG = load_params(ROOT / "params.yaml")["calibrate"]

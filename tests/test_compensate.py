@@ -4,12 +4,12 @@ import pandas as pd
 import pytest
 import torch
 
-from pipeline.stages.compensate import read_targets
-from pipeline.lib.runtime.solvers import compensate, jacobian, min_norm_step, solve3
-from pipeline.lib.robot.kinematics import nominal_geometry
 from pipeline.lib.learning.model import BoTER
-from pipeline.lib.runtime.realtime import Realtime
+from pipeline.lib.robot.kinematics import nominal_geometry
 from pipeline.lib.robot.robots import load_robot, nominal_robot
+from pipeline.lib.runtime.realtime import Realtime
+from pipeline.lib.runtime.solvers import compensate, jacobian, min_norm_step, solve3
+from pipeline.stages.compensate import read_targets
 
 ROBOT = nominal_robot("ur5")
 CFG = {"lr": 1e-4, "max_iter": 500, "tol_mse": 1e-4, "tol_mm": 1e-3, "jacobian_of": "model"}

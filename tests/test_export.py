@@ -12,18 +12,18 @@ from scipy.spatial.transform import Rotation
 
 from pipeline.stages.export import rigid_equivalent, ur_yaml_poses, urdf_positions
 from conftest import project_points
+from pipeline.lib.learning.checkpoint import load_model, make_model
+from pipeline.lib.learning.model import Ensemble, PhysicsOnly
+from pipeline.lib.learning.onnx_model import OnnxModel, OnnxRealtime, export_controller, export_onnx
+from pipeline.lib.learning.workspace import Workspace
 from pipeline.lib.project.columns import JOINTS_DEG, THEORY
 from pipeline.lib.project.config import load_params, read_json
 from pipeline.lib.robot.kinematics import DTYPE, fk, fk_frames, fk_pose, nominal_geometry
-from pipeline.lib.learning.model import Ensemble, PhysicsOnly
-from pipeline.lib.learning.onnx_model import OnnxModel, OnnxRealtime, export_controller, export_onnx
+from pipeline.lib.robot.robots import UR_JOINTS, load_robot, nominal_robot
+from pipeline.lib.robot.urdf import base_transform, flange_residual, joint_origins, to_urdf, ur_kinematics
 from pipeline.lib.runtime.realtime import Realtime
 from pipeline.lib.runtime.solvers import lm_jacobian, lm_step, predict
-from pipeline.lib.robot.robots import UR_JOINTS, load_robot, nominal_robot
-from pipeline.lib.learning.checkpoint import load_model, make_model
-from pipeline.lib.learning.workspace import Workspace
 from pipeline.lib.sim.twin import sample_poses
-from pipeline.lib.robot.urdf import base_transform, flange_residual, joint_origins, to_urdf, ur_kinematics
 
 ROOT = Path(__file__).resolve().parents[1]
 PARAMS = load_params(ROOT / "params.yaml")

@@ -8,15 +8,15 @@ import pandas as pd
 import pytest
 from scipy.spatial.transform import Rotation
 
-from pipeline.stages import frame as frame_stage
-from pipeline.stages import ingest as ingest_stage
+from pipeline.lib.learning.validation import judge
 from pipeline.lib.project.columns import JOINTS_DEG
 from pipeline.lib.project.config import load_params, read_json
 from pipeline.lib.robot.frames import (DegenerateFit, FrameFitError, fit_frame, fit_frames, kabsch,
                                        robust_kabsch)
 from pipeline.lib.robot.kinematics import fk_numpy
 from pipeline.lib.robot.robots import load_robot, nominal_robot
-from pipeline.lib.learning.validation import judge
+from pipeline.stages import frame as frame_stage
+from pipeline.stages import ingest as ingest_stage
 
 ROOT = Path(__file__).resolve().parents[1]
 PARAMS = load_params(ROOT / "params.yaml")

@@ -16,12 +16,12 @@ from scipy.spatial.transform import Rotation
 
 from pipeline.lib.project.columns import JOINTS_DEG, MEAS, MEAS_Q
 from pipeline.lib.project.config import ParamsError, load_params
-from pipeline.stages.ingest import run
 from pipeline.lib.reading import readers
+from pipeline.lib.reading.presets import merged_params
 from pipeline.lib.reading.readers import IngestError
 from pipeline.lib.robot.kinematics import fk_numpy
-from pipeline.lib.reading.presets import merged_params
 from pipeline.lib.robot.robots import load_robot
+from pipeline.stages.ingest import run
 
 
 def ingest(params: dict):

@@ -7,8 +7,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from pipeline.stages import split
 from pipeline.lib.project.config import SECTIONS, ParamsError, load_params, section
+from pipeline.stages import split
 
 ROOT = Path(__file__).resolve().parents[1]
 PARAMS = load_params(ROOT / "params.yaml")
@@ -57,6 +57,13 @@ def test_nested_sections_and_missing_sections_are_checked():
     ("serve.timeout_s", -1, "a time > 0 s"),
     ("serve.max_items", True, "an integer >= 1"),
     ("compensate.tol_mm", float("nan"), "a tolerance > 0 mm"),
+    ("model.d_model", 0, "an integer >= 1"),                                 # issue 35: checked here, once
+    ("model.n_head", 2.0, "an integer >= 1"),
+    ("model.fade_to", 1.0, "null or a number of workspace radii > 1"),
+    ("model.physics", "learned", "nominal or calibrated"),
+    ("compensate.jacobian_of", "numeric", "physics or model"),
+    ("calibrate.tilt_joints", [2, 7], "distinct joint numbers 1-6"),
+    ("plan.handshake_io", 9, "null or a standard digital I/O number 0-7"),
 ])
 def test_a_bad_value_stops_naming_its_key(key, value, message):
     p = copy.deepcopy(PARAMS)

@@ -7,10 +7,10 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from pipeline.stages import calibrate, frame, ingest, parts, split, theory
-from pipeline.lib.sim import twin as T
-from pipeline.lib.project.config import load_params, read_json
 from pipeline.lib.learning.splits import region
+from pipeline.lib.project.config import load_params, read_json
+from pipeline.lib.sim import twin as T
+from pipeline.stages import calibrate, frame, ingest, parts, split, theory
 
 ROOT = Path(__file__).resolve().parents[1]
 PARAMS = load_params(ROOT / "params.yaml")

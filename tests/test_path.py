@@ -13,18 +13,18 @@ import torch
 from conftest import exit_code, served_model
 from pipeline.commands import path as path_command
 from pipeline.commands.bench.path import Judge, joint_motion
-from pipeline.lib.runtime import pathsolve
-from pipeline.lib.project.columns import JCOMP_DEG, JOINTS_DEG, TARGET
+from pipeline.commands.serve import make_server, url
+from pipeline.lib.learning.workspace import Workspace
 from pipeline.lib.project.artifacts import FRAME_JSON, WORKSPACE_JSON
+from pipeline.lib.project.columns import JCOMP_DEG, JOINTS_DEG, TARGET
 from pipeline.lib.project.config import ParamsError, load_params, read_json, section
 from pipeline.lib.robot.geometry import theory_geometry
 from pipeline.lib.robot.kinematics import fk_numpy
+from pipeline.lib.robot.robots import load_robot
+from pipeline.lib.runtime import pathsolve
 from pipeline.lib.runtime.paths import Arc, at, distance, n_samples, read_path, resample, segments
 from pipeline.lib.runtime.pathsolve import deviation, model_position
-from pipeline.lib.robot.robots import load_robot
 from pipeline.lib.sim.twin import sample_poses
-from pipeline.lib.learning.workspace import Workspace
-from pipeline.commands.serve import make_server, url
 
 ROOT = Path(__file__).resolve().parents[1]
 UR5 = {"model": "ur5", "dh": None, "joint_limits_deg": None, "tool_mm": [0, 0, 0], "tcp": None}

@@ -2,7 +2,7 @@
 
 `python -m pipeline.commands.plan PROGRAM.csv --n N --out DIR` on a small trained project (conftest.trained_project),
 for a program at the side of the arm, where the twin's default campaign never went; and the library
-(lib/planner/planning.py, lib/robot/poses.py) on the twin: acceptability, the tour, D-optimality against random
+(lib/planner/, lib/robot/poses.py) on the twin: acceptability, the tour, D-optimality against random
 choice, and the predicted standard errors against a Monte Carlo identification.
 """
 import json
@@ -15,17 +15,17 @@ import torch
 
 from conftest import exit_code
 from pipeline.commands import plan as plan_cmd
-from pipeline.lib.planner import design, planning, tour
-from pipeline.lib.robot import poses
+from pipeline.lib.learning.workspace import Workspace
+from pipeline.lib.planner import coverage, design, planning, tour
 from pipeline.lib.project.columns import JOINTS_DEG
 from pipeline.lib.project.config import load_params, read_json
+from pipeline.lib.robot import poses
 from pipeline.lib.robot.errormaps import coverage as angle_coverage
 from pipeline.lib.robot.identify import geometry_jacobian, identifiability, identify
 from pipeline.lib.robot.kinematics import DTYPE, fk, nominal_geometry
-from pipeline.lib.robot.robots import load_robot
 from pipeline.lib.robot.poses import RULES
+from pipeline.lib.robot.robots import load_robot
 from pipeline.lib.sim.twin import REGIONS, Twin, sample_poses, true_geometry
-from pipeline.lib.learning.workspace import Workspace
 
 N = 16
 TRACKER_MM = [-1200.0, -2600.0, 900.0]          # a new tracker placement facing the side of the arm
@@ -213,7 +213,7 @@ def twin_identification(q_deg, params, sigma):
 
 def scratch_plan(q_cand, n, ident, cover=False):
     """A plan with no training poses yet (from scratch), the candidates given."""
-    cov = planning.Coverage(np.zeros((0, 6)), 30.0, [], 3.0, 5.0)
+    cov = coverage.Coverage(np.zeros((0, 6)), 30.0, [], 3.0, 5.0)
     cand = {"q": q_cand, "near": np.full(len(q_cand), -1), "kind": np.array(["region"] * len(q_cand), object),
             "made": {}, "rejected_by": {}, "waypoints_acceptable": np.ones(0, bool)}
     return planning.plan(q_cand[:3], n, cov, ident, cand, cover=cover)

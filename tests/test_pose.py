@@ -4,16 +4,16 @@ import numpy as np
 import torch
 from scipy.spatial.transform import Rotation
 
+from pipeline.lib.learning.model import PhysicsOnly
 from pipeline.lib.robot import errormaps as E
-from pipeline.lib.sim import twin as T
-from pipeline.lib.runtime.compensation import solve
 from pipeline.lib.robot.frames import probe_rotation
 from pipeline.lib.robot.identify import identify
 from pipeline.lib.robot.kinematics import (DTYPE, TOOL_ROT, DHChain, angular_jacobian, fk_pose,
                                            gravity_torques, nominal_geometry, rotation_error)
-from pipeline.lib.learning.model import PhysicsOnly
 from pipeline.lib.robot.robots import nominal_robot
 from pipeline.lib.robot.tcp import AtTcp, pose_errors, probe_offsets
+from pipeline.lib.runtime.compensation import solve
+from pipeline.lib.sim import twin as T
 from pipeline.stages.parts import chain_residual
 
 UR5 = nominal_robot("ur5")

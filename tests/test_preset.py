@@ -4,9 +4,9 @@ from pathlib import Path
 import pytest
 import yaml
 
-from pipeline.lib.reading.presets import PRESETS, apply_preset, changes, deep_merge, merged_params
-from pipeline.lib.project.config import section
 from pipeline.commands.preset import main
+from pipeline.lib.project.config import section
+from pipeline.lib.reading.presets import PRESETS, apply_preset, changes, deep_merge, merged_params
 
 ROOT = Path(__file__).resolve().parents[1]
 BASE = yaml.safe_load((ROOT / "params.yaml").read_text())

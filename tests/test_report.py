@@ -13,17 +13,17 @@ import pandas as pd
 import pytest
 import yaml
 
-from pipeline.stages import report
-from pipeline.lib.reporting import figures, page
-from pipeline.lib.robot.errormaps import as_geometry
-from pipeline.lib.reporting import summary as sheet
+from pipeline.lib.learning.checkpoint import make_model, save_model
+from pipeline.lib.learning.metrics import drive_table, regression_metrics
+from pipeline.lib.learning.validation import summary
 from pipeline.lib.project.columns import AXES, JOINTS_DEG, MEAS, PRED, THEORY
 from pipeline.lib.project.config import for_stage, load_params, read_json, write_json
+from pipeline.lib.reporting import figures, page
+from pipeline.lib.reporting import summary as sheet
+from pipeline.lib.robot.errormaps import as_geometry
 from pipeline.lib.robot.kinematics import nominal_geometry
-from pipeline.lib.learning.metrics import drive_table, regression_metrics
 from pipeline.lib.robot.robots import nominal_robot
-from pipeline.lib.learning.checkpoint import make_model, save_model
-from pipeline.lib.learning.validation import summary
+from pipeline.stages import report
 
 ROOT = Path(__file__).resolve().parents[1]
 SMALL_MODEL = {"d_model": 12, "n_head": 2, "n_layer": 2, "d_hidden": 16}

@@ -8,13 +8,13 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pipeline.lib.reading import readers
-from pipeline.lib.project.config import load_params
-from pipeline.lib.robot.kinematics import fk_numpy, nominal_geometry
 from pipeline.lib.learning.model import BoTER
+from pipeline.lib.project.config import load_params
+from pipeline.lib.project.writing import csv_text
+from pipeline.lib.reading import readers
+from pipeline.lib.robot.kinematics import fk_numpy, nominal_geometry
 from pipeline.lib.robot.robots import load_robot, nominal_robot
 from pipeline.lib.runtime.solvers import compensate
-from pipeline.lib.project.writing import csv_text
 
 ROOT = Path(__file__).resolve().parents[1]
 ROBOT_CFG = {"model": "ur5", "tool_mm": [10.0, -5.0, 120.0], "dh": None, "joint_limits_deg": None, "tcp": None}

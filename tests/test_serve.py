@@ -19,15 +19,15 @@ import onnx
 import pytest
 import torch
 
+from pipeline.lib.learning.checkpoint import load_model
 from pipeline.lib.project.columns import JOINTS_DEG, THEORY
 from pipeline.lib.project.config import load_params
-from pipeline.lib.learning.checkpoint import load_model
 from conftest import ENV, project_points, served_model
 from pipeline.commands import serve as serve_module
+from pipeline.commands.serve import make_server, url
 from pipeline.lib.learning.model import PhysicsOnly
 from pipeline.lib.learning.onnx_model import OnnxRealtime
 from pipeline.lib.runtime.realtime import Realtime
-from pipeline.commands.serve import make_server, url
 
 ROOT = Path(__file__).resolve().parents[1]
 @pytest.fixture(scope="module")

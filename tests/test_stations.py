@@ -8,18 +8,18 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from pipeline.stages import calibrate, frame, ingest, split, theory
-from pipeline.lib.robot import identify as C
-from pipeline.lib.sim import twin as T
+from pipeline.lib.learning.splits import split_indices
 from pipeline.lib.project.columns import CAMPAIGN, JOINTS_DEG, MEAS, STATION
 from pipeline.lib.project.config import load_params, read_json
+from pipeline.lib.reading.presets import merged_params
+from pipeline.lib.robot import identify as C
 from pipeline.lib.robot.frames import FrameFitError, fit_frames
 from pipeline.lib.robot.geometry import Calibration, aligned, theory_geometry
 from pipeline.lib.robot.kinematics import DTYPE, fk, nominal_geometry, rigid_xyz
 from pipeline.lib.robot.robots import load_robot
-from pipeline.lib.reading.presets import merged_params
 from pipeline.lib.robot.robots import nominal_robot
-from pipeline.lib.learning.splits import split_indices
+from pipeline.lib.sim import twin as T
+from pipeline.stages import calibrate, frame, ingest, split, theory
 
 ROOT = Path(__file__).resolve().parents[1]
 PARAMS = load_params(ROOT / "params.yaml")

@@ -10,16 +10,16 @@ import pandas as pd
 import pytest
 import torch
 
+from pipeline.lib.learning.checkpoint import load_model, make_model, save_model
+from pipeline.lib.learning.loss import SPILoss, data_loss
+from pipeline.lib.learning.model import tensors
+from pipeline.lib.learning.training import EpochGraph, fit, mae_3d, resolve_device, train_boter
+from pipeline.lib.project import config
 from pipeline.lib.project.columns import ERR, JOINTS_DEG, MEAS, THEORY
+from pipeline.lib.project.config import load_params
 from pipeline.lib.robot.kinematics import fk_numpy, nominal_geometry
 from pipeline.lib.robot.robots import load_robot
 from pipeline.stages import train as train_stage
-from pipeline.lib.project import config
-from pipeline.lib.project.config import load_params
-from pipeline.lib.learning.loss import SPILoss, data_loss
-from pipeline.lib.learning.checkpoint import load_model, make_model, save_model
-from pipeline.lib.learning.model import tensors
-from pipeline.lib.learning.training import EpochGraph, fit, mae_3d, resolve_device, train_boter
 
 CUDA = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU (torch sees none)")
 

@@ -7,12 +7,12 @@ import pandas as pd
 import pytest
 import torch
 
-from pipeline.lib.sim import twin as T
-from pipeline.lib.sim.difficulty import difficulty
-from pipeline.lib.sim.twin_files import generate
 from pipeline.lib.project.columns import JOINTS_DEG
 from pipeline.lib.project.config import load_params
 from pipeline.lib.robot.kinematics import DTYPE, fk, fk_numpy, link_frames
+from pipeline.lib.sim import twin as T
+from pipeline.lib.sim.difficulty import difficulty
+from pipeline.lib.sim.twin_files import generate
 
 ROOT = Path(__file__).resolve().parents[1]
 RAW = ROOT / "data" / "raw"

@@ -8,14 +8,14 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from pipeline.stages import validate
-from pipeline.lib.sim import twin as T
-from pipeline.lib.project.config import load_params, write_json
-from pipeline.lib.robot.kinematics import fk, flange_rotations, fk_numpy, nominal_geometry, save_geometry
-from pipeline.lib.robot.robots import nominal_robot
 from pipeline.lib.learning.checkpoint import make_model, save_model
 from pipeline.lib.learning.validation import METHODS, judge, position_accuracy, registration_subset, summary
 from pipeline.lib.learning.workspace import Workspace
+from pipeline.lib.project.config import load_params, write_json
+from pipeline.lib.robot.kinematics import fk, flange_rotations, fk_numpy, nominal_geometry, save_geometry
+from pipeline.lib.robot.robots import nominal_robot
+from pipeline.lib.sim import twin as T
+from pipeline.stages import validate
 
 ROOT = Path(__file__).resolve().parents[1]
 PARAMS = load_params(ROOT / "params.yaml")

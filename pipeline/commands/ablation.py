@@ -26,9 +26,9 @@ from pipeline.lib.learning import sweep
 from pipeline.lib.learning.ablations import GROUPS, Data, Job, train_one
 from pipeline.lib.project.artifacts import REPORTS, TIMINGS
 from pipeline.lib.project.config import for_stage, load_params, logger, read_json, split_timings, write_json
+from pipeline.lib.reading.prepared import load_prepared
 from pipeline.lib.reporting.figures import fig_ablation, save
 from pipeline.lib.reporting.paper import PAPER_ABLATION, PAPER_ABLATION_EPOCHS
-from pipeline.lib.reading.prepared import load_prepared
 
 log = logger(__name__)
 OUT = REPORTS / "ablation"

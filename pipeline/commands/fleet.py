@@ -36,8 +36,8 @@ import numpy as np
 import yaml
 
 from pipeline.lib.learning import sweep
-from pipeline.lib.reading.campaigns import write_pair
 from pipeline.lib.project.config import load_params, logger, read_json, write_json
+from pipeline.lib.reading.campaigns import write_pair
 from pipeline.lib.reading.presets import deep_merge
 from pipeline.lib.sim.twin import Twin
 

@@ -41,24 +41,24 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from pipeline.lib.learning.checkpoint import load_model
+from pipeline.lib.learning.model import served
+from pipeline.lib.learning.workspace import Workspace
 from pipeline.lib.project.artifacts import FRAME_JSON, MODEL_WEIGHTS, WORKSPACE_JSON
 from pipeline.lib.project.cli import Refused, one_line
 from pipeline.lib.project.columns import JCOMP_DEG
-from pipeline.lib.runtime.compensation import reach_mm
 from pipeline.lib.project.config import for_stage, load_params, logger, read_json
+from pipeline.lib.project.writing import check_outputs, csv_text, write_together
 from pipeline.lib.robot.geometry import theory_geometry
 from pipeline.lib.robot.kinematics import fk_numpy
-from pipeline.lib.learning.model import served
+from pipeline.lib.robot.robots import load_robot
+from pipeline.lib.robot.tcp import at_tcp
+from pipeline.lib.robot.urdf import tcp_transforms
+from pipeline.lib.runtime.compensation import reach_mm
 from pipeline.lib.runtime.paths import n_samples, read_path, resample, rotations_at
 from pipeline.lib.runtime.pathsolve import (beyond_reach, deviation, finish, joint_speeds, model_position,
                                             refine, refusal, solve_path, urscript)
-from pipeline.lib.robot.robots import load_robot
-from pipeline.lib.learning.checkpoint import load_model
-from pipeline.lib.robot.tcp import at_tcp
-from pipeline.lib.robot.urdf import tcp_transforms
 from pipeline.lib.runtime.waypoints import flange_targets
-from pipeline.lib.learning.workspace import Workspace
-from pipeline.lib.project.writing import check_outputs, csv_text, write_together
 
 log = logger(__name__)
 PARAMS = ("robot", "compensate", "program", "path")

@@ -36,20 +36,22 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from pipeline.lib.learning.workspace import Workspace
+from pipeline.lib.planner.design import Identification, MapBlock
+from pipeline.lib.planner.candidates import candidates, program_joints
+from pipeline.lib.planner.coverage import Coverage
+from pipeline.lib.planner.planning import plan
 from pipeline.lib.project.artifacts import (CALIBRATED_GEOMETRY, CALIBRATION_JSON, FRAME_JSON, PARTS_JSON,
                                             PARTS_REPORT, WORKSPACE_JSON)
+from pipeline.lib.project.cli import Refused, one_line
 from pipeline.lib.project.columns import JOINTS_DEG, TARGET
 from pipeline.lib.project.config import for_stage, json_text, load_params, logger, read_json
+from pipeline.lib.project.writing import check_outputs, csv_text, write_together
 from pipeline.lib.robot.geometry import Calibration
 from pipeline.lib.robot.identify import parameter_spec
 from pipeline.lib.robot.kinematics import nominal_geometry
-from pipeline.lib.planner.design import Identification, MapBlock
-from pipeline.lib.planner.planning import Coverage, candidates, plan, program_joints
 from pipeline.lib.robot.robots import load_robot
-from pipeline.lib.project.cli import Refused, one_line
 from pipeline.lib.runtime.waypoints import read_waypoints
-from pipeline.lib.learning.workspace import Workspace
-from pipeline.lib.project.writing import check_outputs, csv_text, write_together
 
 log = logger(__name__)
 PARAMS = ("robot", "calibrate", "parts", "split", "plan")

@@ -38,19 +38,19 @@ import numpy as np
 import pandas as pd
 import torch
 
+from pipeline.lib.learning.checkpoint import load_model
+from pipeline.lib.learning.model import served
+from pipeline.lib.learning.workspace import Workspace
 from pipeline.lib.project.artifacts import FRAME_JSON, MODEL_WEIGHTS, WORKSPACE_JSON
+from pipeline.lib.project.cli import Refused, one_line
 from pipeline.lib.project.columns import JCOMP_DEG
 from pipeline.lib.project.config import for_stage, load_params, logger, read_json
+from pipeline.lib.project.writing import check_outputs, csv_text, write_together
 from pipeline.lib.robot.geometry import theory_geometry
 from pipeline.lib.robot.robots import load_robot
-from pipeline.lib.learning.model import served
-from pipeline.lib.learning.checkpoint import load_model
-from pipeline.lib.project.cli import Refused, one_line
-from pipeline.lib.runtime.waypoints import ID_PATTERN, compensate_program, read_waypoints, unreached
 from pipeline.lib.robot.tcp import at_tcp
 from pipeline.lib.robot.urdf import tcp_transforms
-from pipeline.lib.learning.workspace import Workspace
-from pipeline.lib.project.writing import check_outputs, csv_text, write_together
+from pipeline.lib.runtime.waypoints import ID_PATTERN, compensate_program, read_waypoints, unreached
 
 log = logger(__name__)
 PARAMS = ("robot", "compensate", "program")

@@ -66,24 +66,24 @@ from xmlrpc.server import SimpleXMLRPCRequestHandler, SimpleXMLRPCServer
 import numpy as np
 import torch
 
+from pipeline.lib.learning.checkpoint import load_model
+from pipeline.lib.learning.model import served
+from pipeline.lib.learning.onnx_model import OnnxRealtime, deviation
+from pipeline.lib.learning.workspace import Workspace
 from pipeline.lib.project.artifacts import (CONTROLLER_ONNX, CONTROLLER_PHYSICS_ONNX,
                                             CONTROLLER_PHYSICS_TCP_ONNX, CONTROLLER_TCP_ONNX, MODEL_WEIGHTS,
                                             WORKSPACE_JSON)
-from pipeline.lib.runtime.compensation import reach_mm
 from pipeline.lib.project.config import (PARAMS as PARAMS_YAML, ParamsError, for_stage, load_params, logger,
                                          read_json)
-from pipeline.lib.learning.model import served
-from pipeline.lib.learning.onnx_model import OnnxRealtime, deviation
-from pipeline.lib.runtime.pathsolve import joint_speeds
-from pipeline.lib.runtime.realtime import Realtime
-from pipeline.lib.robot.robots import load_robot
-from pipeline.lib.runtime.service import RequestError, Service
-from pipeline.lib.robot.tcp import at_tcp
-from pipeline.lib.robot.urdf import tcp_transforms
 from pipeline.lib.robot.geometry import theory_geometry
 from pipeline.lib.robot.kinematics import TOOL_ROT, tool_rotation
-from pipeline.lib.learning.checkpoint import load_model
-from pipeline.lib.learning.workspace import Workspace
+from pipeline.lib.robot.robots import load_robot
+from pipeline.lib.robot.tcp import at_tcp
+from pipeline.lib.robot.urdf import tcp_transforms
+from pipeline.lib.runtime.compensation import reach_mm
+from pipeline.lib.runtime.pathsolve import joint_speeds
+from pipeline.lib.runtime.realtime import Realtime
+from pipeline.lib.runtime.service import RequestError, Service
 
 log = logger(__name__)
 PATH = "/RPC2"

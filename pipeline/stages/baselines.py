@@ -17,15 +17,15 @@ from pathlib import Path
 
 import pandas as pd
 
+from pipeline.lib.learning.model import predict
+from pipeline.lib.learning.training import train_boter, train_dnn
 from pipeline.lib.project.artifacts import BASELINES_JSON, BASELINES_TABLE, HERE, PARAMS_FILE, TIMINGS
 from pipeline.lib.project.cli import one_line
 from pipeline.lib.project.columns import JOINTS_DEG
 from pipeline.lib.project.config import for_stage, load_params, logger, split_timings, write_json
+from pipeline.lib.reading.prepared import load_prepared
 from pipeline.lib.robot.geometry import physics_geometry
 from pipeline.lib.robot.kinematics import fk_numpy
-from pipeline.lib.learning.model import predict
-from pipeline.lib.reading.prepared import load_prepared
-from pipeline.lib.learning.training import train_boter, train_dnn
 
 log = logger(__name__)
 PARAMS = ("robot", "model", "loss", "train", "baselines", "workspace")

@@ -25,27 +25,27 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from pipeline.lib.learning.checkpoint import load_model
+from pipeline.lib.learning.metrics import stats
+from pipeline.lib.learning.model import served
+from pipeline.lib.learning.workspace import Workspace
 from pipeline.lib.project.artifacts import (COMPENSATION_CSV, COMPENSATION_JSON, COMPENSATION_PARQUET,
                                             CONVERGENCE_CSV, DRIVE_CSV, HERE, INGEST_JSON, MODEL_WEIGHTS,
                                             PARAMS_FILE, REPORTS, TIMINGS, WORKSPACE_JSON, rooted)
-from pipeline.lib.reading.campaigns import ingested_sha256, made_by_twin
 from pipeline.lib.project.cli import one_line
 from pipeline.lib.project.columns import JCOMP_DEG, JOINTS_DEG, TARGET, THEORY
-from pipeline.lib.runtime.compensation import delta_table, nominal_flange, orientation_targets, solve
 from pipeline.lib.project.config import for_stage, load_params, logger, read_json, split_timings, write_json
-from pipeline.lib.learning.model import served
-from pipeline.lib.runtime.realtime import Realtime, check
-from pipeline.lib.robot.kinematics import fk_numpy, tool_rotation
-from pipeline.lib.learning.metrics import stats
-from pipeline.lib.robot.geometry import theory_geometry
+from pipeline.lib.reading.campaigns import ingested_sha256, made_by_twin
 from pipeline.lib.reading.prepared import load_prepared
+from pipeline.lib.robot.geometry import theory_geometry
+from pipeline.lib.robot.kinematics import fk_numpy, tool_rotation
 from pipeline.lib.robot.robots import load_robot
-from pipeline.lib.runtime.solvers import SOLVERS
-from pipeline.lib.learning.checkpoint import load_model
 from pipeline.lib.robot.tcp import AtTcp, probe_offsets
+from pipeline.lib.runtime.compensation import delta_table, nominal_flange, orientation_targets, solve
+from pipeline.lib.runtime.realtime import Realtime, check
+from pipeline.lib.runtime.solvers import SOLVERS
 from pipeline.lib.sim.drive import drive_check, tcp_drive_check
 from pipeline.lib.sim.twin import Twin
-from pipeline.lib.learning.workspace import Workspace
 
 log = logger(__name__)
 PARAMS = ("robot", "compensate")

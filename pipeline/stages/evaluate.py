@@ -29,20 +29,20 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from pipeline.lib.learning.checkpoint import load_model
+from pipeline.lib.learning.metrics import split_metrics
+from pipeline.lib.learning.model import PhysicsOnly
+from pipeline.lib.learning.model import predict
+from pipeline.lib.learning.workspace import Workspace
 from pipeline.lib.project.artifacts import (BASELINES_MD, BASELINES_TABLE, HEADLINE_JSON, HERE, METRICS_JSON,
                                             MODEL_WEIGHTS, PARAMS_FILE, PREDICTIONS_TABLE, WORKSPACE_JSON)
 from pipeline.lib.project.cli import one_line
 from pipeline.lib.project.columns import CAMPAIGN, JOINTS_DEG, MEAS, PRED, SPLITS, STATION, THEORY
-from pipeline.lib.robot.frames import measured_rotations
 from pipeline.lib.project.config import for_stage, load_params, logger, write_json
-from pipeline.lib.robot.geometry import theory_geometry
-from pipeline.lib.learning.metrics import split_metrics
-from pipeline.lib.learning.model import PhysicsOnly
 from pipeline.lib.reading.prepared import load_prepared
+from pipeline.lib.robot.frames import measured_rotations
+from pipeline.lib.robot.geometry import theory_geometry
 from pipeline.lib.robot.tcp import pose_errors, pose_of, probe_offsets
-from pipeline.lib.learning.checkpoint import load_model
-from pipeline.lib.learning.model import predict
-from pipeline.lib.learning.workspace import Workspace
 
 log = logger(__name__)
 PARAMS = ("robot", "workspace")

@@ -49,6 +49,10 @@ import torch
 import yaml
 from scipy.spatial.transform import Rotation
 
+from pipeline.lib.learning.checkpoint import load_model
+from pipeline.lib.learning.model import PhysicsOnly
+from pipeline.lib.learning.onnx_model import (OnnxModel, OnnxRealtime, deviation, export_controller,
+                                              export_onnx)
 from pipeline.lib.project.artifacts import (CALIBRATED_GEOMETRY, CONTROLLER_ONNX, CONTROLLER_PHYSICS_ONNX,
                                             CONTROLLER_PHYSICS_TCP_ONNX, CONTROLLER_POSE_ONNX,
                                             CONTROLLER_TCP_ONNX, EXPORT_JSON, FRAME_JSON, HERE, MODEL_ONNX,
@@ -59,18 +63,14 @@ from pipeline.lib.project.columns import JOINTS_DEG, THEORY
 from pipeline.lib.project.config import for_stage, load_params, logger, read_json, write_json
 from pipeline.lib.robot.geometry import Calibration, theory_geometry, with_parts
 from pipeline.lib.robot.identify import identify
+from pipeline.lib.robot.kinematics import DTYPE, RIGID_KEYS, TOOL_ROT, fk, fk_frames, fk_numpy, fk_pose
+from pipeline.lib.robot.robots import TABLES, load_robot
+from pipeline.lib.robot.tcp import AtTcp, probe_offsets
+from pipeline.lib.robot.urdf import (UR_YAML_NAMES, base_transform, flange_residual, joint_origins, to_urdf,
+                                     ur_kinematics)
 from pipeline.lib.runtime.compensation import nominal_flange
 from pipeline.lib.runtime.realtime import DAMPING, Realtime, two_steps
 from pipeline.lib.runtime.solvers import pose_weight
-from pipeline.lib.robot.kinematics import DTYPE, RIGID_KEYS, TOOL_ROT, fk, fk_frames, fk_numpy, fk_pose
-from pipeline.lib.learning.model import PhysicsOnly
-from pipeline.lib.learning.onnx_model import (OnnxModel, OnnxRealtime, deviation, export_controller,
-                                              export_onnx)
-from pipeline.lib.robot.robots import TABLES, load_robot
-from pipeline.lib.robot.tcp import AtTcp, probe_offsets
-from pipeline.lib.learning.checkpoint import load_model
-from pipeline.lib.robot.urdf import (UR_YAML_NAMES, base_transform, flange_residual, joint_origins, to_urdf,
-                                     ur_kinematics)
 
 log = logger(__name__)
 PARAMS = ("robot", "calibrate", "compensate")

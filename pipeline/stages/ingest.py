@@ -20,11 +20,11 @@ import pandas as pd
 
 from pipeline.lib.project.artifacts import (CAMPAIGNS_DIR, CAMPAIGNS_REPORTS, HERE, INGEST_JSON,
                                             INGEST_TABLE, PARAMS_FILE, rooted_files)
-from pipeline.lib.reading.campaigns import (campaign_entry, campaign_ingest, campaign_stations, file_sha256,
-                                            point_id)
 from pipeline.lib.project.cli import one_line
 from pipeline.lib.project.columns import CAMPAIGN, MEAS, MEAS_Q, STATION
 from pipeline.lib.project.config import for_stage, load_params, logger, read_json, write_json
+from pipeline.lib.reading.campaigns import (campaign_entry, campaign_ingest, campaign_stations, file_sha256,
+                                            point_id)
 from pipeline.lib.reading.readers import ingest
 from pipeline.lib.robot.robots import load_robot
 

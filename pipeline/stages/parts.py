@@ -17,14 +17,14 @@ import numpy as np
 import pandas as pd
 import torch
 
-from pipeline.lib.robot import errormaps
 from pipeline.lib.project.artifacts import (CALIBRATED_GEOMETRY, CALIBRATION_JSON, FRAME_JSON, HERE,
                                             INGEST_TABLE, PARAMS_FILE, PARTS_JSON, PARTS_REPORT, load_points)
 from pipeline.lib.project.cli import one_line
 from pipeline.lib.project.columns import JOINTS_DEG, MEAS, SPLITS
 from pipeline.lib.project.config import for_stage, load_params, logger, read_json, write_json
-from pipeline.lib.robot.geometry import Calibration, aligned, theory_geometry
+from pipeline.lib.robot import errormaps
 from pipeline.lib.robot.frames import measured_rotations
+from pipeline.lib.robot.geometry import Calibration, aligned, theory_geometry
 from pipeline.lib.robot.identify import (corrected, errors_3d, geometry_jacobian, in_units,
                                          orientation_errors, orientation_weight)
 from pipeline.lib.robot.kinematics import (DTYPE, angular_jacobian, fk, fk_jacobian, fk_pose,

@@ -22,7 +22,7 @@ import pandas as pd
 
 import pyarrow.parquet as pq
 
-from pipeline.lib.reporting import figures, page, summary
+from pipeline.lib.learning.checkpoint import load_model
 from pipeline.lib.project.artifacts import (BASELINES_MD, BASELINES_TABLE, CALIBRATION_JSON,
                                             COMPENSATION_JSON, CONVERGENCE_CSV, DRIVE_CSV, EXPORT_JSON,
                                             FRAME_JSON, HERE, INGEST_JSON, INGEST_TABLE, LIVE, METRICS_JSON,
@@ -32,7 +32,7 @@ from pipeline.lib.project.artifacts import (BASELINES_MD, BASELINES_TABLE, CALIB
 from pipeline.lib.project.cli import one_line
 from pipeline.lib.project.columns import MEAS, PRED, THEORY
 from pipeline.lib.project.config import for_stage, load_params, logger, read_json
-from pipeline.lib.learning.checkpoint import load_model
+from pipeline.lib.reporting import figures, page, summary
 
 log = logger(__name__)
 PARAMS = ("robot", "ingest", "campaigns", "frame", "split", "calibrate", "parts", "model", "loss", "train", "baselines",

@@ -16,11 +16,11 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from pipeline.lib.learning.splits import region, split_indices
 from pipeline.lib.project.artifacts import HERE, PARAMS_FILE, POINTS_TABLE, SPLIT_JSON, SPLIT_TABLE
 from pipeline.lib.project.cli import one_line
 from pipeline.lib.project.columns import CAMPAIGN, JOINTS_DEG, SPLITS
 from pipeline.lib.project.config import for_stage, json_text, load_params, logger
-from pipeline.lib.learning.splits import region, split_indices
 from pipeline.lib.project.writing import write_together
 
 log = logger(__name__)

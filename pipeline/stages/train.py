@@ -11,14 +11,14 @@ from pathlib import Path
 
 from dvclive import Live
 
+from pipeline.lib.learning.checkpoint import save_model
+from pipeline.lib.learning.model import check_config
+from pipeline.lib.learning.training import resolve_device, train_boter
 from pipeline.lib.project.artifacts import HERE, LIVE, MODEL_WEIGHTS, PARAMS_FILE, TIMINGS, TRAIN_JSON
 from pipeline.lib.project.cli import one_line
 from pipeline.lib.project.config import for_stage, load_params, logger, split_timings, write_json
-from pipeline.lib.robot.geometry import physics_geometry
 from pipeline.lib.reading.prepared import load_prepared
-from pipeline.lib.learning.model import check_config
-from pipeline.lib.learning.checkpoint import save_model
-from pipeline.lib.learning.training import resolve_device, train_boter
+from pipeline.lib.robot.geometry import physics_geometry
 
 log = logger(__name__)
 PARAMS = ("robot", "model", "loss", "train", "workspace")

@@ -21,27 +21,27 @@ import pandas as pd
 import torch
 from scipy.spatial.transform import Rotation
 
+from pipeline.lib.learning.checkpoint import load_model
+from pipeline.lib.learning.model import predict
+from pipeline.lib.learning.validation import METHODS, judge, judge_poses, position_accuracy, summary
+from pipeline.lib.learning.workspace import Workspace
 from pipeline.lib.project.artifacts import (CALIBRATED_GEOMETRY, FRAME_JSON, HERE, INGEST_JSON,
                                             MODEL_WEIGHTS, PARAMS_FILE, PARTS_JSON, VALIDATION_DIR,
                                             VALIDATION_HEADLINE, VALIDATION_JSON, VALIDATION_TABLE,
                                             WORKSPACE_JSON, rooted, rooted_files)
 from pipeline.lib.project.cli import one_line
-from pipeline.lib.reading.campaigns import ingested_sha256, made_by_twin, named_campaign, pair_sha256
 from pipeline.lib.project.columns import JOINTS_DEG, MEAS
 from pipeline.lib.project.config import check_keys, for_stage, load_params, logger, read_json, write_json
-from pipeline.lib.robot.errormaps import angle_covered
-from pipeline.lib.robot.geometry import Calibration, at_temperature, theory_geometry, with_parts
-from pipeline.lib.robot.frames import measured_rotations
-from pipeline.lib.robot.identify import orientation_weight
-from pipeline.lib.robot.kinematics import DTYPE, TOOL_ROT, fk_numpy, fk_pose, flange_rotations
+from pipeline.lib.reading.campaigns import ingested_sha256, made_by_twin, named_campaign, pair_sha256
 from pipeline.lib.reading.presets import deep_merge
 from pipeline.lib.reading.readers import ingest
+from pipeline.lib.robot.errormaps import angle_covered
+from pipeline.lib.robot.frames import measured_rotations
+from pipeline.lib.robot.geometry import Calibration, at_temperature, theory_geometry, with_parts
+from pipeline.lib.robot.identify import orientation_weight
+from pipeline.lib.robot.kinematics import DTYPE, TOOL_ROT, fk_numpy, fk_pose, flange_rotations
 from pipeline.lib.robot.robots import load_robot
-from pipeline.lib.learning.checkpoint import load_model
-from pipeline.lib.learning.model import predict
 from pipeline.lib.robot.tcp import probe_offsets
-from pipeline.lib.learning.validation import METHODS, judge, judge_poses, position_accuracy, summary
-from pipeline.lib.learning.workspace import Workspace
 
 log = logger(__name__)
 PARAMS = {"campaign": ("robot", "ingest", "frame", "calibrate", "validate", "compensate"),      # validate@NAME

@@ -17,7 +17,6 @@
 """
 import argparse
 
-from pipeline.lib.learning.sweep import ENGINES
 from pipeline.commands.bench.path import PATHS, SPACINGS, bench_path
 from pipeline.commands.bench.plan import VARIANTS, bench_plan
 from pipeline.commands.bench.real import REAL_SETS, bench_real
@@ -25,6 +24,7 @@ from pipeline.commands.bench.scale import bench_scale
 from pipeline.commands.bench.serve import bench_hostile, bench_serve
 from pipeline.commands.bench.speed import bench_speed
 from pipeline.commands.bench.sweep import bench_sweep
+from pipeline.lib.learning.sweep import ENGINES
 
 
 def main(argv=None):

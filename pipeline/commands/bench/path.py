@@ -21,6 +21,10 @@ from types import SimpleNamespace
 import numpy as np
 import pandas as pd
 
+from pipeline.commands.bench.common import BENCH, ROOT, machine
+from pipeline.lib.learning.checkpoint import load_model
+from pipeline.lib.learning.model import PhysicsOnly, served
+from pipeline.lib.learning.workspace import Workspace
 from pipeline.lib.project.artifacts import FRAME_JSON, MODEL_WEIGHTS, WORKSPACE_JSON
 from pipeline.lib.project.columns import JCOMP_DEG, JOINTS_DEG, TARGET
 from pipeline.lib.project.config import load_params, logger, read_json, write_json
@@ -28,16 +32,12 @@ from pipeline.lib.reporting.figures import _plt, save
 from pipeline.lib.robot.frames import to_base
 from pipeline.lib.robot.geometry import theory_geometry
 from pipeline.lib.robot.kinematics import DHChain, fk_numpy
-from pipeline.lib.learning.model import PhysicsOnly, served
-from pipeline.lib.runtime.paths import at, distance, resample, segments
-from pipeline.lib.runtime.pathsolve import deviation, model_position, refine, solve_path
 from pipeline.lib.robot.robots import load_robot
 from pipeline.lib.robot.tcp import at_tcp, probe_offsets
-from pipeline.lib.learning.checkpoint import load_model
-from pipeline.lib.sim.twin import Twin, sample_poses
+from pipeline.lib.runtime.paths import at, distance, resample, segments
+from pipeline.lib.runtime.pathsolve import deviation, model_position, refine, solve_path
 from pipeline.lib.runtime.waypoints import compensate_program
-from pipeline.lib.learning.workspace import Workspace
-from pipeline.commands.bench.common import BENCH, ROOT, machine
+from pipeline.lib.sim.twin import Twin, sample_poses
 
 log = logger(__name__)
 FINE_MM = 0.25                        # the motion judged this often along the path

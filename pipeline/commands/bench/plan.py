@@ -54,25 +54,27 @@ import yaml
 from scipy.spatial.transform import Rotation
 
 from pipeline import stages
+from pipeline.commands.bench.common import BENCH, ROOT, machine
+from pipeline.commands.bench.real import absolute_paths, overridden
+from pipeline.lib.learning.checkpoint import load_model
+from pipeline.lib.learning.workspace import Workspace, workspace_radius
+from pipeline.lib.planner.design import Identification
+from pipeline.lib.planner.candidates import candidates
+from pipeline.lib.planner.coverage import Coverage
+from pipeline.lib.planner.planning import plan
 from pipeline.lib.project.artifacts import (CALIBRATED_GEOMETRY, CALIBRATION_JSON, COMPENSATION_JSON,
                                             FRAME_JSON, METRICS_JSON, MODEL_WEIGHTS, PARAMS_FILE, VALIDATION_DIR,
                                             WORKSPACE_JSON)
-from pipeline.lib.reading.campaigns import write_pair
 from pipeline.lib.project.columns import JCOMP_DEG, JOINTS_DEG
 from pipeline.lib.project.config import load_params, logger, read_json, write_json
+from pipeline.lib.reading.campaigns import write_pair
 from pipeline.lib.robot.frames import to_base
 from pipeline.lib.robot.geometry import Calibration, theory_geometry
 from pipeline.lib.robot.identify import geometry_jacobian, identifiability, identify
 from pipeline.lib.robot.kinematics import DTYPE, fk, nominal_geometry
-from pipeline.lib.planner.design import Identification
-from pipeline.lib.planner.planning import Coverage, candidates, plan
 from pipeline.lib.robot.robots import load_robot
-from pipeline.lib.learning.checkpoint import load_model
-from pipeline.lib.sim.twin import REGIONS, Twin, sample_poses
 from pipeline.lib.runtime.waypoints import compensate_program
-from pipeline.lib.learning.workspace import Workspace, workspace_radius
-from pipeline.commands.bench.common import BENCH, ROOT, machine
-from pipeline.commands.bench.real import absolute_paths, overridden
+from pipeline.lib.sim.twin import REGIONS, Twin, sample_poses
 
 log = logger(__name__)
 OUT = BENCH / "plan.json"

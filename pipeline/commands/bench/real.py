@@ -31,19 +31,19 @@ import numpy as np
 import pandas as pd
 import yaml
 
-from pipeline.lib.learning import sweep
 from pipeline import stages
+from pipeline.commands.bench.common import BENCH, DATASETS, ROOT
+from pipeline.lib.learning import sweep
 from pipeline.lib.project.artifacts import (INGEST_JSON, INGEST_TABLE, METRICS_JSON, PARAMS_FILE, PREDICTIONS_TABLE,
                                             VALIDATION_DIR)
 from pipeline.lib.project.columns import JOINTS_DEG, MEAS, PRED
 from pipeline.lib.project.config import load_params, logger, read_json, write_json
-from pipeline.lib.robot.kinematics import fk_numpy
 from pipeline.lib.reading.prepared import load_prepared
 from pipeline.lib.reading.presets import merged_params
+from pipeline.lib.robot.kinematics import fk_numpy
 from pipeline.lib.robot.robots import load_robot
 from pipeline.lib.sim.twin import SEED
 from pipeline.lib.sim.twin_files import generate
-from pipeline.commands.bench.common import BENCH, DATASETS, ROOT
 
 log = logger(__name__)
 # name: the preset merged over params.yaml (None: params.yaml, the twin), the dataset it needs under

@@ -17,11 +17,11 @@ import numpy as np
 import pandas as pd
 import yaml
 
+from pipeline.commands.bench.common import BENCH, ROOT, machine
 from pipeline.lib.project.columns import JOINTS_DEG
 from pipeline.lib.project.config import load_params, logger, read_json, write_json
 from pipeline.lib.robot.kinematics import fk_numpy
 from pipeline.lib.robot.robots import load_robot
-from pipeline.commands.bench.common import BENCH, ROOT, machine
 
 log = logger(__name__)
 POSES = ROOT / "data" / "raw" / "joints.csv"

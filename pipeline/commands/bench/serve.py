@@ -23,10 +23,10 @@ from pathlib import Path
 import numpy as np
 import psutil
 
+from pipeline.commands.bench.common import BENCH, ROOT, machine
 from pipeline.lib.project.columns import JOINTS_DEG, THEORY
 from pipeline.lib.project.config import load_params, logger, read_json, write_json
 from pipeline.lib.reading.prepared import load_prepared
-from pipeline.commands.bench.common import BENCH, ROOT, machine
 
 log = logger(__name__)
 

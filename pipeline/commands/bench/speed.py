@@ -21,20 +21,20 @@ import numpy as np
 import pandas as pd
 import torch
 
+from pipeline.commands.bench.common import BENCH, machine, timed
+from pipeline.lib.learning.checkpoint import load_model, make_model
+from pipeline.lib.learning.loss import SPILoss
+from pipeline.lib.learning.model import PhysicsOnly
+from pipeline.lib.learning.model import tensors
+from pipeline.lib.learning.onnx_model import OnnxModel, OnnxRealtime, deviation
+from pipeline.lib.learning.training import fit
 from pipeline.lib.project.artifacts import CONTROLLER_ONNX, CONTROLLER_PHYSICS_ONNX, MODEL_ONNX, MODEL_WEIGHTS
 from pipeline.lib.project.columns import JOINTS_DEG, TARGET
 from pipeline.lib.project.config import load_params, logger, read_json, write_json
-from pipeline.lib.learning.loss import SPILoss
-from pipeline.lib.learning.model import PhysicsOnly
 from pipeline.lib.reading.prepared import load_prepared
-from pipeline.lib.learning.onnx_model import OnnxModel, OnnxRealtime, deviation
-from pipeline.lib.runtime.realtime import Realtime, check
 from pipeline.lib.robot.robots import load_robot
+from pipeline.lib.runtime.realtime import Realtime, check
 from pipeline.lib.runtime.solvers import compensate
-from pipeline.lib.learning.checkpoint import load_model, make_model
-from pipeline.lib.learning.model import tensors
-from pipeline.lib.learning.training import fit
-from pipeline.commands.bench.common import BENCH, machine, timed
 
 log = logger(__name__)
 PATHS = ("pytorch_eager", "pytorch_compiled", "onnx", "physics_pytorch", "physics_onnx")

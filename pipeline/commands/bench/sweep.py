@@ -4,11 +4,11 @@ and without its startup). Writes reports/bench/sweep.json. Needs a finished `dvc
 import os
 import time
 
+from pipeline.commands.bench.common import BENCH, machine
 from pipeline.lib.learning import sweep                                   # lib/learning/sweep.py: jobs in order or as Ray tasks
 from pipeline.lib.learning.ablations import Data, Job, train_one
 from pipeline.lib.project.config import load_params, logger, write_json
 from pipeline.lib.reading.prepared import load_prepared
-from pipeline.commands.bench.common import BENCH, machine
 
 log = logger(__name__)
 

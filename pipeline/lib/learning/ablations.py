@@ -6,10 +6,10 @@ from dataclasses import dataclass
 
 import pandas as pd
 
-from pipeline.lib.project.config import logger
 from pipeline.lib.learning.metrics import split_metrics
 from pipeline.lib.learning.model import predict
 from pipeline.lib.learning.training import train_boter
+from pipeline.lib.project.config import logger
 
 log = logger(__name__)
 GROUPS = {                                   # name -> params changes (one source of the groups)

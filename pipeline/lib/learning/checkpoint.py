@@ -6,9 +6,9 @@
 """
 import torch
 
+from pipeline.lib.learning.model import DNN, BoTER, Ensemble, check_config
 from pipeline.lib.robot.errormaps import MAP_KEYS
 from pipeline.lib.robot.kinematics import RIGID_KEYS
-from pipeline.lib.learning.model import DNN, BoTER, Ensemble, check_config
 
 
 def make_model(cfg: dict, geometry: dict, kind: str = "boter"):

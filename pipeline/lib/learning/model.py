@@ -23,9 +23,9 @@ import pandas as pd
 import torch
 from torch import nn
 
+from pipeline.lib.learning.workspace import Fade
 from pipeline.lib.project.columns import JOINTS_DEG, MEAS
 from pipeline.lib.robot.kinematics import DTYPE, DHChain
-from pipeline.lib.learning.workspace import Fade
 
 # eq. 4, row i = query joint i, True = may not attend (docs/method.md)
 SPI_MASK = [[0, 0, 0, 0, 0, 0],
@@ -55,23 +55,16 @@ def attention_mask(kind: str) -> torch.Tensor | None:
 
 
 def check_config(cfg: dict) -> None:
-    """Stop before training on a combination that cannot work, with a clear message."""
+    """Stop before training on a combination that cannot work, with a clear message: the names the model's
+    registries hold (mask, head) and the rule between two keys; each value's own range is config.RULES'."""
     attention_mask(cfg["mask"])
     if cfg["head"] not in HEADS:
         raise ValueError(f"params.yaml model.head: unknown head {cfg['head']!r}; use one of {HEADS}")
-    for k in ("d_model", "n_layer", "n_head", "d_hidden"):
-        if not isinstance(cfg[k], int) or cfg[k] < 1:
-            raise ValueError(f"params.yaml model.{k} must be a positive integer, got {cfg[k]!r}")
     if cfg["d_model"] % cfg["n_head"]:
         d = cfg["d_model"]
         raise ValueError(f"params.yaml model: n_head={cfg['n_head']} does not divide d_model={d} "
                          f"(multi-head attention splits d_model into n_head equal parts); "
                          f"n_head could be {[h for h in range(1, d + 1) if d % h == 0][:12]}")
-    if cfg["fade_to"] is not None and not (isinstance(cfg["fade_to"], (int, float)) and cfg["fade_to"] > 1):
-        raise ValueError(f"params.yaml model.fade_to: a number of workspace radii > 1 or null, "
-                         f"got {cfg['fade_to']!r}")
-    if cfg["physics"] not in ("nominal", "calibrated"):
-        raise ValueError(f"params.yaml model.physics: {cfg['physics']!r}; use nominal or calibrated")
 
 
 class JointEmbedding(nn.Module):

@@ -39,8 +39,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from pipeline.lib.robot.kinematics import DTYPE, fk_pose
 from pipeline.lib.learning.model import Ensemble
+from pipeline.lib.robot.kinematics import DTYPE, fk_pose
 from pipeline.lib.runtime.realtime import DAMPING, Result, answers, two_steps
 from pipeline.lib.runtime.solvers import lm_keep
 

@@ -25,10 +25,10 @@ import torch
 from tqdm import tqdm
 
 from pipeline.lib.learning.checkpoint import make_model
-from pipeline.lib.project.columns import JOINTS_DEG
 from pipeline.lib.learning.loss import SPILoss, data_loss
 from pipeline.lib.learning.model import Ensemble, n_params, tensors
 from pipeline.lib.learning.workspace import workspace_radius
+from pipeline.lib.project.columns import JOINTS_DEG
 
 DEVICES = ("auto", "cpu", "cuda")
 

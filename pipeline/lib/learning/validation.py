@@ -40,9 +40,9 @@ import pandas as pd
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
+from pipeline.lib.learning.metrics import stats
 from pipeline.lib.robot.frames import check_fit, robust_kabsch, to_base
 from pipeline.lib.robot.identify import identifiability
-from pipeline.lib.learning.metrics import stats
 from pipeline.lib.robot.tcp import pose_errors
 
 METHODS = ("nominal", "calibrated", "calibrated_parts", "model")

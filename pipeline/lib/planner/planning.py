@@ -1,6 +1,6 @@
 """What to measure so that a robot program is covered: the measurement planner (docs/planning.md). The
-D-criterion and the prediction live in design.py, the tour in tour.py; here the coverage, the candidates
-and the greedy choice.
+D-criterion and the prediction live in design.py, the tour in tour.py, the coverage in coverage.py and
+the candidates in candidates.py; here the greedy choice.
 
 Given a program's waypoints (joint configurations), the trained workspace (workspace.py: the training
 poses, the network's joint-space radius, the per-joint angle maps' coverage) and the calibration (its
@@ -43,16 +43,10 @@ Coverage after is computed as if every planned pose were a training pose (the sa
 from dataclasses import dataclass, replace
 
 import numpy as np
-import torch
 
+from pipeline.lib.planner.coverage import Coverage
 from pipeline.lib.planner.design import DCriterion, Identification, MapBlock, information, map_se, prediction
-from pipeline.lib.robot.errormaps import angle_covered
-from pipeline.lib.robot.errormaps import coverage as angle_coverage
-from pipeline.lib.robot.kinematics import DTYPE, fk_jacobian
-from pipeline.lib.robot.poses import acceptable, checks
-from pipeline.lib.runtime.solvers import min_norm_step
 from pipeline.lib.planner.tour import step_cost, tour, travel
-from pipeline.lib.learning.workspace import JOINTS, Workspace, wrapped
 
 CRITERION = "coverage_then_d_optimal"
 CRITERION_TEXT = ("coverage first (greedy: every uncovered part of every waypoint, as Workspace.parts defines it, "
@@ -62,135 +56,6 @@ CRITERION_TEXT = ("coverage first (greedy: every uncovered part of every waypoin
 D_ONLY = "d_optimal"
 D_ONLY_TEXT = ("D-optimality alone (greedy: maximise log det(JᵀJ + Λ) of the calibration's identified parameters, "
                "a new station's frame and the uncovered joints' angle-map coefficients with their priors Λ)")
-
-
-# ----------------------------------------------------------------------------- coverage
-
-@dataclass
-class Coverage:
-    """The trained workspace's coverage, recomputable with more training poses: the existing training
-    poses (m, 6) deg, the network's radius (deg), the mapped joints (1-based; [] without maps) and the
-    angle maps' reach and fade (deg, the `parts.angle_map` settings)."""
-    train_q: np.ndarray
-    radius: float
-    joints: list
-    reach: float
-    fade: float
-
-    @classmethod
-    def from_workspace(cls, ws: Workspace, reach: float, fade: float) -> "Coverage":
-        joints = [] if ws.angle_cover is None else [int(j) + 1 for j in np.flatnonzero(ws.angle_cover.any(1))]
-        return cls(np.asarray(ws.train_q, float), float(ws.radius), joints, float(reach), float(fade))
-
-    def workspace(self, extra_q=None) -> Workspace:
-        """The workspace as if `extra_q` (k, 6) were training poses too (the radius kept)."""
-        q = self.train_q if extra_q is None or len(extra_q) == 0 else np.vstack([self.train_q, extra_q])
-        cover = angle_coverage(q, self.joints, self.reach, self.fade) if self.joints else None
-        return Workspace(q, self.radius, 0.0, 0.0, 0.0, None, cover)
-
-    def parts(self, q_wp, extra_q=None) -> dict:
-        """Workspace.parts of the waypoints q_wp (n, 6) with extra_q trained on: {"network", "angle_map",
-        "all"} (n,) bool."""
-        if len(self.train_q) == 0 and (extra_q is None or len(extra_q) == 0):
-            n = len(np.atleast_2d(q_wp))
-            out = {"network": np.zeros(n, bool), "angle_map": np.full(n, not self.joints)}
-        else:
-            out = self.workspace(extra_q).parts(q_wp)
-        out["all"] = out["network"] & out["angle_map"]
-        return out
-
-    def requirements(self, q_wp) -> list[tuple[int, str]]:
-        """The parts the existing training poses leave uncovered: [(waypoint index, "network" | "joint<i>")]."""
-        q = np.atleast_2d(q_wp)
-        net = self.parts(q)["network"] if len(self.train_q) else np.zeros(len(q), bool)
-        cover = self.workspace().angle_cover if self.joints and len(self.train_q) else np.zeros((6, 360))
-        covered = angle_covered(cover, q)                                       # (n, 6)
-        out = []
-        for w in range(len(q)):
-            if not net[w]:
-                out.append((w, "network"))
-            out += [(w, f"joint{j}") for j in self.joints if not covered[w, j - 1]]
-        return out
-
-    def satisfies(self, cand_q, q_wp, reqs) -> np.ndarray:
-        """(m, r) bool: candidate pose c, trained on, satisfies requirement r (the same arithmetic as
-        Workspace.parts and errormaps.coverage: the network's radius over joints 1-5, wrapped; a
-        mapped joint's 1° bin within `reach` of the candidate's angle rounded to 0.1°)."""
-        c, q = np.atleast_2d(cand_q), np.atleast_2d(q_wp)
-        out = np.zeros((len(c), len(reqs)), bool)
-        for k, (w, part) in enumerate(reqs):
-            if part == "network":
-                out[:, k] = np.linalg.norm(wrapped(c[:, JOINTS] - q[w, JOINTS]), axis=1) <= self.radius
-            else:
-                j = int(part.removeprefix("joint")) - 1
-                b = np.floor(np.remainder(q[w, j], 360.0)) % 360
-                s = np.round(np.remainder(c[:, j], 360.0), 1)
-                out[:, k] = np.abs((b - s + 180.0) % 360.0 - 180.0) <= self.reach
-        return out
-
-
-# ----------------------------------------------------------------------------- candidates
-
-def program_joints(q0_deg, target, geometry: dict, limits_deg, iterations: int = 30) -> tuple:
-    """Joints (n, 6) deg near q0 that put the chain `geometry` on the targets (n, 3) mm (damped
-    minimum-norm steps, joint limits kept): where a program given as positions will actually go; and
-    how far (n,) mm each stays from its target there (a target it cannot reach stays far)."""
-    q = torch.as_tensor(np.radians(np.asarray(q0_deg, float)), dtype=DTYPE)
-    t = torch.as_tensor(np.asarray(target, float), dtype=DTYPE)
-    lim = torch.as_tensor(np.radians(np.asarray(limits_deg, float)), dtype=DTYPE)
-    with torch.no_grad():
-        for _ in range(iterations):
-            p, J = fk_jacobian(q, geometry)
-            q = (q + min_norm_step(J, p - t, 1e-6)).clamp(lim[:, 0], lim[:, 1])
-        miss = (fk_jacobian(q, geometry)[0] - t).norm(dim=1)
-    return np.degrees(q.numpy()), miss.numpy()
-
-
-def candidates(q_wp, rng: np.random.Generator, geometry: dict, rules: dict, limits_deg, cov: Coverage,
-               per_waypoint: int, region: int, margin_deg: float, tracker_mm=None, link_q=None) -> dict:
-    """Acceptable candidate poses: {"q" (m, 6) deg rounded to 1e-6, "near" (m,) the waypoint each was
-    made from (-1: not), "kind" (m,) "waypoint" | "tight" | "wide" | "region" | "link", "made": how many
-    of each kind were drawn, "rejected_by": {rule: count}}. link_q: poses already measured (the
-    training poses) that a new tracker station may measure again, to tie its frame to theirs (at most
-    `region` of them, at random). geometry: the nominal chain the rules are judged on (as the twin's
-    campaigns are)."""
-    q_wp = np.atleast_2d(np.asarray(q_wp, float))
-    lim = np.asarray(limits_deg, float)
-    tight = 0.8 * cov.reach if cov.joints else 0.2 * cov.radius / np.sqrt(5)
-    wide = 0.8 * cov.radius / np.sqrt(5)
-    qs, near, kind = [q_wp], [np.arange(len(q_wp))], [np.array(["waypoint"] * len(q_wp), object)]
-    k = max(per_waypoint - 1, 0)
-    for w in range(len(q_wp)):
-        spread = np.where(np.arange(k) % 2 == 0, tight, wide)[:, None]          # alternate tight and wide
-        qs.append(q_wp[w] + rng.uniform(-1.0, 1.0, (k, 6)) * spread)
-        near.append(np.full(k, w))
-        kind.append(np.where(np.arange(k) % 2 == 0, "tight", "wide").astype(object))
-    lo = np.maximum(q_wp.min(0) - margin_deg, lim[:, 0])
-    hi = np.minimum(q_wp.max(0) + margin_deg, lim[:, 1])
-    got, tries = 0, 0
-    g = geometry
-    while got < region and tries < 20:
-        q = np.round(rng.uniform(lo, hi, (4 * region, 6)), 6)
-        q = q[acceptable(q, g, rules, lim, tracker_mm=tracker_mm)][:region - got]
-        qs.append(q)
-        near.append(np.full(len(q), -1))
-        kind.append(np.array(["region"] * len(q), object))
-        got, tries = got + len(q), tries + 1
-    if link_q is not None and len(link_q):
-        link = np.asarray(link_q, float)
-        qs.append(link[rng.permutation(len(link))[:region]])
-        near.append(np.full(len(qs[-1]), -1))
-        kind.append(np.array(["link"] * len(qs[-1]), object))
-    q, near, kind = np.round(np.concatenate(qs), 6), np.concatenate(near), np.concatenate(kind)
-    c = checks(q, g, rules, lim, tracker_mm=tracker_mm)
-    ok = np.ones(len(q), bool)
-    for v in c.values():
-        ok &= v
-    made = {kd: int((kind == kd).sum()) for kd in ("waypoint", "tight", "wide", "region", "link")}
-    return {"q": q[ok], "near": near[ok], "kind": kind[ok], "made": made,
-            "acceptable": {kd: int((ok & (kind == kd)).sum()) for kd in made},
-            "rejected_by": {r: int((~v & (kind != "region")).sum()) for r, v in c.items()},
-            "waypoints_acceptable": ok[:len(q_wp)]}
 
 
 # ----------------------------------------------------------------------------- the plan

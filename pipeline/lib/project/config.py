@@ -169,6 +169,15 @@ RULES = {
                       "null (estimated from the poses), or {markers: {name: [x, y, z] mm}} with at least 3 markers"),
     "ingest.target_residual_mm": (_num(0, open_lo=True), "a distance > 0 mm"),
     "serve.max_path_samples": (_int(2), "an integer >= 2"),
+    "model.d_model": (_int(1), "an integer >= 1"),
+    "model.n_layer": (_int(1), "an integer >= 1"),
+    "model.n_head": (_int(1), "an integer >= 1"),
+    "model.d_hidden": (_int(1), "an integer >= 1"),
+    "model.fade_to": (lambda v: v is None or _num(1, open_lo=True)(v), "null or a number of workspace radii > 1"),
+    "model.physics": (lambda v: v in ("nominal", "calibrated"), "nominal or calibrated"),
+    "compensate.jacobian_of": (lambda v: v in ("physics", "model"), "physics or model"),
+    "calibrate.tilt_joints": (lambda v: v == [] or _joints(v), "a list of distinct joint numbers 1-6 (or [])"),
+    "plan.handshake_io": (lambda v: v is None or _int(0, 7)(v), "null or a standard digital I/O number 0-7"),
 }
 
 

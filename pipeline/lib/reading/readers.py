@@ -102,9 +102,9 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from pipeline.lib.reading import orientation
 from pipeline.lib.project.columns import JOINTS_DEG, MEAS, MEAS_Q
 from pipeline.lib.project.config import check_keys, check_values, logger
+from pipeline.lib.reading import orientation
 from pipeline.lib.robot.kinematics import fk_numpy
 
 log = logger(__name__)

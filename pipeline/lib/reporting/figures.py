@@ -12,11 +12,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from pipeline.lib.learning.loss import sq_distance_matrix
 from pipeline.lib.project.columns import AXES, JOINTS_DEG, MEAS, PRED, THEORY
 from pipeline.lib.project.config import logger
-from pipeline.lib.robot.errormaps import ARCSEC, angle_terms
-from pipeline.lib.learning.loss import sq_distance_matrix
 from pipeline.lib.reporting.paper import PAPER_ABLATION, PAPER_METHOD_OF, PAPER_METHODS
+from pipeline.lib.robot.errormaps import ARCSEC, angle_terms
 
 log = logger(__name__)
 

@@ -10,13 +10,13 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.lib.learning.metrics import drive_table
 from pipeline.lib.project.artifacts import (HERE, BASELINES_MD, CALIBRATION_JSON, COMPENSATION_CSV,
                                             COMPENSATION_JSON, DRIVE_CSV, FRAME_JSON, INGEST_JSON,
                                             METRICS_JSON, PARTS_REPORT, REPORTS, THEORY_JSON, TRAIN_JSON)
 from pipeline.lib.project.columns import AXES
 from pipeline.lib.project.config import PARAMS
 from pipeline.lib.reporting.figures import DRIVE_TOL_MM, FIGURES, PLY_CMAP, PLY_PERCENTILE, caption
-from pipeline.lib.learning.metrics import drive_table
 from pipeline.lib.reporting.paper import (PAPER_ABLATION_EPOCHS, PAPER_DRIVE, PAPER_DRIVE_WITHIN,
                                           PAPER_METHODS, PAPER_TEST)
 

@@ -23,8 +23,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from pipeline.lib.project.columns import AXES, CAMPAIGN, MEAS, PRED, THEORY
 from pipeline.lib.learning.metrics import stats
+from pipeline.lib.project.columns import AXES, CAMPAIGN, MEAS, PRED, THEORY
 from pipeline.lib.reporting.page import table
 
 METHODS = {"nominal": "nominal", "calibrated": "calibration", "calibrated_parts": "calibration + error maps",

@@ -55,10 +55,7 @@ def parameter_spec(cfg: dict) -> list[tuple[str, str, int]]:
         elif grp == "compliance":
             spec += [(f"c{j + 1}", grp, j) for j in range(6)]
         elif grp == "beta":
-            tilt = cfg["tilt_joints"]
-            if not set(tilt) <= set(range(1, 7)):
-                raise ValueError(f"params.yaml calibrate.tilt_joints: joints are 1..6, got {tilt}")
-            spec += [(f"beta{j}", "beta", j - 1) for j in tilt]
+            spec += [(f"beta{j}", "beta", j - 1) for j in cfg["tilt_joints"]]      # 1-6: config.RULES
         elif grp == "tool":
             spec += [(f"tool_{c}", "tool", i) for i, c in enumerate(TOOL_NAMES)]
         elif grp == "tool_rot":

@@ -21,8 +21,8 @@ import pandas as pd
 import torch
 
 from pipeline.lib.project.columns import JCOMP_DEG, TARGET
-from pipeline.lib.runtime.compensation import solve
 from pipeline.lib.robot.kinematics import DTYPE
+from pipeline.lib.runtime.compensation import solve
 from pipeline.lib.runtime.paths import at, distance
 from pipeline.lib.runtime.solvers import CHUNK, slices
 

@@ -40,9 +40,9 @@ import pandas as pd
 import torch
 from scipy.spatial.transform import Rotation
 
+from pipeline.lib.learning.model import PhysicsOnly
 from pipeline.lib.project.columns import JCOMP_DEG
 from pipeline.lib.robot.kinematics import DTYPE
-from pipeline.lib.learning.model import PhysicsOnly
 from pipeline.lib.runtime.paths import n_samples, resample, rotations_at, segments
 from pipeline.lib.runtime.pathsolve import (SOLVED, beyond_reach, deviation, model_position, refusal,
                                             servo_times)

@@ -19,14 +19,14 @@ from scipy.spatial.transform import Rotation
 
 from pipeline.lib.project.cli import Refused
 from pipeline.lib.project.columns import JCOMP_DEG, JOINTS_DEG, TARGET
-from pipeline.lib.runtime.compensation import (delta_table, nominal_flange, orientation_targets, reach_mm,
-                                               solve)
 from pipeline.lib.project.config import logger
-from pipeline.lib.robot.kinematics import TOOL_ROT, fk_numpy, tool_rotation
-from pipeline.lib.runtime.paths import ROTVEC
 from pipeline.lib.reading.readers import (AUTO_JOINTS, IngestError, find_column, headers_found,
                                           looks_like_radians, parse_number, parse_column, read_table,
                                           shape_problems, unit_of)
+from pipeline.lib.robot.kinematics import TOOL_ROT, fk_numpy, tool_rotation
+from pipeline.lib.runtime.compensation import (delta_table, nominal_flange, orientation_targets, reach_mm,
+                                               solve)
+from pipeline.lib.runtime.paths import ROTVEC
 
 log = logger(__name__)
 ID_PATTERN = re.compile(r"[A-Za-z0-9_.:-]{1,64}")          # what a point id may be, to reach a URScript comment

@@ -5,11 +5,11 @@ import numpy as np
 import pandas as pd
 import torch
 
+from pipeline.lib.learning.splits import split_indices
 from pipeline.lib.project.columns import JOINTS_DEG
 from pipeline.lib.robot.frames import robust_kabsch
 from pipeline.lib.robot.identify import identify
 from pipeline.lib.robot.kinematics import DTYPE, fk, nominal_geometry
-from pipeline.lib.learning.splits import split_indices
 from pipeline.lib.sim.twin import Twin, ur5
 
 

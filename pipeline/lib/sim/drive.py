@@ -4,8 +4,8 @@ import numpy as np
 
 from scipy.spatial.transform import Rotation
 
-from pipeline.lib.robot.frames import ARCSEC, to_base
 from pipeline.lib.learning.metrics import drive_table, stats
+from pipeline.lib.robot.frames import ARCSEC, to_base
 from pipeline.lib.sim.twin import Twin
 
 

@@ -6,10 +6,10 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from pipeline.lib.reading.campaigns import pair_sha256, write_pair
 from pipeline.lib.project.config import write_json
-from pipeline.lib.sim.difficulty import difficulty
+from pipeline.lib.reading.campaigns import pair_sha256, write_pair
 from pipeline.lib.robot.kinematics import GRAVITY
+from pipeline.lib.sim.difficulty import difficulty
 from pipeline.lib.sim.twin import (LINK_COM, LINK_MASS, MEAN_NORM_3D, RAW, REGIONS, SEED, STATION_B,
                                    TRACKER_SIGMA_MM, VALIDATION, ZERO_POSE_DEG, Twin, sample_errors)
 
