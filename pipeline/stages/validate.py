@@ -104,7 +104,7 @@ def twin_only(name: str, c: dict, twin_json: str, root: Path) -> str | None:
         return None
     record = read_json(rooted(root, twin_json))
     joints, tracker = c["ingest"]["joints"], c["ingest"]["tracker"]
-    if made_by_twin(record, pair_sha256(joints, tracker)) is None:
+    if made_by_twin(record, pair_sha256(rooted(root, joints), rooted(root, tracker))) is None:
         return None
     if made_by_twin(record, ingested_sha256(read_json(root / INGEST_JSON)["files"])) is not None:
         return None
