@@ -106,7 +106,7 @@ def test_geometric_jacobian_equals_autograd_with_every_error_term():
 FK_HASH = """
 import hashlib, numpy as np, torch
 import pipeline
-from pipeline.lib import kinematics as K
+from pipeline.lib.robot import kinematics as K
 from pipeline.lib.sim.twin import ur5
 q = torch.as_tensor(np.random.default_rng(0).uniform(-3, 3, (719, 6)), dtype=K.DTYPE)
 g = K.nominal_geometry(ur5())
