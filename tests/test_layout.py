@@ -194,6 +194,40 @@ def test_a_stage_runs_on_the_project_its_root_names(trained_project, tmp_path, m
     assert not any(cwd.iterdir())
 
 
+def project_paths(module) -> set[str]:
+    """Names of `module`'s relative Path constants: the artifact paths it imports and those it builds."""
+    return {n for n, v in vars(module).items() if n.isupper() and isinstance(v, Path) and not v.is_absolute()}
+
+
+def unrooted(mod: str) -> list[str]:
+    """Where `mod` hands a project path to anything but str(), rooted() or link(), or asks it anything
+    (`X.exists()`): an access relative to the working directory, not to the root (logging calls aside)."""
+    names, out = project_paths(importlib.import_module(mod)), []
+    for node in ast.walk(ast.parse(module_path(mod).read_text())):
+        if isinstance(node, ast.Call):
+            fn = node.func.id if isinstance(node.func, ast.Name) else getattr(node.func, "attr", "")
+            if fn in {"str", "rooted", "link", "debug", "info", "warning", "error"}:
+                continue
+            out += [f"line {node.lineno}: {fn}({a.id})" for a in [*node.args, *(k.value for k in node.keywords)]
+                    if isinstance(a, ast.Name) and a.id in names]
+        elif (isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name) and node.value.id in names
+              and node.attr not in {"name", "stem", "suffix", "parent"}):
+            out.append(f"line {node.lineno}: {node.value.id}.{node.attr}")
+    return out
+
+
+ON_A_PROJECT = [f"pipeline.commands.{c}" for c in ("program", "path", "plan", "serve")]   # --project DIR
+
+
+@pytest.mark.parametrize("mod", sorted(STAGE_MODULES) + ON_A_PROJECT)
+def test_stages_and_robot_commands_open_project_files_under_its_root(mod):
+    """A stage (and a command given --project) reads and writes `root / <artifact path>`: export wrote
+    model.onnx into the working directory and read it back from the root (a stage run elsewhere checked
+    another file, or none). The other commands work on the project in the working directory
+    (docs/decisions.md)."""
+    assert not unrooted(mod), f"{mod} opens project files in the working directory: {unrooted(mod)}"
+
+
 def test_opt_in_dvc_files_run_only_commands():
     """ablation/dvc.yaml and fleet/dvc.yaml run a command (dvc repro of ./dvc.yaml never does)."""
     for f in ["ablation/dvc.yaml", "fleet/dvc.yaml"]:

@@ -260,7 +260,7 @@ def test_the_move_and_its_speeds_are_settings(in_trained_project, tmp_path, caps
     src = program_file(tmp_path, n=3)
     p = in_trained_project
     p["program"] = {"move": "movel", "movej": {"acc": 1.4, "vel": 1.05}, "movel": {"acc": 0.5, "vel": 0.1}}
-    monkeypatch.setattr(program, "load_params", lambda: p)
+    monkeypatch.setattr(program, "load_params", lambda path: p)
     assert exit_code(program.main, [str(src)], capsys)[0] == 0
     script = (tmp_path / "prog_comp.script").read_text()
     assert script.count("  movel([") == 3 and "movej" not in script.split("\n", 1)[1]

@@ -44,8 +44,8 @@ import pandas as pd
 from pipeline.lib.learning.checkpoint import load_model
 from pipeline.lib.learning.model import served
 from pipeline.lib.learning.workspace import Workspace
-from pipeline.lib.project.artifacts import FRAME_JSON, MODEL_WEIGHTS, WORKSPACE_JSON
-from pipeline.lib.project.cli import Refused, one_line
+from pipeline.lib.project.artifacts import FRAME_JSON, MODEL_WEIGHTS, PARAMS_FILE, WORKSPACE_JSON, require
+from pipeline.lib.project.cli import Refused, add_project, one_line
 from pipeline.lib.project.columns import JCOMP_DEG
 from pipeline.lib.project.config import for_stage, load_params, logger, read_json
 from pipeline.lib.project.writing import check_outputs, csv_text, write_together
@@ -109,10 +109,11 @@ def run(argv=None) -> pd.DataFrame:
     ap.add_argument("--ignore-orientation", action="store_true",
                     help="compensate the position alone, leaving the orientation (target_rx..rz, or an offline "
                          "path's nominal one)")
+    add_project(ap)
     a = ap.parse_args(argv)
-    src, out = Path(a.path), Path(a.out)
+    src, out, root = Path(a.path), Path(a.out), a.project
     check_outputs([out / f for f in FILES], [src])   # by inode too: a hard link to the input is the input
-    p = for_stage(load_params(), PARAMS)
+    p = for_stage(load_params(root / PARAMS_FILE), PARAMS)
     cfg = {**p["path"], **{k: v for k, v in (("spacing_mm", a.spacing), ("chord_mm", a.chord),
                                              ("speed_mm_s", a.speed)) if v is not None}}
     for key in ("spacing_mm", "chord_mm", "speed_mm_s"):
@@ -120,12 +121,10 @@ def run(argv=None) -> pd.DataFrame:
             raise ValueError(f"--{key.split('_')[0]}: expected a number > 0, got {cfg[key]}")
     robot = load_robot(p["robot"])
     speeds = joint_speeds(robot, cfg["joint_speed_deg_s"])
-    missing = [str(f) for f in (MODEL_WEIGHTS, WORKSPACE_JSON, FRAME_JSON) if not f.exists()]
-    if missing:
-        raise ValueError(f"missing trained artifact(s) {', '.join(missing)} in {Path.cwd()}; run `dvc repro` first")
-    nominal = theory_geometry(robot, read_json(FRAME_JSON)["tool_mm"])
-    workspace = Workspace.from_dict(read_json(WORKSPACE_JSON))
-    model = served(load_model(MODEL_WEIGHTS), workspace.network)
+    require(root, (MODEL_WEIGHTS, WORKSPACE_JSON, FRAME_JSON))
+    nominal = theory_geometry(robot, read_json(root / FRAME_JSON)["tool_mm"])
+    workspace = Workspace.from_dict(read_json(root / WORKSPACE_JSON))
+    model = served(load_model(root / MODEL_WEIGHTS), workspace.network)
     frame_rot = None                                 # target_rx..rz turn the probe's frame, or the TCP's
     if a.tcp is not None:
         model, nominal = at_tcp(model, p["robot"]["tcp"], a.tcp, nominal)

@@ -41,9 +41,9 @@ from pipeline.lib.planner.design import Identification, MapBlock
 from pipeline.lib.planner.candidates import candidates, program_joints
 from pipeline.lib.planner.coverage import Coverage
 from pipeline.lib.planner.planning import plan
-from pipeline.lib.project.artifacts import (CALIBRATED_GEOMETRY, CALIBRATION_JSON, FRAME_JSON, PARTS_JSON,
-                                            PARTS_REPORT, WORKSPACE_JSON)
-from pipeline.lib.project.cli import Refused, one_line
+from pipeline.lib.project.artifacts import (CALIBRATED_GEOMETRY, CALIBRATION_JSON, FRAME_JSON, PARAMS_FILE,
+                                            PARTS_JSON, PARTS_REPORT, WORKSPACE_JSON, require)
+from pipeline.lib.project.cli import Refused, add_project, one_line
 from pipeline.lib.project.columns import JOINTS_DEG, TARGET
 from pipeline.lib.project.config import for_stage, json_text, load_params, logger, read_json
 from pipeline.lib.project.writing import check_outputs, csv_text, write_together
@@ -122,7 +122,9 @@ def run(argv=None) -> dict:
     ap.add_argument("--seed", type=int, default=None, help="the candidates' random stream (default plan.seed)")
     ap.add_argument("--identifiability-only", action="store_true",
                     help="choose by D-optimality alone, without the coverage phase (a comparison)")
+    add_project(ap)
     a = ap.parse_args(argv)
+    root = a.project
     if a.n < 1:
         raise ValueError(f"--n {a.n}: plan at least 1 pose")
     src, out = Path(a.program), Path(a.out)
@@ -131,16 +133,13 @@ def run(argv=None) -> dict:
     if not src.is_file():
         raise ValueError(f"{src}: no such file")
     check_outputs([out / f for f in FILES], [src])   # by inode too: a hard link to the program is the program
-    p = for_stage(load_params(), PARAMS)
+    p = for_stage(load_params(root / PARAMS_FILE), PARAMS)
     cfg = p["plan"]
     robot = load_robot(p["robot"])
-    needed = (WORKSPACE_JSON, CALIBRATED_GEOMETRY, PARTS_JSON, CALIBRATION_JSON, FRAME_JSON)
-    missing = [str(f) for f in needed if not f.exists()]
-    if missing:
-        raise ValueError(f"missing trained artifact(s) {', '.join(missing)} in {Path.cwd()}; run `dvc repro` first")
+    require(root, (WORKSPACE_JSON, CALIBRATED_GEOMETRY, PARTS_JSON, CALIBRATION_JSON, FRAME_JSON))
     measure_script(np.zeros((0, 6)), cfg)                           # the script's settings, checked before work
     df = read_waypoints(src, robot)
-    cal_json, report, frame = read_json(CALIBRATED_GEOMETRY), read_json(CALIBRATION_JSON), read_json(FRAME_JSON)
+    cal_json, report, frame = (read_json(root / f) for f in (CALIBRATED_GEOMETRY, CALIBRATION_JSON, FRAME_JSON))
     cal = Calibration.from_dict(cal_json)
     q_wp = df[JOINTS_DEG].to_numpy()
     if TARGET[0] in df:                                             # positions: where the calibrated arm goes
@@ -153,7 +152,7 @@ def run(argv=None) -> dict:
     tracker, station = tracker_position(frame, a.station, a.tracker_mm)
     station["new_station"] |= a.new_station
     a_cfg = p["parts"]["angle_map"]
-    cov = Coverage.from_workspace(Workspace.from_dict(read_json(WORKSPACE_JSON)), a_cfg["reach_deg"],
+    cov = Coverage.from_workspace(Workspace.from_dict(read_json(root / WORKSPACE_JSON)), a_cfg["reach_deg"],
                                   a_cfg["fade_deg"])
     robot_names = {s[0] for s in parameter_spec(p["calibrate"])}      # not the further stations' frames
     ident = Identification(cal.geometry, p["calibrate"], [n for n in cal_json["identified"] if n in robot_names],
@@ -175,8 +174,8 @@ def run(argv=None) -> dict:
     rep = result.report
     rep["identifiability"]["reported_se"] = {k: report["estimates"][k]["se"] for k in ident.names
                                              if k in report.get("estimates", {})}
-    if PARTS_REPORT.exists() and read_json(PARTS_JSON)["enabled"]:   # what calibration + maps leave, per coordinate
-        s = read_json(PARTS_REPORT)["splits"]["train"]["calibrated_parts"]["rms_mm"] / np.sqrt(3.0)
+    if (root / PARTS_REPORT).exists() and read_json(root / PARTS_JSON)["enabled"]:   # what calibration + maps leave
+        s = read_json(root / PARTS_REPORT)["splits"]["train"]["calibrated_parts"]["rms_mm"] / np.sqrt(3.0)
         rep["identifiability"]["sigma_after_maps_mm"] = float(s)
         rep["identifiability"]["se_scale_after_maps"] = float(s / ident.sigma_mm)
     wp_ids = df["point_id"].tolist()

@@ -41,8 +41,8 @@ import torch
 from pipeline.lib.learning.checkpoint import load_model
 from pipeline.lib.learning.model import served
 from pipeline.lib.learning.workspace import Workspace
-from pipeline.lib.project.artifacts import FRAME_JSON, MODEL_WEIGHTS, WORKSPACE_JSON
-from pipeline.lib.project.cli import Refused, one_line
+from pipeline.lib.project.artifacts import FRAME_JSON, MODEL_WEIGHTS, PARAMS_FILE, WORKSPACE_JSON, require
+from pipeline.lib.project.cli import Refused, add_project, one_line
 from pipeline.lib.project.columns import JCOMP_DEG
 from pipeline.lib.project.config import for_stage, load_params, logger, read_json
 from pipeline.lib.project.writing import check_outputs, csv_text, write_together
@@ -108,20 +108,20 @@ def run(argv=None) -> pd.DataFrame:
                     help="write the program with every waypoint not reached as a comment (no move) "
                          "instead of refusing it")
     ap.add_argument("--tcp", default=None, help="compensate for this robot.tcp point (params.yaml), not the marker")
+    add_project(ap)
     a = ap.parse_args(argv)
+    root = a.project
     src = Path(a.waypoints)
     out = Path(a.out or src.with_name(src.stem + "_comp.csv"))
     script = Path(a.urscript or src.with_name(src.stem + "_comp.script"))
     check_outputs([out, script], [src])              # by inode too: a hard link to the input is the input
-    p = for_stage(load_params(), PARAMS)
+    p = for_stage(load_params(root / PARAMS_FILE), PARAMS)
     robot = load_robot(p["robot"])
-    missing = [str(f) for f in (MODEL_WEIGHTS, WORKSPACE_JSON, FRAME_JSON) if not f.exists()]
-    if missing:
-        raise ValueError(f"missing trained artifact(s) {', '.join(missing)} in {Path.cwd()}; run `dvc repro` first")
+    require(root, (MODEL_WEIGHTS, WORKSPACE_JSON, FRAME_JSON))
     df = read_waypoints(src, robot)
-    workspace = Workspace.from_dict(read_json(WORKSPACE_JSON))
-    model = served(load_model(MODEL_WEIGHTS), workspace.network)
-    nominal = theory_geometry(robot, read_json(FRAME_JSON)["tool_mm"])
+    workspace = Workspace.from_dict(read_json(root / WORKSPACE_JSON))
+    model = served(load_model(root / MODEL_WEIGHTS), workspace.network)
+    nominal = theory_geometry(robot, read_json(root / FRAME_JSON)["tool_mm"])
     frame_rot = None                                 # target_rx..rz turn the probe's frame, or the TCP's
     if a.tcp is not None:                            # targets and solve at a TCP (lib/robot/tcp.py)
         model, nominal = at_tcp(model, p["robot"]["tcp"], a.tcp, nominal)

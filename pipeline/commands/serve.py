@@ -71,10 +71,10 @@ from pipeline.lib.learning.model import served
 from pipeline.lib.learning.onnx_model import OnnxRealtime, deviation
 from pipeline.lib.learning.workspace import Workspace
 from pipeline.lib.project.artifacts import (CONTROLLER_ONNX, CONTROLLER_PHYSICS_ONNX,
-                                            CONTROLLER_PHYSICS_TCP_ONNX, CONTROLLER_TCP_ONNX, MODEL_WEIGHTS,
-                                            WORKSPACE_JSON)
-from pipeline.lib.project.config import (PARAMS as PARAMS_YAML, ParamsError, for_stage, load_params, logger,
-                                         read_json)
+                                            CONTROLLER_PHYSICS_TCP_ONNX, CONTROLLER_TCP_ONNX, HERE, MODEL_WEIGHTS,
+                                            PARAMS_FILE, WORKSPACE_JSON, require)
+from pipeline.lib.project.cli import add_project
+from pipeline.lib.project.config import ParamsError, for_stage, load_params, logger, read_json
 from pipeline.lib.robot.geometry import theory_geometry
 from pipeline.lib.robot.kinematics import TOOL_ROT, tool_rotation
 from pipeline.lib.robot.robots import load_robot
@@ -99,11 +99,11 @@ SERVICE_KEYS = ("unreachable_mm", "max_iter", "budget_ms", "stall_iter", "stall_
 LIMIT_KEYS = ("max_body_bytes", "timeout_s", "max_connections", "echo_chars", "refusal_delay_ms")          # the transport's
 
 
-def check_artifacts() -> None:
-    missing = [str(p) for p in REQUIRED if not p.exists()]
-    if missing:
-        raise SystemExit(f"pipeline.commands.serve: missing trained artifact(s) {', '.join(missing)} "
-                         f"(in {Path.cwd()}); run `dvc repro` first")
+def check_artifacts(root: Path) -> None:
+    try:
+        require(root, REQUIRED)
+    except ValueError as e:
+        raise SystemExit(f"pipeline.commands.serve: {e}") from None
 
 
 def clip(text: str, n: int) -> str:
@@ -348,7 +348,7 @@ class Server(socketserver.ThreadingMixIn, SimpleXMLRPCServer):
         self.service.close()
 
 
-def fast_path(model, workspace: Workspace, limits_deg, tol_mm: float, graph=CONTROLLER_ONNX,
+def fast_path(model, workspace: Workspace, limits_deg, tol_mm: float, graph: Path,
               tcp_mm=None) -> OnnxRealtime | None:
     """The controller path on onnxruntime from `graph` (the export stage's models/controller.onnx, or
     controller_physics.onnx for the physics alone; their _tcp graphs fed tcp_mm, flange frame), when it is
@@ -376,29 +376,30 @@ def fast_path(model, workspace: Workspace, limits_deg, tol_mm: float, graph=CONT
 
 
 def make_server(params: dict, host: str | None = None, port: int | None = None,
-                compile: bool | None = None, onnx: bool | None = None, tcp: str | None = None) -> Server:
+                compile: bool | None = None, onnx: bool | None = None, tcp: str | None = None,
+                root: Path = HERE) -> Server:
     """The service on host:port (None: the `serve:` section; port 0: a free port, in server.server_address),
     not yet serving: call serve_forever(). compile, onnx: override serve.compile, serve.onnx; tcp: answer
-    for that `robot.tcp` point."""
+    for that `robot.tcp` point; root: the project whose trained artifacts it serves."""
     params = for_stage(params, PARAMS)
     cfg = params["serve"]
     cfg = {**cfg, **{k: v for k, v in (("compile", compile), ("onnx", onnx)) if v is not None}}
     host, port = cfg["host"] if host is None else host, cfg["port"] if port is None else port
-    check_artifacts()
+    check_artifacts(root)
     torch.set_num_threads(cfg["torch_threads"])             # process-wide
-    robot, workspace = load_robot(params["robot"]), Workspace.from_dict(read_json(WORKSPACE_JSON))
+    robot, workspace = load_robot(params["robot"]), Workspace.from_dict(read_json(root / WORKSPACE_JSON))
     limits_deg = robot.limits_deg
     try:
         speeds = joint_speeds(robot, params["path"]["joint_speed_deg_s"])
     except ValueError as e:                               # compensate_path says so; the rest serves
         speeds = str(e)
-    model = served(load_model(MODEL_WEIGHTS), workspace.network)     # evaluate's verdict on the network
-    graph = CONTROLLER_ONNX if workspace.network else CONTROLLER_PHYSICS_ONNX
+    model = served(load_model(root / MODEL_WEIGHTS), workspace.network)     # evaluate's verdict on the network
+    graph = root / (CONTROLLER_ONNX if workspace.network else CONTROLLER_PHYSICS_ONNX)
     tcp_mm, g = None, model.physics.geometry()
     frame_rot = tool_rotation(g).numpy() if TOOL_ROT in g else None     # compensate_pose: the probe's frame
     if tcp is not None:                                   # every target a TCP's, on the graph fed its point
         model = at_tcp(model, params["robot"]["tcp"], tcp, theory_geometry(robot, robot.tool))[0]
-        graph = CONTROLLER_TCP_ONNX if workspace.network else CONTROLLER_PHYSICS_TCP_ONNX
+        graph = root / (CONTROLLER_TCP_ONNX if workspace.network else CONTROLLER_PHYSICS_TCP_ONNX)
         tcp_mm = params["robot"]["tcp"][tcp]["xyz_mm"]
         frame_rot = tcp_transforms(params["robot"]["tcp"])[tcp][:3, :3]    # or the TCP's
     tol = params["compensate"]["tol_mm"]
@@ -438,13 +439,14 @@ def main(argv=None):
     ap.add_argument("--compile", action=argparse.BooleanOptionalAction, default=None,
                     help="torch.compile the controller path when it runs in PyTorch (default: serve.compile)")
     ap.add_argument("--tcp", default=None, help="answer for this robot.tcp point (params.yaml), not the marker")
+    add_project(ap)
     a = ap.parse_args(argv)
-    missing = [str(p) for p in [PARAMS_YAML, *REQUIRED] if not p.exists()]
-    if not PARAMS_YAML.exists():
-        raise SystemExit(f"pipeline.commands.serve: missing {', '.join(missing)} in {Path.cwd()}: run it in the "
-                         f"project's root (where params.yaml is), after `dvc repro`")
+    if not (a.project / PARAMS_FILE).exists():
+        missing = [str(p) for p in [PARAMS_FILE, *REQUIRED] if not (a.project / p).exists()]
+        raise SystemExit(f"pipeline.commands.serve: missing {', '.join(missing)} in {a.project.resolve()}: run it in "
+                         f"the project's root (where params.yaml is) or name it with --project, after `dvc repro`")
     try:
-        server = make_server(load_params(), a.host, a.port, a.compile, a.onnx, a.tcp)
+        server = make_server(load_params(a.project / PARAMS_FILE), a.host, a.port, a.compile, a.onnx, a.tcp, a.project)
     except (ParamsError, ValueError) as e:
         raise SystemExit(f"pipeline.commands.serve: {e}") from None
     log.info("serving %s: %s (torch %d threads)", url(server), ", ".join(server.system_listMethods()),

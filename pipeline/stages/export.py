@@ -172,7 +172,7 @@ def run(params: dict, root: Path = HERE) -> dict:
                  summary["ur_yaml"]["not_held_after_joint_6"])
 
     model = load_model(root / MODEL_WEIGHTS)
-    export_onnx(model, MODEL_ONNX)
+    export_onnx(model, root / MODEL_ONNX)
     test = (pts["split"] == "test").to_numpy()
     q32 = q[test].float().clone()
     onnx_p = OnnxModel(root / MODEL_ONNX)(q32.numpy())
@@ -249,6 +249,7 @@ def main(argv=None, root: Path = HERE) -> dict:
     """The stage on the project at `root` (its params.yaml); it takes no arguments."""
     argparse.ArgumentParser(prog="python -m pipeline.stages.export", description=__doc__).parse_args(argv)
     return run(load_params(root / PARAMS_FILE), root)
+
 
 if __name__ == "__main__":
     one_line("pipeline.stages.export", main)

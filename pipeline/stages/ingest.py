@@ -93,7 +93,7 @@ def run(params: dict, root: Path = HERE) -> dict:
     write_json(root / INGEST_JSON, summary)
     log.info("wrote %s (%d rows: %s) and %s", root / INGEST_TABLE, len(out),
              ", ".join(f"{c} {v['n_kept']} (station {v['station']})" for c, v in summary["campaigns"].items()),
-             INGEST_JSON)
+             root / INGEST_JSON)
     return summary
 
 

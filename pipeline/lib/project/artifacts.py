@@ -68,6 +68,14 @@ def rooted_files(ingest: dict, root: Path) -> dict:
     return {**ingest, "joints": rooted(root, ingest["joints"]), "tracker": rooted(root, ingest["tracker"])}
 
 
+def require(root: Path, files) -> None:
+    """Raise a ValueError naming each of `files` (artifact paths) missing from the project at `root`."""
+    missing = [str(f) for f in files if not (root / f).exists()]
+    if missing:
+        raise ValueError(f"missing trained artifact(s) {', '.join(missing)} in {Path(root).resolve()}; "
+                         "run `dvc repro` first")
+
+
 def load_points(root: Path = HERE) -> pd.DataFrame:
     """points.parquet joined with its split column."""
     return pd.read_parquet(root / POINTS_TABLE).merge(pd.read_parquet(root / SPLIT_TABLE), on="point_id")

@@ -1,9 +1,13 @@
-"""How a stage or a command ends on bad input: one line, no traceback.
+"""How a stage or a command ends on bad input: one line, no traceback; and the option naming the project.
 
     one_line(command, run, argv)   run(argv); a Refused exits 1, bad input (ValueError: IngestError,
                                    ParamsError; OSError) exits 2, each said in one message on stderr
+    add_project(parser)            --project DIR: the project a command reads (its params.yaml and
+                                   trained artifacts; default the working directory)
 """
+import argparse
 import sys
+from pathlib import Path
 
 
 class Refused(Exception):
@@ -21,3 +25,8 @@ def one_line(command: str, run, argv=None):
     except (ValueError, OSError) as e:                   # IngestError and ParamsError are ValueErrors
         print(f"{command}: error: {e}", file=sys.stderr)
         raise SystemExit(2) from None
+
+
+def add_project(ap: argparse.ArgumentParser) -> None:
+    ap.add_argument("--project", type=Path, default=Path("."), metavar="DIR",
+                    help="the project whose params.yaml and trained artifacts to use (default: the working directory)")

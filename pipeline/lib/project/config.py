@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-PARAMS = Path("params.yaml")
+from pipeline.lib.project.artifacts import PARAMS_FILE
 
 # The keys of every section (names only; the values live in params.yaml).
 SECTIONS = {
@@ -252,7 +252,7 @@ class _UniqueKeys(yaml.SafeLoader):
 
 
 
-def load_params(path: Path | str = PARAMS) -> dict:
+def load_params(path: Path | str = PARAMS_FILE) -> dict:
     """params.yaml as a dict of sections (each section's keys and values are checked by `section`)."""
     with open(path) as f:
         params = yaml.load(f, Loader=_UniqueKeys)

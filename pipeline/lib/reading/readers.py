@@ -528,29 +528,30 @@ def pose_extras(rows: Rows, groups: list) -> list:
     return out
 
 
-def fit_target_pose(rows: Rows, idx: list, points: dict, geometry: dict, limit: float, dropped: list):
-    """One pose's markers (rows idx, positions `points` {name: (3,) mm}) fitted to the geometry; each marker
-    off the fit is listed (`marker_residual`) -> (orientation.PoseFit, the file lines of the markers kept)."""
+def fit_target_pose(rows: Rows, idx: list, points: dict, geometry: dict, limit: float):
+    """One pose's markers (rows idx, positions `points` {name: (3,) mm}) fitted to the geometry ->
+    (orientation.PoseFit, the file lines of the markers kept, a `marker_residual` entry for each marker off
+    the fit)."""
     fit = orientation.fit_pose(geometry, points, limit)
     row_of = {rows.markers[r]: r for r in idx}
-    for name, res in fit.removed:
-        dropped.append(entry(rows, row_of[name], "marker_residual", f"marker {name!r} is {res:.3g} mm off its "
-                             f"pose's fit to the target (limit {limit:g} mm, ingest.target_residual_mm)"))
+    off = [entry(rows, row_of[name], "marker_residual", f"marker {name!r} is {res:.3g} mm off its pose's fit "
+                 f"to the target (limit {limit:g} mm, ingest.target_residual_mm)") for name, res in fit.removed]
     gone = {name for name, _ in fit.removed}
-    return fit, [rows.lines[r] for r in idx if rows.markers[r] not in gone]
+    return fit, [rows.lines[r] for r in idx if rows.markers[r] not in gone], off
 
 
-def target_rows(rows: Rows, cfg: dict, dropped: list) -> tuple[Rows, dict]:
+def target_rows(rows: Rows, cfg: dict) -> tuple[Rows, dict, list]:
     """A multi-marker target's rows (several per id, one per marker) -> one row per pose: the target
     frame's origin (values, in the file's length unit) and rotation (quat), fitted to the target's
     geometry (lib/reading/orientation.py); a pose left with fewer than 3 markers has `too_few_markers`. Returns
-    (pose rows, the summary's `target`)."""
+    (pose rows, the summary's `target`, the markers dropped off their pose's fit)."""
     scale = 1000.0 if cfg["length_unit"] == "m" else 1.0
     groups = pose_groups(rows)
     points = {pid: {rows.markers[r]: rows.values[r, :3] * scale for r in idx} for pid, idx in groups.items()}
     geometry, source = target_geometry(cfg["target"], points, rows)
     limit = float(cfg["target_residual_mm"])
-    fits = [fit_target_pose(rows, idx, points[pid], geometry, limit, dropped) for pid, idx in groups.items()]
+    fitted = [fit_target_pose(rows, idx, points[pid], geometry, limit) for pid, idx in groups.items()]
+    fits, off = [(f, lines) for f, lines, _ in fitted], [e for *_, gone in fitted for e in gone]
     ok = [f.R is not None for f, _ in fits]
     values = np.array([f.t / scale if good else [np.nan] * 3 for (f, _), good in zip(fits, ok)]).reshape(-1, 3)
     quat = np.array([orientation.quaternion(f.R) if good else [np.nan] * 4
@@ -568,7 +569,7 @@ def target_rows(rows: Rows, cfg: dict, dropped: list) -> tuple[Rows, dict]:
             "residual_limit_mm": limit, "n_poses_fitted": int(sum(ok)),
             "residual_mm": {"median": float(np.median(residuals)) if residuals else None,
                             "max": float(np.max(residuals)) if residuals else None}}
-    return pose, info
+    return pose, info, off
 
 
 def orientation_units(cfg: dict, files: list, target: dict | None) -> dict | None:
@@ -594,19 +595,19 @@ class Points:
     m: np.ndarray                   # (n, 3) mm
     src: dict                       # role -> (Rows, (n,) row indices)
     o: np.ndarray | None = None     # (n, 4) unit quaternions w, x, y, z (the probe -> tracker), or None
+    dropped: tuple = ()             # the `dropped` entries of every row read and not among these points
 
     def __len__(self):
         return len(self.ids)
 
-    def drop(self, mask: np.ndarray, reason: str, details: list, dropped: list) -> "Points":
-        """Points without `mask`; each dropped point's rows go to `dropped`."""
-        for k in np.flatnonzero(mask):
-            for rows, idx in self.src.values():
-                dropped += entries(rows, idx[k], reason, details[k], self.ids[k])
+    def drop(self, mask: np.ndarray, reason: str, details: list) -> "Points":
+        """Points without `mask`, each dropped point's rows added to `dropped`."""
+        gone = tuple(e for k in np.flatnonzero(mask) for rows, idx in self.src.values()
+                     for e in entries(rows, idx[k], reason, details[k], self.ids[k]))
         keep = ~np.asarray(mask)
         return Points(self.ids[keep], self.q[keep], self.m[keep],
                       {role: (rows, idx[keep]) for role, (rows, idx) in self.src.items()},
-                      None if self.o is None else self.o[keep])
+                      None if self.o is None else self.o[keep], self.dropped + gone)
 
 
 def entry(rows: Rows, r: int, reason: str, detail: str, pid=None, line=None) -> dict:
@@ -625,27 +626,29 @@ def row_problems(rows: Rows) -> list:
     return [e for r, p in enumerate(rows.problem) if p for e in entries(rows, r, p[0], p[1])]
 
 
-def make_points(pairs: list, joints: Rows, tracker: Rows | None) -> Points:
-    """Points from (joint row, tracker row) index pairs; tracker None: positions are in `joints`."""
+def make_points(pairs: list, joints: Rows, tracker: Rows | None, dropped: list) -> Points:
+    """Points from (joint row, tracker row) index pairs, the rows left out listed in `dropped`; tracker
+    None: positions are in `joints`."""
     j = np.array([a for a, _ in pairs], dtype=int)
     ids = np.array([joints.ids[r] for r in j], dtype=object)
     if tracker is None:
         o = None if joints.quat is None else joints.quat[j]
-        return Points(ids, joints.values[j, :6], joints.values[j, 6:9], {"table": (joints, j)}, o)
+        return Points(ids, joints.values[j, :6], joints.values[j, 6:9], {"table": (joints, j)}, o, tuple(dropped))
     t = np.array([b for _, b in pairs], dtype=int)
     o = None if tracker.quat is None else tracker.quat[t]
-    return Points(ids, joints.values[j, :6], tracker.values[t, :3], {"joints": (joints, j), "tracker": (tracker, t)}, o)
+    return Points(ids, joints.values[j, :6], tracker.values[t, :3], {"joints": (joints, j), "tracker": (tracker, t)},
+                  o, tuple(dropped))
 
 
-def pair_by_id(J: Rows, T: Rows, dropped: list) -> list:
-    """(joint row, tracker row) pairs with the same id; the rest listed as unpaired."""
+def pair_by_id(J: Rows, T: Rows) -> tuple[list, list]:
+    """(joint row, tracker row) pairs with the same id, and the entries of the rows left unpaired."""
     jfirst, tfirst = J.first_rows(), T.first_rows()
     if not set(jfirst) & set(tfirst):
         show = lambda ids: ", ".join(list(ids)[:4]) + (" ..." if len(ids) > 4 else "")
         raise IngestError(f"no point ids in common with {J.path} (ids there: {show(jfirst) or 'none'}; "
                           f"here: {show(tfirst) or 'none'}); are the right two files paired?",
                           file=T.path)
-    pairs = []
+    pairs, dropped = [], []
     for A, B, other, from_joints in ((J, T, tfirst, True), (T, J, jfirst, False)):
         for r, pid in enumerate(A.ids):
             if A.problem[r]:
@@ -658,17 +661,18 @@ def pair_by_id(J: Rows, T: Rows, dropped: list) -> list:
                                    f"its row {B.lines[o]} in {B.path} was dropped ({B.problem[o][0]})")
             elif from_joints:
                 pairs.append((r, o))
-    return pairs
+    return pairs, dropped
 
 
-def pair_by_order(J: Rows, C: Rows, dropped: list) -> list:
-    """The i-th point with the i-th joint row; the counts must match."""
+def pair_by_order(J: Rows, C: Rows) -> tuple[list, list]:
+    """The i-th point with the i-th joint row (the counts must match), and the entries of the rows whose
+    partner was dropped."""
     if len(C.lines) != len(J.lines):
         raise IngestError(f"{len(C.lines)} points but {len(J.lines)} joint rows in {J.path}; a point "
                           "cloud is paired with the joint rows by order, so the counts must match",
                           file=C.path)
     C.ids = list(J.ids)
-    pairs = []
+    pairs, dropped = [], []
     for r in range(len(J.lines)):
         jp, cp = J.problem[r], C.problem[r]
         if jp is None and cp is None:
@@ -679,12 +683,12 @@ def pair_by_order(J: Rows, C: Rows, dropped: list) -> list:
         elif cp is None:
             dropped.append(entry(C, r, "partner_dropped",
                                  f"its row {J.lines[r]} in {J.path} was dropped ({jp[0]})"))
-    return pairs
+    return pairs, dropped
 
 
 # -------------------------------------------------------------------- checks
 
-def drop_joint_limits(pts: Points, robot, headers: list, dropped: list) -> Points:
+def drop_joint_limits(pts: Points, robot, headers: list) -> Points:
     """Drop points with an angle outside the robot's limits (stop if most are: unit error)."""
     out = robot.check_joints(pts.q)
     bad = out.any(axis=1)
@@ -701,17 +705,17 @@ def drop_joint_limits(pts: Points, robot, headers: list, dropped: list) -> Point
         details[k] = "; ".join(f"column '{headers[i]}' = {pts.q[k, i]:.6g} deg outside "
                                f"[{robot.limits_deg[i, 0]:g}, {robot.limits_deg[i, 1]:g}]"
                                for i in np.flatnonzero(out[k]))
-    return pts.drop(bad, "joint_limit", details, dropped)
+    return pts.drop(bad, "joint_limit", details)
 
 
-def check_count(pts: Points, dropped: list, path: str) -> None:
+def check_count(pts: Points, path: str) -> None:
     if len(pts) < MIN_POINTS:
-        raise IngestError(f"only {len(pts)} points left after dropping {len(dropped)} rows "
+        raise IngestError(f"only {len(pts)} points left after dropping {len(pts.dropped)} rows "
                           f"(need at least {MIN_POINTS}); see the reasons above or in "
-                          f"reports/ingest.json: {dict(Counter(d['reason'] for d in dropped))}", file=path)
+                          f"reports/ingest.json: {dict(Counter(d['reason'] for d in pts.dropped))}", file=path)
 
 
-def drop_position_outliers(pts: Points, robot, headers: list, dropped: list) -> Points:
+def drop_position_outliers(pts: Points, robot, headers: list) -> Points:
     """Drop points farther than POSITION_FAR x (reach + |tool|) from the median position (a typo);
     none if more than half are (a unit error: check_scale judges it)."""
     dev = pts.m - np.median(pts.m, axis=0)
@@ -721,7 +725,7 @@ def drop_position_outliers(pts: Points, robot, headers: list, dropped: list) -> 
     if 2 * bad.sum() > len(pts):
         return pts
     details = [position_detail(pts.m[k], dev[k], limit, headers) if b else "" for k, b in enumerate(bad)]
-    return pts.drop(bad, "position_outlier", details, dropped)
+    return pts.drop(bad, "position_outlier", details)
 
 
 def position_detail(m: np.ndarray, dev: np.ndarray, limit: float, headers: list) -> str:
@@ -820,7 +824,7 @@ def nominal_positions(q_deg: np.ndarray, robot, chunk: int = 32768) -> np.ndarra
                           [np.empty((0, 3))])
 
 
-def drop_gross_outliers(pts: Points, robot, limit, dropped: list, path: str):
+def drop_gross_outliers(pts: Points, robot, limit, path: str):
     """Drop points whose distances to the others disagree with nominal FK by more than `limit` mm."""
     if limit is None:
         return pts, None
@@ -837,7 +841,7 @@ def drop_gross_outliers(pts: Points, robot, limit, dropped: list, path: str):
                           "probably don't match the measurements", file=path)
     details = [f"distances to the other points disagree with nominal FK by {v:.2f} mm (median), "
                f"limit {float(limit):g} mm" if b else "" for v, b in zip(s, bad)]
-    return pts.drop(bad, "gross_outlier", details, dropped), info
+    return pts.drop(bad, "gross_outlier", details), info
 
 
 def check_geometry(pts: Points, path: str) -> dict:
@@ -951,9 +955,10 @@ def id_settings(setting) -> tuple:
     return setting, setting
 
 
-def read_inputs(cfg: dict, dropped: list):
+def read_inputs(cfg: dict):
     """Read the configured files -> (points, [Rows], path named in whole-set errors, the summary's
     `target` or None)."""
+    dropped = []
     cols = cfg["columns"]
     joint_group = (cols["joints"], AUTO_JOINTS, "joints")
     tracker_groups = [(cols["position"], AUTO_POSITION, "position")]
@@ -967,7 +972,7 @@ def read_inputs(cfg: dict, dropped: list):
         add_orientation(rows, cfg["orientation"])
         dropped += row_problems(rows)
         pairs = [(r, r) for r, p in enumerate(rows.problem) if p is None]
-        return make_points(pairs, rows, None), [rows], rows.path, None
+        return make_points(pairs, rows, None, dropped), [rows], rows.path, None
     jid, tid = id_settings(cols["point_id"])
     J = read_rows(str(cfg["joints"]), "joints", cfg, jid, [joint_group])
     tracker, target = str(cfg["tracker"]), None
@@ -978,17 +983,18 @@ def read_inputs(cfg: dict, dropped: list):
                               f"ingest.columns.{key} needs a tracker table (.csv/.txt)", file=tracker)
         T = read_cloud(tracker)
         dropped += row_problems(J)
-        pairs = pair_by_order(J, T, dropped)
-        dropped += row_problems(T)
+        pairs, unpaired = pair_by_order(J, T)
+        dropped += unpaired + row_problems(T)
     else:
         T = read_rows(tracker, "tracker", cfg, tid, tracker_groups, cols["marker"])
         add_orientation(T, cfg["orientation"])
         if cols["marker"] is not None:                      # marker rows -> one row per pose
             dropped += row_problems(T)
-            T, target = target_rows(T, cfg, dropped)
-        pairs = pair_by_id(J, T, dropped)
-        dropped += row_problems(J) + row_problems(T)
-    return make_points(pairs, J, T), [J, T], T.path, target
+            T, target, off = target_rows(T, cfg)
+            dropped += off
+        pairs, unpaired = pair_by_id(J, T)
+        dropped += unpaired + row_problems(J) + row_problems(T)
+    return make_points(pairs, J, T, dropped), [J, T], T.path, target
 
 
 def convert_units(pts: Points, joints: Rows, cfg: dict) -> list:
@@ -1016,9 +1022,8 @@ def ingest(ingest_cfg: dict, robot):
     """Read, pair, check and convert the inputs of the `ingest:` section for `robot` (robots.Robot)
     -> (table, summary). Writes nothing."""
     cfg = settings(ingest_cfg)
-    dropped = []
     t0 = time.perf_counter()
-    pts, files, path, target = read_inputs(cfg, dropped)
+    pts, files, path, target = read_inputs(cfg)
     if len(pts) > REFERENCE_POINTS:                         # a large campaign: say where it is
         log.info("read %s: %d points paired (%.0f s); checking them", ", ".join(f"{f.n_read} rows of {f.path}"
                                                                         for f in files), len(pts), time.perf_counter() - t0)
@@ -1028,19 +1033,19 @@ def ingest(ingest_cfg: dict, robot):
     for h, u in zip(jh, units):
         if u != cfg["angle_unit"]:
             log.info("column %r is read in %s (its name says so), whatever angle_unit says", h, u)
-    check_count(pts, dropped, path)
+    check_count(pts, path)
     check_angle_scale(pts, units, jh, joints.path)
-    pts = drop_joint_limits(pts, robot, jh, dropped)
-    check_count(pts, dropped, path)
-    pts = drop_position_outliers(pts, robot, ph, dropped)
-    check_count(pts, dropped, path)
+    pts = drop_joint_limits(pts, robot, jh)
+    check_count(pts, path)
+    pts = drop_position_outliers(pts, robot, ph)
+    check_count(pts, path)
     extent = check_scale(pts, robot, cfg["length_unit"], ph, positions.path)
-    pts, outliers = drop_gross_outliers(pts, robot, cfg["gross_outlier_mm"], dropped, path)
-    check_count(pts, dropped, path)
+    pts, outliers = drop_gross_outliers(pts, robot, cfg["gross_outlier_mm"], path)
+    check_count(pts, path)
     geometry = {"extent_mm": extent, **check_geometry(pts, path)}
 
     order = {rows.path: i for i, rows in enumerate(files)}
-    dropped.sort(key=lambda d: (order[d["file"]], d["row"]))
+    dropped = sorted(pts.dropped, key=lambda d: (order[d["file"]], d["row"]))
     summary = {
         "files": {rows.role: file_info(rows) for rows in files},
         "n_read": {rows.role: rows.n_read for rows in files},

@@ -13,9 +13,9 @@ import numpy as np
 from pipeline.lib.learning.metrics import drive_table
 from pipeline.lib.project.artifacts import (HERE, BASELINES_MD, CALIBRATION_JSON, COMPENSATION_CSV,
                                             COMPENSATION_JSON, DRIVE_CSV, FRAME_JSON, INGEST_JSON,
-                                            METRICS_JSON, PARTS_REPORT, REPORTS, THEORY_JSON, TRAIN_JSON)
+                                            METRICS_JSON, PARAMS_FILE, PARTS_REPORT, REPORTS, THEORY_JSON,
+                                            TRAIN_JSON)
 from pipeline.lib.project.columns import AXES
-from pipeline.lib.project.config import PARAMS
 from pipeline.lib.reporting.figures import DRIVE_TOL_MM, FIGURES, PLY_CMAP, PLY_PERCENTILE, caption
 from pipeline.lib.reporting.paper import (PAPER_ABLATION_EPOCHS, PAPER_DRIVE, PAPER_DRIVE_WITHIN,
                                           PAPER_METHODS, PAPER_TEST)
@@ -59,7 +59,7 @@ def link(path: Path, text: str | None = None, root: Path = HERE) -> str:
 
 
 def section_settings(params: dict, root: Path = HERE) -> str:
-    lines = ["## Settings", "", f"From {link(PARAMS, root=root)} (one line per section):", "", "```yaml"]
+    lines = ["## Settings", "", f"From {link(PARAMS_FILE, root=root)} (one line per section):", "", "```yaml"]
     for sec, v in params.items():
         if isinstance(v, dict):
             body = ", ".join(f"{k}: {_yaml_inline(x)}" for k, x in v.items())
