@@ -100,9 +100,10 @@ def per_joint_coverage(ws: Workspace, q: np.ndarray, table: pd.DataFrame) -> dic
 def twin_only(name: str, c: dict, twin_json: str, root: Path) -> str | None:
     """Why campaign `name` is not judged, or None: the twin made it (its files' SHA-256 are in the twin's
     record) but not the campaign trained on (ingest.json `files`), so it says nothing of this robot."""
-    if not Path(rooted(root, twin_json)).exists():   # no twin here: it made nothing
+    path = Path(rooted(root, twin_json))
+    if not path.exists():                            # no twin here: it made nothing
         return None
-    record = read_json(rooted(root, twin_json))
+    record = read_json(path)
     joints, tracker = c["ingest"]["joints"], c["ingest"]["tracker"]
     if made_by_twin(record, pair_sha256(rooted(root, joints), rooted(root, tracker))) is None:
         return None

@@ -9,6 +9,8 @@ import argparse
 import sys
 from pathlib import Path
 
+from pipeline.lib.project.artifacts import HERE
+
 
 class Refused(Exception):
     """What a command was asked cannot be done safely (waypoints that must not become moves, nothing to
@@ -28,5 +30,5 @@ def one_line(command: str, run, argv=None):
 
 
 def add_project(ap: argparse.ArgumentParser) -> None:
-    ap.add_argument("--project", type=Path, default=Path("."), metavar="DIR",
+    ap.add_argument("--project", type=Path, default=HERE, metavar="DIR",
                     help="the project whose params.yaml and trained artifacts to use (default: the working directory)")
