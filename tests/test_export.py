@@ -403,3 +403,45 @@ def test_the_pose_controller_graph_solves_six_equations_as_pytorch_does(in_train
         assert off[converged].max() < 2 * params["compensate"]["tol_arcsec"], off
     r = json.loads(Path("reports/export.json").read_text())["controller_pose"]["x150"]
     assert r["max_q_rad"] < 1e-9 and r["max_residual_mm"] < 1e-6                 # the stage's own read-back
+
+
+class _Patterns(torch.nn.Module):
+    """A few shapes that onnxscript's pattern rules rewrite (a clamp as Max then Min, transposes and
+    unsqueezes in a row, reshapes of a reshape) around a linear layer."""
+
+    def __init__(self):
+        super().__init__()
+        self.lin = torch.nn.Linear(6, 4)
+
+    def forward(self, q):                                        # (B, 6) -> (B, 4), (B, 4)
+        h = self.lin(q.clamp(-1.0, 1.0))
+        t = h.transpose(0, 1).transpose(0, 1).unsqueeze(0).unsqueeze(0)          # (1, 1, B, 4)
+        return t.reshape(-1, 2).reshape(-1, 4), torch.relu(h).clamp(max=0.5)
+
+
+def test_optimise_makes_the_exporters_graph_at_less_cost(tmp_path):
+    """onnx_model.optimise (folding, the pattern rules on the folded graph, folding) gives the nodes of
+    the exporter's own optimiser and onnxruntime's answers to the bit (docs/decisions.md: it is several
+    times cheaper on the controller graphs)."""
+    import onnx
+    import onnxruntime as ort
+    from pipeline.lib.learning.onnx_model import optimise, strip_annotations
+    torch.manual_seed(0)
+    m, q = _Patterns().eval(), torch.randn(5, 6)
+    graphs = {}
+    for ours in (False, True):
+        program = torch.onnx.export(m, (q,), None, input_names=["q"], output_names=["a", "b"], dynamo=True,
+                                    dynamic_shapes=({0: torch.export.Dim("batch")},), optimize=not ours)
+        if ours:
+            optimise(program.model)
+        proto = program.model_proto
+        strip_annotations(proto)
+        onnx.save_model(proto, str(tmp_path / f"{ours}.onnx"))
+        graphs[ours] = sorted(n.op_type for n in proto.graph.node)
+    assert graphs[True] == graphs[False] and "Clip" in graphs[True] and "Transpose" not in graphs[True]
+    x = np.random.default_rng(0).normal(size=(7, 6)).astype(np.float32)
+    answers = [ort.InferenceSession(str(tmp_path / f"{ours}.onnx"), providers=["CPUExecutionProvider"])
+               .run(None, {"q": x}) for ours in (False, True)]
+    assert all(np.array_equal(a, b) for a, b in zip(*answers, strict=True))
+    with torch.no_grad():
+        assert np.allclose(answers[1][0], m(torch.as_tensor(x))[0].numpy(), atol=1e-6)

@@ -12,17 +12,16 @@ The opt-in ones are the paper's comparison, one `-S` away; `bench real` trains t
 Writes data/interim/baselines.parquet (point_id, <name>_x, <name>_y, <name>_z)
 for evaluate, and reports/baselines_train.json.
 """
-import argparse
 from pathlib import Path
 
 import pandas as pd
 
 from pipeline.lib.learning.model import predict
 from pipeline.lib.learning.training import train_boter, train_dnn
-from pipeline.lib.project.artifacts import BASELINES_JSON, BASELINES_TABLE, HERE, PARAMS_FILE, TIMINGS
-from pipeline.lib.project.cli import one_line
+from pipeline.lib.project.artifacts import BASELINES_JSON, BASELINES_TABLE, HERE, TIMINGS
+from pipeline.lib.project.cli import one_line, stage_main
 from pipeline.lib.project.columns import JOINTS_DEG
-from pipeline.lib.project.config import for_stage, load_params, logger, split_timings, write_json
+from pipeline.lib.project.config import for_stage, logger, split_timings, write_json
 from pipeline.lib.reading.prepared import load_prepared
 from pipeline.lib.robot.geometry import physics_geometry
 from pipeline.lib.robot.kinematics import fk_numpy
@@ -63,10 +62,7 @@ def run(params: dict, root: Path = HERE) -> dict:
     return summary
 
 
-def main(argv=None, root: Path = HERE) -> dict:
-    """The stage on the project at `root` (its params.yaml); it takes no arguments."""
-    argparse.ArgumentParser(prog="python -m pipeline.stages.baselines", description=__doc__).parse_args(argv)
-    return run(load_params(root / PARAMS_FILE), root)
+main = stage_main("pipeline.stages.baselines", __doc__, run)         # main(argv=None, root=HERE)
 
 if __name__ == "__main__":
     one_line("pipeline.stages.baselines", main)

@@ -11,17 +11,16 @@ base frame and tool: lib/robot/geometry.py aligned) and
 reports/calibration.json (the identification report and the error per split
 and per campaign, nominal vs calibrated, on the aligned points).
 """
-import argparse
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from pipeline.lib.project.artifacts import (CALIBRATED_GEOMETRY, CALIBRATION_JSON, FRAME_JSON, HERE,
-                                            PARAMS_FILE, TIMINGS, load_points)
-from pipeline.lib.project.cli import one_line
+from pipeline.lib.project.artifacts import (CALIBRATED_GEOMETRY, CALIBRATION_JSON, FRAME_JSON, HERE, TIMINGS,
+                                            load_points)
+from pipeline.lib.project.cli import one_line, stage_main
 from pipeline.lib.project.columns import CAMPAIGN, JOINTS_DEG, MEAS, SPLITS, STATION
-from pipeline.lib.project.config import for_stage, load_params, logger, read_json, split_timings, write_json
+from pipeline.lib.project.config import for_stage, logger, read_json, split_timings, write_json
 from pipeline.lib.robot.frames import measured_rotations
 from pipeline.lib.robot.geometry import Calibration, aligned, theory_geometry
 from pipeline.lib.robot.identify import errors_3d, identify, orientation_errors
@@ -82,10 +81,7 @@ def run(params: dict, root: Path = HERE) -> dict:
     return report
 
 
-def main(argv=None, root: Path = HERE) -> dict:
-    """The stage on the project at `root` (its params.yaml); it takes no arguments."""
-    argparse.ArgumentParser(prog="python -m pipeline.stages.calibrate", description=__doc__).parse_args(argv)
-    return run(load_params(root / PARAMS_FILE), root)
+main = stage_main("pipeline.stages.calibrate", __doc__, run)         # main(argv=None, root=HERE)
 
 if __name__ == "__main__":
     one_line("pipeline.stages.calibrate", main)

@@ -23,7 +23,6 @@ Where the campaign measures the probe's orientation, metrics.json["pose"] holds 
 the flange orientation error (arcsec) and the position error at every `robot.tcp` point (lib/robot/tcp.py);
 the model's orientation is its physics branch's (the network corrects the marker's position).
 """
-import argparse
 from pathlib import Path
 
 import numpy as np
@@ -35,10 +34,10 @@ from pipeline.lib.learning.model import PhysicsOnly
 from pipeline.lib.learning.model import predict
 from pipeline.lib.learning.workspace import Workspace
 from pipeline.lib.project.artifacts import (BASELINES_MD, BASELINES_TABLE, HEADLINE_JSON, HERE, METRICS_JSON,
-                                            MODEL_WEIGHTS, PARAMS_FILE, PREDICTIONS_TABLE, WORKSPACE_JSON)
-from pipeline.lib.project.cli import one_line
+                                            MODEL_WEIGHTS, PREDICTIONS_TABLE, WORKSPACE_JSON)
+from pipeline.lib.project.cli import one_line, stage_main
 from pipeline.lib.project.columns import CAMPAIGN, JOINTS_DEG, MEAS, PRED, SPLITS, STATION, THEORY
-from pipeline.lib.project.config import for_stage, load_params, logger, write_json
+from pipeline.lib.project.config import for_stage, logger, write_json
 from pipeline.lib.reading.prepared import load_prepared
 from pipeline.lib.robot.frames import measured_rotations
 from pipeline.lib.robot.geometry import theory_geometry
@@ -193,10 +192,7 @@ def run(params: dict, root: Path = HERE) -> dict:
     return metrics
 
 
-def main(argv=None, root: Path = HERE) -> dict:
-    """The stage on the project at `root` (its params.yaml); it takes no arguments."""
-    argparse.ArgumentParser(prog="python -m pipeline.stages.evaluate", description=__doc__).parse_args(argv)
-    return run(load_params(root / PARAMS_FILE), root)
+main = stage_main("pipeline.stages.evaluate", __doc__, run)         # main(argv=None, root=HERE)
 
 if __name__ == "__main__":
     one_line("pipeline.stages.evaluate", main)

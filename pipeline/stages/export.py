@@ -40,7 +40,6 @@ squares over the campaign's poses); how far it stays from it, and what it leaves
            the flange's nominal orientation, weighted as compensate's lm weighs them), onnxruntime against
            PyTorch's realtime.two_steps: the largest difference in angles (rad) and |r| (mm)
 """
-import argparse
 from pathlib import Path
 
 import numpy as np
@@ -54,13 +53,12 @@ from pipeline.lib.learning.model import PhysicsOnly
 from pipeline.lib.learning.onnx_model import (OnnxModel, OnnxRealtime, deviation, export_controller,
                                               export_onnx)
 from pipeline.lib.project.artifacts import (CALIBRATED_GEOMETRY, CONTROLLER_ONNX, CONTROLLER_PHYSICS_ONNX,
-                                            CONTROLLER_PHYSICS_TCP_ONNX, CONTROLLER_POSE_ONNX,
-                                            CONTROLLER_TCP_ONNX, EXPORT_JSON, FRAME_JSON, HERE, MODEL_ONNX,
-                                            MODEL_WEIGHTS, PARAMS_FILE, PARTS_JSON, URDF_FILE, UR_YAML,
-                                            load_points)
-from pipeline.lib.project.cli import one_line
+                                            CONTROLLER_PHYSICS_TCP_ONNX, CONTROLLER_POSE_ONNX, CONTROLLER_TCP_ONNX,
+                                            EXPORT_JSON, FRAME_JSON, HERE, MODEL_ONNX, MODEL_WEIGHTS, PARTS_JSON,
+                                            URDF_FILE, UR_YAML, load_points)
+from pipeline.lib.project.cli import one_line, stage_main
 from pipeline.lib.project.columns import JOINTS_DEG, THEORY
-from pipeline.lib.project.config import for_stage, load_params, logger, read_json, write_json
+from pipeline.lib.project.config import for_stage, logger, read_json, write_json
 from pipeline.lib.robot.geometry import Calibration, theory_geometry, with_parts
 from pipeline.lib.robot.identify import identify
 from pipeline.lib.robot.kinematics import DTYPE, RIGID_KEYS, TOOL_ROT, fk, fk_frames, fk_numpy, fk_pose
@@ -245,10 +243,7 @@ def size(x) -> float:
     return float(f"{float(x):.2g}")
 
 
-def main(argv=None, root: Path = HERE) -> dict:
-    """The stage on the project at `root` (its params.yaml); it takes no arguments."""
-    argparse.ArgumentParser(prog="python -m pipeline.stages.export", description=__doc__).parse_args(argv)
-    return run(load_params(root / PARAMS_FILE), root)
+main = stage_main("pipeline.stages.export", __doc__, run)         # main(argv=None, root=HERE)
 
 
 if __name__ == "__main__":

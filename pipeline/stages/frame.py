@@ -11,16 +11,15 @@ diagnostics, and under "stations" every station's frame, tool and fit. Where the
 measures orientation: tool_rot, the probe's rotation in the flange (lib/robot/frames.py probe_rotation,
 per station), and the scatter of the measured orientations about it.
 """
-import argparse
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
-from pipeline.lib.project.artifacts import FRAME_JSON, HERE, INGEST_TABLE, PARAMS_FILE
-from pipeline.lib.project.cli import one_line
+from pipeline.lib.project.artifacts import FRAME_JSON, HERE, INGEST_TABLE
+from pipeline.lib.project.cli import one_line, stage_main
 from pipeline.lib.project.columns import CAMPAIGN, JOINTS_DEG, MEAS, STATION
-from pipeline.lib.project.config import for_stage, load_params, logger, write_json
+from pipeline.lib.project.config import for_stage, logger, write_json
 from pipeline.lib.robot.frames import fit_frames, flange_poses, measured_rotations, probe_rotation
 from pipeline.lib.robot.kinematics import nominal_geometry
 from pipeline.lib.robot.robots import load_robot
@@ -87,10 +86,7 @@ def run(params: dict, root: Path = HERE) -> dict:
     return summary
 
 
-def main(argv=None, root: Path = HERE) -> dict:
-    """The stage on the project at `root` (its params.yaml); it takes no arguments."""
-    argparse.ArgumentParser(prog="python -m pipeline.stages.frame", description=__doc__).parse_args(argv)
-    return run(load_params(root / PARAMS_FILE), root)
+main = stage_main("pipeline.stages.frame", __doc__, run)         # main(argv=None, root=HERE)
 
 if __name__ == "__main__":
     one_line("pipeline.stages.frame", main)

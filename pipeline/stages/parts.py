@@ -10,18 +10,17 @@ network learns what remains. reports/parts.json: each part's size, whether it ho
 per split with and without the maps, and how far each part could re-learn a calibration parameter
 (the share of its displacement the calibration's own parameters explain).
 """
-import argparse
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import torch
 
-from pipeline.lib.project.artifacts import (CALIBRATED_GEOMETRY, CALIBRATION_JSON, FRAME_JSON, HERE,
-                                            INGEST_TABLE, PARAMS_FILE, PARTS_JSON, PARTS_REPORT, load_points)
-from pipeline.lib.project.cli import one_line
+from pipeline.lib.project.artifacts import (CALIBRATED_GEOMETRY, CALIBRATION_JSON, FRAME_JSON, HERE, INGEST_TABLE,
+                                            PARTS_JSON, PARTS_REPORT, load_points)
+from pipeline.lib.project.cli import one_line, stage_main
 from pipeline.lib.project.columns import JOINTS_DEG, MEAS, SPLITS
-from pipeline.lib.project.config import for_stage, load_params, logger, read_json, write_json
+from pipeline.lib.project.config import for_stage, logger, read_json, write_json
 from pipeline.lib.robot import errormaps
 from pipeline.lib.robot.frames import measured_rotations
 from pipeline.lib.robot.geometry import Calibration, aligned, theory_geometry
@@ -154,10 +153,7 @@ def run(params: dict, root: Path = HERE) -> dict:
     return report
 
 
-def main(argv=None, root: Path = HERE) -> dict:
-    """The stage on the project at `root` (its params.yaml); it takes no arguments."""
-    argparse.ArgumentParser(prog="python -m pipeline.stages.parts", description=__doc__).parse_args(argv)
-    return run(load_params(root / PARAMS_FILE), root)
+main = stage_main("pipeline.stages.parts", __doc__, run)         # main(argv=None, root=HERE)
 
 if __name__ == "__main__":
     one_line("pipeline.stages.parts", main)

@@ -14,7 +14,6 @@ Every other input is optional; a figure or section whose input is missing is
 skipped with a note in index.md (and in the log). The opt-in ablation's outputs
 (`python -m pipeline.commands.ablation`) are linked from index.md, never read.
 """
-import argparse
 from functools import cached_property
 from pathlib import Path
 
@@ -23,15 +22,14 @@ import pandas as pd
 import pyarrow.parquet as pq
 
 from pipeline.lib.learning.checkpoint import load_model
-from pipeline.lib.project.artifacts import (BASELINES_MD, BASELINES_TABLE, CALIBRATION_JSON,
-                                            COMPENSATION_JSON, CONVERGENCE_CSV, DRIVE_CSV, EXPORT_JSON,
-                                            FRAME_JSON, HERE, INGEST_JSON, INGEST_TABLE, LIVE, METRICS_JSON,
-                                            MODEL_WEIGHTS, PARAMS_FILE, PARTS_REPORT, PREDICTIONS_TABLE,
-                                            REPORTS, SPLIT_JSON, THEORY_JSON, TRAIN_JSON, VALIDATION_JSON,
-                                            VALIDATION_TABLE)
-from pipeline.lib.project.cli import one_line
+from pipeline.lib.project.artifacts import (BASELINES_MD, BASELINES_TABLE, CALIBRATION_JSON, COMPENSATION_JSON,
+                                            CONVERGENCE_CSV, DRIVE_CSV, EXPORT_JSON, FRAME_JSON, HERE, INGEST_JSON,
+                                            INGEST_TABLE, LIVE, METRICS_JSON, MODEL_WEIGHTS, PARTS_REPORT,
+                                            PREDICTIONS_TABLE, REPORTS, SPLIT_JSON, THEORY_JSON, TRAIN_JSON,
+                                            VALIDATION_JSON, VALIDATION_TABLE)
+from pipeline.lib.project.cli import one_line, stage_main
 from pipeline.lib.project.columns import MEAS, PRED, THEORY
-from pipeline.lib.project.config import for_stage, load_params, logger, read_json
+from pipeline.lib.project.config import for_stage, logger, read_json
 from pipeline.lib.reporting import figures, page, summary
 
 log = logger(__name__)
@@ -157,10 +155,7 @@ def run(params: dict, root: Path = HERE) -> dict:
             "ply_scale_mm": [ply["lo"], ply["hi"]], "summary": sheet}
 
 
-def main(argv=None, root: Path = HERE) -> dict:
-    """The stage on the project at `root` (its params.yaml); it takes no arguments."""
-    argparse.ArgumentParser(prog="python -m pipeline.stages.report", description=__doc__).parse_args(argv)
-    return run(load_params(root / PARAMS_FILE), root)
+main = stage_main("pipeline.stages.report", __doc__, run)         # main(argv=None, root=HERE)
 
 
 if __name__ == "__main__":

@@ -10,17 +10,16 @@ trains or validates on them, and evaluate reports every method on them beside th
 
 Writes data/interim/split.parquet (point_id, split) and reports/split.json.
 """
-import argparse
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
 from pipeline.lib.learning.splits import region, split_indices
-from pipeline.lib.project.artifacts import HERE, PARAMS_FILE, POINTS_TABLE, SPLIT_JSON, SPLIT_TABLE
-from pipeline.lib.project.cli import one_line
+from pipeline.lib.project.artifacts import HERE, POINTS_TABLE, SPLIT_JSON, SPLIT_TABLE
+from pipeline.lib.project.cli import one_line, stage_main
 from pipeline.lib.project.columns import CAMPAIGN, JOINTS_DEG, SPLITS
-from pipeline.lib.project.config import for_stage, json_text, load_params, logger
+from pipeline.lib.project.config import for_stage, json_text, logger
 from pipeline.lib.project.writing import write_together
 
 log = logger(__name__)
@@ -52,10 +51,7 @@ def run(params: dict, root: Path = HERE) -> dict:
     return summary
 
 
-def main(argv=None, root: Path = HERE) -> dict:
-    """The stage on the project at `root` (its params.yaml); it takes no arguments."""
-    argparse.ArgumentParser(prog="python -m pipeline.stages.split", description=__doc__).parse_args(argv)
-    return run(load_params(root / PARAMS_FILE), root)
+main = stage_main("pipeline.stages.split", __doc__, run)         # main(argv=None, root=HERE)
 
 if __name__ == "__main__":
     one_line("pipeline.stages.split", main)

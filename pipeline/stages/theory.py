@@ -8,17 +8,15 @@ meas_q* = the measured orientation in the base frame, R^T R_world (where the cam
 Points the frame fit rejected as gross outliers are dropped here and listed
 in reports/theory.json with their residual.
 """
-import argparse
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
-from pipeline.lib.project.artifacts import (FRAME_JSON, HERE, INGEST_TABLE, PARAMS_FILE, POINTS_TABLE,
-                                            THEORY_JSON)
-from pipeline.lib.project.cli import one_line
+from pipeline.lib.project.artifacts import FRAME_JSON, HERE, INGEST_TABLE, POINTS_TABLE, THEORY_JSON
+from pipeline.lib.project.cli import one_line, stage_main
 from pipeline.lib.project.columns import CAMPAIGN, ERR, JOINTS_DEG, MEAS, MEAS_Q, STATION, THEORY
-from pipeline.lib.project.config import for_stage, load_params, logger, read_json, write_json
+from pipeline.lib.project.config import for_stage, logger, read_json, write_json
 from pipeline.lib.robot.frames import measured_rotations, quaternions, to_base
 from pipeline.lib.robot.geometry import theory_geometry
 from pipeline.lib.robot.kinematics import fk_numpy
@@ -65,10 +63,7 @@ def run(params: dict, root: Path = HERE) -> dict:
     return summary
 
 
-def main(argv=None, root: Path = HERE) -> dict:
-    """The stage on the project at `root` (its params.yaml); it takes no arguments."""
-    argparse.ArgumentParser(prog="python -m pipeline.stages.theory", description=__doc__).parse_args(argv)
-    return run(load_params(root / PARAMS_FILE), root)
+main = stage_main("pipeline.stages.theory", __doc__, run)         # main(argv=None, root=HERE)
 
 if __name__ == "__main__":
     one_line("pipeline.stages.theory", main)

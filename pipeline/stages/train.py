@@ -6,7 +6,6 @@ geometry; nominal: the paper's). Per-epoch curves go to dvclive
 from) to models/boter.pt; the summary to reports/train.json, its wall-clock
 times to reports/timings/train.json.
 """
-import argparse
 from pathlib import Path
 
 from dvclive import Live
@@ -14,9 +13,9 @@ from dvclive import Live
 from pipeline.lib.learning.checkpoint import save_model
 from pipeline.lib.learning.model import check_config
 from pipeline.lib.learning.training import resolve_device, train_boter
-from pipeline.lib.project.artifacts import HERE, LIVE, MODEL_WEIGHTS, PARAMS_FILE, TIMINGS, TRAIN_JSON
-from pipeline.lib.project.cli import one_line
-from pipeline.lib.project.config import for_stage, load_params, logger, split_timings, write_json
+from pipeline.lib.project.artifacts import HERE, LIVE, MODEL_WEIGHTS, TIMINGS, TRAIN_JSON
+from pipeline.lib.project.cli import one_line, stage_main
+from pipeline.lib.project.config import for_stage, logger, split_timings, write_json
 from pipeline.lib.reading.prepared import load_prepared
 from pipeline.lib.robot.geometry import physics_geometry
 
@@ -48,10 +47,7 @@ def run(params: dict, root: Path = HERE) -> dict:
     return summary
 
 
-def main(argv=None, root: Path = HERE) -> dict:
-    """The stage on the project at `root` (its params.yaml); it takes no arguments."""
-    argparse.ArgumentParser(prog="python -m pipeline.stages.train", description=__doc__).parse_args(argv)
-    return run(load_params(root / PARAMS_FILE), root)
+main = stage_main("pipeline.stages.train", __doc__, run)         # main(argv=None, root=HERE)
 
 if __name__ == "__main__":
     one_line("pipeline.stages.train", main)

@@ -25,8 +25,9 @@ step runs in closed form in the graph (solvers.solve3: ONNX has no solve), the e
 look-ups as Gather; the answers equal PyTorch's to ~1e-12 rad (tests/test_compensate.py).
 
 Exported with torch.onnx's dynamo exporter (torch.export, batch size left free); the physics branch
-stays float64 inside the graph, as in PyTorch. Read back with onnxruntime (`OnnxModel`). The pose graph is
-optimised without onnxscript's pattern rewriter (`fold`; docs/decisions.md).
+stays float64 inside the graph, as in PyTorch. Read back with onnxruntime (`OnnxModel`). Every graph is
+optimised here (`optimise`), not by the exporter: its pattern rules run on the folded graph
+(docs/decisions.md).
 
 The file is the same bytes for the same weights (a DVC output, hashed in dvc.lock): the exporter's
 debugging annotations (`metadata_props` on nodes, values, graph and model, and doc strings) are
@@ -109,7 +110,7 @@ def export_controller(model, path, at_tcp: bool = False, pose: bool = False) -> 
         args += (torch.zeros(3, dtype=DTYPE), torch.eye(3, dtype=DTYPE).expand(4, 3, 3).clone(),
                  torch.ones(1, dtype=DTYPE))
         _export(_ControllerPose(m), args, list(CONTROLLER_INPUTS) + [TCP_INPUT, *POSE_INPUTS],
-                list(CONTROLLER_OUTPUTS), dynamic + (None, {0: "batch"}, None), path, rewrite=False)
+                list(CONTROLLER_OUTPUTS), dynamic + (None, {0: "batch"}, None), path)
     elif at_tcp:
         _export(_ControllerAtTcp(m), args + (torch.zeros(3, dtype=DTYPE),), list(CONTROLLER_INPUTS) + [TCP_INPUT],
                 list(CONTROLLER_OUTPUTS), dynamic + (None,), path)
@@ -121,10 +122,9 @@ def _exportable(model):
     return (model.for_export() if isinstance(model, Ensemble) else model).eval()
 
 
-def _export(module, args, inputs, outputs, dynamic, path, rewrite: bool = True) -> None:
-    """torch.onnx (dynamo) export of module at args, the dims named in dynamic free; written without the
-    exporter's annotations (strip_annotations), as one self-contained file. rewrite=False: the graph
-    optimised without onnxscript's pattern rewriter (`fold`)."""
+def _export(module, args, inputs, outputs, dynamic, path) -> None:
+    """torch.onnx (dynamo) export of module at args, the dims named in dynamic free, optimised by
+    `optimise`; written without the exporter's annotations (strip_annotations), as one self-contained file."""
     for name in ("onnxscript", "onnx_ir"):                # their graph passes log every rewrite at INFO
         logging.getLogger(name).setLevel(logging.WARNING)
     dims = {}
@@ -133,21 +133,29 @@ def _export(module, args, inputs, outputs, dynamic, path, rewrite: bool = True) 
     with warnings.catch_warnings():                        # two inputs sharing the batch axis: said, harmless
         warnings.filterwarnings("ignore", "# The axis name: .* will not be used")
         program = torch.onnx.export(module.eval(), args, None, input_names=inputs, output_names=outputs,
-                                    dynamic_shapes=shapes, dynamo=True, optimize=rewrite, verbose=False)
-    if not rewrite:
-        fold(program.model)
+                                    dynamic_shapes=shapes, dynamo=True, optimize=False, verbose=False)
+    optimise(program.model)
     import onnx
     proto = program.model_proto
     strip_annotations(proto)
     onnx.save_model(proto, str(path), save_as_external_data=False)   # one self-contained file
 
 
+def optimise(model) -> None:
+    """In place on an onnx_ir Model: `fold`, onnxscript's default pattern rules on the folded graph, `fold`
+    again. The exporter's own optimiser (optimize_ir) runs the same rules before the dead nodes are
+    removed, at several times the cost (the controller graph: 15.8 s against 4.2) for the same nodes and
+    onnxruntime's answers to the bit (docs/decisions.md)."""
+    from onnxscript import rewriter
+    fold(model)
+    rewriter.rewrite(model)                                # its default rules, in place on an ir.Model
+    fold(model)
+
+
 def fold(model) -> None:
     """onnxscript's graph optimisation (its optimize_ir) without the pattern rewriter, in place on an
     onnx_ir Model: functions inlined, constants folded, unused nodes removed, constants lifted to
-    initializers and deduplicated, common subexpressions merged. On the pose graph the rewriter took
-    89 of the export's 164 s and changed neither onnxruntime's answers (bit for bit) nor its time a call
-    (docs/decisions.md); the position graphs keep it (9% faster a call)."""
+    initializers and deduplicated, common subexpressions merged."""
     import onnxscript.optimizer as optimizer
     from onnx_ir.passes import common
     optimizer.inline(model)

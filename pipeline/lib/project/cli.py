@@ -4,12 +4,15 @@
                                    ParamsError; OSError) exits 2, each said in one message on stderr
     add_project(parser)            --project DIR: the project a command reads (its params.yaml and
                                    trained artifacts; default the working directory)
+    stage_main(module, doc, run)   the main(argv=None, root=HERE) of a stage that takes no arguments:
+                                   run(the params.yaml at root, root)
 """
 import argparse
 import sys
 from pathlib import Path
 
-from pipeline.lib.project.artifacts import HERE
+from pipeline.lib.project.artifacts import HERE, PARAMS_FILE
+from pipeline.lib.project.config import load_params
 
 
 class Refused(Exception):
@@ -32,3 +35,13 @@ def one_line(command: str, run, argv=None):
 def add_project(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--project", type=Path, default=HERE, metavar="DIR",
                     help="the project whose params.yaml and trained artifacts to use (default: the working directory)")
+
+
+def stage_main(module: str, doc: str, run):
+    """main(argv=None, root=HERE) of the stage `python -m module` (described by doc), which takes no
+    arguments: run(load_params(root / params.yaml), root), returning what run returns."""
+    def main(argv=None, root: Path = HERE):
+        argparse.ArgumentParser(prog=f"python -m {module}", description=doc).parse_args(argv)
+        return run(load_params(root / PARAMS_FILE), root)
+    main.__doc__ = f"{module} on the project at `root` (its params.yaml); it takes no arguments."
+    return main
