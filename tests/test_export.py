@@ -317,6 +317,42 @@ def test_controller_onnx_of_an_ensemble_answers_as_realtime(tmp_path):
     assert_same_answers(onnx_rt.batch(q0, tgt), torch_rt.batch(q0, tgt))
 
 
+def test_the_marker_graph_is_the_tcp_graph_at_the_probe_to_the_bit(tmp_path):
+    """The export stage traces the controller path once for two files: controller_tcp.onnx, and
+    controller.onnx, that graph with tcp_mm fixed at the probe offset (at_probe). The marker's graph must
+    take no TCP and answer as the path traced without one (two_steps with no tcp_mm), to the bit; the TCP
+    graph fed the probe offset too."""
+    import onnx
+    from pipeline.lib.learning.onnx_model import CONTROLLER_INPUTS, CONTROLLER_OUTPUTS, _export, save
+    from pipeline.lib.runtime.realtime import two_steps
+
+    class Marker(torch.nn.Module):                                   # the path as traced before at_probe
+        def __init__(self, model):
+            super().__init__()
+            self.model = model
+
+        def forward(self, q0_rad, target_mm, q_min_rad, q_max_rad, damping):
+            return two_steps(self.model, q0_rad, target_mm, q_min_rad, q_max_rad, damping)
+
+    model = small_boter(2)
+    export_controller(model, tmp_path / "tcp.onnx", at_tcp=True, probe_path=tmp_path / "marker.onnx")
+    args = (torch.zeros(4, 6, dtype=DTYPE), torch.zeros(4, 3, dtype=DTYPE), torch.full((6,), -np.pi, dtype=DTYPE),
+            torch.full((6,), np.pi, dtype=DTYPE), torch.full((4,), 1e-9, dtype=DTYPE))
+    save(_export(Marker(model), args, list(CONTROLLER_INPUTS), list(CONTROLLER_OUTPUTS),
+                 ({0: "batch"}, {0: "batch"}, None, None, {0: "batch"})), tmp_path / "traced.onnx")
+    assert [i.name for i in onnx.load(str(tmp_path / "marker.onnx")).graph.input] == list(CONTROLLER_INPUTS)
+    q0 = poses(40, seed=8).numpy()
+    with torch.no_grad():
+        tgt = model(torch.as_tensor(q0))[0].numpy() + np.random.default_rng(8).normal(0, 0.5, (40, 3))
+    tool = model.physics.geometry()["tool"].numpy()
+    want = OnnxRealtime(tmp_path / "traced.onnx").solve(q0, tgt)
+    for got in (OnnxRealtime(tmp_path / "marker.onnx").solve(q0, tgt),
+                OnnxRealtime(tmp_path / "tcp.onnx", tcp_mm=tool).solve(q0, tgt)):
+        assert all(np.array_equal(a, b) for a, b in zip(got, want))
+    assert not np.array_equal(OnnxRealtime(tmp_path / "tcp.onnx", tcp_mm=tool + [0.0, 0.0, 1.0]).solve(q0, tgt)[0],
+                              want[0])                                # the TCP input acts
+
+
 def test_the_tcp_controller_graph_answers_for_any_tool_as_the_pytorch_path_at_it(in_trained_project):
     """Issue 34: models/controller_tcp.onnx takes the TCP (flange frame) as an input; fed robot.tcp's x150, and
     a tool the export never saw, it answers every case as the PyTorch controller path on tcp.AtTcp, alone and

@@ -10,7 +10,9 @@ import torch
 
 import pipeline
 from conftest import background
-from pipeline.lib.robot.kinematics import DHChain, fk, fk_jacobian, fk_numpy, nominal_geometry
+from pipeline.lib.robot import errormaps as E
+from pipeline.lib.robot.kinematics import (DHChain, angular_jacobian, fk, fk_jacobian, fk_numpy, fk_pose_jacobian,
+                                           flange_rotations, nominal_geometry)
 from pipeline.lib.robot.robots import load_robot, nominal_robot
 
 UR5 = nominal_robot("ur5")
@@ -101,6 +103,23 @@ def test_geometric_jacobian_equals_autograd_with_every_error_term():
     # nominal UR5: joint 6 turns the tool (1, -2, 100) about the flange z axis, on a radius of √5 mm
     p, J = fk_jacobian(q, nominal_geometry(load_robot({"model": "ur5", "tool_mm": [1.0, -2.0, 100.0], "dh": None, "joint_limits_deg": None, "tcp": None})))
     torch.testing.assert_close(J[:, :, 5].norm(dim=1), torch.full((8,), 5 ** 0.5, dtype=torch.float64))
+
+
+def test_one_fk_pass_gives_the_position_orientation_and_both_jacobians_to_the_bit():
+    """fk_pose_jacobian (a pose solver's step: realtime.chord_step, solvers.physics_trial) gives what fk_jacobian,
+    flange_rotations and angular_jacobian give, bit for bit, on an arm with every error term (base correction,
+    compliance, angle maps), from one FK pass where the three calls take three."""
+    g = nominal_geometry(load_robot({"model": "ur5", "tool_mm": [1.0, -2.0, 100.0], "dh": None, "joint_limits_deg": None, "tcp": None}))
+    gen = torch.Generator().manual_seed(5)
+    g = {k: v + 1e-2 * torch.randn(v.shape, generator=gen, dtype=torch.float64) if k not in ("mass", "com") else v
+         for k, v in g.items()} | {"compliance": torch.full((6,), 1e-4, dtype=torch.float64)}
+    g |= E.as_geometry({"amap_coef": 1e-4 * np.sin(np.arange(6 * 180) / 7.0).reshape(6, 180),
+                        "amap_cover": np.ones((6, 360))})
+    q = (torch.rand(16, 6, generator=gen, dtype=torch.float64) * 2 - 1) * 3
+    p, J, R, Jw = fk_pose_jacobian(q, g)
+    assert torch.equal(p, fk_jacobian(q, g)[0]) and torch.equal(J, fk_jacobian(q, g)[1])
+    assert torch.equal(R, flange_rotations(q, g)) and torch.equal(Jw, angular_jacobian(q, g))
+    assert (p - fk(q, {k: v for k, v in g.items() if not k.startswith("amap")})).norm(dim=1).max() > 1e-3   # the maps act
 
 
 FK_HASH = """

@@ -199,7 +199,7 @@ def run(params: dict, root: Path = HERE) -> dict:
 
 
 def main(argv=None, root: Path = HERE):
-    ap = argparse.ArgumentParser(prog="python -m pipeline.stages.compensate", description=__doc__,
+    ap = argparse.ArgumentParser(prog=f"python -m {__spec__.name}", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--targets", help="CSV of your own targets (not a DVC stage run)")
     a = ap.parse_args(argv)
@@ -215,4 +215,4 @@ def main(argv=None, root: Path = HERE):
 
 
 if __name__ == "__main__":
-    one_line("pipeline.stages.compensate", main)
+    one_line(__spec__.name, main)

@@ -192,7 +192,7 @@ def run(params: dict, root: Path = HERE) -> dict:
     return metrics
 
 
-main = stage_main("pipeline.stages.evaluate", __doc__, run)         # main(argv=None, root=HERE)
+main = stage_main(__spec__.name, __doc__, run)         # main(argv=None, root=HERE)
 
 if __name__ == "__main__":
-    one_line("pipeline.stages.evaluate", main)
+    one_line(__spec__.name, main)

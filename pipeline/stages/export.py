@@ -10,6 +10,8 @@
                                  controller whose cycle cannot hold the network
     models/controller_tcp.onnx, models/controller_physics_tcp.onnx   the same two with one more input,
                                  tcp_mm (3,): the targets are that TCP's (flange frame), not the marker's
+                                 (traced once: the two above are these graphs with tcp_mm fixed at the
+                                 probe offset, onnx_model.at_probe)
     models/controller_pose.onnx  the whole model's at a TCP for a pose: target_rot (the flange's orientation)
                                  and its weight too, six equations a step
 
@@ -188,9 +190,10 @@ def run(params: dict, root: Path = HERE) -> dict:
              summary["onnx"]["max_deviation_from_float64_angles_mm"])
 
     limits = np.radians(robot.limits_deg)
-    for key, path, m in (("controller", root / CONTROLLER_ONNX, model),
-                         ("controller_physics", root / CONTROLLER_PHYSICS_ONNX, PhysicsOnly(model))):
-        export_controller(m, path)
+    for key, path, tcp_path, m in (("controller", root / CONTROLLER_ONNX, root / CONTROLLER_TCP_ONNX, model),
+                                   ("controller_physics", root / CONTROLLER_PHYSICS_ONNX,
+                                    root / CONTROLLER_PHYSICS_TCP_ONNX, PhysicsOnly(model))):
+        export_controller(m, tcp_path, at_tcp=True, probe_path=path)        # one trace: the TCP graph, and the marker's
         dev = deviation(Realtime(m, limits), OnnxRealtime(path, limits), q[test].numpy(),
                         pts.loc[test, THEORY].to_numpy())
         dev.update(max_q_rad=size(dev["max_q_rad"]), max_residual_mm=size(dev["max_residual_mm"]))
@@ -201,7 +204,6 @@ def run(params: dict, root: Path = HERE) -> dict:
     tcps = {n: c["xyz_mm"] for n, c in (p["robot"]["tcp"] or {"x150": {"xyz_mm": [150.0, 0.0, 0.0]}}).items()}
     for key, path, m in (("controller_tcp", root / CONTROLLER_TCP_ONNX, model),
                          ("controller_physics_tcp", root / CONTROLLER_PHYSICS_TCP_ONNX, PhysicsOnly(model))):
-        export_controller(m, path, at_tcp=True)
         summary[key] = {"file": str(path), "checked_with": "onnxruntime"}
         for name, xyz in tcps.items():
             o = probe_offsets({name: {"xyz_mm": xyz}}, m.physics.geometry())[name]
@@ -243,8 +245,8 @@ def size(x) -> float:
     return float(f"{float(x):.2g}")
 
 
-main = stage_main("pipeline.stages.export", __doc__, run)         # main(argv=None, root=HERE)
+main = stage_main(__spec__.name, __doc__, run)         # main(argv=None, root=HERE)
 
 
 if __name__ == "__main__":
-    one_line("pipeline.stages.export", main)
+    one_line(__spec__.name, main)

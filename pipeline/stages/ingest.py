@@ -98,7 +98,7 @@ def run(params: dict, root: Path = HERE) -> dict:
 
 
 def main(argv=None, root: Path = HERE):
-    ap = argparse.ArgumentParser(prog="python -m pipeline.stages.ingest", description=__doc__,
+    ap = argparse.ArgumentParser(prog=f"python -m {__spec__.name}", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("what", nargs="?", choices=["campaign"], help="ingest one campaigns.more campaign")
     ap.add_argument("name", nargs="?")
@@ -112,4 +112,4 @@ def main(argv=None, root: Path = HERE):
 
 
 if __name__ == "__main__":
-    one_line("pipeline.stages.ingest", main)
+    one_line(__spec__.name, main)

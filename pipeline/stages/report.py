@@ -155,8 +155,8 @@ def run(params: dict, root: Path = HERE) -> dict:
             "ply_scale_mm": [ply["lo"], ply["hi"]], "summary": sheet}
 
 
-main = stage_main("pipeline.stages.report", __doc__, run)         # main(argv=None, root=HERE)
+main = stage_main(__spec__.name, __doc__, run)         # main(argv=None, root=HERE)
 
 
 if __name__ == "__main__":
-    one_line("pipeline.stages.report", main)
+    one_line(__spec__.name, main)

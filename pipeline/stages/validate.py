@@ -215,7 +215,7 @@ def run_summary(params: dict, root: Path = HERE) -> dict:
 
 
 def main(argv=None, root: Path = HERE):
-    ap = argparse.ArgumentParser(prog="python -m pipeline.stages.validate", description=__doc__,
+    ap = argparse.ArgumentParser(prog=f"python -m {__spec__.name}", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("what", choices=["campaign", "summary"])
     ap.add_argument("name", nargs="?", help="campaign name (with `campaign`)")
@@ -228,4 +228,4 @@ def main(argv=None, root: Path = HERE):
 
 
 if __name__ == "__main__":
-    one_line("pipeline.stages.validate", main)
+    one_line(__spec__.name, main)

@@ -66,18 +66,13 @@ class _Poses(nn.Module):
 
 
 class _Controller(nn.Module):
-    """The controller path's two chord steps (realtime.two_steps) as a module, for the exporter."""
+    """The controller path's two chord steps (realtime.two_steps) as a module, for the exporter, at a TCP given
+    as an input (3,) mm in the flange frame: one graph for every tool (the marker's own graph is this one with
+    the TCP fixed at the probe offset, `at_probe`)."""
 
     def __init__(self, model):
         super().__init__()
         self.model = model
-
-    def forward(self, q0_rad, target_mm, q_min_rad, q_max_rad, damping):
-        return two_steps(self.model, q0_rad, target_mm, q_min_rad, q_max_rad, damping)
-
-
-class _ControllerAtTcp(_Controller):
-    """The same at a TCP given as an input (3,) mm in the flange frame: one graph for every tool."""
 
     def forward(self, q0_rad, target_mm, q_min_rad, q_max_rad, damping, tcp_mm):
         return two_steps(self.model, q0_rad, target_mm, q_min_rad, q_max_rad, damping, tcp_mm)
@@ -92,39 +87,57 @@ class _ControllerPose(_Controller):
 
 def export_onnx(model, path) -> None:
     """Write `model` (BoTER or Ensemble, eval mode) to `path` as ONNX."""
-    _export(_Poses(_exportable(model)), (torch.zeros(4, 6),), ["q_rad"], ["p_mm", "probe_rot"], ({0: "batch"},), path)
+    save(_export(_Poses(_exportable(model)), (torch.zeros(4, 6),), ["q_rad"], ["p_mm", "probe_rot"],
+                 ({0: "batch"},)), path)
 
 
-def export_controller(model, path, at_tcp: bool = False, pose: bool = False) -> None:
+def export_controller(model, path, at_tcp: bool = False, pose: bool = False, probe_path=None) -> None:
     """Write the controller path of `model` (BoTER or Ensemble, eval mode) to `path` as one ONNX graph:
     both chord steps, exactly what realtime.Realtime computes with the same damping; at_tcp: with the input
-    `tcp_mm` (3,), the TCP in the flange frame, whose position the targets are (Realtime on tcp.AtTcp);
-    pose: that, and the flange's orientation as a target too (POSE_INPUTS; realtime.two_steps' rot, w)."""
+    `tcp_mm` (3,), the TCP in the flange frame, whose position the targets are (Realtime on tcp.AtTcp), and
+    with probe_path, the marker's graph too (`at_probe`), from the same trace; pose: that, and the flange's
+    orientation as a target too (POSE_INPUTS; realtime.two_steps' rot, w)."""
     m = _exportable(model)
     for p in m.parameters():
         p.requires_grad_(False)
     args = (torch.zeros(4, 6, dtype=DTYPE), torch.zeros(4, 3, dtype=DTYPE), torch.full((6,), -np.pi, dtype=DTYPE),
-            torch.full((6,), np.pi, dtype=DTYPE), torch.full((4,), DAMPING, dtype=DTYPE))
-    dynamic = ({0: "batch"}, {0: "batch"}, None, None, {0: "batch"})
+            torch.full((6,), np.pi, dtype=DTYPE), torch.full((4,), DAMPING, dtype=DTYPE), torch.zeros(3, dtype=DTYPE))
+    dynamic = ({0: "batch"}, {0: "batch"}, None, None, {0: "batch"}, None)
+    names = list(CONTROLLER_INPUTS) + [TCP_INPUT]
     if pose:
-        args += (torch.zeros(3, dtype=DTYPE), torch.eye(3, dtype=DTYPE).expand(4, 3, 3).clone(),
-                 torch.ones(1, dtype=DTYPE))
-        _export(_ControllerPose(m), args, list(CONTROLLER_INPUTS) + [TCP_INPUT, *POSE_INPUTS],
-                list(CONTROLLER_OUTPUTS), dynamic + (None, {0: "batch"}, None), path)
-    elif at_tcp:
-        _export(_ControllerAtTcp(m), args + (torch.zeros(3, dtype=DTYPE),), list(CONTROLLER_INPUTS) + [TCP_INPUT],
-                list(CONTROLLER_OUTPUTS), dynamic + (None,), path)
-    else:
-        _export(_Controller(m), args, list(CONTROLLER_INPUTS), list(CONTROLLER_OUTPUTS), dynamic, path)
+        graph = _export(_ControllerPose(m), args + (torch.eye(3, dtype=DTYPE).expand(4, 3, 3).clone(),
+                                                    torch.ones(1, dtype=DTYPE)),
+                        names + list(POSE_INPUTS), list(CONTROLLER_OUTPUTS), dynamic + ({0: "batch"}, None))
+        return save(graph, path)
+    graph = _export(_Controller(m), args, names, list(CONTROLLER_OUTPUTS), dynamic)
+    if at_tcp:
+        save(graph, path)
+        if probe_path is None:
+            return
+        path = probe_path
+    save(at_probe(graph, m.physics.geometry()["tool"]), path)
+
+
+def at_probe(graph, tool_mm: torch.Tensor):
+    """The TCP controller graph (an onnx_ir Model, changed in place and returned) as the marker's: its input
+    tcp_mm fixed at the probe offset tool_mm (3,) (two_steps without a TCP: the physics branch's own tool),
+    then `optimise`d. onnxruntime answers as the graph traced without the input, to the bit (tests/test_export.py)."""
+    import onnx_ir as ir
+    tcp = next(v for v in graph.graph.inputs if v.name == TCP_INPUT)
+    graph.graph.inputs.remove(tcp)
+    tcp.const_value = ir.tensor(tool_mm.detach().numpy().astype(np.float64))
+    graph.graph.register_initializer(tcp)
+    optimise(graph)
+    return graph
 
 
 def _exportable(model):
     return (model.for_export() if isinstance(model, Ensemble) else model).eval()
 
 
-def _export(module, args, inputs, outputs, dynamic, path) -> None:
-    """torch.onnx (dynamo) export of module at args, the dims named in dynamic free, optimised by
-    `optimise`; written without the exporter's annotations (strip_annotations), as one self-contained file."""
+def _export(module, args, inputs, outputs, dynamic):
+    """torch.onnx (dynamo) export of module at args, the dims named in dynamic free, optimised by `optimise`:
+    an onnx_ir Model."""
     for name in ("onnxscript", "onnx_ir"):                # their graph passes log every rewrite at INFO
         logging.getLogger(name).setLevel(logging.WARNING)
     dims = {}
@@ -135,10 +148,17 @@ def _export(module, args, inputs, outputs, dynamic, path) -> None:
         program = torch.onnx.export(module.eval(), args, None, input_names=inputs, output_names=outputs,
                                     dynamic_shapes=shapes, dynamo=True, optimize=False, verbose=False)
     optimise(program.model)
+    return program.model
+
+
+def save(graph, path) -> None:
+    """An onnx_ir Model to path without the exporter's annotations (strip_annotations), as one self-contained
+    file."""
     import onnx
-    proto = program.model_proto
+    import onnx_ir as ir
+    proto = ir.serde.serialize_model(graph)
     strip_annotations(proto)
-    onnx.save_model(proto, str(path), save_as_external_data=False)   # one self-contained file
+    onnx.save_model(proto, str(path), save_as_external_data=False)
 
 
 def optimise(model) -> None:

@@ -1,11 +1,13 @@
-"""How a stage or a command ends on bad input: one line, no traceback; and the option naming the project.
+"""How a stage or a command starts and ends: the main of a stage, the option naming the project, and bad
+input said in one line, no traceback.
 
     one_line(command, run, argv)   run(argv); a Refused exits 1, bad input (ValueError: IngestError,
                                    ParamsError; OSError) exits 2, each said in one message on stderr
     add_project(parser)            --project DIR: the project a command reads (its params.yaml and
                                    trained artifacts; default the working directory)
     stage_main(module, doc, run)   the main(argv=None, root=HERE) of a stage that takes no arguments:
-                                   run(the params.yaml at root, root)
+                                   run(the params.yaml at root, root); module is the stage's
+                                   __spec__.name (its import name, under python -m too)
 """
 import argparse
 import sys

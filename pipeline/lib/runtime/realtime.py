@@ -14,7 +14,8 @@ call here costs exactly two evaluations of the frozen model:
                 with the predicted residual |r1|²/|r0| (the chord step's contraction)
 
 p is the whole model (DH branch + network, eq. 9); J is the DH branch's
-geometric Jacobian (kinematics.fk_jacobian), one FK pass. Joint limits clamp
+geometric Jacobian (solvers.physics_rows; for a pose target with the flange's
+orientation rows), one FK pass. Joint limits clamp
 every step. `compile=True` runs both steps as one torch.compile graph: 10-20
 s once, in the constructor, then a call costs about half of eager
 PyTorch's (at batch 1, eager time goes as much to per-operator overhead as
@@ -32,8 +33,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from pipeline.lib.robot.kinematics import DTYPE, fk_jacobian
-from pipeline.lib.runtime.solvers import min_norm_step, pose_jacobian, pose_residual
+from pipeline.lib.robot.kinematics import DTYPE
+from pipeline.lib.runtime.solvers import min_norm_step, physics_rows, with_orientation
 
 DAMPING = 1e-9                                             # μ of the controller's chord steps (tiny, fixed)
 
@@ -97,11 +98,8 @@ def two_steps(model, q0, target, lo, hi, damping, tcp_mm=None, rot=None, w=None)
 def chord_step(model, q, target, lo, hi, damping, tcp_mm=None, rot=None, w=None):
     """One chord step from q (B, 6): returns (the next q (B, 6), |residual at q| (B,) mm)."""
     g = model.physics.geometry()
-    p, J = fk_jacobian(q, g if tcp_mm is None else {**g, "tool": tcp_mm})   # (B, 3), (B, 3, 6)
-    r = p + model.delta(q) - target                        # (B, 3), eq. 9
-    if rot is not None:                                    # (B, 6), (B, 6, 6): the orientation's rows below
-        r = pose_residual(r, q, g, rot, w)
-        J = pose_jacobian(J, q, g, w)
+    p, J, e = physics_rows(q, g if tcp_mm is None else {**g, "tool": tcp_mm}, rot, w)   # (B, 3), (B, 3|6, 6)
+    r = with_orientation(p + model.delta(q) - target, e)  # (B, 3), eq. 9; a pose's (B, 6): the orientation below
     q_next = q + min_norm_step(J, r, damping)
     return torch.clamp(q_next, lo, hi), r.norm(dim=1)
 

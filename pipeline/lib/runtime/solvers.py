@@ -27,8 +27,8 @@ import numpy as np
 import torch
 
 from pipeline.lib.project.config import logger
-from pipeline.lib.robot.kinematics import (DTYPE, angular_jacobian, cross, fk_jacobian, flange_rotations,
-                                           rotation_error)
+from pipeline.lib.robot.kinematics import (DTYPE, angular_jacobian, cross, fk_jacobian, fk_pose_jacobian,
+                                           flange_rotations, rotation_error)
 
 log = logger(__name__)
 
@@ -90,6 +90,21 @@ def predict(model, q):                                     # (B, 6) -> (B, 3), E
 def pose_weight(cfg: dict) -> float:
     """w (mm/rad): the orientation error's weight in a pose's residual, tol_mm over tol_arcsec in rad."""
     return cfg["tol_mm"] / np.radians(cfg["tol_arcsec"] / 3600)
+
+
+def physics_rows(q, g: dict, rot=None, w: float | None = None):
+    """The physics branch (geometry g) at q (B, 6), one FK pass: its marker position p (B, 3), the Jacobian a
+    step solves with and the orientation's residual rows: J (B, 3, 6) and None; for a pose (rot (B, 3, 3), w)
+    `pose_jacobian`'s [J; w Jω] (B, 6, 6) and `pose_residual`'s rows w e (B, 3), to the bit."""
+    if rot is None:
+        return *fk_jacobian(q, g), None
+    p, J, R, Jw = fk_pose_jacobian(q, g)
+    return p, torch.cat([J, w * Jw], 1), w * rotation_error(R, rot)
+
+
+def with_orientation(r, e):
+    """A step's residual: the position's r (B, 3), with the orientation's rows e (B, 3) below when given."""
+    return r if e is None else torch.cat([r, e], 1)
 
 
 def residual(model, q, target, w: float):
@@ -236,15 +251,13 @@ def physics_trial(g, q, r, lam, steps: int, limits=None, target=None, w: float |
     the costly part, then judges the end point once: about 2 model evaluations a point instead of 3 (the
     network's slope over a compensation's Δθ is ~1e-5 mm). q (A, 6), r (A, 3) -> (A, 6); a pose (r (A, 6),
     target (A, 12), w) steps on its orientation too, the physics branch's own."""
-    def rows(x, p, J):                                      # the physics branch's Jacobian and residual at x
-        if w is None:
-            return J, p - goal
-        return pose_jacobian(J, x, g, w), pose_residual(p - goal, x, g, target_rotations(target), w)
-    p, J = fk_jacobian(q, g)
+    rot = None if w is None else target_rotations(target)
+    p, J, _ = physics_rows(q, g, rot, w)
     goal = p - r[:, :3]                                     # (A, 3) mm: where the physics branch must go
-    q_try = clamped(q + min_norm_step(rows(q, p, J)[0], r, lam), limits)   # the chord step: r is the model's
+    q_try = clamped(q + min_norm_step(J, r, lam), limits)   # the chord step: r is the model's
     for _ in range(steps - 1):
-        q_try = clamped(q_try + min_norm_step(*rows(q_try, *fk_jacobian(q_try, g)), lam), limits)
+        p, J, e = physics_rows(q_try, g, rot, w)
+        q_try = clamped(q_try + min_norm_step(J, with_orientation(p - goal, e), lam), limits)
     return q_try
 
 
