@@ -105,10 +105,10 @@ def export_controller(model, path, at_tcp: bool = False, pose: bool = False, pro
     dynamic = ({0: "batch"}, {0: "batch"}, None, None, {0: "batch"}, None)
     names = list(CONTROLLER_INPUTS) + [TCP_INPUT]
     if pose:
-        graph = _export(_ControllerPose(m), args + (torch.eye(3, dtype=DTYPE).expand(4, 3, 3).clone(),
-                                                    torch.ones(1, dtype=DTYPE)),
-                        names + list(POSE_INPUTS), list(CONTROLLER_OUTPUTS), dynamic + ({0: "batch"}, None))
-        return save(graph, path)
+        save(_export(_ControllerPose(m), args + (torch.eye(3, dtype=DTYPE).expand(4, 3, 3).clone(),
+                                                 torch.ones(1, dtype=DTYPE)),
+                     names + list(POSE_INPUTS), list(CONTROLLER_OUTPUTS), dynamic + ({0: "batch"}, None)), path)
+        return
     graph = _export(_Controller(m), args, names, list(CONTROLLER_OUTPUTS), dynamic)
     if at_tcp:
         save(graph, path)
