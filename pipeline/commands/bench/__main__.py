@@ -12,11 +12,14 @@
     python -m pipeline.commands.bench plan --curve [--sizes 25 50 100 200 400 700]   error against the poses measured
     python -m pipeline.commands.bench path [--spacings 0.5 1 2 5 10 20 50]   a path compensated sample by sample against
                                                             its waypoints alone, judged on the twin
+    python -m pipeline.commands.bench export [--rounds 2]        the export stage's ONNX exports, each timed, and
+                                                            their graphs' nodes
     python -m pipeline.commands.bench scale [--rows 10000 30000 300000 --programs 200000]   ingest and the program
                                                             compensator at scale: time and peak memory
 """
 import argparse
 
+from pipeline.commands.bench.export import bench_export
 from pipeline.commands.bench.path import PATHS, SPACINGS, bench_path
 from pipeline.commands.bench.plan import VARIANTS, bench_plan
 from pipeline.commands.bench.real import REAL_SETS, bench_real
@@ -30,7 +33,7 @@ from pipeline.lib.learning.sweep import ENGINES
 def main(argv=None):
     ap = argparse.ArgumentParser(prog="python -m pipeline.commands.bench", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("what", choices=["real", "speed", "serve", "sweep", "plan", "scale", "path"])
+    ap.add_argument("what", choices=["real", "speed", "serve", "sweep", "plan", "scale", "path", "export"])
     ap.add_argument("--seeds", type=int, nargs="+", default=None,
                     help="training seeds (real: 139; plan: 139 140 141, each also the seed of its measurements)")
     ap.add_argument("--epochs", type=int, default=None, help="override train.max_epochs (real, plan)")
@@ -56,8 +59,9 @@ def main(argv=None):
                     help="serve: 4 good clients alone, then beside each class of hostile client (serve_hostile.json)")
     ap.add_argument("--seconds", type=float, default=10.0, help="serve --hostile: seconds of each phase")
     ap.add_argument("--soak", type=float, default=600.0, help="speed: seconds of the onnxruntime controller path alone")
-    ap.add_argument("--rounds", type=int, default=20,
-                    help="speed: rounds over the test targets, the controller paths interleaved call by call")
+    ap.add_argument("--rounds", type=int, default=None,
+                    help="speed: rounds over the test targets, the controller paths interleaved call by call "
+                         "(default 20); export: rounds of the six exports (default 2)")
     ap.add_argument("--torch-threads", type=int, default=1,
                     help="speed: torch threads of the PyTorch controller path in the comparison (onnxruntime: 1)")
     ap.add_argument("--only", choices=["controller"], default=None,
@@ -87,7 +91,9 @@ def main(argv=None):
     ap.add_argument("--names", nargs="+", choices=list(PATHS), default=list(PATHS),
                     help="path: the paths to judge")
     a = ap.parse_args(argv)
-    if a.what == "path":
+    if a.what == "export":
+        bench_export(a.rounds or 2)
+    elif a.what == "path":
         bench_path(a.spacings, a.names)
     elif a.what == "scale":
         bench_scale([n for n in a.rows if n], [n for n in a.programs if n], a.keep)
@@ -104,7 +110,7 @@ def main(argv=None):
     elif a.what == "sweep":
         bench_sweep()
     else:
-        bench_speed(a.soak, a.rounds, a.only, a.torch_threads)
+        bench_speed(a.soak, a.rounds or 20, a.only, a.torch_threads)
 
 
 if __name__ == "__main__":

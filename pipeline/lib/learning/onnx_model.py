@@ -140,6 +140,8 @@ def _export(module, args, inputs, outputs, dynamic):
     an onnx_ir Model."""
     for name in ("onnxscript", "onnx_ir"):                # their graph passes log every rewrite at INFO
         logging.getLogger(name).setLevel(logging.WARNING)
+    # "torchvision is not installed": four warnings a graph about ops no model here uses
+    logging.getLogger("torch.onnx._internal.exporter._registration").setLevel(logging.ERROR)
     dims = {}
     shapes = tuple(None if d is None else {i: dims.setdefault(n, torch.export.Dim(n)) for i, n in d.items()}
                    for d in dynamic)
