@@ -317,11 +317,11 @@ def test_controller_onnx_of_an_ensemble_answers_as_realtime(tmp_path):
     assert_same_answers(onnx_rt.batch(q0, tgt), torch_rt.batch(q0, tgt))
 
 
-def test_the_marker_graph_is_the_tcp_graph_at_the_probe_to_the_bit(tmp_path):
-    """The export stage traces the controller path once for two files: controller_tcp.onnx, and
-    controller.onnx, that graph with tcp_mm fixed at the probe offset (at_probe). The marker's graph must
-    take no TCP and answer as the path traced without one (two_steps with no tcp_mm), to the bit; the TCP
-    graph fed the probe offset too."""
+def test_the_marker_graph_is_the_tcp_graph_at_the_probe_to_the_bit(in_trained_project, tmp_path):
+    """The export stage traces the controller path once for two files: models/controller_tcp.onnx, and
+    models/controller.onnx, that graph with tcp_mm fixed at the probe offset (at_probe). The marker's graph
+    must take no TCP and answer as the path traced without one (two_steps with no tcp_mm), to the bit; the
+    TCP graph fed the probe offset too, and another offset otherwise."""
     import onnx
     from pipeline.lib.learning.onnx_model import CONTROLLER_INPUTS, CONTROLLER_OUTPUTS, _export, save
     from pipeline.lib.runtime.realtime import two_steps
@@ -334,22 +334,23 @@ def test_the_marker_graph_is_the_tcp_graph_at_the_probe_to_the_bit(tmp_path):
         def forward(self, q0_rad, target_mm, q_min_rad, q_max_rad, damping):
             return two_steps(self.model, q0_rad, target_mm, q_min_rad, q_max_rad, damping)
 
-    model = small_boter(2)
-    export_controller(model, tmp_path / "tcp.onnx", at_tcp=True, probe_path=tmp_path / "marker.onnx")
+    model = load_model("models/boter.pt")
+    for p in model.parameters():
+        p.requires_grad_(False)
     args = (torch.zeros(4, 6, dtype=DTYPE), torch.zeros(4, 3, dtype=DTYPE), torch.full((6,), -np.pi, dtype=DTYPE),
             torch.full((6,), np.pi, dtype=DTYPE), torch.full((4,), 1e-9, dtype=DTYPE))
     save(_export(Marker(model), args, list(CONTROLLER_INPUTS), list(CONTROLLER_OUTPUTS),
                  ({0: "batch"}, {0: "batch"}, None, None, {0: "batch"})), tmp_path / "traced.onnx")
-    assert [i.name for i in onnx.load(str(tmp_path / "marker.onnx")).graph.input] == list(CONTROLLER_INPUTS)
+    assert [i.name for i in onnx.load("models/controller.onnx").graph.input] == list(CONTROLLER_INPUTS)
     q0 = poses(40, seed=8).numpy()
     with torch.no_grad():
         tgt = model(torch.as_tensor(q0))[0].numpy() + np.random.default_rng(8).normal(0, 0.5, (40, 3))
     tool = model.physics.geometry()["tool"].numpy()
     want = OnnxRealtime(tmp_path / "traced.onnx").solve(q0, tgt)
-    for got in (OnnxRealtime(tmp_path / "marker.onnx").solve(q0, tgt),
-                OnnxRealtime(tmp_path / "tcp.onnx", tcp_mm=tool).solve(q0, tgt)):
+    for got in (OnnxRealtime("models/controller.onnx").solve(q0, tgt),
+                OnnxRealtime("models/controller_tcp.onnx", tcp_mm=tool).solve(q0, tgt)):
         assert all(np.array_equal(a, b) for a, b in zip(got, want))
-    assert not np.array_equal(OnnxRealtime(tmp_path / "tcp.onnx", tcp_mm=tool + [0.0, 0.0, 1.0]).solve(q0, tgt)[0],
+    assert not np.array_equal(OnnxRealtime("models/controller_tcp.onnx", tcp_mm=tool + [0.0, 0.0, 1.0]).solve(q0, tgt)[0],
                               want[0])                                # the TCP input acts
 
 
