@@ -57,7 +57,8 @@ def pytest_collection_modifyitems(items):
     tests that need no trained project (the two-station repro, bench real on Ray), the other tests that need
     none, then those on trained_project (on a fresh clone, `reproduced` too). xdist hands out the "serial"
     group (the largest scope) and then single tests in this order, so one worker builds `reproduced` from
-    the start while the other runs tests that need nothing of it, rather than one waiting on its lock
+    the start while the other runs the group's tests that need nothing of it (the two-station repro, bench
+    real on Ray: ~190 s, longer than the build) before those that do, rather than waiting on its lock
     (docs/results.md, the suite's timeline)."""
     def rank(item):
         names = set(item.fixturenames)

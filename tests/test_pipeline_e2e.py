@@ -140,6 +140,7 @@ def test_exp_run_set_param_and_invalid_combination(reproduced, tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.xdist_group("serial")   # conftest: its worker starts with this, not waiting on `reproduced`
 def test_repro_from_two_tracker_stations(tmp_path):
     """The twin-2stations preset through dvc: the second campaign's own ingest stage, one frame
     per station, per-campaign metrics and report, and an edit of its export re-runs its stages."""

@@ -112,10 +112,9 @@ def export_controller(model, path, at_tcp: bool = False, pose: bool = False, pro
     graph = _export(_Controller(m), args, names, list(CONTROLLER_OUTPUTS), dynamic)
     if at_tcp:
         save(graph, path)
-        if probe_path is None:
-            return
-        path = probe_path
-    save(at_probe(graph, m.physics.geometry()["tool"]), path)
+    marker_path = probe_path if at_tcp else path            # where the marker's graph goes, if anywhere
+    if marker_path is not None:
+        save(at_probe(graph, m.physics.geometry()["tool"]), marker_path)
 
 
 def at_probe(graph, tool_mm: torch.Tensor):

@@ -128,7 +128,7 @@ def orientation_residual(g: dict, q, target):              # (B, 6), (B, 12) -> 
 def pose_residual(r, q, g: dict, rot, w: float):
     """A pose's residual [r; w e] (B, 6): the position's r (B, 3) mm and the flange's orientation error e
     (B, 3) rad at q (B, 6) under geometry g against rot (B, 3, 3), weighted by w (`pose_weight`)."""
-    return torch.cat([r, w * rotation_error(flange_rotations(q, g), rot)], 1)
+    return with_orientation(r, w * rotation_error(flange_rotations(q, g), rot))
 
 
 def pose_jacobian(J, q, g: dict, w: float):
