@@ -52,12 +52,11 @@ from scipy.spatial.transform import Rotation
 
 from pipeline.lib.learning.checkpoint import load_model
 from pipeline.lib.learning.model import PhysicsOnly
-from pipeline.lib.learning.onnx_model import (OnnxModel, OnnxRealtime, deviation, export_controller,
-                                              export_onnx)
+from pipeline.lib.learning.onnx_model import OnnxModel, OnnxRealtime, deviation, export_all
 from pipeline.lib.project.artifacts import (CALIBRATED_GEOMETRY, CONTROLLER_ONNX, CONTROLLER_PHYSICS_ONNX,
                                             CONTROLLER_PHYSICS_TCP_ONNX, CONTROLLER_POSE_ONNX, CONTROLLER_TCP_ONNX,
-                                            EXPORT_JSON, FRAME_JSON, HERE, MODEL_ONNX, MODEL_WEIGHTS, PARTS_JSON,
-                                            URDF_FILE, UR_YAML, load_points)
+                                            EXPORT_JSON, FRAME_JSON, HERE, MODEL_ONNX, MODEL_WEIGHTS, ONNX_FILES,
+                                            PARTS_JSON, URDF_FILE, UR_YAML, load_points)
 from pipeline.lib.project.cli import one_line, stage_main
 from pipeline.lib.project.columns import JOINTS_DEG, THEORY
 from pipeline.lib.project.config import for_stage, logger, read_json, write_json
@@ -172,7 +171,7 @@ def run(params: dict, root: Path = HERE) -> dict:
                  summary["ur_yaml"]["not_held_after_joint_6"])
 
     model = load_model(root / MODEL_WEIGHTS)
-    export_onnx(model, root / MODEL_ONNX)
+    export_all(model, {f.stem: root / f for f in ONNX_FILES})    # then each read back, against PyTorch
     test = (pts["split"] == "test").to_numpy()
     q32 = q[test].float().clone()
     onnx_p = OnnxModel(root / MODEL_ONNX)(q32.numpy())
@@ -190,10 +189,8 @@ def run(params: dict, root: Path = HERE) -> dict:
              summary["onnx"]["max_deviation_from_float64_angles_mm"])
 
     limits = np.radians(robot.limits_deg)
-    for key, path, tcp_path, m in (("controller", root / CONTROLLER_ONNX, root / CONTROLLER_TCP_ONNX, model),
-                                   ("controller_physics", root / CONTROLLER_PHYSICS_ONNX,
-                                    root / CONTROLLER_PHYSICS_TCP_ONNX, PhysicsOnly(model))):
-        export_controller(m, tcp_path, at_tcp=True, probe_path=path)        # one trace: the TCP graph, and the marker's
+    for key, path, m in (("controller", root / CONTROLLER_ONNX, model),
+                         ("controller_physics", root / CONTROLLER_PHYSICS_ONNX, PhysicsOnly(model))):
         dev = deviation(Realtime(m, limits), OnnxRealtime(path, limits), q[test].numpy(),
                         pts.loc[test, THEORY].to_numpy())
         dev.update(max_q_rad=size(dev["max_q_rad"]), max_residual_mm=size(dev["max_residual_mm"]))
@@ -215,7 +212,6 @@ def run(params: dict, root: Path = HERE) -> dict:
             log.info("%s at TCP %s: onnxruntime vs PyTorch (AtTcp) on %d test poses: max %.1e rad, residual "
                      "%.1e mm; flags differ in %d", path, name, test.sum(), dev["max_q_rad"], dev["max_residual_mm"],
                      dev["flags_differ"])
-    export_controller(model, root / CONTROLLER_POSE_ONNX, pose=True)
     w = pose_weight(p["compensate"])
     nominal = theory_geometry(robot, read_json(root / FRAME_JSON)["tool_mm"])
     rot = nominal_flange(pts.loc[test, JOINTS_DEG].to_numpy(), nominal)

@@ -35,16 +35,20 @@ dropped, since they carry the absolute path and line numbers of the exported sou
 `pkg.torch.onnx.stack_trace`), which differ between clones. They never reach the predictions.
 """
 import logging
+import time
 import warnings
 
 import numpy as np
 import torch
 from torch import nn
 
-from pipeline.lib.learning.model import Ensemble
+from pipeline.lib.learning.model import Ensemble, PhysicsOnly
+from pipeline.lib.project.config import logger
 from pipeline.lib.robot.kinematics import DTYPE, fk_pose
 from pipeline.lib.runtime.realtime import DAMPING, Result, answers, two_steps
 from pipeline.lib.runtime.solvers import lm_keep
+
+log = logger(__name__)
 
 CONTROLLER_INPUTS = ("q0_rad", "target_mm", "q_min_rad", "q_max_rad", "damping")
 TCP_INPUT = "tcp_mm"                # export_controller(..., at_tcp=True): the TCP (3,) mm, flange frame
@@ -83,6 +87,29 @@ class _ControllerPose(_Controller):
 
     def forward(self, q0_rad, target_mm, q_min_rad, q_max_rad, damping, tcp_mm, target_rot, weight):
         return two_steps(self.model, q0_rad, target_mm, q_min_rad, q_max_rad, damping, tcp_mm, target_rot, weight)
+
+
+def export_all(model, paths: dict) -> dict:
+    """Every graph of the export stage from four traces, in its order: paths {file stem: Path} for model,
+    controller_tcp and controller, controller_physics_tcp and controller_physics (the marker graphs from
+    their TCP graphs' traces), controller_pose. The seconds of each trace, {what: s}."""
+    physics = PhysicsOnly(model)
+    traces = {
+        "model": lambda: export_onnx(model, paths["model"]),
+        "controller_tcp and controller (one trace)":
+            lambda: export_controller(model, paths["controller_tcp"], at_tcp=True, probe_path=paths["controller"]),
+        "controller_physics_tcp and controller_physics (one trace)":
+            lambda: export_controller(physics, paths["controller_physics_tcp"], at_tcp=True,
+                                      probe_path=paths["controller_physics"]),
+        "controller_pose": lambda: export_controller(model, paths["controller_pose"], pose=True),
+    }
+    seconds = {}
+    for what, export in traces.items():
+        t = time.perf_counter()
+        export()
+        seconds[what] = time.perf_counter() - t
+        log.info("exported %s in %.1f s", what, seconds[what])
+    return seconds
 
 
 def export_onnx(model, path) -> None:

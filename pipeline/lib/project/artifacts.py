@@ -48,6 +48,8 @@ CONTROLLER_PHYSICS_ONNX = MODELS / "controller_physics.onnx"
 CONTROLLER_TCP_ONNX = MODELS / "controller_tcp.onnx"                  # the same two, with a tcp_mm input
 CONTROLLER_PHYSICS_TCP_ONNX = MODELS / "controller_physics_tcp.onnx"
 CONTROLLER_POSE_ONNX = MODELS / "controller_pose.onnx"                # a TCP's pose: six equations
+ONNX_FILES = (MODEL_ONNX, CONTROLLER_ONNX, CONTROLLER_PHYSICS_ONNX, CONTROLLER_TCP_ONNX,   # onnx_model.export_all's,
+              CONTROLLER_PHYSICS_TCP_ONNX, CONTROLLER_POSE_ONNX)                  # by their stems
 EXPORT_JSON = REPORTS / "export.json"
 VALIDATION_DIR = REPORTS / "validation"               # validate@<campaign>: <campaign>.json/.parquet
 VALIDATION_JSON = REPORTS / "validation.json"         # validation (all campaigns)
