@@ -8,7 +8,7 @@ from pipeline.lib.learning.model import BoTER
 from pipeline.lib.robot.kinematics import nominal_geometry
 from pipeline.lib.robot.robots import load_robot, nominal_robot
 from pipeline.lib.runtime.realtime import Realtime
-from pipeline.lib.runtime.solvers import compensate, jacobian, min_norm_step, solve3
+from pipeline.lib.runtime.solvers import LAM0, LAM_MAX, compensate, jacobian, lm_keep, min_norm_step, solve3
 from pipeline.stages.compensate import read_targets
 
 ROBOT = nominal_robot("ur5")
@@ -244,3 +244,19 @@ def test_adam_solves_a_pose_target_too(model):
     q_start, q_true, tgt, R = pose_targets(model, n=8, seed=1)
     s = solve(model, q_start, tgt, {**CFG, "tol_arcsec": 1.0, "max_iter": 2000}, ROBOT, "adam", flange_rot=R)
     assert s.converged.all() and s.orientation_arcsec.max() < 60 and np.abs(s.q_deg - q_true).max() < 0.02
+
+
+def test_lm_damping_stays_finite_however_long_no_step_helps(model):
+    """λ·10 on each failed step reached inf after ~310 failures (a stalled point near the reach: the program
+    command then crashed on NaN joints in the error maps); it stops at LAM_MAX, where the step is still a
+    finite, vanishing one: the point stays where it is."""
+    q0, tgt = targets(model, n=2)
+    q = torch.as_tensor(np.radians(q0))
+    lam, never = torch.full((2,), LAM0, dtype=torch.float64), torch.zeros(2, dtype=torch.bool)
+    err = torch.ones(2, dtype=torch.float64)
+    for _ in range(400):
+        q, err, lam = lm_keep(never, q + 1.0, err + 1.0, q, err, lam)
+    assert torch.equal(q, torch.as_tensor(np.radians(q0))) and (lam == LAM_MAX).all()
+    J, r = jacobian(lambda x: model(x)[0], q), torch.as_tensor(tgt) - model(q)[0].detach()
+    step = min_norm_step(J, r, lam)
+    assert torch.isfinite(step).all() and step.abs().max() < 1e-9

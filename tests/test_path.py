@@ -126,6 +126,9 @@ def test_bad_cells_are_named_by_row_and_column(tmp_path):
     src.write_text("target_x,target_y\n1,2\n4,5\n")
     with pytest.raises(ValueError, match=r"column 'target_z': columns target_x, target_y, target_z go together"):
         read_path(src, robot)
+    src.write_text("target_x,target_y,target_z,target_rx,target_ry,target_rz\n1,2,3,0,0,0\n4,5,6,1e300,0,0\n")
+    with pytest.raises(ValueError, match=r"row 3, column 'target_rx': a rotation vector inf rad long, more than π"):
+        read_path(src, robot)                                    # was NaN inside, then an SVD error naming nothing
     src.write_text(",".join(JOINTS_DEG) + "\n0,0,0,0,0,0\n0,0,400,0,0,0\n")
     with pytest.raises(ValueError, match=r"row 3, column 'j3_deg': 400° beyond the joint limits"):
         read_path(src, robot, lambda q: q[:, :3])
@@ -237,6 +240,22 @@ def test_a_path_the_solver_cannot_follow_is_refused_naming_the_sample(in_trained
     assert code == 1 and m and "Traceback" not in said, said
     k, arc = int(m[1]), float(m[2])
     assert 40 < k < 71 and arc == 5 * (k - 1) and float(m[3]) > 0.01 and int(m[4]) == k - 1 and int(m[5]) == 71 - k
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("option, message", [
+    (["--start-deg", "nan", "-60.4", "91.1", "-182.3", "-61.2", "-100.7"], r"--start-deg: joint 1 at nan° beyond its limits"),
+    (["--speed", "1e-300", "--start-deg", *map(str, SEAM_START)], r"speed 1e-300 mm/s: a step of 1\.000 mm would take "
+     r"more than 2147483647 controller cycles \(URScript's int\): a higher speed"),
+    (["--spacing", "1e-307", "--start-deg", *map(str, SEAM_START)], r"inf samples at a spacing of 1e-307 mm over 100\.0 mm, "
+     r"more than path.max_samples"),
+])
+def test_options_beyond_what_a_robot_can_run_are_one_line(in_trained_project, tmp_path, capsys, option, message):
+    """A NaN start passed the joint-limit check (NaN compares false), then a traceback in the error maps; a
+    speed or spacing near zero overflowed into a traceback. Each is now one line, exit 2, nothing written."""
+    src = write_path(tmp_path, SEAM)
+    code, said = exit_code(path_command.main, [str(src), "--out", str(tmp_path / "o"), *option], capsys)
+    assert code == 2 and re.search(message, said) and "Traceback" not in said, said
     assert not (tmp_path / "o").exists()
 
 
@@ -365,6 +384,29 @@ def test_chord_mode_halves_the_steps_that_leave_the_path(in_trained_project, tmp
     np.testing.assert_allclose(table[TARGET].to_numpy(), at(segs, table.arc_mm.to_numpy()), atol=1e-9)
 
 
+def test_a_chord_mode_sample_not_reached_refuses_the_path(in_trained_project, tmp_path, capsys, monkeypatch):
+    """A sample chord mode adds between two reached ones, not reached itself, refuses the path and writes
+    nothing, even with --allow-outside-workspace (the defect: only the table's last sample was judged, so
+    such a sample became a servo_step). Here every sample refine solves is made to miss by 0.2 mm."""
+    real, calls = pathsolve.solve_sample, []
+
+    def missing_after_the_first_pass(*args, **kwargs):
+        q, residual, iters, converged, arcsec = real(*args, **kwargs)
+        calls.append(converged)
+        return (q, 0.2, iters, False, arcsec) if len(calls) > 3 else (q, residual, iters, converged, arcsec)
+    monkeypatch.setattr(pathsolve, "solve_sample", missing_after_the_first_pass)
+    src = write_path(tmp_path, SEAM)
+    argv = [str(src), "--out", str(tmp_path / "o"), "--spacing", "50", "--chord", "0.005", "--allow-outside-workspace",
+            "--start-deg", *map(str, SEAM_START)]
+    code, said = exit_code(path_command.main, argv, capsys)
+    assert calls[:3] == [True] * 3 and len(calls) > 3                       # the seam's 3 samples, then refine's
+    assert code == 1 and "Traceback" not in said, said
+    m = re.search(r"refused: .*seam.csv: sample (\d+) \(arc ([0-9.]+) mm\): not reached \(residual 0\.2000 mm, "
+                  r"tolerance 0\.001 mm\), solved between samples (\d+) and (\d+) \(chord mode\).*; nothing written", said)
+    assert m and 0 < float(m[2]) < 50 and (int(m[3]), int(m[4])) == (int(m[1]) - 1, int(m[1]) + 1), said
+    assert not (tmp_path / "o").exists()
+
+
 # ----------------------------------------------------------------------------- the service's compensate_path
 
 @pytest.fixture
@@ -406,6 +448,9 @@ def test_the_service_answers_a_whole_path(path_server, in_trained_project):
         "spacing_mm: a 100.0 mm path at 0.01 mm is 10001 samples, more than the limit of 1000 "
         "(serve.max_path_samples)": (q0, SEAM, [], 0.01, 20.0),
         "points_mm: sample ": (q0, [SEAM[0], [0.0, 0.0, 30.0]], [], 20.0, 20.0),
+        "spacing_mm: a 100.0 mm path at 1e-307 mm is inf samples": (q0, SEAM, [], 1e-307, 20.0),   # was an
+        "speed_mm_s: speed 1e-300 mm/s: a step of 2.000 mm would take more than 2147483647 controller cycles "
+        "(URScript's int)": (q0, SEAM, [], 2.0, 1e-300),                     # OverflowError, or inf in t_s
     }
     for words, args in bad.items():
         with pytest.raises(xmlrpc.client.Fault, match=re.escape(words)):

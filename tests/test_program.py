@@ -11,6 +11,7 @@ import torch
 from conftest import exit_code, served_model
 from pipeline.commands import plan, program
 from pipeline.lib.project.artifacts import load_points
+from pipeline.lib.project import writing
 from pipeline.lib.project.columns import JCOMP_DEG, JOINTS_DEG, TARGET, THEORY
 from pipeline.lib.robot.kinematics import DTYPE
 from pipeline.lib.robot.robots import load_robot
@@ -63,6 +64,11 @@ def test_positions_with_starting_joints(in_trained_project, tmp_path):
     (lambda d: d.assign(j2_deg=[0.0, 0.0, 0.0, 400.0]), r"row 5, column 'j2_deg': 400.0° beyond the joint limits"),
     (lambda d: d.assign(target_x=1.0, target_y=2.0), r"target columns need all of"),
     (lambda d: d.assign(j5_deg=["1e999", "1", "2", "3"]), r"row 2, column 'j5_deg': not a finite number"),
+    (lambda d: d.assign(target_x=-400.0, target_y=-100.0, target_z=300.0, target_rx=[0.0, 0.0, 1e300, 0.0],
+                        target_ry=0.0, target_rz=0.0),                 # was NaN inside, then a traceback
+     r"row 4, column 'target_rx': a rotation vector inf rad long, more than π"),
+    (lambda d: d.assign(target_x=-400.0, target_y=-100.0, target_z=300.0, target_rx=[0.0, 180.0, 0.0, 0.0],
+                        target_ry=0.0, target_rz=0.0), r"row 3, column 'target_rx': a rotation vector 180 rad long"),
 ])
 def test_bad_waypoints_are_named_by_file_row_and_column(in_trained_project, tmp_path, edit, message):
     src = tmp_path / "bad.csv"
@@ -228,6 +234,36 @@ def test_an_unwritable_urscript_leaves_no_csv(in_trained_project, tmp_path, caps
     code, said = exit_code(program.main, [str(src), "--urscript", str(tmp_path / "no" / "such" / "dir.script")], capsys)
     assert code == 2 and "nothing written" in said and "Traceback" not in said, said
     assert not (tmp_path / "prog_comp.csv").exists() and not list(tmp_path.glob(".*tmp"))
+
+
+def test_a_urscript_path_that_is_a_folder_leaves_the_csv_as_it_was(in_trained_project, tmp_path, capsys):
+    """The defect: the CSV was renamed into place, then the URScript's rename failed on a folder (exit 2):
+    a new table beside an old program. Now a folder is refused before anything is written."""
+    src, out = program_file(tmp_path, n=3), tmp_path / "prog_comp.csv"
+    out.write_text("OLD CONTENT\n")
+    (tmp_path / "prog.script").mkdir()
+    code, said = exit_code(program.main, [str(src), "--out", str(out), "--urscript", str(tmp_path / "prog.script")],
+                           capsys)
+    assert code == 2 and "prog.script (a folder); nothing written" in said and "Traceback" not in said, said
+    assert out.read_text() == "OLD CONTENT\n" and not list(tmp_path.glob(".*tmp*"))
+
+
+def test_a_failed_rename_puts_back_the_files_renamed_before_it(tmp_path, monkeypatch):
+    """write_together: should the second rename fail (here made to), the first file is the one it replaced
+    again, the third never written, and no temporary file is left."""
+    a, b, c = tmp_path / "a.csv", tmp_path / "b.script", tmp_path / "c.txt"
+    a.write_text("old a")
+    real = os.replace
+
+    def failing(src, dst):
+        if Path(dst) == b:
+            raise OSError(28, "No space left on device")
+        real(src, dst)
+    monkeypatch.setattr(writing.os, "replace", failing)
+    with pytest.raises(OSError, match=r"cannot write .*b.script \(No space left on device\); nothing written"):
+        writing.write_together({a: "new a", b: "new b", c: "new c"})
+    assert a.read_text() == "old a" and not b.exists() and not c.exists()
+    assert sorted(f.name for f in tmp_path.iterdir()) == ["a.csv"]
 
 
 def test_the_planner_refuses_a_target_the_arm_cannot_reach(in_trained_project, tmp_path, capsys):

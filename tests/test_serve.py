@@ -11,6 +11,7 @@ import subprocess
 import sys
 import threading
 import time
+import urllib.request
 import xmlrpc.client
 from pathlib import Path
 
@@ -143,6 +144,7 @@ BAD = {  # name: (call on a proxy given a good q0 and target, words the fault mu
     "unknown method": (lambda c, q, t: c.compensate_all(q, t), ["compensate_all", "unknown method"]),
     "missing argument": (lambda c, q, t: c.compensate(q), ["compensate", "q_rad, target_mm", "got 1"]),
     "batch not a list": (lambda c, q, t: c.compensate_many(42), ["requests", "expected a list"]),
+    "help for a list": (lambda c, q, t: c.system.methodHelp(["x"]), ["method_name: expected a string", "a list"]),
 }
 
 
@@ -155,6 +157,40 @@ def test_bad_request_is_a_fault_naming_the_field_and_the_server_keeps_serving(cl
     for w in words:
         assert w in e.value.faultString, e.value.faultString
     assert client.compensate(q0, target)["converged"]      # still serving
+
+
+def raw_call(server, method: str, args: tuple, swap: dict):
+    """A real client's call whose XML has each {text: replacement} swapped (what xmlrpc.client will not
+    send: integers beyond 32 bits, arrays thousands deep): the answer, or the Fault."""
+    body = xmlrpc.client.dumps(args, method)
+    for a, b in swap.items():
+        assert a in body
+        body = body.replace(a, b)
+    request = urllib.request.Request(url(server), body.encode(), {"Content-Type": "text/xml"})
+    with urllib.request.urlopen(request, timeout=60) as r:
+        return xmlrpc.client.loads(r.read())[0][0]
+
+
+def test_a_value_thousands_of_lists_deep_is_a_fault_naming_its_field(server, client, poses):
+    """The defect: the message's repr of the value recursed too deep, an internal error, and one such item
+    failed the whole compensate_many call. Now it names the field; the batch's other item is answered."""
+    q0, target = poses[0][0].tolist(), poses[1][0].tolist()
+    deep = "<value><array><data>" * 3000 + "<value><double>1</double></value>" + "</data></array></value>" * 3000
+    swap = {"<value><string>DEEP</string></value>": deep}
+    with pytest.raises(xmlrpc.client.Fault, match=r"q_rad\[0\]: expected a number, got a list \(\[\[\[\[\.\.\.\]\]\]\]\)"):
+        raw_call(server, "compensate", (["DEEP", *q0[1:]], target), swap)
+    many = raw_call(server, "compensate_many", (["DEEP", [q0, target]],), swap)
+    assert many[0] == {"error": "requests[0]: expected [q_rad, target_mm], got a list ([[[[...]]]])"}
+    assert same_answer(many[1], client.compensate(q0, target)) and many[1]["converged"]
+
+
+def test_a_400_digit_integer_is_a_fault_naming_its_field(server, poses):
+    """xmlrpc.client sends no integer beyond 32 bits, but a request may hold one: float() of it overflowed,
+    an internal error. Now, as a number field's NaN or inf, it is named."""
+    q0, target = poses[0][0].tolist(), poses[1][0].tolist()
+    seam = [target, [target[0] + 10.0, target[1], target[2]]]
+    with pytest.raises(xmlrpc.client.Fault, match=r"spacing_mm: not a finite number \(inf\)"):
+        raw_call(server, "compensate_path", (q0, seam, [], 7, 20.0), {"<int>7</int>": f"<int>{'9' * 400}</int>"})
 
 
 def test_close_but_not_converged_is_an_answer_far_is_a_fault(params, poses):

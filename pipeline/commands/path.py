@@ -57,7 +57,7 @@ from pipeline.lib.robot.urdf import tcp_transforms
 from pipeline.lib.runtime.compensation import reach_mm
 from pipeline.lib.runtime.paths import n_samples, read_path, resample, rotations_at
 from pipeline.lib.runtime.pathsolve import (beyond_reach, deviation, finish, joint_speeds, model_position,
-                                            refine, refusal, solve_path, urscript)
+                                            refine, refusal, servo_times, solve_path, urscript)
 from pipeline.lib.runtime.waypoints import flange_targets
 
 log = logger(__name__)
@@ -147,6 +147,7 @@ def run(argv=None) -> pd.DataFrame:
         raise ValueError(f"{src}: {n} samples at a spacing of {cfg['spacing_mm']:g} mm over {length:.1f} mm, more "
                          f"than path.max_samples ({cfg['max_samples']}): a larger --spacing")
     targets, arc = resample(found.segs, cfg["spacing_mm"])
+    servo_times(arc, cfg["speed_mm_s"])              # a ValueError where --speed is too low for URScript
     far = beyond_reach(targets, arc, reach_mm(model.physics.geometry()))
     if far:
         raise Refused(f"{src}: {far}; nothing written")

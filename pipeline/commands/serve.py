@@ -83,7 +83,7 @@ from pipeline.lib.robot.urdf import tcp_transforms
 from pipeline.lib.runtime.compensation import reach_mm
 from pipeline.lib.runtime.pathsolve import joint_speeds
 from pipeline.lib.runtime.realtime import Realtime
-from pipeline.lib.runtime.service import RequestError, Service
+from pipeline.lib.runtime.service import RequestError, Service, describe
 
 log = logger(__name__)
 PATH = "/RPC2"
@@ -375,6 +375,15 @@ def fast_path(model, workspace: Workspace, limits_deg, tol_mm: float, graph: Pat
     return fast
 
 
+def by_name(introspect):
+    """An introspection function that answers a method_name that is not a string with a RequestError."""
+    def checked(method_name):
+        if not isinstance(method_name, str):
+            raise RequestError(f"method_name: expected a string, got {describe(method_name)}")
+        return introspect(method_name)
+    return checked
+
+
 def make_server(params: dict, host: str | None = None, port: int | None = None,
                 compile: bool | None = None, onnx: bool | None = None, tcp: str | None = None,
                 root: Path = HERE) -> Server:
@@ -418,6 +427,8 @@ def make_server(params: dict, host: str | None = None, port: int | None = None,
         service.close()
         raise SystemExit(f"pipeline.commands.serve: cannot listen on {host}:{port}: {e}") from None
     server.register_introspection_functions()
+    for name in ("system.methodHelp", "system.methodSignature"):      # the standard library's take any value
+        server.funcs[name] = by_name(server.funcs[name])
     for name in METHODS:
         server.register_function(getattr(service, name), name)
     return server

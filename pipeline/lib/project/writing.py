@@ -4,10 +4,12 @@
     csv_text(df, float_format)                                  df.to_csv(index=False, ...)'s text, fast
 
 Each file goes to a temporary file beside it first; only when every one is written are they renamed
-into place. An output that is an input by any spelling (a hard link, a symbolic link, `..`) is refused
+into place, and should a rename fail, those before it are undone (the files they replaced put back). An
+output that is an input by any spelling (a hard link, a symbolic link, `..`), or a folder, is refused
 before anything is written, as are two outputs that are one file.
 """
 import os
+import shutil
 import tempfile
 from pathlib import Path
 
@@ -39,6 +41,9 @@ def check_outputs(outputs, inputs=()) -> None:
 def write_together(files: dict, inputs=()) -> None:
     """Write every {path: str | bytes} or none (an OSError naming the path that failed)."""
     check_outputs(files, inputs)
+    for path in files:
+        if Path(path).is_dir():
+            raise OSError(f"cannot write {path} (a folder); nothing written")
     temps = {}
     try:
         for path, data in files.items():
@@ -53,12 +58,47 @@ def write_together(files: dict, inputs=()) -> None:
                 f.flush()
                 os.fsync(f.fileno())
             os.chmod(tmp, 0o644)
-        for path, tmp in temps.items():
-            os.replace(tmp, path)
+        replace_all(temps)
         temps = {}
     finally:
         for tmp in temps.values():
             Path(tmp).unlink(missing_ok=True)
+
+
+def replace_all(temps: dict) -> None:
+    """Rename each {path: its written temporary file} into place; if one fails, put back the files the renames
+    before it replaced (kept beside them until then) and raise an OSError naming the path."""
+    done = []                                         # (path, a copy of the file it replaced, or None)
+    try:
+        for path, tmp in temps.items():
+            old = f"{tmp}.old" if path.exists() else None
+            if old:
+                keep(path, old)
+            try:
+                os.replace(tmp, path)
+            except OSError as e:
+                if old:
+                    Path(old).unlink()
+                raise OSError(f"cannot write {path} ({e.strerror}); nothing written") from None
+            done.append((path, old))
+    except OSError:
+        for path, old in reversed(done):
+            if old is None:
+                path.unlink(missing_ok=True)
+            else:
+                os.replace(old, path)
+        raise
+    for _, old in done:
+        if old:
+            Path(old).unlink(missing_ok=True)
+
+
+def keep(path: Path, copy: str) -> None:
+    """copy: the file at path, as a hard link (or a copy where the file system has none)."""
+    try:
+        os.link(path, copy)
+    except OSError:
+        shutil.copy2(path, copy)
 
 
 def csv_text(df: pd.DataFrame, float_format: str = "%.6f") -> str:

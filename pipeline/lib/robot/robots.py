@@ -163,9 +163,9 @@ class Robot:
         return float(np.abs(self.a).sum() + np.abs(self.d).sum())
 
     def check_joints(self, q_deg: np.ndarray) -> np.ndarray:
-        """Bool mask (n, 6): True where a joint angle lies outside its limits."""
+        """Bool mask (n, 6): True where a joint angle lies outside its limits (or is NaN: not within them)."""
         lo, hi = self.limits_deg[:, 0], self.limits_deg[:, 1]
-        return (q_deg < lo) | (q_deg > hi)
+        return ~((q_deg >= lo) & (q_deg <= hi))
 
 
 DH_KEYS = ("d", "a", "alpha_deg", "offset_deg")

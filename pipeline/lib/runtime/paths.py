@@ -16,6 +16,7 @@ movec(pose_via, pose_to)). A movej has no TCP path to follow, so it is refused. 
 from a segment's first waypoint's to its last's in proportion to the arc length (a movec's via point's
 orientation is not used, as in URScript's movec).
 """
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -27,6 +28,7 @@ from pipeline.lib.reading.readers import (IngestError, find_column, headers_foun
 
 MOVES = ("movel", "movep", "via", "movec")
 ROTVEC = ["target_rx", "target_ry", "target_rz"]           # a TCP orientation: UR's rotation vector, rad
+ROTVEC_MAX_RAD = np.pi + 1e-9                              # a rotation vector no longer than π (UR's)
 JOINT_NAMES = ([f"j{i}_deg" for i in range(1, 7)], [f"j{i}_rad" for i in range(1, 7)],
                [f"actual_q_{i}" for i in range(6)])
 MIN_MOVE_MM = 1e-6                                         # a move shorter than this goes nowhere
@@ -134,8 +136,12 @@ def counts(segs: list, spacing_mm: float) -> np.ndarray:
     return np.array([max(1, int(np.ceil(s.length / spacing_mm - 1e-9))) for s in segs])
 
 
-def n_samples(segs: list, spacing_mm: float) -> int:
-    return int(counts(segs, spacing_mm).sum()) + 1
+def n_samples(segs: list, spacing_mm: float) -> int | float:
+    """How many samples `resample` makes at spacing_mm (to check before making them); inf where a float
+    cannot count them (a spacing of 1e-320 mm)."""
+    with np.errstate(over="ignore"):
+        steps = np.array([s.length for s in segs]) / spacing_mm
+    return int(np.maximum(1, np.ceil(steps - 1e-9)).sum()) + 1 if np.isfinite(steps).all() else math.inf
 
 
 def resample(segs: list, spacing_mm: float) -> tuple[np.ndarray, np.ndarray]:
@@ -202,6 +208,18 @@ class PathFile:
         return f"{self.path}, row {self.lines[i]}, column 'move'"
 
 
+def check_rotvecs(rotvec: np.ndarray, path, lines: list) -> None:
+    """An IngestError naming the first row of rotvec (n, 3) rad longer than π (UR's rotation vectors are at
+    most π long; a longer one is degrees, or not an angle: 1e300 rad turns into NaN)."""
+    with np.errstate(over="ignore"):                       # 1e300: inf long, refused below
+        norms = np.linalg.norm(rotvec, axis=1)
+    bad = np.flatnonzero(~(norms <= ROTVEC_MAX_RAD))
+    if len(bad):
+        r = int(bad[0])
+        raise IngestError(f"a rotation vector {norms[r]:.4g} rad long, more than π: target_rx..target_rz in "
+                          "radians (degrees given?)", file=path, row=lines[r], column=ROTVEC[0])
+
+
 def read_path(path, robot, nominal_fk=None) -> PathFile:
     """The path file: target_x..z (base frame, mm) and/or the joints (j1_deg..j6_deg, j1_rad..., actual_q_0...:
     without targets, a waypoint is where nominal_fk(joints) puts it), optional move and target_rx..rz. Every
@@ -253,6 +271,8 @@ def read_path(path, robot, nominal_fk=None) -> PathFile:
                                                                                    'path', path)])
     points = numbers(TARGET) if "target" in groups else nominal_fk(joints)
     rotvec = numbers(ROTVEC) if "rotvec" in groups else None
+    if rotvec is not None:
+        check_rotvecs(rotvec, path, lines)
     moves = [""] + ["movel"] * (len(cells) - 1)
     if "move" in lower:
         c = find_column(header, "move", "path", path)

@@ -29,6 +29,7 @@ from pipeline.lib.runtime.solvers import CHUNK, slices
 CYCLE_S = 0.002                 # the UR controller's cycle (500 Hz): servoj's t is a whole number of them
 REFINE_ROUNDS = 12              # chord mode: halvings at most
 MIN_STEP_MM = 1e-3              # chord mode: a step this short is not halved further
+MAX_CYCLES = 2 ** 31 - 1         # a step's servoj cycles, a URScript int
 SOLVED = ["arc_mm"] + TARGET + JCOMP_DEG + ["residual_mm", "iterations", "converged", "orientation_residual_arcsec"]
 PATH_COLUMNS = (["sample", "arc_mm", "t_s"] + TARGET + JCOMP_DEG
                 + ["residual_mm", "iterations", "converged", "in_workspace", "uncertainty_mm",
@@ -100,8 +101,15 @@ def refine(model, table: pd.DataFrame, segs: list, chord_mm: float, cfg: dict, r
 
 
 def servo_times(arc_mm: np.ndarray, speed_mm_s: float) -> np.ndarray:
-    """(m - 1,) s: each step's servoj time at speed_mm_s, a whole number of controller cycles (at least one)."""
-    return np.maximum(1, np.round(np.diff(arc_mm) / speed_mm_s / CYCLE_S)) * CYCLE_S
+    """(m - 1,) s: each step's servoj time at speed_mm_s, a whole number of controller cycles (at least one);
+    a ValueError where a step would take more cycles than URScript's int holds (a speed far too low)."""
+    with np.errstate(over="ignore"):
+        cycles = np.maximum(1, np.round(np.diff(arc_mm) / speed_mm_s / CYCLE_S))
+    slow = np.flatnonzero(~(cycles <= MAX_CYCLES))
+    if len(slow):
+        raise ValueError(f"speed {speed_mm_s:g} mm/s: a step of {np.diff(arc_mm)[slow[0]]:.3f} mm would take more "
+                         f"than {MAX_CYCLES} controller cycles (URScript's int): a higher speed")
+    return cycles * CYCLE_S
 
 
 def finish(table: pd.DataFrame, workspace, speed_mm_s: float) -> pd.DataFrame:
@@ -139,21 +147,23 @@ def beyond_reach(targets: np.ndarray, arc_mm: np.ndarray, reach_mm: float) -> st
 def refusal(table: pd.DataFrame, n_samples: int, limits_deg: np.ndarray, tol_mm: float, dev: np.ndarray,
             max_deviation_mm: float, speed_mm_s: float, speeds_deg_s: np.ndarray, workspace=None) -> str | None:
     """Why the path must stop, naming its first sample that must not be driven (numbered from 1), or None:
-    not reached (the table's last sample: solve_path stops there), beyond the joint limits, a joint step
-    faster than the joint's speed limit at speed_mm_s, or a joint-space step whose middle leaves the path by
-    more than max_deviation_mm (dev: `deviation`: a branch flip), and, with a workspace, outside the trained
-    workspace; the kinds found after the first are named with their first sample."""
+    not reached (solve_path stops at such a sample; refine's samples in between may be one too), beyond the
+    joint limits, a joint step faster than the joint's speed limit at speed_mm_s, or a joint-space step whose
+    middle leaves the path by more than max_deviation_mm (dev: `deviation`: a branch flip), and, with a
+    workspace, outside the trained workspace; the kinds found after the first are named with their first
+    sample."""
     found = []                                           # (sample index, kind, message)
     arc, q = table.arc_mm.to_numpy(), table[JCOMP_DEG].to_numpy()
     name = lambda k: f"sample {k + 1} (arc {arc[k]:.1f} mm)"
-    m = len(table)                                       # the samples reached
-    if not table.converged.iloc[-1]:
-        m -= 1
+    unreached = np.flatnonzero(~table.converged.to_numpy(bool))
+    m = int(unreached[0]) if len(unreached) else len(table)        # the samples reached before the first not
+    if m < len(table):
         o = table.orientation_residual_arcsec.iloc[m] if "orientation_residual_arcsec" in table else np.nan
         off = "" if np.isnan(o) else f"; the flange's orientation {o:.2f} arcsec off"
+        after = (f"solved from sample {m}'s joints; the {n_samples - m - 1} samples after it were not solved"
+                 if m == len(table) - 1 else f"solved between samples {m} and {m + 2} (chord mode)")
         found.append((m, "not reached", f"{name(m)}: not reached (residual {table.residual_mm.iloc[m]:.4f} mm, "
-                                        f"tolerance {tol_mm:g} mm{off}), solved from sample {m}'s joints; the "
-                                        f"{n_samples - m - 1} samples after it were not solved"))
+                                        f"tolerance {tol_mm:g} mm{off}), {after}"))
     lo, hi = np.asarray(limits_deg, float).T
     beyond = np.argwhere((q[:m] < lo) | (q[:m] > hi))
     if len(beyond):

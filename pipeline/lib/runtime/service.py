@@ -30,6 +30,7 @@ one iteration a loop beside the positions' lane, under the same budgets. `compen
 """
 import math
 import queue
+import reprlib
 import threading
 import time
 from concurrent.futures import Future
@@ -43,7 +44,7 @@ from scipy.spatial.transform import Rotation
 from pipeline.lib.learning.model import PhysicsOnly
 from pipeline.lib.project.columns import JCOMP_DEG
 from pipeline.lib.robot.kinematics import DTYPE
-from pipeline.lib.runtime.paths import n_samples, resample, rotations_at, segments
+from pipeline.lib.runtime.paths import ROTVEC_MAX_RAD, n_samples, resample, rotations_at, segments
 from pipeline.lib.runtime.pathsolve import (SOLVED, beyond_reach, deviation, model_position, refusal,
                                             servo_times)
 from pipeline.lib.runtime.realtime import Realtime, answers
@@ -57,24 +58,45 @@ class RequestError(ValueError):
     """A bad or unreachable request; the message names the field."""
 
 
+def shown() -> reprlib.Repr:
+    """A repr that stops 3 lists deep and 6 items long (a request may nest thousands of lists)."""
+    r = reprlib.Repr()
+    r.maxlevel, r.maxlist, r.maxtuple, r.maxdict = 3, 6, 6, 3
+    r.maxstring = r.maxlong = r.maxother = 40
+    return r
+
+
+SHOWN = shown()
+
+
 def describe(v) -> str:
     """A value's kind and its repr, cut to 40 characters (what a message may echo of it)."""
     kinds = {str: "a string", dict: "a struct", bool: "a boolean", list: "a list", tuple: "a list",
              int: "a number", float: "a number", type(None): "nil"}
     kind = kinds.get(type(v), type(v).__name__)
-    if isinstance(v, (list, tuple, dict, str)) and len(v) > 40:   # no repr of a huge value
-        v = v[:40] if not isinstance(v, dict) else dict(list(v.items())[:3])
-    text = repr(v)
+    text = SHOWN.repr(v)
     return f"{kind} ({text if len(text) <= 40 else text[:37] + '...'})"
+
+
+def number(v, field: str) -> float:
+    """v as a finite float, or a RequestError naming the field."""
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        raise RequestError(f"{field}: expected a number, got {describe(v)}")
+    try:
+        f = float(v)
+    except OverflowError:                                  # an integer beyond any float
+        f = math.inf
+    if not math.isfinite(f):
+        raise RequestError(f"{field}: not a finite number ({f})")
+    return f
 
 
 def positive(value, field: str) -> float:
     """value as a finite number > 0, or a RequestError naming the field."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise RequestError(f"{field}: expected a number, got {describe(value)}")
-    if not (math.isfinite(float(value)) and value > 0):
+    f = number(value, field)
+    if not f > 0:
         raise RequestError(f"{field}: expected a number > 0, got {value}")
-    return float(value)
+    return f
 
 
 def numbers(value, field: str, n: int) -> np.ndarray:
@@ -83,16 +105,7 @@ def numbers(value, field: str, n: int) -> np.ndarray:
         raise RequestError(f"{field}: expected a list of {n} numbers, got {describe(value)}")
     if len(value) != n:
         raise RequestError(f"{field}: expected {n} numbers, got {len(value)}")
-    for i, v in enumerate(value):
-        if isinstance(v, bool) or not isinstance(v, (int, float)):
-            raise RequestError(f"{field}[{i}]: expected a number, got {describe(v)}")
-        try:
-            f = float(v)
-        except OverflowError:                              # an integer beyond any float
-            f = math.inf
-        if not math.isfinite(f):
-            raise RequestError(f"{field}[{i}]: not a finite number ({f})")
-    return np.array(value, float)
+    return np.array([number(v, f"{field}[{i}]") for i, v in enumerate(value)])
 
 
 @dataclass(eq=False)
@@ -252,7 +265,7 @@ class Service:
         """The flange's orientation (3, 3), base frame, for the served frame's rotation vector rotvec (3 numbers,
         rad, base frame), checked: a RequestError names field."""
         rv = numbers(rotvec, field, 3)
-        if np.linalg.norm(rv) > np.pi + 1e-9:
+        if np.linalg.norm(rv) > ROTVEC_MAX_RAD:
             raise RequestError(f"{field}: |{np.linalg.norm(rv):.3f}| rad, more than π: a rotation vector "
                                "in radians (degrees sent?)")
         return Rotation.from_rotvec(rv).as_matrix() @ self.frame_rot.T
@@ -335,6 +348,10 @@ class Service:
                                f"samples, more than the limit of {self.max_path_samples} (serve.max_path_samples): "
                                "a larger spacing, or split the path")
         targets, arc = resample(segs, spacing)
+        try:
+            times = np.concatenate([[0.0], np.cumsum(servo_times(arc, speed))])
+        except ValueError as e:
+            raise RequestError(f"speed_mm_s: {e}") from None
         flange = rotations_at(segs, rots, arc) if len(rots) else [None] * len(arc)   # (m, 3, 3): per sample
         far = beyond_reach(targets, arc, self.reach)
         if far:
@@ -357,7 +374,7 @@ class Service:
         if why:
             raise RequestError(f"points_mm: {why}")
         return {"q_rad": np.radians(qd).tolist(), "target_mm": targets.tolist(), "arc_mm": arc.tolist(),
-                "t_s": np.concatenate([[0.0], np.cumsum(servo_times(arc, speed))]).tolist(),
+                "t_s": times.tolist(),
                 "residual_mm": table.residual_mm.tolist(), "in_workspace": table.in_workspace.astype(bool).tolist(),
                 "all_in_workspace": bool(table.in_workspace.all()),
                 **({"orientation_residual_arcsec": table.orientation_residual_arcsec.tolist()} if len(rots) else {})}

@@ -203,6 +203,8 @@ def solve_adam(model, q0, target, cfg: dict, limits=None, chunk: int | None = No
 
 
 LAM0 = 1e-3                                                 # lm's starting damping
+LAM_MAX = 1e10          # lm's largest: a step 1e-10 of the undamped one finds nothing more, and λ·10 on
+                        # every failed step would reach inf after ~310 (then NaN joints)
 
 
 def lm_jacobian(model, jacobian_of: str, w: float | None = None):
@@ -263,9 +265,9 @@ def physics_trial(g, q, r, lam, steps: int, limits=None, target=None, w: float |
 
 def lm_keep(ok, q_try, err_try, q, err, lam):
     """lm's rule, torch or numpy: where ok (the trial lowered |r|) the trial step is kept and λ/3, else
-    the point stays and λ·10. Returns the new q, err, lam."""
+    the point stays and λ·10, at most LAM_MAX. Returns the new q, err, lam."""
     where = torch.where if isinstance(q, torch.Tensor) else np.where
-    return where(ok[:, None], q_try, q), where(ok, err_try, err), where(ok, lam / 3, lam * 10)
+    return where(ok[:, None], q_try, q), where(ok, err_try, err), where(ok, lam / 3, (lam * 10).clip(max=LAM_MAX))
 
 
 def solve_lm(model, q0, target, cfg: dict, limits=None, lam0=LAM0, chunk: int | None = None,

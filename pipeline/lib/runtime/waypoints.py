@@ -26,7 +26,7 @@ from pipeline.lib.reading.readers import (AUTO_JOINTS, IngestError, find_column,
 from pipeline.lib.robot.kinematics import TOOL_ROT, fk_numpy, tool_rotation
 from pipeline.lib.runtime.compensation import (delta_table, nominal_flange, orientation_targets, reach_mm,
                                                solve)
-from pipeline.lib.runtime.paths import ROTVEC
+from pipeline.lib.runtime.paths import ROTVEC, check_rotvecs
 
 log = logger(__name__)
 ID_PATTERN = re.compile(r"[A-Za-z0-9_.:-]{1,64}")          # what a point id may be, to reach a URScript comment
@@ -82,6 +82,8 @@ def read_waypoints(path, robot) -> pd.DataFrame:
     values = numbers(cells, cols, names, decimal, path, lines)
     values[:, :6] = np.where(np.array(units) == "rad", np.degrees(values[:, :6]), values[:, :6])
     df = pd.DataFrame(values, columns=JOINTS_DEG + given)
+    if turned:
+        check_rotvecs(df[ROTVEC].to_numpy(), path, lines)
     if "point_id" in lower:
         c = find_column(header, "point_id", "point id", str(path))
         ids = [row[c].strip() if c < len(row) else "" for row in cells]
