@@ -17,6 +17,7 @@ from scipy.spatial.transform import Rotation
 from pipeline.lib.project.columns import JOINTS_DEG, MEAS, MEAS_Q
 from pipeline.lib.project.config import ParamsError, load_params
 from pipeline.lib.reading import readers
+from pipeline.lib.reading.campaigns import campaign_ingest
 from pipeline.lib.reading.presets import merged_params
 from pipeline.lib.reading.readers import IngestError
 from pipeline.lib.robot.kinematics import fk_numpy
@@ -383,6 +384,14 @@ def test_unbalanced_quote_stops(tmp_path):
     Path(tracker).write_text("\n".join(lines) + "\n")
     raises([tracker, "row 5", "a quote opened on this line is never closed"], ingest, params(joints=joints, tracker=tracker))
 
+
+@pytest.mark.parametrize("text", [",,,,\n,,,,\n", '""\n', " ; ; \n", "\n,,,\n\n"])
+def test_a_file_of_separators_and_empty_cells_only_stops_naming_it(tmp_path, text):
+    ids, q, m = campaign(12)
+    joints, tracker = write_pair(tmp_path, ids, q, m)
+    Path(tracker).write_text(text)
+    e = raises([tracker, "no header", "empty cells"], ingest, params(joints=joints, tracker=tracker))
+    assert e.file == tracker
 
 def test_wrong_length_unit_is_an_error(tmp_path):
     ids, q, m = campaign(15)
@@ -772,6 +781,49 @@ def test_rotation_columns_are_never_guessed(tmp_path):
     assert "orientation" not in s["units"] and "target" not in s
 
 
+def test_euler_angles_in_the_other_unit_stop_naming_file_and_column(tmp_path):
+    """Like the joint angles: degrees read as radians (most rows hold an angle beyond one turn) and radians
+    read as degrees (every angle within +-pi, spanning more than 1) stop the stage."""
+    ids, q, m = campaign(20, seed=15)
+    deg = Rotation.random(20, random_state=6).as_euler("XYZ", degrees=True)
+    joints, tracker = write_oriented(tmp_path, ids, q, m, EULER, deg)
+    first = int(np.flatnonzero((np.abs(deg) > 2 * np.pi).any(axis=1))[0])
+    in_rad = params(joints=joints, tracker=tracker, columns={"orientation": EULER}, orientation={"angle_unit": "rad"})
+    e = raises([tracker, f"row {first + 2}", "look like degrees", "set ingest.orientation.angle_unit: deg"], ingest,
+               in_rad)
+    assert e.column == EULER[int(np.argmax(np.abs(deg[first])))]
+    joints, tracker = write_oriented(tmp_path, ids, q, m, EULER, np.radians(deg))
+    e = raises([tracker, "read as degrees, lies within", "look like radians", "set ingest.orientation.angle_unit: rad"],
+               ingest, params(joints=joints, tracker=tracker, columns={"orientation": EULER}))
+    assert e.column == EULER[int(np.argmax(np.ptp(np.radians(deg), axis=0)))]
+    df, s = ingest(params(joints=joints, tracker=tracker, columns={"orientation": EULER},
+                          orientation={"angle_unit": "rad"}))
+    assert s["n_kept"] == 20 and max_angle(rotations(df[MEAS_Q].to_numpy()),
+                                           Rotation.from_euler("XYZ", deg, degrees=True).as_matrix()) < 1e-9
+
+
+def test_euler_degrees_near_the_tracker_axes_read_and_an_angle_beyond_a_turn_is_dropped(tmp_path):
+    """A fixed orientation near the tracker's axes (degrees within +-pi, spanning a fraction of a degree) is
+    not taken for radians; an angle beyond one turn (a lost decimal point) drops its row, named."""
+    ids, q, m = campaign(20, seed=16)
+    near = np.array([1.2, -2.5, 2.9]) + np.random.default_rng(2).normal(0, 0.05, (20, 3))
+    near[7, 2] = 2900.0                                                  # "2.900" lost its decimal point
+    joints, tracker = write_oriented(tmp_path, ids, q, m, EULER, near)
+    df, s = ingest(params(joints=joints, tracker=tracker, columns={"orientation": EULER}))
+    assert [(d["row"], d["reason"], d["detail"]) for d in by_file(s, tracker)] == [
+        (9, "bad_rotation", "columns 'rx', 'ry', 'rz': angle 3 = 2900 is beyond one turn (+-360 deg): a lost "
+                            "decimal point?")]
+    keep = [k for k in range(20) if k != 7]
+    assert s["n_kept"] == 19 and max_angle(rotations(df[MEAS_Q].to_numpy()),
+                                           Rotation.from_euler("XYZ", near[keep], degrees=True).as_matrix()) < 1e-9
+    rad = Rotation.random(20, random_state=7).as_euler("xyz")
+    rad[4, 0] = 123.4                                                    # one row in degrees
+    joints, tracker = write_oriented(tmp_path, ids, q, m, EULER, rad)
+    df, s = ingest(params(joints=joints, tracker=tracker, columns={"orientation": EULER},
+                          orientation={"sequence": "xyz", "angle_unit": "rad"}))
+    assert [(d["row"], d["reason"]) for d in by_file(s, tracker)] == [(6, "bad_rotation")]
+    assert "angle 1 = 123.4 is beyond one turn (+-6.28319 rad)" in by_file(s, tracker)[0]["detail"]
+
 def test_the_bundled_campaign_ingests_to_the_bytes_dvc_lock_records(tmp_path, monkeypatch):
     """A campaign without orientation: the ingest stage writes the same table and ingest.json, byte for
     byte, as before the orientation settings (dvc.lock's md5 of both)."""
@@ -822,15 +874,15 @@ def ingest_lock() -> dict:
 TARGET = {"A": [60.0, 0.0, 10.0], "B": [0.0, 70.0, -5.0], "C": [-50.0, -40.0, 20.0], "D": [10.0, 20.0, 80.0]}
 
 
-def marker_campaign(n=30, noise=0.02, seed=8, unit=1.0):
-    """A 4-marker target (TARGET, mm in its frame) at n poses: its origin at the robot's marker position,
-    turned at random; tracker rows (Name, Marker, X, Y, Z, Time, Std), one per marker, noise in mm,
-    positions in mm times `unit` -> (ids, joint angles, origins, rotations, rows)."""
+def marker_campaign(n=30, noise=0.02, seed=8, unit=1.0, target=None):
+    """A 4-marker target (`target`, default TARGET, mm in its frame) at n poses: its origin at the robot's
+    marker position, turned at random; tracker rows (Name, Marker, X, Y, Z, Time, Std), one per marker,
+    noise in mm, positions in mm times `unit` -> (ids, joint angles, origins, rotations, rows)."""
     ids, q, m = campaign(n, seed)
     R = Rotation.random(n, random_state=seed).as_matrix()
     rng = np.random.default_rng(seed)
     rows = [[ids[k], name, *map(num, (R[k] @ g + m[k] + rng.normal(0, noise, 3)) * unit), f"t{k}",
-             num(rng.uniform())] for k in range(n) for name, g in TARGET.items()]
+             num(rng.uniform())] for k in range(n) for name, g in (target or TARGET).items()]
     return ids, q, m, R, rows
 
 
@@ -902,6 +954,43 @@ def test_a_target_marker_not_in_the_geometry_stops(tmp_path):
     raises([tracker, "no pose holds all 5 markers", "give it in ingest.target"], ingest,
            params(joints=joints, tracker=tracker, columns={"marker": "Marker"}))
 
+
+def test_a_pose_whose_markers_nearly_line_up_is_dropped_not_turned_at_random(tmp_path):
+    """A, B, C 0.05 mm off one line: without D the rotation about that line rests on 0.02 mm marker noise
+    (turns of up to 157 deg seen). Markers within 10 x target_residual_mm (RMS) of a line: the pose is dropped."""
+    target = {"A": [0.0, 0.0, 0.0], "B": [50.0, 0.0, 0.0], "C": [100.0, 0.05, 0.0], "D": [50.0, 60.0, 0.0]}
+    ids, q, m, R, rows = marker_campaign(30, seed=8, target=target)
+    rows = [r for r in rows if not (r[1] == "D" and int(r[0][1:]) <= 15)]          # D unseen in P0001..P0015
+    joints, _ = write_pair(tmp_path, ids, q, m)
+    tracker = write(tmp_path / "targets.csv", ["Name", "Marker", "X", "Y", "Z", "Time", "Std"], rows)
+    df, s = ingest(params(joints=joints, tracker=tracker, columns={"marker": "Marker"}, target={"markers": target}))
+    lost = [d for d in by_file(s, tracker) if d["reason"] == "too_few_markers"]
+    assert [d["row"] for d in lost] == list(range(2, 47)) and {d["point_id"] for d in lost} == set(ids[:15])
+    assert lost[0]["detail"] == ("markers A, B, C lie within 0.0118 mm of a line (need 5 mm across it: 10 x "
+                                 "target_residual_mm); the rotation about it is not determined")
+    assert s["n_kept"] == 15 and list(df.point_id) == ids[15:]
+    assert max_angle(rotations(df[MEAS_Q].to_numpy()), R[15:]) < 2e-3
+
+def test_a_further_campaigns_target_replaces_the_main_ones(tmp_path):
+    """campaigns.more: a campaign's ingest.target is its own target's geometry, whole: a marker of the main
+    target in its file is not in it (not fitted with the main target's geometry)."""
+    other = {"P": [0.0, 0.0, 0.0], "Q": [80.0, 0.0, 0.0], "R": [0.0, 90.0, 0.0], "S": [0.0, 0.0, 100.0]}
+    ids, q, m, R, rows = marker_campaign(15, seed=10, target=other)
+    rows.insert(20, ["P0006", "A", *map(num, R[5] @ np.array(TARGET["A"]) + m[5]), "t5", "0.5"])
+    joints, _ = write_pair(tmp_path, ids, q, m)
+    tracker = write(tmp_path / "targets.csv", ["Name", "Marker", "X", "Y", "Z", "Time", "Std"], rows)
+    p = params(columns={"marker": "Marker"}, target={"markers": TARGET})
+    p["campaigns"]["more"] = {"b": {"station": "main", "ingest": {"joints": joints, "tracker": tracker,
+                                                                   "target": {"markers": other}}}}
+    cfg = campaign_ingest(p["ingest"], p["campaigns"], "b")
+    assert cfg["target"] == {"markers": other} and cfg["columns"]["marker"] == "Marker"
+    raises([tracker, "row 22", "column 'Marker'", "marker 'A' is not in ingest.target.markers (P, Q, R, S)"],
+           readers.ingest, cfg, load_robot(p["robot"]))
+    del rows[20]
+    tracker = write(tmp_path / "targets.csv", ["Name", "Marker", "X", "Y", "Z", "Time", "Std"], rows)
+    df, s = readers.ingest(cfg, load_robot(p["robot"]))
+    assert s["n_kept"] == 15 and s["dropped"] == [] and sorted(s["target"]["markers_mm"]) == ["P", "Q", "R", "S"]
+    assert np.abs(df[MEAS].to_numpy() - m).max() < 0.05
 
 def test_real_ipa_ur10_orientation(monkeypatch):
     """Series_C with the preset: the T-Mac's measurement_rx/ry/rz (degrees, intrinsic XYZ) as unit

@@ -28,6 +28,13 @@ def test_deep_merge_merges_mappings_and_replaces_the_rest():
     assert changes(base, out) == [("a.c", [1, 2], [9]), ("e", None, {"f": None})]
 
 
+
+def test_a_target_geometry_is_replaced_whole():
+    """ingest.target (a rigid target's markers) over another: the markers of the one on top only."""
+    base = {"ingest": {"target": {"markers": {"A": [0, 0, 0], "B": [1, 0, 0], "C": [0, 1, 0]}}, "sep": ","}}
+    out = deep_merge(base, {"ingest": {"target": {"markers": {"P": [0, 0, 0], "Q": [2, 0, 0], "R": [0, 2, 0]}}}})
+    assert out == {"ingest": {"target": {"markers": {"P": [0, 0, 0], "Q": [2, 0, 0], "R": [0, 2, 0]}}, "sep": ","}}
+
 @pytest.mark.parametrize("name", ["gtpn-ur5", "ipa-ur10"])
 def test_presets_only_set_known_keys(name):
     preset = yaml.safe_load((PRESETS / f"{name}.yaml").read_text())

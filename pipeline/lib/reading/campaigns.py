@@ -72,7 +72,8 @@ def campaign_entry(campaigns: dict, name: str) -> dict:
 
 
 def campaign_ingest(ingest: dict, campaigns: dict, name: str) -> dict:
-    """The `ingest:` section overridden by campaign `name`'s (campaigns.more)."""
+    """The `ingest:` section overridden by campaign `name`'s (campaigns.more); its `target` replaces the
+    section's whole (presets.REPLACED)."""
     return deep_merge(ingest, campaign_entry(campaigns, name)["ingest"])
 
 

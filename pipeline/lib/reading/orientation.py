@@ -8,6 +8,8 @@ Rotation columns (`ingest.columns.orientation`, read as `ingest.orientation` say
     euler       3 angles, `sequence` as scipy's Rotation.from_euler: upper case (XYZ) intrinsic
                 (about the turning body's axes), lower case (xyz) extrinsic (about the fixed tracker
                 axes); `angle_unit` deg or rad. Intrinsic XYZ = extrinsic zyx of the reversed angles.
+                An angle beyond one turn (+-360 deg, +-2 pi rad) is a bad rotation (a lost decimal
+                point); `unit_mismatch` says when the angles look like the other unit.
     quaternion  4 numbers, w x y z (`scalar_first: true`) or x y z w (false). A norm off 1 by more
                 than NORM_TOL (relative) is a bad rotation, not normalised away.
     matrix      9 numbers, row-major r11 r12 r13 r21 ... r33. Rows not orthonormal within ORTHO_TOL
@@ -16,7 +18,9 @@ Rotation columns (`ingest.columns.orientation`, read as `ingest.orientation` say
 Rigid multi-marker targets (optical trackers export one row per marker): each pose's markers are fitted
 by Kabsch (frames.kabsch) to the target's geometry {name: (3,)} in its own frame. The pose is that frame:
 its origin (t) and its rotation (R). `fit_pose` removes the worst marker while its residual exceeds the
-limit and refits; fewer than MIN_MARKERS left (or collinear ones) and the pose has no fit.
+limit and refits; fewer than MIN_MARKERS left, or markers within ACROSS x the limit of a line (a marker
+error within the limit could turn the pose about that line by more than 1/ACROSS rad), and the pose has no
+fit.
 `estimate_geometry`: the geometry when none is given: the first pose holding every marker, centred on
 its markers' centroid, then each marker's mean position over all poses (of >= 3 markers) in that pose's
 frame fitted to the first, centred again: one refinement. Its axes are the tracker's at that first pose,
@@ -34,6 +38,11 @@ KINDS = {"euler": 3, "quaternion": 4, "matrix": 9}     # kind -> number of colum
 NORM_TOL = 1e-3              # a quaternion whose norm is off 1 by more (relative) is a bad rotation
 ORTHO_TOL = 1e-3             # a matrix with max |R Rᵀ - I| above this is a bad rotation
 MIN_MARKERS = 3              # a rigid fit needs three (non-collinear) markers
+ACROSS = 10.0                # markers' RMS distance from their main axis, in fit limits, for a rotation about it
+TURN = {"deg": 360.0, "rad": 2 * np.pi}   # no Euler angle any convention writes lies beyond one turn ...
+TURN_SLACK = 1e-4            # ... (relative, for one written rounded)
+PI_SLACK = 1e-3              # radians written rounded: +-pi to 3 decimals is 3.142
+RAD_SPREAD = 1.0             # degrees all within +-pi that span more than this (57 deg as radians) are radians
 
 
 def canonical(rot: Rotation) -> np.ndarray:
@@ -61,12 +70,46 @@ def matrix_problems(M: np.ndarray) -> list:
             f"a reflection (det {d:.6g} < 0)" if d < 0 else None for o, d in zip(off, det)]
 
 
+def euler_problems(v: np.ndarray, unit: str) -> list:
+    """(n, 3) angles in `unit` -> per row None, or why not: an angle beyond one turn."""
+    turn, out = TURN[unit], []
+    for row in v:
+        k = int(np.argmax(np.abs(row)))
+        out.append(None if abs(row[k]) <= turn * (1 + TURN_SLACK) else
+                   f"angle {k + 1} = {row[k]:.6g} is beyond one turn (+-{turn:.6g} {unit}): a lost decimal point?")
+    return out
+
+
+def unit_mismatch(v: np.ndarray, unit: str, min_rows: int) -> tuple | None:
+    """Finite Euler angles (n, 3) read in `unit` -> (row or None, column, why) when they look like the other
+    unit, else None. Radians: more than half the rows hold an angle beyond one turn (degrees). Degrees: with
+    `min_rows` rows or more, every angle within +-pi while a column spans more than RAD_SPREAD (radians;
+    a fixed orientation near the tracker's axes spans a fraction of a degree)."""
+    a = np.abs(v)
+    if unit == "rad":
+        beyond = np.flatnonzero(a.max(axis=1) > TURN["rad"] * (1 + TURN_SLACK))
+        if 2 * len(beyond) <= len(v):
+            return None
+        r = int(beyond[0])
+        c = int(np.argmax(a[r]))
+        return r, c, (f"{len(beyond)} of {len(v)} rows hold an Euler angle beyond +-2 pi (e.g. {v[r, c]:.6g}), "
+                      "read as radians: these look like degrees; set ingest.orientation.angle_unit: deg")
+    if len(v) < max(min_rows, 1) or a.max() > np.pi + PI_SLACK:
+        return None
+    spread = np.ptp(v, axis=0)
+    c = int(np.argmax(spread))
+    if spread[c] <= RAD_SPREAD:
+        return None
+    return None, c, (f"every Euler angle, read as degrees, lies within +-{np.pi:.4f} though one column spans "
+                     f"{spread[c]:.3g}: these look like radians; set ingest.orientation.angle_unit: rad")
+
+
 def read(v: np.ndarray, spec: dict) -> tuple[list, Rotation | None]:
     """Finite rotation columns (n, k) read as `spec` -> (per row None or why it is no rotation, the
     rotations of the rows without a problem, None if there are none)."""
     if spec["kind"] == "euler":
-        bad, make = [None] * len(v), lambda x: Rotation.from_euler(spec["sequence"], x,
-                                                                    degrees=spec["angle_unit"] == "deg")
+        bad, make = euler_problems(v, spec["angle_unit"]), lambda x: Rotation.from_euler(
+            spec["sequence"], x, degrees=spec["angle_unit"] == "deg")
     elif spec["kind"] == "quaternion":
         bad, make = quaternion_problems(v), lambda x: Rotation.from_quat(x, scalar_first=spec["scalar_first"])
     else:
@@ -116,11 +159,23 @@ def fit_pose(geometry: dict, points: dict, limit: float) -> PoseFit:
             R, t = kabsch(G, P)
         except DegenerateFit:
             return PoseFit(None, None, {}, removed, f"markers {', '.join(names)} are collinear in the target")
+        rho = across(G)
+        if rho < ACROSS * limit:
+            return PoseFit(None, None, {}, removed, f"markers {', '.join(names)} lie within {rho:.3g} mm of a line "
+                           f"(need {ACROSS * limit:g} mm across it: {ACROSS:g} x target_residual_mm); the rotation "
+                           "about it is not determined")
         res = np.linalg.norm(G @ R.T + t - P, axis=1)
         worst = int(np.argmax(res))
         if res[worst] <= limit:
             return PoseFit(R, t, dict(zip(names, res.tolist())), removed)
         removed.append((names.pop(worst), float(res[worst])))
+
+
+def across(G: np.ndarray) -> float:
+    """The markers' (n, 3) RMS distance from their main axis (the line through their centroid that fits them
+    best). A marker error e turns a fit about that axis by about e / this."""
+    s = np.linalg.svd(G - G.mean(0), compute_uv=False)
+    return float(np.sqrt((s[1:] ** 2).sum() / len(G)))
 
 
 def estimate_geometry(poses: list) -> dict:

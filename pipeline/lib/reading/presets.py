@@ -4,9 +4,9 @@
     merged_params("ipa-ur10", base)  -> dict                     # in-process, writes nothing
 
 A preset is data/presets/NAME.yaml (or any YAML path), optionally `extends:`
-another preset. Mappings merge key by key (a `campaigns` mapping is replaced
-whole); anything else (scalars, lists) replaces the base value. Paths inside a
-preset are relative to the project root, like the rest of params.yaml.
+another preset. Mappings merge key by key (a `campaigns` or `target` mapping is
+replaced whole); anything else (scalars, lists) replaces the base value. Paths
+inside a preset are relative to the project root, like the rest of params.yaml.
 params.yaml is rewritten with ruamel.yaml's round trip when it is installed
 (DVC depends on it), so comments and layout survive; otherwise with PyYAML
 (comments lost). The result is re-read and checked against the merge.
@@ -40,7 +40,8 @@ def load_preset(name_or_path) -> dict:
     return preset if base is None else deep_merge(load_preset(base), preset)
 
 
-REPLACED = {"campaigns"}        # mappings a preset replaces whole: its own (validation or training) campaigns
+REPLACED = {"campaigns", "target"}   # mappings replaced whole: a preset's own (validation or training)
+                                    # campaigns; a rigid target's geometry (ingest.target: a campaign's own)
 
 
 def deep_merge(base: dict, over: dict) -> dict:

@@ -50,9 +50,11 @@ A per-row problem drops the row and lists it; `reason` is one of
     empty, nan, non_numeric   a joint/position/orientation cell (the detail names the column)
     non_finite       a joint/position/orientation cell reads as +-inf ('inf', or 1e999: a mistyped exponent?)
     bad_rotation     orientation cells that are no rotation: a quaternion whose norm is off 1 by
-                     more than 1e-3, a matrix not orthonormal within 1e-3 or a reflection
+                     more than 1e-3, a matrix not orthonormal within 1e-3 or a reflection, an Euler
+                     angle beyond one turn
     marker_residual  a target's marker farther than target_residual_mm from its pose's fit
-    too_few_markers  a target's pose with fewer than 3 usable markers (its marker rows)
+    too_few_markers  a target's pose with fewer than 3 usable markers, or markers (nearly) on a
+                     line (its marker rows)
     unpaired         id in one file only
     partner_dropped  the point's row in the other file was dropped
     joint_limit      an angle outside the robot's limits (also a joint cell that lost its decimal point)
@@ -72,7 +74,8 @@ n_kept + (dropped rows of that file) == n_read (a target's tracker file: the
 kept poses' marker rows + its dropped rows == n_read).
 
 Fatal problems raise IngestError, whose message names file, row and column:
-    unreadable file, no data rows, a missing or ambiguous required column
+    unreadable file, no header (only separators and empty cells), no data rows, a missing
+    or ambiguous required column
     (the headers found are listed), an unbalanced quote;
     more than half of a file's rows with bad cells (wrong sep/decimal setting?)
     or out of joint limits (degrees read as radians?);
@@ -83,7 +86,8 @@ Fatal problems raise IngestError, whose message names file, row and column:
     the gross-outlier check flagging more than half the points (wrong robot,
     tool or units); fewer than 10 points left; measured points (nearly)
     collinear or coincident. Nearly coplanar points only warn (geometry.coplanar).
-    Orientation: more than half the rows no rotation (bad_rotation); orientation
+    Orientation: more than half the rows no rotation (bad_rotation); Euler angles that look like
+    the other unit (orientation.unit_mismatch); orientation
     settings that do not fit together (kind and header count; orientation and
     marker both; a target without a marker column; a marker column in one table);
     orientation or markers asked of a point cloud; a target's marker not in
@@ -253,6 +257,9 @@ def read_table(path: str, sep: str, decimal: str, skip_lines: int = 0):
         raise IngestError("the file is empty", file=path)
     sep = sniff_sep(header_line) if sep == "auto" else sep
     records = split_records(text, sep, path)
+    if not records:
+        raise IngestError(f"no header: every line is blank or holds only separators ({sep!r}) and empty cells",
+                          file=path)
     header = [h.strip() for h in records[0][1]]
     body = records[1:]
     if not body:
@@ -472,6 +479,7 @@ def add_orientation(rows: Rows, spec: dict) -> None:
     headers = rows.groups.get("orientation")
     if not headers:
         return
+    check_euler_unit(rows, spec, headers)
     rows.quat, why = orientation.rotations(rows.values[:, -len(headers):], spec)
     named = ", ".join(f"'{h}'" for h in headers)
     for r, w in enumerate(why):
@@ -482,6 +490,18 @@ def add_orientation(rows: Rows, spec: dict) -> None:
         raise IngestError(f"{rows.problem[bad[0]][1]}; {len(bad)} of {len(rows.problem)} rows are no rotation "
                           f"like this: check ingest.orientation (kind {spec['kind']}) and ingest.columns.orientation",
                           file=rows.path, row=rows.lines[bad[0]], column=headers[0])
+
+
+def check_euler_unit(rows: Rows, spec: dict, headers: list) -> None:
+    """Stop if Euler angles look like the other unit (orientation.unit_mismatch): like the joint angles."""
+    if spec["kind"] != "euler":
+        return
+    v = rows.values[:, -len(headers):]
+    finite = np.flatnonzero(np.isfinite(v).all(axis=1))
+    found = orientation.unit_mismatch(v[finite], spec["angle_unit"], MIN_POINTS)
+    if found is not None:
+        r, c, why = found
+        raise IngestError(why, file=rows.path, row=None if r is None else rows.lines[finite[r]], column=headers[c])
 
 
 def pose_groups(rows: Rows) -> dict:
