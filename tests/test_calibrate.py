@@ -7,9 +7,7 @@ import pytest
 import torch
 
 from pipeline.lib.project.columns import ERR, JOINTS_DEG, MEAS, THEORY
-from pipeline.lib.project.config import load_params, read_json
-from pipeline.lib.project.config import write_json
-from pipeline.lib.project.config import read_json
+from pipeline.lib.project.config import load_params, read_json, write_json
 from pipeline.lib.robot import identify as C
 from pipeline.lib.robot.geometry import Calibration
 from pipeline.lib.robot.kinematics import DTYPE, fk, fk_numpy, nominal_geometry

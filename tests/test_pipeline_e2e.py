@@ -80,7 +80,7 @@ def test_metrics_show_is_the_headline_and_plots_show_works_offline(reproduced, t
     files = next(iter(json.loads(sh("dvc metrics show --json", repo).stdout).values()))["data"]
     assert set(files) == {"reports/headline.json", "reports/validation_headline.json"}, files
     assert f'{head["test_3d_mae_mm"]["reported"]:.5f}'[:6] in sh("dvc metrics show", repo).stdout
-    html = sh("dvc plots show", repo)
+    sh("dvc plots show", repo)
     page = (repo / "dvc_plots/index.html").read_text()
     assert "<img" in page and "cdn" not in page.lower() and "<script src=\"http" not in page, page[:2000]
     assert "dvc_plots" not in sh("git status --porcelain --untracked-files=all", repo).stdout
