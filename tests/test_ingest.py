@@ -971,6 +971,24 @@ def test_a_pose_whose_markers_nearly_line_up_is_dropped_not_turned_at_random(tmp
     assert s["n_kept"] == 15 and list(df.point_id) == ids[15:]
     assert max_angle(rotations(df[MEAS_Q].to_numpy()), R[15:]) < 2e-3
 
+
+def test_one_mislabelled_pose_does_not_move_the_estimated_geometry(tmp_path):
+    """Without ingest.target the geometry is estimated from the poses: one pose with A and B swapped moved
+    each marker's mean by 1/30 of the swap (3.6 mm), and 29 correct poses lost their marker D as 'off'. Each
+    marker's median over the poses: only the swapped pose loses markers, the geometry is the true one."""
+    ids, q, m, R, rows = marker_campaign(30, noise=0.02)
+    a, b = (next(i for i, r in enumerate(rows) if r[:2] == ["P0005", n]) for n in ("A", "B"))
+    rows[a][1], rows[b][1] = "B", "A"
+    joints, _ = write_pair(tmp_path, ids, q, m)
+    tracker = write(tmp_path / "targets.csv", ["Name", "Marker", "X", "Y", "Z", "Time", "Std"], rows)
+    df, s = ingest(params(joints=joints, tracker=tracker, columns={"marker": "Marker"}))
+    assert {d["point_id"] for d in by_file(s, tracker)} == {"P0005"}
+    assert s["n_kept"] == 29 and len(df) == 29
+    true = np.array(list(TARGET.values())) - np.mean(list(TARGET.values()), axis=0)
+    got = np.array([s["target"]["markers_mm"][n] for n in TARGET])
+    assert abs(np.linalg.norm(got[:, None] - got[None], axis=2) - np.linalg.norm(true[:, None] - true[None], axis=2)).max() < 0.05
+
+
 def test_a_further_campaigns_target_replaces_the_main_ones(tmp_path):
     """campaigns.more: a campaign's ingest.target is its own target's geometry, whole: a marker of the main
     target in its file is not in it (not fitted with the main target's geometry)."""

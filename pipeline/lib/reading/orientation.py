@@ -22,10 +22,10 @@ limit and refits; fewer than MIN_MARKERS left, or markers within ACROSS x the li
 error within the limit could turn the pose about that line by more than 1/ACROSS rad), and the pose has no
 fit.
 `estimate_geometry`: the geometry when none is given: the first pose holding every marker, centred on
-its markers' centroid, then each marker's mean position over all poses (of >= 3 markers) in that pose's
+its markers' centroid, then each marker's median position over all poses (of >= 3 markers) in that pose's
 frame fitted to the first, centred again: one refinement. Its axes are the tracker's at that first pose,
-its origin the markers' centroid. A marker off in one pose moves the mean by 1/n of it; fit_pose then
-removes it there.
+its origin the markers' centroid. A marker off in one pose (or a pose whose labels are swapped) leaves the
+median where the other poses put it; fit_pose then removes it there.
 """
 from dataclasses import dataclass, field
 
@@ -199,7 +199,7 @@ def estimate_geometry(poses: list) -> dict:
             continue
         for n in common:
             seen[n].append(R.T @ (np.asarray(p[n]) - t))
-    return centred({n: np.mean(v, axis=0) for n, v in seen.items()})
+    return centred({n: np.median(v, axis=0) for n, v in seen.items()})    # a mislabelled pose: an outlier
 
 
 def centred(geometry: dict) -> dict:
