@@ -82,6 +82,11 @@ def test_the_urdf_and_yaml_carry_the_probe_and_tcp_frames():
     e = frames["torch"]                                              # joint 6's frame -> the TCP, m and rpy
     c = joint_origins(g)[1] @ np.r_[150.0, 0.0, 80.0, 1.0]            # the flange transform after joint 6, then c
     np.testing.assert_allclose([e["x"], e["y"], e["z"]], c[:3] / 1000, atol=1e-12)
+    for e in frames.values():                  # ur_pose: the same frame as set_tcp takes it (m, a rotation vector)
+        np.testing.assert_allclose(e["ur_pose"][:3], [e["x"], e["y"], e["z"]], atol=1e-15)
+        np.testing.assert_allclose(Rotation.from_rotvec(e["ur_pose"][3:]).as_matrix(),
+                                   Rotation.from_euler("xyz", [e["roll"], e["pitch"], e["yaw"]]).as_matrix(), atol=1e-12)
+    assert np.linalg.norm(frames["torch"]["ur_pose"][3:]) > 0.1   # 30° about y: rpy and a rotation vector differ
 
 
 def test_nominal_ur5_at_zero_is_where_the_datasheet_puts_it():
@@ -101,7 +106,9 @@ def test_ur_yaml_of_the_nominal_ur5_is_the_ur_descriptions_default():
                  "wrist_2": ([0, -0.09465, 0], [np.pi / 2, 0, 0]),
                  "wrist_3": ([0, 0.0823, 0], [np.pi / 2, np.pi, np.pi])}
     kin = ur_kinematics(nominal_geometry(UR5))["kinematics"]
-    assert list(kin) == list(published)
+    assert list(kin) == [*published, "hash"]          # ur_description's ur_common.xacro reads every one
+    assert kin["hash"].startswith("spi_boter_") and kin["hash"] == ur_kinematics(nominal_geometry(UR5))["kinematics"]["hash"]
+    assert kin["hash"] != ur_kinematics(calibrated_like())["kinematics"]["hash"]
     for name, (xyz, rpy) in published.items():
         e = kin[name]
         np.testing.assert_allclose([e["x"], e["y"], e["z"]], xyz, atol=1e-12, err_msg=name)
@@ -175,7 +182,9 @@ def test_export_stage_files_read_back(in_trained_project):
     assert r["onnx"]["max_deviation_mm"] < 1e-6 and r["onnx"]["n_test_poses"] > 0
     assert pin.buildModelFromUrdf("models/calibrated.urdf").nq == 6
     kin = yaml.safe_load(Path("models/ur_calibration.yaml").read_text())["kinematics"]
-    assert list(kin) == ["shoulder", "upper_arm", "forearm", "wrist_1", "wrist_2", "wrist_3"]
+    assert list(kin) == ["shoulder", "upper_arm", "forearm", "wrist_1", "wrist_2", "wrist_3", "hash"]
+    assert all(isinstance(kin[j][k], float) for j in list(kin)[:6] for k in ("x", "y", "z", "roll", "pitch", "yaw"))
+    assert isinstance(kin["hash"], str)          # ur_common.xacro: ${sec_kinematics['hash']}, no default
     assert OnnxModel("models/model.onnx")(np.zeros((2, 6))).shape == (2, 3)
 
 

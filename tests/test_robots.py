@@ -52,6 +52,13 @@ def test_ur_reach_and_data(name):
     assert robot.com[1, 0] == pytest.approx(-a2 / 2, rel=0.3)   # the upper arm's mass sits near its middle
 
 
+@pytest.mark.parametrize("name, deg_s", [("ur5", [180] * 6), ("ur10", [120, 120, 180, 180, 180, 180])])
+def test_joint_speed_limits_are_the_ur_descriptions(name, deg_s):
+    """config/<model>/joint_limits.yaml of the UR ROS description (`!degrees 180.0` ...): the URDF's limits and the
+    path command's default joint speeds. The UR5's were 3.15 rad/s, 0.27% above its 180°/s."""
+    np.testing.assert_allclose(nominal_robot(name).velocity_rad_s, np.radians(deg_s), rtol=1e-15)
+
+
 def mdh_flange(q_rad, alpha_prev, a_prev, d, offset):
     """Craig's modified-DH product T_1 ... T_6, T_i = Rx(alpha_{i-1}) Tx(a_{i-1}) Rz(theta_i) Tz(d_i)."""
     def rx(t):

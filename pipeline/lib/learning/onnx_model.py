@@ -292,8 +292,9 @@ class OnnxRealtime:
             raise ValueError(f"{path}: a graph with inputs {', '.join(names)}, not the controller path's "
                              f"{', '.join(want)} (exported by an older version, or for another tool?)")
         self.single = session(path, {self.session.get_inputs()[0].shape[0]: 1})
-        lim = np.array([[-np.inf, np.inf]] * 6) if limits_rad is None else np.asarray(limits_rad, float)
-        self.fixed = {"q_min_rad": np.ascontiguousarray(lim[:, 0]), "q_max_rad": np.ascontiguousarray(lim[:, 1])}
+        self.limits = np.array([[-np.inf, np.inf]] * 6) if limits_rad is None else np.asarray(limits_rad, float)
+        self.fixed = {"q_min_rad": np.ascontiguousarray(self.limits[:, 0]),
+                      "q_max_rad": np.ascontiguousarray(self.limits[:, 1])}
         if tcp_mm is not None:                             # the graph's inputs held for every call
             self.fixed[TCP_INPUT] = np.array(tcp_mm, np.float64).reshape(3)
         if weight is not None:
@@ -313,7 +314,7 @@ class OnnxRealtime:
         return self.batch(q0_rad, target_mm)[0]
 
     def batch(self, q0_rad, target_mm) -> list[Result]:
-        return answers(*self.solve(q0_rad, target_mm), self.tol, self.workspace)
+        return answers(*self.solve(q0_rad, target_mm), self.tol, self.workspace, self.limits)
 
     def lm_step(self, q, target, err, lam):
         """solvers.lm_step on the graph, numpy: q (A, 6) rad, target (A, 3) mm, |r| err (A,) mm, λ lam (A,)

@@ -14,6 +14,7 @@ correction q -> kinematics.deflected(q). The exported chain is the rigid part:
 at the deflected angles it gives the calibrated model's positions exactly.
 Lengths in metres, angles in rad (URDF, REP 103); `rpy` is fixed-axis X, Y, Z.
 """
+import hashlib
 import xml.etree.ElementTree as ET
 
 import numpy as np
@@ -116,14 +117,23 @@ def pose_entry(T: np.ndarray) -> dict:
 
 def ur_kinematics(g: dict, tcp: dict | None = None) -> dict:
     """The UR ROS description's calibration (`default_kinematics.yaml` layout): O_1..O_6 as
-    {x, y, z, roll, pitch, yaw} (m, rad). Holds no flange transform after joint 6 and no tool:
-    tool0 there is joint 6's frame (`flange_residual` says what that leaves out). Beside `kinematics`
-    (which the UR description reads), `tool_frames`: the probe (`marker`) and each `robot.tcp` point
-    in joint 6's frame, the flange transform included, for a controller's TCP setting."""
+    {x, y, z, roll, pitch, yaw} (m, rad) and `hash` (the description reads it; the UR driver compares it
+    with the robot's own calibration's: here `spi_boter_` and a digest of the six entries). Holds no
+    flange transform after joint 6 and no tool: tool0 there is joint 6's frame (`flange_residual` says
+    what that leaves out). Beside `kinematics`, `tool_frames`: the probe (`marker`) and each `robot.tcp`
+    point in joint 6's frame, the flange transform included: the six numbers, and `ur_pose`, the same
+    frame as a UR controller's TCP takes it (set_tcp's p[x, y, z, rx, ry, rz]: m, a rotation vector)."""
     origins, flange = joint_origins(g)
     frames = {"marker": flange @ tool_transform(g), **{n: flange @ T for n, T in tcp_transforms(tcp).items()}}
-    return {"kinematics": {key: pose_entry(T) for key, T in zip(UR_YAML_NAMES, origins)},
-            "tool_frames": {n: pose_entry(T) for n, T in frames.items()}}
+    kinematics = {key: pose_entry(T) for key, T in zip(UR_YAML_NAMES, origins)}
+    digest = hashlib.sha256(repr(sorted(kinematics.items())).encode()).hexdigest()[:16]
+    return {"kinematics": {**kinematics, "hash": f"spi_boter_{digest}"},
+            "tool_frames": {n: {**pose_entry(T), "ur_pose": ur_pose(T)} for n, T in frames.items()}}
+
+
+def ur_pose(T: np.ndarray) -> list[float]:
+    """A 4×4 transform (mm) as a UR pose: [x, y, z] m and the rotation vector [rx, ry, rz] rad."""
+    return [float(v) for v in (*T[:3, 3] / 1000.0, *Rotation.from_matrix(T[:3, :3]).as_rotvec())]
 
 
 def flange_residual(g: dict) -> dict:

@@ -57,8 +57,8 @@ class Realtime:
         for p in model.parameters():
             p.requires_grad_(False)
         self.model, self.tol = model, tol_mm
-        lim = np.array([[-np.inf, np.inf]] * 6) if limits_rad is None else np.asarray(limits_rad, float)
-        self.lo, self.hi = (torch.as_tensor(lim[:, i], dtype=DTYPE) for i in (0, 1))
+        self.limits = np.array([[-np.inf, np.inf]] * 6) if limits_rad is None else np.asarray(limits_rad, float)
+        self.lo, self.hi = (torch.as_tensor(self.limits[:, i], dtype=DTYPE) for i in (0, 1))
         self.damping, self.workspace = damping, workspace   # workspace: lib/workspace.Workspace
         self.solve = self._solve                            # a single pose's (batches run eager: inductor
         if compile:                                         # fails on the batched transformer fast path)
@@ -80,7 +80,7 @@ class Realtime:
         q0 = torch.tensor(np.asarray(q0_rad, float).reshape(-1, 6), dtype=DTYPE)
         target = torch.tensor(np.asarray(target_mm, float).reshape(-1, 3), dtype=DTYPE)
         q1, q2, r0, r1 = (t.numpy() for t in (self.solve if len(q0) == 1 else self._solve)(q0, target))
-        return answers(q1, q2, r0, r1, self.tol, self.workspace)
+        return answers(q1, q2, r0, r1, self.tol, self.workspace, self.limits)
 
 
 def two_steps(model, q0, target, lo, hi, damping, tcp_mm=None, rot=None, w=None):
@@ -104,9 +104,12 @@ def chord_step(model, q, target, lo, hi, damping, tcp_mm=None, rot=None, w=None)
     return torch.clamp(q_next, lo, hi), r.norm(dim=1)
 
 
-def answers(q1, q2, r0, r1, tol_mm: float, workspace=None) -> list[Result]:
+def answers(q1, q2, r0, r1, tol_mm: float, workspace=None, limits=None) -> list[Result]:
     """The two steps' outputs (numpy: (B, 6), (B, 6), (B,), (B,)) as B Results: q1 when |r1| < tol_mm
-    (verified), else q2 with the predicted residual |r1|²/|r0|; in_workspace when a workspace is given."""
+    (verified), else q2 with the predicted residual |r1|²/|r0|, converged only below tol_mm and with no joint
+    of q2 on one of the joint limits (6, 2) rad (clamped there: the prediction assumed the step whole);
+    in_workspace when a workspace is given."""
+    lo, hi = (np.full(6, -np.inf), np.full(6, np.inf)) if limits is None else np.asarray(limits, float).T
     out = []
     for i in range(len(q1)):
         a, b = float(r0[i]), float(r1[i])
@@ -114,7 +117,8 @@ def answers(q1, q2, r0, r1, tol_mm: float, workspace=None) -> list[Result]:
             out.append(Result(q1[i], b, True, True))
         else:
             predicted = b * b / a if b < a else float("inf")
-            out.append(Result(q2[i], predicted, False, predicted < tol_mm))
+            clamped = bool(((q2[i] <= lo) | (q2[i] >= hi)).any())
+            out.append(Result(q2[i], predicted, False, predicted < tol_mm and not clamped))
     if workspace is not None:
         inside = workspace(np.degrees([r.q for r in out]))[1]
         for r, w in zip(out, inside):

@@ -436,7 +436,7 @@ class Service:
         q0, target = np.array([j.q for j in jobs]), np.array([j.target for j in jobs])
         if self.graph is not None:
             out = self.graph.solve(q0, target)             # q1, q2, |r0|, |r1|
-            results = answers(*out, self.tol, self.workspace)
+            results = answers(*out, self.tol, self.workspace, self.graph.limits)
             for job, e in zip(jobs, out[2].tolist()):
                 job.err0 = e
         else:
