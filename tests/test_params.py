@@ -98,3 +98,57 @@ def test_split_writes_both_files_or_neither(tmp_path, monkeypatch):
     (tmp_path / "reports").unlink()
     assert sum(split.run(copy.deepcopy(PARAMS))["counts"].values()) == 20
     assert (tmp_path / "data/interim/split.parquet").exists() and (tmp_path / "reports/split.json").exists()
+
+
+NAN = float("nan")
+
+
+# Keys a review found unchecked (each value tried in a clone, running the stage): accepted as garbage, or a
+# traceback deep in NumPy, scipy or torch without the key. Nested keys (plan.rules.radius_mm) are set in place.
+@pytest.mark.parametrize("key, value", [
+    ("plan.cover_k", "2"), ("plan.cover_k", 0), ("plan.cover_k", -1),
+    ("plan.per_waypoint", 2.5), ("plan.per_waypoint", -3),
+    ("plan.region", 10.5), ("plan.region", -5),
+    ("plan.region_margin_deg", NAN), ("plan.region_margin_deg", "x"), ("plan.region_margin_deg", -30),
+    ("plan.seed", 1.5), ("plan.seed", "a"), ("plan.seed", -1),
+    ("plan.settle_s", 0), ("plan.acc", NAN), ("plan.vel", "1"),
+    ("plan.rules.radius_mm", [300]), ("plan.rules.radius_mm", "x"), ("plan.rules.radius_mm", [850.0, 300.0]),
+    ("plan.rules.height_mm", [0.0, NAN]),
+    ("plan.rules.elbow_min_mm", -1e9), ("plan.rules.table_mm", "40"), ("plan.rules.sin_wrist", -1),
+    ("plan.rules.sin_elbow", 1.0), ("plan.rules.column_mm", -5), ("plan.rules.elbow_up", "no"),
+    ("plan.rules.tracker_side_deg", 0),
+    ("frame.outlier_k", -1), ("frame.max_rms_mm", "x"), ("frame.outlier_min_mm", "x"), ("frame.robust_loss", "x"),
+    ("frame.robust_scale_mm", NAN), ("frame.estimate_tool", "no"), ("frame.tool_per_station", 1),
+    ("calibrate.params", []), ("calibrate.params", ["d", "d"]), ("calibrate.params", ["dh"]),
+    ("calibrate.tol", "x"), ("calibrate.rank_tol", -1), ("calibrate.tol", -1), ("calibrate.max_nfev", 0),
+    ("calibrate.loss_scale_mm", NAN), ("calibrate.loss_scale_mm", -1), ("calibrate.loss", "l2"),
+    ("parts.angle_map.knot_deg", 0), ("parts.angle_map.knot_deg", -1), ("parts.angle_map.smooth_arcsec", 0),
+    ("parts.load_map.smooth_arcsec", 0), ("parts.angle_map.joints", [7]), ("parts.noise_mm", 0),
+    ("parts.noise_mm", -1), ("parts.angle_map.fade_deg", NAN), ("parts.load_map.joints", [9]),
+    ("parts.angle_map.prior_arcsec", -5), ("parts.load_map.prior_arcsec", -5), ("parts.angle_map.reach_deg", -3),
+    ("parts.load_map.knots", 1), ("parts.load_map.knots", 2.5), ("parts.thermal.cte_per_k", "x"),
+    ("parts.thermal.column", ""),
+    ("model.mask", "spy"), ("model.head", "mlp"), ("model.encoder", "yes"), ("model.alpha0", NAN),
+    ("model.dropout", 1.0), ("model.init_seed", -1),
+    ("loss.weighting", "equal"), ("loss.physics", "false"), ("loss.lambda_data", 0), ("loss.lambda_physics", NAN),
+    ("train.weight_decay", -1e-6), ("train.grad_clip", 0), ("train.ema", 1.0), ("train.lr_drop", 1.5),
+    ("train.lr_patience", 2.0), ("train.device", "gpu"),
+    ("baselines.dnn", "yes"), ("baselines.other_physics", None),
+    ("workspace.radius_quantile", 0), ("workspace.coverage", 90),
+    ("validate.register_points", 2), ("validate.tool_rank_tol", -1),
+    ("compensate.solver", "newton"), ("compensate.lr", 0), ("compensate.tol_mse", NAN),
+    ("compensate.drive_check", "no"), ("compensate.twin", None), ("compensate.drive_seed", 1.5),
+    ("ablation.seeds", []), ("ablation.seeds", [139, 139]), ("ablation.max_epochs", 0),
+    ("serve.host", ""), ("serve.onnx", "true"), ("serve.compile", 0), ("serve.call_budget_ms", 0),
+    ("serve.lm_per_call", 0), ("serve.max_connections", 0),
+    ("summary.instrument", 5),
+])
+def test_a_bad_value_of_a_reviewed_key_stops_naming_it(key, value):
+    p = copy.deepcopy(PARAMS)
+    *path, last = key.split(".")
+    cfg = p
+    for k in path:
+        cfg = cfg[k]
+    cfg[last] = value
+    with pytest.raises(ParamsError, match=rf"^params.yaml {re.escape(key)}: .+, got "):
+        section(p, path[0])

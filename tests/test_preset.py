@@ -100,3 +100,10 @@ def test_apply_after_dvc_rewrote_params_in_block_style(tmp_path):
     before = yaml.safe_load(path.read_text())
     assert apply_preset("ipa-ur10", path) != []
     assert yaml.safe_load(path.read_text()) == merged_params("ipa-ur10", before)
+
+
+@pytest.mark.parametrize("name", sorted(p.stem for p in PRESETS.glob("*.yaml")))
+def test_every_preset_merged_onto_params_passes_every_rule(name):
+    merged = merged_params(name, BASE)
+    for sec in merged:                                            # keys and values (config.RULES)
+        section(merged, sec)

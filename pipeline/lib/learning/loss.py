@@ -14,7 +14,7 @@ import math
 import torch
 from torch import nn
 
-WEIGHTINGS = ("paper", "uncertainty", "fixed")
+from pipeline.lib.project.config import WEIGHTINGS    # declared with the settings' rules
 
 
 def data_loss(p_pred, p_gt):                               # (B, 3), (B, 3) -> ()

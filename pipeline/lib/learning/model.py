@@ -25,6 +25,7 @@ from torch import nn
 
 from pipeline.lib.learning.workspace import Fade
 from pipeline.lib.project.columns import JOINTS_DEG, MEAS
+from pipeline.lib.project.config import HEADS         # declared with the settings' rules
 from pipeline.lib.robot.kinematics import DTYPE, DHChain
 
 # eq. 4, row i = query joint i, True = may not attend (docs/method.md)
@@ -43,7 +44,6 @@ BODY_MASK = [[0, 0, 1, 1, 1, 1],
              [1, 1, 1, 0, 0, 0],
              [1, 1, 1, 1, 0, 0]]
 MASKS = {"spi": SPI_MASK, "body": BODY_MASK, "none": None}
-HEADS = ("resnet", "linear")
 
 
 def attention_mask(kind: str) -> torch.Tensor | None:

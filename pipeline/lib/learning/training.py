@@ -29,8 +29,7 @@ from pipeline.lib.learning.loss import SPILoss, data_loss
 from pipeline.lib.learning.model import Ensemble, n_params, tensors
 from pipeline.lib.learning.workspace import workspace_radius
 from pipeline.lib.project.columns import JOINTS_DEG
-
-DEVICES = ("auto", "cpu", "cuda")
+from pipeline.lib.project.config import DEVICES         # declared with the settings' rules
 
 
 def resolve_device(setting) -> torch.device:

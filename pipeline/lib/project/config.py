@@ -103,6 +103,48 @@ def _tcps(v):
         for k, t in v.items()))
 
 
+def _bool(v):
+    return isinstance(v, bool)
+
+
+def _one_of(*choices):
+    return lambda v: isinstance(v, str) and v in choices
+
+
+def _or_null(ok):
+    return lambda v: v is None or ok(v)
+
+
+def _lt(lo, hi):
+    """A number in [lo, hi) (finite)."""
+    return lambda v: _num(lo, hi)(v) and v < hi
+
+
+def _open(lo, hi):
+    """A number in (lo, hi) (finite)."""
+    return lambda v: _lt(lo, hi)(v) and v > lo
+
+
+def _interval(lo, hi):
+    """[a, b] with lo <= a < b <= hi."""
+    return lambda v: isinstance(v, list) and len(v) == 2 and all(_num(lo, hi)(x) for x in v) and v[0] < v[1]
+
+
+def _header(v):
+    return isinstance(v, (str, int)) and not isinstance(v, bool) and str(v).strip() != ""
+
+
+# The choices some settings take, declared here once (the code that uses them imports them).
+LOSSES = ("linear", "soft_l1", "huber", "cauchy", "arctan")          # scipy.optimize.least_squares' `loss`
+CALIBRATION_GROUPS = ("d", "a", "alpha", "offset", "beta", "tool", "base", "compliance", "tool_rot")
+MASKS = ("spi", "body", "none")
+HEADS = ("resnet", "linear")
+WEIGHTINGS = ("paper", "uncertainty", "fixed")
+DEVICES = ("auto", "cpu", "cuda")
+SOLVERS = ("lm", "adam")
+REACH_MM = 5000.0          # a plan.rules length beyond this is a typo (the largest UR reaches 1750 mm)
+POS = _num(0, open_lo=True)
+
 RULES = {
     "robot.tcp": (lambda v: v is None or _tcps(v), "null, or name: {xyz_mm: [x, y, z], rxyz_deg: [rx, ry, rz]} "
                   "(a tool centre point in the flange frame; rxyz_deg optional), names of letters, digits, _ or -"),
@@ -178,6 +220,91 @@ RULES = {
     "compensate.jacobian_of": (lambda v: v in ("physics", "model"), "physics or model"),
     "calibrate.tilt_joints": (lambda v: v == [] or _joints(v), "a list of distinct joint numbers 1-6 (or [])"),
     "plan.handshake_io": (lambda v: v is None or _int(0, 7)(v), "null or a standard digital I/O number 0-7"),
+    "plan.cover_k": (_int(1), "an integer >= 1 (planned poses per uncovered part)"),
+    "plan.per_waypoint": (_int(1), "an integer >= 1 (candidates per waypoint, the waypoint included)"),
+    "plan.region": (_int(0), "an integer >= 0 (candidates sampled in the program's joint box)"),
+    "plan.region_margin_deg": (_num(0, 360), "an angle 0-360 deg"),
+    "plan.seed": (_int(0), "an integer >= 0"),
+    "plan.settle_s": (POS, "a time > 0 s"),
+    "plan.acc": (POS, "an acceleration > 0 rad/s²"),
+    "plan.vel": (POS, "a speed > 0 rad/s"),
+    "plan.rules.radius_mm": (_or_null(_interval(0, REACH_MM)), f"null (off) or [lo, hi] mm, 0 <= lo < hi <= {REACH_MM:g}"),
+    "plan.rules.height_mm": (_or_null(_interval(-REACH_MM, REACH_MM)),
+                             f"null (off) or [lo, hi] mm, -{REACH_MM:g} <= lo < hi <= {REACH_MM:g}"),
+    "plan.rules.elbow_up": (_or_null(_bool), "null (off), true or false"),
+    "plan.rules.elbow_min_mm": (_or_null(_num(-REACH_MM, REACH_MM)), f"null (off) or a height within ±{REACH_MM:g} mm"),
+    "plan.rules.table_mm": (_or_null(_num(-REACH_MM, REACH_MM)), f"null (off) or a height within ±{REACH_MM:g} mm"),
+    "plan.rules.column_mm": (_or_null(_num(0, REACH_MM)), f"null (off) or a distance 0-{REACH_MM:g} mm"),
+    "plan.rules.sin_elbow": (_or_null(_lt(0, 1)), "null (off) or a number in [0, 1)"),
+    "plan.rules.sin_wrist": (_or_null(_lt(0, 1)), "null (off) or a number in [0, 1)"),
+    "plan.rules.tracker_side_deg": (_or_null(_num(0, 180, open_lo=True)), "null (off) or an angle in (0, 180] deg"),
+    "frame.outlier_k": (POS, "a number > 0 (of 1.4826 MAD)"),
+    "frame.outlier_min_mm": (_num(0), "a distance >= 0 mm"),
+    "frame.estimate_tool": (_bool, "true or false"),
+    "frame.tool_per_station": (_bool, "true or false"),
+    "frame.robust_loss": (_one_of(*LOSSES), ", ".join(LOSSES)),
+    "frame.robust_scale_mm": (POS, "a distance > 0 mm"),
+    "frame.max_rms_mm": (POS, "a distance > 0 mm"),
+    "calibrate.loss": (_one_of(*LOSSES), ", ".join(LOSSES)),
+    "calibrate.loss_scale_mm": (POS, "a distance > 0 mm"),
+    "calibrate.params": (lambda v: isinstance(v, list) and len(v) > 0 and len(set(map(str, v))) == len(v)
+                         and all(isinstance(g, str) and g in CALIBRATION_GROUPS for g in v),
+                         f"a non-empty list of distinct groups of {', '.join(CALIBRATION_GROUPS)}"),
+    "calibrate.rank_tol": (_open(0, 1), "a relative singular value in (0, 1)"),
+    "calibrate.tol": (_num(0, 1, open_lo=True), "a tolerance in (0, 1]"),
+    "calibrate.max_nfev": (_int(1), "an integer >= 1"),
+    "parts.noise_mm": (POS, "a noise > 0 mm"),
+    "parts.angle_map.joints": (lambda v: v == [] or _joints(v), "[] (off) or a list of distinct joint numbers 1-6"),
+    "parts.angle_map.knot_deg": (_num(0.1, 90), "a knot spacing 0.1-90 deg"),
+    "parts.angle_map.prior_arcsec": (POS, "a prior > 0 arcsec"),
+    "parts.angle_map.smooth_arcsec": (POS, "a prior > 0 arcsec"),
+    "parts.angle_map.reach_deg": (_num(0, 360), "an angle 0-360 deg"),
+    "parts.angle_map.fade_deg": (_num(0, 360, open_lo=True), "an angle in (0, 360] deg"),
+    "parts.load_map.joints": (lambda v: v == [] or _joints(v), "[] (off) or a list of distinct joint numbers 1-6"),
+    "parts.load_map.knots": (_int(2), "an integer >= 2"),
+    "parts.load_map.prior_arcsec": (POS, "a prior > 0 arcsec"),
+    "parts.load_map.smooth_arcsec": (POS, "a prior > 0 arcsec"),
+    "parts.thermal.column": (_or_null(_header), "null or the ingest table's temperature column"),
+    "parts.thermal.cte_per_k": (_num(-1e-3, 1e-3), "an expansion coefficient per K within ±0.001 (aluminium 2.3e-5)"),
+    "model.mask": (_one_of(*MASKS), " | ".join(MASKS)),
+    "model.head": (_one_of(*HEADS), " | ".join(HEADS)),
+    "model.encoder": (_bool, "true or false"),
+    "model.alpha0": (_num(-math.inf), "a finite number"),
+    "model.dropout": (_lt(0, 1), "a probability in [0, 1)"),
+    "model.init_seed": (_int(0), "an integer >= 0"),
+    "loss.weighting": (_one_of(*WEIGHTINGS), " | ".join(WEIGHTINGS)),
+    "loss.physics": (_bool, "true or false"),
+    "loss.lambda_data": (POS, "a weight > 0"),
+    "loss.lambda_physics": (POS, "a weight > 0"),
+    "train.weight_decay": (_num(0), "a number >= 0"),
+    "train.grad_clip": (POS, "a gradient norm > 0"),
+    "train.ema": (_or_null(_lt(0, 1)), "null (off) or a decay in [0, 1)"),
+    "train.lr_drop": (_or_null(_open(0, 1)), "null (off) or a factor in (0, 1)"),
+    "train.lr_patience": (_int(0), "an integer >= 0"),
+    "train.device": (lambda v: v in DEVICES or (isinstance(v, str) and re.fullmatch(r"cuda:\d+", v) is not None),
+                     " | ".join(DEVICES) + " (or cuda:N)"),
+    "baselines.dnn": (_bool, "true or false"),
+    "baselines.other_physics": (_bool, "true or false"),
+    "workspace.radius_quantile": (_num(0, 1, open_lo=True), "a quantile in (0, 1]"),
+    "workspace.coverage": (_num(0, 1, open_lo=True), "a quantile in (0, 1]"),
+    "validate.register_points": (_int(3), "an integer >= 3"),
+    "validate.tool_rank_tol": (_open(0, 1), "a relative pivot in (0, 1)"),
+    "compensate.solver": (_one_of(*SOLVERS), " | ".join(SOLVERS)),
+    "compensate.lr": (POS, "a learning rate > 0"),
+    "compensate.tol_mse": (POS, "a tolerance > 0 mm²"),
+    "compensate.drive_check": (_bool, "true or false"),
+    "compensate.twin": (lambda v: isinstance(v, str) and v.strip() != "", "a file path"),
+    "compensate.drive_seed": (_int(0), "an integer >= 0"),
+    "ablation.seeds": (lambda v: isinstance(v, list) and len(v) > 0 and all(_int(0)(s) for s in v)
+                       and len(set(v)) == len(v), "a non-empty list of distinct integers >= 0"),
+    "ablation.max_epochs": (_or_null(_int(1)), "null (train.max_epochs) or an integer >= 1"),
+    "summary.instrument": (_or_null(lambda v: isinstance(v, str)), "null or a text"),
+    "serve.host": (lambda v: isinstance(v, str) and v.strip() != "", "a host name or address (127.0.0.1, 0.0.0.0)"),
+    "serve.onnx": (_bool, "true or false"),
+    "serve.compile": (_bool, "true or false"),
+    "serve.call_budget_ms": (POS, "a time > 0 ms"),
+    "serve.lm_per_call": (_int(1), "an integer >= 1"),
+    "serve.max_connections": (_int(1), "an integer >= 1"),
 }
 
 

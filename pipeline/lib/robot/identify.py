@@ -35,8 +35,8 @@ import torch
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
+from pipeline.lib.project.config import CALIBRATION_GROUPS as GROUPS       # declared with the settings' rules
 from pipeline.lib.robot.kinematics import DTYPE, RIGID_KEYS, TOOL_ROT, fk, fk_pose, rigid_xyz, rotation_error
-GROUPS = ("d", "a", "alpha", "offset", "beta", "tool", "base", "compliance", "tool_rot")
 ARCSEC = np.pi / (180 * 3600)
 BASE_NAMES = ["rx", "ry", "rz", "tx", "ty", "tz"]
 TOOL_NAMES = ["x", "y", "z"]
