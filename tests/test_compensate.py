@@ -118,6 +118,7 @@ def test_realtime_flags_answers_outside_the_trained_workspace(model):
     r = [Realtime(model, workspace=ws)(np.radians(a), b) for a, b in zip(q0, tgt)]
     assert [x.in_workspace for x in r] == [True, False, False]
     assert Realtime(model)(np.radians(q0[0]), tgt[0]).in_workspace is None
+    assert Realtime(model, workspace=ws).batch(np.zeros((0, 6)), np.zeros((0, 3))) == []   # was a torch.cat error
 
 
 def test_realtime_respects_joint_limits_and_says_when_it_failed(model):

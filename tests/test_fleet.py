@@ -1,4 +1,5 @@
 """A fleet calibrated in one command: each robot in its folder, a broken one reported, the others finish."""
+import re
 from pathlib import Path
 
 import pytest
@@ -30,3 +31,39 @@ def test_empty_fleet_folder_is_named(tmp_path):
 
 # The fleet on Ray, a broken campaign reported and the other robot calibrated: tests/test_sweep.py
 # (test_sweep_and_fleet_on_a_two_node_cluster).
+
+
+@pytest.mark.parametrize("override, words", [
+    ("ingest: {joints: /etc/passwd, tracker: t.csv}\n", "ingest.joints: '/etc/passwd' is not a path inside the robot's folder"),
+    ("ingest: {joints: ../../x.csv, tracker: t.csv}\n", "ingest.joints: '../../x.csv' is not a path inside"),
+    ("- a list\n", "expected a mapping of params.yaml sections"),
+    ("ingest: null\n", "expected a mapping of params.yaml sections"),
+    ("robot: {model: [\n", "not YAML"),
+])
+def test_a_robots_bad_params_name_its_file(tmp_path, override, words):
+    """Before: a campaign path could leave the robot's folder (the driver read /etc/passwd into fleet.json),
+    and a params.yaml that is a list, no YAML or `ingest: null` was a traceback naming no file."""
+    d = tmp_path / "r1"
+    d.mkdir()
+    (d / "params.yaml").write_text(override)
+    with pytest.raises(ValueError, match=re.escape(str(d / "params.yaml"))) as e:
+        fleet.robot_params(load_params(ROOT / "params.yaml"), d)
+    assert words in str(e.value)
+
+
+def test_a_robot_whose_params_are_refused_fails_alone(tmp_path, monkeypatch):
+    """One robot's bad params.yaml aborted the whole fleet before any robot ran, and a hidden folder
+    (.ipynb_checkpoints) counted as a robot. Now that robot is reported failed in `params`, the hidden folder
+    is no robot, and the others run (here one, whose campaign is missing: failed in ingest, as before)."""
+    monkeypatch.chdir(tmp_path)
+    for name, text in (("a|bad", "- a list\n"), ("b", "ingest: {joints: j.csv, tracker: t.csv}\n")):
+        (tmp_path / "fleet" / name).mkdir(parents=True)
+        (tmp_path / "fleet" / name / "params.yaml").write_text(text)
+    (tmp_path / "fleet" / ".ipynb_checkpoints").mkdir()
+    base = load_params(ROOT / "params.yaml")
+    f = fleet.run_fleet(tmp_path / "fleet", tmp_path / "out", "sequential", base=base)
+    assert [r["robot"] for r in f["robots"]] == ["a|bad", "b"] and f["n_ok"] == 0
+    assert f["failed"]["a|bad"].startswith("params: ") and "expected a mapping" in f["failed"]["a|bad"]
+    assert f["failed"]["b"].startswith("ingest: ")
+    table = (tmp_path / "reports/fleet.md").read_text().splitlines()
+    assert table[4].startswith("| a\\|bad | failed in params: ") and table[4].count(" | ") == 5

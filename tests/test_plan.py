@@ -17,12 +17,14 @@ from conftest import exit_code
 from pipeline.commands import plan as plan_cmd
 from pipeline.lib.learning.workspace import Workspace
 from pipeline.lib.planner import coverage, design, planning, tour
+from pipeline.lib.project.artifacts import FRAME_JSON
 from pipeline.lib.project.columns import JOINTS_DEG
 from pipeline.lib.project.config import load_params, read_json
 from pipeline.lib.robot import poses
 from pipeline.lib.robot.errormaps import coverage as angle_coverage
 from pipeline.lib.robot.identify import geometry_jacobian, identifiability, identify
-from pipeline.lib.robot.kinematics import DTYPE, fk, nominal_geometry
+from pipeline.lib.robot.geometry import theory_geometry
+from pipeline.lib.robot.kinematics import DTYPE, fk, fk_numpy, nominal_geometry
 from pipeline.lib.robot.poses import RULES
 from pipeline.lib.robot.robots import load_robot
 from pipeline.lib.sim.twin import REGIONS, Twin, sample_poses, true_geometry
@@ -106,6 +108,22 @@ def test_the_handshake_is_fixed_text_around_a_formatted_number():
             plan_cmd.measure_script(np.zeros((1, 6)), {**cfg, **bad})
 
 
+def test_a_programs_orientation_columns_are_said_not_used(in_trained_project, tmp_path, capsys):
+    """target_rx..rz were dropped unseen (the same plan with and without them); now plan.json and the
+    summary say they were not used."""
+    q = sample_poses(2, np.random.default_rng(1), region="side")
+    robot = load_robot(in_trained_project["robot"])
+    src = tmp_path / "prog.csv"
+    df = pd.DataFrame(q, columns=JOINTS_DEG)
+    df[["target_x", "target_y", "target_z"]] = fk_numpy(q, robot, theory_geometry(robot, read_json(FRAME_JSON)["tool_mm"]))
+    df[["target_rx", "target_ry", "target_rz"]] = [[0.0, 3.0, 0.0], [1.0, 0.5, 0.2]]
+    df.to_csv(src, index=False)
+    code, said = exit_code(plan_cmd.main, [str(src), "--n", "4", "--out", str(tmp_path / "o")], capsys)
+    rep = json.loads((tmp_path / "o/plan.json").read_text())
+    assert code == 0 and rep["columns_not_used"] == ["target_rx", "target_ry", "target_rz"], said
+    assert "target_rx, target_ry, target_rz not used" in said and len(pd.read_csv(tmp_path / "o/poses.csv")) == 4
+
+
 def test_every_planned_pose_is_within_the_limits_and_acceptable(side_plan):
     out, _, rep, params = side_plan
     robot = load_robot(params["robot"])
@@ -164,7 +182,11 @@ def test_bad_arguments_are_refused(in_trained_project, tmp_path, capsys):
                           ([str(src), "--n", "3", "--out", str(a_file)], "a file, not a folder"),
                           ([str(src), "--n", "3", "--out", str(tmp_path), "--station", "nowhere"],
                            "not a station of reports/frame.json"),
-                          ([str(tmp_path / "none.csv"), "--n", "3", "--out", str(tmp_path / "o")], "no such file")):
+                          ([str(tmp_path / "none.csv"), "--n", "3", "--out", str(tmp_path / "o")], "no such file"),
+                          ([str(src), "--n", "3", "--out", str(tmp_path / "o"), "--seed", "-1"],   # was numpy's words
+                           "--seed -1: an integer >= 0"),
+                          ([str(src), "--n", "3", "--out", str(tmp_path / "o"), "--tracker-mm", "1e308", "1e308", "0"],
+                           "--tracker-mm: three numbers within 100000 mm of the base")):   # was Infinity in plan.json
         code, said = exit_code(plan_cmd.main, argv, capsys)
         assert code == 2 and message in said and "Traceback" not in said, said
     assert a_file.read_text() == "x" and not (tmp_path / "o").exists()

@@ -36,6 +36,7 @@ import numpy as np
 import yaml
 
 from pipeline.lib.learning import sweep
+from pipeline.lib.project.cli import one_line
 from pipeline.lib.project.config import load_params, logger, read_json, write_json
 from pipeline.lib.reading.campaigns import write_pair
 from pipeline.lib.reading.presets import deep_merge
@@ -52,13 +53,23 @@ DEMO_SEED = 2000
 def robot_params(base: dict, robot_dir: Path) -> dict:
     """The project's params with the robot's params.yaml merged over it; its campaign paths made
     relative to the robot's working folder, where its folder's files are copied to `campaign/`; no
-    further campaigns, no validation campaigns, no twin drive check unless it says so."""
-    over = yaml.safe_load((robot_dir / "params.yaml").read_text()) if (robot_dir / "params.yaml").exists() else {}
+    further campaigns, no validation campaigns, no twin drive check unless it says so. A ValueError
+    naming the file where its params.yaml is no mapping, or a campaign path leaves the robot's folder."""
+    path = robot_dir / "params.yaml"
+    try:
+        over = yaml.safe_load(path.read_text()) if path.exists() else {}
+    except yaml.YAMLError as e:
+        raise ValueError(f"{path}: not YAML ({str(e).splitlines()[0]})") from None
+    if not isinstance(over, dict | None) or not isinstance((over or {}).get("ingest", {}), dict):
+        raise ValueError(f"{path}: expected a mapping of params.yaml sections (ingest: a mapping too)")
     p = deep_merge({**base, "campaigns": {**base["campaigns"], "more": {}},
                     "validate": {**base["validate"], "campaigns": {}},
                     "compensate": {**base["compensate"], "drive_check": False}}, over or {})
     for k in ("joints", "tracker"):
-        p["ingest"][k] = (Path(CAMPAIGN) / p["ingest"][k]).as_posix()
+        v = p["ingest"][k]
+        if not isinstance(v, str) or Path(v).is_absolute() or ".." in Path(v).parts:
+            raise ValueError(f"{path}: ingest.{k}: {v!r} is not a path inside the robot's folder")
+        p["ingest"][k] = (Path(CAMPAIGN) / v).as_posix()
     return p
 
 
@@ -104,6 +115,11 @@ def calibrate_robot(job: dict) -> dict:
     return result
 
 
+def md_cell(text: str) -> str:
+    """text for a cell of a Markdown table: its `|` escaped (a robot folder's name may hold one)."""
+    return text.replace("|", "\\|")
+
+
 def fleet_estimate(summary: dict, threads: int, robots: int = 100, nodes=(1, 4, 10, 25)) -> dict:
     """A paper estimate of a `robots`-robot fleet's wall time on N nodes like this machine, from the
     measured per-robot time: ceil(robots / (N * slots)) * robot seconds, slots = cores / threads
@@ -120,22 +136,30 @@ def fleet_estimate(summary: dict, threads: int, robots: int = 100, nodes=(1, 4, 
 def run_fleet(fleet_dir, out="fleet/robots", engine: str = "sequential", address: str | None = None,
               threads: int | None = None, base: dict | None = None, bench: bool = False) -> dict:
     fleet_dir = Path(fleet_dir)
-    robots = sorted(d for d in fleet_dir.iterdir() if d.is_dir()) if fleet_dir.is_dir() else []
+    robots = sorted(d for d in fleet_dir.iterdir() if d.is_dir() and not d.name.startswith(".")) \
+        if fleet_dir.is_dir() else []
     if not robots:
         raise FileNotFoundError(f"{fleet_dir}: no robot folders (one per robot: its campaign and params.yaml)")
     base = base or load_params()
     threads = sweep.threads_per_job(engine, threads)
-    jobs = [robot_job(base, d, threads) for d in robots]
+    jobs, refused = [], []
+    for d in robots:
+        try:
+            jobs.append(robot_job(base, d, threads))
+        except ValueError as e:                 # its params.yaml: that robot fails, the others run
+            refused.append({"robot": d.name, "status": "failed", "stage": "params", "reason": str(e), "seconds": 0.0})
 
     def arrived(i, r):                          # the robot's folder, written here as it comes back
         sweep.unpack(r.pop("files"), Path(out) / r["robot"])
-    results, timing = sweep.run(calibrate_robot, jobs, engine, address, threads, desc="fleet", on_result=arrived)
+    results, timing = (sweep.run(calibrate_robot, jobs, engine, address, threads, desc="fleet", on_result=arrived)
+                       if jobs else ([], {"seconds": 0.0, "job_nodes": []}))
+    nodes = {r["robot"]: n for r, n in zip(results, timing["job_nodes"])}
+    results = sorted(results + refused, key=lambda r: r["robot"])
     ok = [r for r in results if r["status"] == "ok"]
     summary = {"fleet": str(fleet_dir), "out": str(out), "engine": engine, "n_robots": len(results),
                "n_ok": len(ok), "failed": {r["robot"]: f"{r['stage']}: {r['reason']}" for r in results
                                           if r["status"] != "ok"},
-               "robots": results, "seconds": timing["seconds"],
-               "nodes": {r["robot"]: n for r, n in zip(results, timing["job_nodes"])},
+               "robots": results, "seconds": timing["seconds"], "nodes": nodes,
                "robot_seconds_mean": float(np.mean([r["seconds"] for r in ok])) if ok else None}
     write_json(FLEET_JSON, summary)
     if bench and ok:
@@ -143,7 +167,8 @@ def run_fleet(fleet_dir, out="fleet/robots", engine: str = "sequential", address
     rows = ["| robot | status | nominal mm | calibrated mm | model mm | seconds |", "|---|---|---|---|---|---|"]
     for r in results:
         e = r.get("test_3d_mae_mm")
-        rows.append(f"| {r['robot']} | {r['status'] if e else 'failed in ' + r['stage'] + ': ' + r['reason']} | "
+        said = r["status"] if e else f"failed in {r['stage']}: {r['reason']}"
+        rows.append(f"| {md_cell(r['robot'])} | {md_cell(said)} | "
                     + (" | ".join(f"{e[k]:.4f}" for k in ("nominal", "calibrated", "model")) if e else "– | – | –")
                     + f" | {r['seconds']:.0f} |")
     FLEET_MD.write_text("# Fleet calibration (test 3D MAE)\n\n" + "\n".join(rows) + "\n")
@@ -171,6 +196,10 @@ def demo(fleet_dir="data/fleet", robots: int = 4, n: int = 300, models=("ur5", "
 
 
 def main(argv=None):
+    return one_line("pipeline.commands.fleet", run, argv)
+
+
+def run(argv=None):
     ap = argparse.ArgumentParser(prog="python -m pipeline.commands.fleet", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("what", choices=["run", "demo"])

@@ -51,6 +51,7 @@ from pipeline.lib.robot.geometry import Calibration
 from pipeline.lib.robot.identify import parameter_spec
 from pipeline.lib.robot.kinematics import nominal_geometry
 from pipeline.lib.robot.robots import load_robot
+from pipeline.lib.runtime.paths import ROTVEC
 from pipeline.lib.runtime.waypoints import read_waypoints
 
 log = logger(__name__)
@@ -91,6 +92,9 @@ def measure_script(q_deg: np.ndarray, cfg: dict) -> str:
     return "\n".join(lines + ["end", ""])
 
 
+TRACKER_MAX_MM = 1e5                # a tracker placement farther from the base (100 m) is a typo
+
+
 def tracker_position(frame: dict, station: str | None, tracker_mm) -> tuple:
     """(tracker position (3,) mm in the base frame or None, description) from --station / --tracker-mm."""
     if station is not None:
@@ -101,8 +105,8 @@ def tracker_position(frame: dict, station: str | None, tracker_mm) -> tuple:
         return -R.T @ t, {"station": station, "new_station": False}
     if tracker_mm is not None:
         t = np.asarray(tracker_mm, float)
-        if not np.isfinite(t).all():
-            raise ValueError(f"--tracker-mm: three finite numbers, got {tracker_mm}")
+        if not (np.abs(t) <= TRACKER_MAX_MM).all():
+            raise ValueError(f"--tracker-mm: three numbers within {TRACKER_MAX_MM:g} mm of the base, got {tracker_mm}")
         return t, {"station": None, "new_station": True}
     return None, {"station": None, "new_station": False}
 
@@ -127,6 +131,8 @@ def run(argv=None) -> dict:
     root = a.project
     if a.n < 1:
         raise ValueError(f"--n {a.n}: plan at least 1 pose")
+    if a.seed is not None and a.seed < 0:
+        raise ValueError(f"--seed {a.seed}: an integer >= 0")
     src, out = Path(a.program), Path(a.out)
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out {out}: a file, not a folder")
@@ -142,6 +148,7 @@ def run(argv=None) -> dict:
     cal_json, report, frame = (read_json(root / f) for f in (CALIBRATED_GEOMETRY, CALIBRATION_JSON, FRAME_JSON))
     cal = Calibration.from_dict(cal_json)
     q_wp = df[JOINTS_DEG].to_numpy()
+    unused = [c for c in ROTVEC if c in df]                          # said below and in plan.json, not dropped unseen
     if TARGET[0] in df:                                             # positions: where the calibrated arm goes
         q_wp, miss = program_joints(q_wp, df[TARGET].to_numpy(), cal.geometry, robot.limits_deg)
         far = miss > REACHED_MM
@@ -181,7 +188,7 @@ def run(argv=None) -> dict:
     wp_ids = df["point_id"].tolist()
     for w, entry in enumerate(rep["coverage"]["per_waypoint"]):
         entry["point_id"] = wp_ids[w]
-    rep = {"program": str(src), "n_waypoints": len(df), "seed": seed,
+    rep = {"program": str(src), "n_waypoints": len(df), "seed": seed, "columns_not_used": unused,
            "tracker": {**station, "position_mm": None if tracker is None else np.round(tracker, 3).tolist(),
                        "side_rule_deg": None if tracker is None else cfg["rules"]["tracker_side_deg"]},
            **rep,
@@ -201,6 +208,12 @@ def run(argv=None) -> dict:
           f"({100 * c['after_expected_split']:.0f}% expected after the 8:1:1 split); condition number "
           f"{cond(i['before']['condition_number'])} -> {cond(i['after']['condition_number'])}; travel "
           f"{t['max_joint_deg']:.0f} deg of largest joint moves")
+    if len(ids) < a.n:
+        print(f"  only {len(ids)} of the {a.n} poses asked for: no other candidate pose passed the rules "
+              "(plan.per_waypoint, plan.region)")
+    if unused:
+        print(f"  {', '.join(unused)} not used: the poses are planned around each waypoint's joints and position; "
+              "the orientation those joints give is the one measured")
     if c["parts_short_after"]:
         print(f"  {c['parts_short_after']} uncovered part(s) got fewer than {cfg['cover_k']} poses: "
               "plan more poses (--n) to cover them")

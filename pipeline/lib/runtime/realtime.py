@@ -119,7 +119,7 @@ def answers(q1, q2, r0, r1, tol_mm: float, workspace=None, limits=None) -> list[
             predicted = b * b / a if b < a else float("inf")
             clamped = bool(((q2[i] <= lo) | (q2[i] >= hi)).any())
             out.append(Result(q2[i], predicted, False, predicted < tol_mm and not clamped))
-    if workspace is not None:
+    if workspace is not None and out:
         inside = workspace(np.degrees([r.q for r in out]))[1]
         for r, w in zip(out, inside):
             r.in_workspace = bool(w)
