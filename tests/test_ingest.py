@@ -635,6 +635,17 @@ def test_a_preamble_line_is_named_and_skipped_with_the_file_line_numbers_kept(tm
                                                                                  ("tracker.csv", 7, "nan")]
 
 
+def test_skip_lines_cutting_a_file_without_a_preamble_says_it_cuts_every_file(tmp_path, monkeypatch):
+    """skip_lines leaves out lines of every input file: set for the tracker's preamble alone, it cut the
+    controller log's header, and the error said only that the point id column was missing."""
+    ids, q, m = campaign(20, seed=5)
+    monkeypatch.chdir(tmp_path)
+    j, t = write_pair(tmp_path, ids, q, m)
+    Path(t).write_text("// Exported by SpatialAnalyzer 2024.1\n" + Path(t).read_text())
+    raises(["joints.csv", "ingest.skip_lines = 1 leaves out the first 1 line(s) of every input file, so this "
+            "one's header was read from line 2"], run, params(skip_lines=1))
+
+
 def test_utf16_is_read_and_a_quoted_line_break_is_said_as_such(tmp_path, monkeypatch):
     ids, q, m = campaign(20, seed=6)
     monkeypatch.chdir(tmp_path)

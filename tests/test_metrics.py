@@ -38,3 +38,15 @@ def test_drive_table():
     assert t["x"]["min"] == 0.0
     assert t["3d"]["max"] == pytest.approx(0.6) and t["3d"]["mean"] == pytest.approx(1.4 / 4)
     assert t["within_tol_share"] == 0.75
+
+
+def test_r2_of_a_one_point_split_is_null_not_minus_infinity():
+    """A campaign of 10-19 poses leaves a val or test split of one point: its real errors do not vary, R² is
+    undefined. It was -inf, written to metrics.json as `-Infinity` (not JSON) and shown as "R² -inf"."""
+    import json
+
+    from pipeline.lib.project.config import json_text
+    m = regression_metrics(np.array([[1.0, 2.0, 3.0]]), np.array([[1.1, 2.0, 2.9]]), np.zeros((1, 3)))
+    assert m["3d"]["mae"] == pytest.approx(math.sqrt(0.02))
+    assert all(m[ax]["r2"] is None for ax in ("x", "y", "z", "3d"))
+    json.loads(json_text(m), parse_constant=lambda c: pytest.fail(f"{c} in the JSON"))

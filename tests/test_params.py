@@ -152,3 +152,16 @@ def test_a_bad_value_of_a_reviewed_key_stops_naming_it(key, value):
     cfg[last] = value
     with pytest.raises(ParamsError, match=rf"^params.yaml {re.escape(key)}: .+, got "):
         section(p, path[0])
+
+
+def test_a_campaign_too_small_for_every_split_stops_the_split_stage_naming_it(tmp_path, monkeypatch):
+    """10 poses pass the ingest (at least 10), one frame outlier leaves 9: 8:1:1 gave train 8, val 1, test 0,
+    and evaluate then stopped with a traceback (KeyError: 'test'). Now the split stage says why, in one line."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "data/interim").mkdir(parents=True)
+    pd.DataFrame({"point_id": [f"P{i}" for i in range(9)], "campaign": "main",
+                  **{f"j{j}_deg": np.arange(9.0) for j in range(1, 7)}}).to_parquet("data/interim/points.parquet")
+    with pytest.raises(ValueError, match=r"campaign 'main': its 9 points split train 8, val 1, test 0 .* the "
+                                         r"test split is empty"):
+        split.run(copy.deepcopy(PARAMS))
+    assert not (tmp_path / "data/interim/split.parquet").exists()

@@ -497,3 +497,16 @@ def test_the_service_holds_a_paths_orientation(path_server, in_trained_project):
         with pytest.raises(xmlrpc.client.Fault, match=re.escape(words)):
             c.compensate_path(*args)
         assert c.compensate(q0, SEAM[0])["converged"]                              # still serving
+
+
+def test_an_offline_path_at_the_wrist_singularity_does_not_start_in_another_configuration(in_trained_project,
+                                                                                           tmp_path, capsys):
+    """An offline path's first row is the arm's joints and its sample 1 their nominal pose: its answer is a
+    compensation. At joint 5 = 0.1° the pose is met only 146° round on joint 4 (joints 2, 3 and 6 turned too):
+    the script's movej to sample 1 would sweep the arm before the path starts. Refused, nothing written."""
+    src = tmp_path / "wrist.csv"
+    src.write_text("j1_deg,j2_deg,j3_deg,j4_deg,j5_deg,j6_deg\n10,-70,100,-120,0.1,30\n11,-70,100,-120,0.1,30\n")
+    code, said = exit_code(path_command.main, [str(src), "--out", str(tmp_path / "o"), "--allow-outside-workspace"],
+                           capsys)
+    assert code == 1 and "sample 1 (arc 0.0 mm): joint 4 turned" in said and "Traceback" not in said, said
+    assert not (tmp_path / "o").exists()

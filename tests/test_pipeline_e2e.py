@@ -137,6 +137,13 @@ def test_exp_run_set_param_and_invalid_combination(reproduced, tmp_path):
         assert head["reported"] in head.values()
         mae.append(head["spi_boter_calibrated"])
     assert len(mae) == 3 and len(set(mae)) == 3, mae                  # the baseline and two experiments
+    runs = {run["name"]: run["data"] for e in exps for run in e["revs"] if run.get("name")}
+    name = next(n for n, d in runs.items() if '"d_model": 14' in json.dumps(d["params"]))
+    applied = sh(f"dvc exp apply {name}", repo, check=False)      # failed on fleet/dvc.yaml's cached output,
+    assert applied.returncode == 0, applied.stdout + applied.stderr  # never made (exit 255)
+    assert yaml.safe_load((repo / "params.yaml").read_text())["model"]["d_model"] == 14
+    head = json.loads((repo / "reports/headline.json").read_text())["test_3d_mae_mm"]["spi_boter_calibrated"]
+    assert head == runs[name]["metrics"]["reports/headline.json"]["data"]["test_3d_mae_mm"]["spi_boter_calibrated"]
 
 
 @pytest.mark.slow

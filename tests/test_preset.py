@@ -107,3 +107,24 @@ def test_every_preset_merged_onto_params_passes_every_rule(name):
     merged = merged_params(name, BASE)
     for sec in merged:                                            # keys and values (config.RULES)
         section(merged, sec)
+
+
+def test_a_bad_preset_name_is_one_line(capsys):
+    """Review D: an unknown preset or a folder for a name was a traceback; now one line, exit 2."""
+    from pipeline.commands import preset as cmd
+    with pytest.raises(SystemExit) as e:
+        cmd.main(["nosuch", "--params", "params.yaml"])
+    assert e.value.code == 2 and "preset: error: unknown preset 'nosuch'" in capsys.readouterr().err
+
+
+def test_the_printed_changes_name_a_replaced_mapping_s_keys_that_are_gone(tmp_path, capsys):
+    """gtpn-ur5 replaces validate.campaigns whole: the twin's twin_side campaign left params.yaml unprinted,
+    though the command says it prints what changed."""
+    path = tmp_path / "params.yaml"
+    path.write_text((ROOT / "params.yaml").read_text())
+    assert "twin_side" in yaml.safe_load(path.read_text())["validate"]["campaigns"]
+    main(["gtpn-ur5", "--params", str(path)])
+    out = capsys.readouterr().out
+    assert "twin_side" not in yaml.safe_load(path.read_text())["validate"]["campaigns"]
+    assert any(line.startswith("validate.campaigns.twin_side: {") and line.endswith("} removed")
+               for line in out.splitlines())

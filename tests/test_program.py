@@ -228,6 +228,18 @@ def test_an_output_linked_to_the_input_is_refused_and_the_input_kept(tmp_path, c
     assert code == 2 and "is the input" in said and src.read_bytes() == before, said
 
 
+def test_an_output_in_a_folder_that_does_not_exist_is_refused_before_any_work(tmp_path, capsys):
+    """It was refused only after the whole program was solved (the write failed); now before the project is
+    even read (no trained project needed), naming the folder."""
+    src = tmp_path / "in.csv"
+    src.write_text(",".join(JOINTS_DEG) + "\n" + ",".join(["10.0"] * 6) + "\n")
+    for flag in ("--out", "--urscript"):
+        code, said = exit_code(program.main, [str(src), flag, str(tmp_path / "none" / "x.out"),
+                                              "--project", str(tmp_path / "no_project")], capsys)
+        assert code == 2 and f"its folder {tmp_path / 'none'} does not exist; nothing written" in said, said
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["in.csv"]
+
+
 def test_an_unwritable_urscript_leaves_no_csv(in_trained_project, tmp_path, capsys):
     """Minor: `--urscript` to a bad path wrote the CSV and then failed (exit 2). Both or neither."""
     src = program_file(tmp_path, n=3)
@@ -423,3 +435,18 @@ def test_a_waypoint_given_an_orientation_reaches_it(in_trained_project, tmp_path
         pts[JOINTS_DEG].assign(**cols).to_csv(src, index=False)
         code, text = exit_code(program.main, [str(src)], capsys)
         assert code == 2 and said in text and "target_r" in text, text
+
+
+def test_a_waypoint_near_the_wrist_singularity_is_not_swung_into_another_configuration(in_trained_project, tmp_path):
+    """An offline waypoint's answer is a compensation of its joints (on the twin's campaign-like poses ≤ 1.5°).
+    Near the wrist's singularity (joint 5 near 0°) the pose's six equations are met only by turning joints 2-4
+    and 6 tens of degrees (a self-motion: measured 146° on joint 4 at joint 5 = 0.1°): such an answer is
+    another configuration, a sweep of the arm between waypoints 0.4° apart, and must not become a move."""
+    src = tmp_path / "wrist.csv"
+    src.write_text("point_id,j1_deg,j2_deg,j3_deg,j4_deg,j5_deg,j6_deg\nA,10,-70,100,-120,60,30\n"
+                   "S,10,-70,100,-120,0.1,30\n")
+    table = program.run([str(src), "--comment-out-unreached"])
+    script = (tmp_path / "wrist_comp.script").read_text()
+    assert script.count("movej(") == 1 and "# S: NOT REACHED" in script and "joint 4 turned" in script
+    kept = table.point_id != "S"
+    assert (np.abs(table[JCOMP_DEG].to_numpy() - table[JOINTS_DEG].to_numpy())[kept.to_numpy()] < 5).all()

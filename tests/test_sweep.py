@@ -169,3 +169,42 @@ def test_localized_inputs_keep_one_table_one_file(tmp_path):
     assert p["ingest"]["joints"] != p["ingest"]["tracker"]
     assert (out / p["ingest"]["tracker"]).read_text() == "Name\nA\n"
     assert params["validate"]["campaigns"]["b"]["ingest"]["joints"] == one           # the input left as it was
+
+
+def broken_at_one(x):
+    if x == 1:
+        raise ValueError("job 1 broke")
+    return x * 10
+
+
+def test_a_failed_job_lets_the_others_finish_and_is_named():
+    """Review D: a job that raised stopped the sweep (sequential: the later jobs never ran; Ray: the
+    running ones were dropped at shutdown) and every finished result was lost with it. Now every job
+    runs, each result reaches on_result, and SweepFailed names the failed job and carries the others."""
+    seen = []
+    with pytest.raises(sweep.SweepFailed, match=r"1 of 4 job\(s\) failed.*job 1 \(1\): ValueError: job 1 broke") as e:
+        sweep.run(broken_at_one, [0, 1, 2, 3], on_result=lambda i, r: seen.append((i, r)))
+    assert seen == [(0, 0), (2, 20), (3, 30)]
+    assert e.value.results == [0, None, 20, 30] and len(e.value.timing["job_seconds"]) == 4
+
+
+def test_an_ablation_with_a_failed_run_writes_the_others_and_names_it(tmp_path, monkeypatch):
+    """Review D: one (group, seed) that raised lost the whole ablation: nothing written. Now the group's
+    file holds the runs that finished and `failed` the seed with its error; the summary says so."""
+
+    def flaky(job, data):
+        if job.seed == 4:
+            raise ValueError("diverged")
+        return {"seed": job.seed, "test": {"3d": {"mae": 0.1 * job.seed, "rmse": 1.0, "r2": 0.5}},
+                "epochs_to_best": 1, "epochs_run": 1, "seconds": 0.0, "n_params": 7}
+    monkeypatch.setattr(ablation, "jobs_for", lambda params, groups: (
+        [ablation.Job({}, g, s) for g in groups for s in (3, 4, 5)], None))
+    monkeypatch.setattr(ablation, "train_one", flaky)
+    monkeypatch.setattr(ablation, "OUT", tmp_path / "ablation")
+    monkeypatch.setattr(ablation, "TIMINGS", tmp_path / "timings")
+    params = {"ablation": {"seeds": [3, 4, 5]}}
+    with pytest.raises(sweep.SweepFailed, match=r"baseline seed 4\): ValueError: diverged"):
+        ablation.run_groups(params, ["baseline"])
+    rec = json.loads((tmp_path / "ablation" / "baseline.json").read_text())
+    assert [r["seed"] for r in rec["runs"]] == [3, 5]
+    assert rec["failed"] == [{"seed": 4, "error": "ValueError: diverged"}]

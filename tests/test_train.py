@@ -334,3 +334,38 @@ def test_a_bad_setting_stops_train_before_it_resets_the_last_curves(trained_proj
     with pytest.raises(ValueError, match="n_head=9 does not divide d_model=128"):
         train_stage.run(p)
     assert live.read_text() == '{"step": 254}\n'
+
+
+def test_a_run_that_never_has_a_finite_validation_error_says_it_diverged(points):
+    """Review D: an lr that blows the weights up (NaN from the first epoch) kept no best state and stopped
+    with torch's `Expected state_dict to be dict-like, got NoneType`; now a ValueError says it diverged."""
+    p = json.loads(json.dumps(PARAMS))
+    p["train"].update(lr=1e6, max_epochs=2, patience=2)
+    with pytest.raises(ValueError, match=r"training diverged: .*never finite; lower train.lr \(1000000.0\)"):
+        train(p, points)
+
+
+@pytest.mark.parametrize("damage", ["truncated", "junk", "empty", "not_a_checkpoint", "config_disagrees"])
+def test_a_damaged_checkpoint_is_a_one_line_error_naming_its_file(points, tmp_path, damage):
+    """Review D: a truncated or corrupt models/boter.pt stopped every command with torch's traceback
+    (RuntimeError, KeyError: 101, EOFError), never naming the file; now a ValueError that names it
+    (the commands' one_line prints it)."""
+    model, _ = train(json.loads(json.dumps({**PARAMS, "train": {**PARAMS["train"], "max_epochs": 1}})), points)
+    good = tmp_path / "good.pt"
+    save_model(model, good, PARAMS["model"])
+    bad = tmp_path / "boter.pt"
+    if damage == "truncated":
+        bad.write_bytes(good.read_bytes()[:5000])
+    elif damage == "junk":
+        bad.write_text("hello\n")
+    elif damage == "empty":
+        bad.write_bytes(b"")
+    elif damage == "not_a_checkpoint":
+        torch.save({"foo": 1}, bad)
+    else:
+        ckpt = torch.load(good, weights_only=True)
+        ckpt["config"] = {**ckpt["config"], "d_model": 16}
+        torch.save(ckpt, bad)
+    with pytest.raises(ValueError, match=rf"^{bad}: "):
+        load_model(bad)
+    assert load_model(good).config == PARAMS["model"]

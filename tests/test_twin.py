@@ -153,3 +153,12 @@ def test_validation_campaign_is_the_same_arm_from_another_tracker_pose(twin, rec
     q = j[JOINTS_DEG].to_numpy()
     expected = moved.to_tracker(moved.expected_position(q))
     assert np.linalg.norm(t[["X", "Y", "Z"]].to_numpy() - expected, axis=1).mean() < 0.1   # noise only
+
+
+def test_a_further_campaign_never_redraws_the_training_campaign():
+    """Review D: validation_campaign's seed is absolute (725); a twin whose own seed is 725 drew its
+    'independent' campaign from its training streams: 150 of 300 validation poses were training poses.
+    Now a further campaign with the twin's own seed is refused."""
+    t = T.Twin(T.VALIDATION["seed"])
+    with pytest.raises(ValueError, match="seed 725 is the twin's own"):
+        t.validation_campaign(T.VALIDATION["seed"], {"front": 5}, "V")

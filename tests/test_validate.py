@@ -155,6 +155,16 @@ def test_campaign_with_a_bad_row_lists_it_and_is_judged(project):
     assert len(pd.read_parquet("reports/validation.parquet")) == 0
 
 
+def test_campaign_no_larger_than_its_registration_stops_in_one_line_before_writing(project):
+    """A user's refit campaign of 25 poses with the default register_points 30: every point registered, none
+    judged, and the stage died on its log line (TypeError: int * NoneType) after writing its files."""
+    project["validate"]["register_points"] = 60                     # the campaign keeps 59 points
+    with pytest.raises(ValueError, match=r"validate.campaigns.moved: all 59 points .*register_points = 60\): none "
+                                         r"is left to judge"):
+        validate.run_campaign(project, "moved")
+    assert not Path("reports/validation/moved.json").exists()
+
+
 def test_campaign_needs_its_own_files(project):
     del project["validate"]["campaigns"]["moved"]["ingest"]["tracker"]
     with pytest.raises(ValueError, match=r"validate.campaigns.moved.ingest: needs tracker"):

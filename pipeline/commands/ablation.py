@@ -55,17 +55,28 @@ def run_groups(params: dict, groups: list[str], engine: str = "sequential", addr
     jobs, data = jobs_for(params, groups)
     seeds = params["ablation"]["seeds"]
     threads = sweep.threads_per_job(engine, threads)
-    runs, timing = sweep.run(train_one, jobs, engine, address, threads, desc="ablation", shared=data)
+    try:
+        runs, timing = sweep.run(train_one, jobs, engine, address, threads, desc="ablation", shared=data)
+        failed = None
+    except sweep.SweepFailed as e:            # every other run finished: written below, the failures with them
+        runs, timing, failed = e.results, e.timing, e
+    errors = {i: err for i, _, err in (failed.failures if failed else [])}
     out = {}
     for k, g in enumerate(groups):
-        mine = slice(k * len(seeds), (k + 1) * len(seeds))
-        out[g], times = split_timings({"group": g, "changes": GROUPS[g], "runs": runs[mine],
-                                       "seconds": sum(timing["job_seconds"][mine]), "engine": engine,
-                                       "threads_per_job": threads})
+        mine = range(k * len(seeds), (k + 1) * len(seeds))
+        rec = {"group": g, "changes": GROUPS[g], "runs": [runs[i] for i in mine if i not in errors],
+               "seconds": sum(timing["job_seconds"][i] or 0.0 for i in mine), "engine": engine,
+               "threads_per_job": threads}
+        if any(i in errors for i in mine):
+            rec["failed"] = [{"seed": jobs[i].seed, "error": errors[i]} for i in mine if i in errors]
+        out[g], times = split_timings(rec)
         write_json(OUT / f"{g}.json", out[g])
         write_json(TIMINGS / f"ablation_{g}.json", times)
-    log.info("%d runs (%d groups x %d seeds) on %s in %.0f s (%.0f s of training)", len(jobs), len(groups),
-             len(seeds), engine, timing["seconds"], sum(timing["job_seconds"]))
+    log.info("%d runs (%d groups x %d seeds) on %s in %.0f s (%.0f s of training), %d failed", len(jobs),
+             len(groups), len(seeds), engine, timing["seconds"], sum(t or 0.0 for t in timing["job_seconds"]),
+             len(errors))
+    if failed:
+        raise failed
     return {"groups": out, "timing": timing}
 
 
@@ -78,13 +89,17 @@ def summarise() -> dict:
         if not path.exists():
             continue
         r = read_json(path)
+        if not r["runs"]:                         # every seed failed (r["failed"] says why)
+            continue
         mae = [run["test"]["3d"]["mae"] for run in r["runs"]]
         groups[g] = {"seeds": [run["seed"] for run in r["runs"]], "runs": mae,
                      "test_3d_mae_mean": float(np.mean(mae)), "test_3d_mae_std": float(np.std(mae)),
                      "test_3d_rmse_mean": float(np.mean([run["test"]["3d"]["rmse"] for run in r["runs"]])),
-                     "test_3d_r2_mean": float(np.mean([run["test"]["3d"]["r2"] for run in r["runs"]])),
+                     "test_3d_r2_mean": (None if any(run["test"]["3d"]["r2"] is None for run in r["runs"]) else  # 1 point
+                                         float(np.mean([run["test"]["3d"]["r2"] for run in r["runs"]]))),
                      "epochs_to_best": [run["epochs_to_best"] for run in r["runs"]],
                      "params": r["runs"][0]["n_params"], "changes": r["changes"],
+                     **({"failed": r["failed"]} if r.get("failed") else {}),
                      "paper_test_3d_mae": PAPER_ABLATION.get(g)}
     summary = {"groups": groups}
     write_json(REPORTS / "ablation.json", summary)
@@ -115,8 +130,19 @@ def main(argv=None):
     ap.add_argument("--threads", type=int, default=None, help="torch threads per run (default: all cores "
                                                               "sequential, 1 on Ray)")
     a = ap.parse_args(argv)
+    unknown = [g for g in a.group if g not in GROUPS]
+    if unknown:
+        ap.error(f"unknown ablation group(s) {unknown}; use {list(GROUPS)}")
+    if a.threads is not None and a.threads < 1:
+        ap.error(f"--threads: an integer >= 1, got {a.threads}")
     if a.what in ("group", "sweep"):          # group: one DVC matrix stage; sweep: every group at once
-        run_groups(load_params(), a.group or list(GROUPS), a.engine, a.address, a.threads)
+        try:
+            run_groups(load_params(), a.group or list(GROUPS), a.engine, a.address, a.threads)
+        except sweep.SweepFailed as e:        # the finished runs are written; the summary says what failed
+            if a.what == "sweep":
+                summarise()
+            print(f"pipeline.commands.ablation: error: {e}", file=sys.stderr)
+            sys.exit(1)
         if a.what == "sweep":
             summarise()
     elif a.what == "summary":

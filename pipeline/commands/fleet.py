@@ -1,6 +1,6 @@
 """Calibrate a fleet: every robot's campaign through the pipeline, in parallel on Ray.
 
-    python -m pipeline.commands.fleet demo [--robots 4] [--dir data/fleet]     a demo fleet of twins
+    python -m pipeline.commands.fleet demo [DIR] [--robots 4]     a demo fleet of twins
     python -m pipeline.commands.fleet run data/fleet [--engine ray] [--address HOST:6379] [--out fleet/robots] [--bench]
 
 A fleet is a folder with one folder per robot, each holding its campaign (the

@@ -58,7 +58,7 @@ from pipeline.lib.runtime.compensation import reach_mm
 from pipeline.lib.runtime.paths import n_samples, read_path, resample, rotations_at
 from pipeline.lib.runtime.pathsolve import (beyond_reach, deviation, finish, joint_speeds, model_position,
                                             refine, refusal, servo_times, solve_path, urscript)
-from pipeline.lib.runtime.waypoints import flange_targets
+from pipeline.lib.runtime.waypoints import flange_targets, too_far
 
 log = logger(__name__)
 PARAMS = ("robot", "compensate", "program", "path")
@@ -159,6 +159,9 @@ def run(argv=None) -> pd.DataFrame:
     dev = deviation(model_position(model), table[JCOMP_DEG].to_numpy(), found.segs)
     why = refusal(table, n, robot.limits_deg, p["compensate"]["tol_mm"], dev, cfg["max_deviation_mm"],
                   cfg["speed_mm_s"], speeds, None if a.allow_outside_workspace else workspace)
+    if not why and found.offline:                    # sample 1 is the first row's joints' nominal pose: Δθ bounded
+        jump = too_far(q0[None], table[JCOMP_DEG].to_numpy()[:1])[0]
+        why = None if jump is None else f"sample 1 (arc 0.0 mm): {jump}"
     if why:
         raise Refused(f"{src}: {why}; nothing written")
     out.mkdir(parents=True, exist_ok=True)

@@ -43,7 +43,7 @@ from pipeline.lib.learning.model import served
 from pipeline.lib.learning.workspace import Workspace
 from pipeline.lib.project.artifacts import FRAME_JSON, MODEL_WEIGHTS, PARAMS_FILE, WORKSPACE_JSON, require
 from pipeline.lib.project.cli import Refused, add_project, one_line
-from pipeline.lib.project.columns import JCOMP_DEG
+from pipeline.lib.project.columns import JCOMP_DEG, TARGET
 from pipeline.lib.project.config import for_stage, load_params, logger, read_json
 from pipeline.lib.project.writing import check_outputs, csv_text, write_together
 from pipeline.lib.robot.geometry import theory_geometry
@@ -115,6 +115,9 @@ def run(argv=None) -> pd.DataFrame:
     out = Path(a.out or src.with_name(src.stem + "_comp.csv"))
     script = Path(a.urscript or src.with_name(src.stem + "_comp.script"))
     check_outputs([out, script], [src])              # by inode too: a hard link to the input is the input
+    for f in (out, script):                          # said before solving, not after
+        if not f.parent.is_dir():
+            raise ValueError(f"{f}: its folder {f.parent} does not exist; nothing written")
     p = for_stage(load_params(root / PARAMS_FILE), PARAMS)
     robot = load_robot(p["robot"])
     require(root, (MODEL_WEIGHTS, WORKSPACE_JSON, FRAME_JSON))
@@ -127,7 +130,7 @@ def run(argv=None) -> pd.DataFrame:
         model, nominal = at_tcp(model, p["robot"]["tcp"], a.tcp, nominal)
         frame_rot = tcp_transforms(p["robot"]["tcp"])[a.tcp][:3, :3]
     table = compensate_program(df, model, workspace, robot, nominal, p["compensate"], frame_rot)
-    skipped = unreached(table, robot)
+    skipped = unreached(table, robot, offline=TARGET[0] not in df)     # offline: Δθ a compensation, bounded
     text = summary_text(table, skipped, workspace)
     if skipped and not a.comment_out_unreached:
         raise Refused(f"{src}: {len(skipped)} waypoint(s) not reached; nothing written (or rerun with "

@@ -53,7 +53,8 @@ def markdown_table(baselines: dict, split: str = "test") -> str:
             "|---|---|---|---|---|---|---|"]
     for name, m in baselines.items():
         s = m[split]
-        rows.append(f"| {name} | {s['3d']['mae']:.4f} | {s['3d']['rmse']:.4f} | {s['3d']['r2']:.4f} "
+        r2 = "–" if s["3d"]["r2"] is None else f"{s['3d']['r2']:.4f}"       # one point: undefined
+        rows.append(f"| {name} | {s['3d']['mae']:.4f} | {s['3d']['rmse']:.4f} | {r2} "
                     f"| {s['x']['mae']:.4f} | {s['y']['mae']:.4f} | {s['z']['mae']:.4f} |")
     return "\n".join(rows) + "\n"
 

@@ -37,6 +37,15 @@ def run(params: dict, root: Path = HERE) -> dict:
         split.iloc[rows[held]] = "holdout"
         rows = rows[~held]
         idx = split_indices(len(rows), cfg["fractions"], cfg["seed"])
+        empty = [k for k, v in idx.items() if not v]
+        if empty:                                  # train, evaluate and the report need every split
+            held_note = f" ({int(held.sum())} more held out by split.holdout)" if held.any() else ""
+            raise ValueError(
+                f"campaign {campaign!r}: its {len(rows)} points{held_note} split "
+                f"{', '.join(f'{k} {len(v)}' for k, v in idx.items())} with split.fractions "
+                f"{list(cfg['fractions'])}: the {' and '.join(empty)} split is empty. Measure more poses: "
+                f"the ingest keeps at least 10, but the frame fit's outliers (reports/theory.json) are "
+                f"dropped after it")
         for name, r in idx.items():
             split.iloc[rows[r]] = name
         per[campaign] = {**{k: len(v) for k, v in idx.items()}, "holdout": int(held.sum())}

@@ -146,6 +146,11 @@ def run_campaign(params: dict, name: str, root: Path = HERE) -> dict:
     P = df[MEAS].to_numpy()
     errors, registered, frames = judge(pred, P, c["frame"], frame, cfg["register_points"], frame_cfg, flange,
                                        cfg["tool_rank_tol"], probe, R_world, orientation_weight(p["calibrate"]["pose_noise"]))
+    if registered.all():                             # refit: every point registers the frame, none is judged
+        raise ValueError(f"validate.campaigns.{name}: all {len(df)} points of the campaign go to the "
+                         f"{c['frame']} registration (validate.register_points = {cfg['register_points']}): none "
+                         "is left to judge; measure more poses, lower validate.register_points, or use frame: same "
+                         "if the tracker did not move")
     ws = Workspace.from_dict(read_json(root / WORKSPACE_JSON))
     u, inside = ws(q)
     u = np.sqrt(u ** 2 + frames["model"].get("registration_rms_mm", 0.0) ** 2)     # validation.py: the campaign's own

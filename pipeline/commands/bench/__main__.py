@@ -18,6 +18,7 @@
                                                             compensator at scale: time and peak memory
 """
 import argparse
+import sys
 
 from pipeline.commands.bench.export import bench_export
 from pipeline.commands.bench.path import PATHS, SPACINGS, bench_path
@@ -30,13 +31,38 @@ from pipeline.commands.bench.sweep import bench_sweep
 from pipeline.lib.learning.sweep import ENGINES
 
 
-def main(argv=None):
+def at_least(lo: int):
+    """argparse type: an integer >= lo (a bad count is a one-line usage error, not a traceback or a
+    silent default)."""
+    def check(text: str) -> int:
+        try:
+            v = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+        if v < lo:
+            raise argparse.ArgumentTypeError(f"an integer >= {lo}, got {v}")
+        return v
+    return check
+
+
+def positive(text: str) -> float:
+    """argparse type: a finite number > 0."""
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not (0 < v < float("inf")):
+        raise argparse.ArgumentTypeError(f"a finite number > 0, got {text}")
+    return v
+
+
+def run(argv=None):
     ap = argparse.ArgumentParser(prog="python -m pipeline.commands.bench", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("what", choices=["real", "speed", "serve", "sweep", "plan", "scale", "path", "export"])
-    ap.add_argument("--seeds", type=int, nargs="+", default=None,
+    ap.add_argument("--seeds", type=at_least(0), nargs="+", default=None,
                     help="training seeds (real: 139; plan: 139 140 141, each also the seed of its measurements)")
-    ap.add_argument("--epochs", type=int, default=None, help="override train.max_epochs (real, plan)")
+    ap.add_argument("--epochs", type=at_least(1), default=None, help="override train.max_epochs (real, plan)")
     ap.add_argument("--sets", nargs="+", choices=list(REAL_SETS), default=None,
                     help="sets to run (default: the real ones; twin and twin-2stations on request)")
     ap.add_argument("--dnn", action=argparse.BooleanOptionalAction, default=True,
@@ -49,48 +75,50 @@ def main(argv=None):
     ap.add_argument("--engine", choices=ENGINES, default="sequential",
                     help="real: the seeds in order, or as Ray tasks (lib/learning/sweep.py)")
     ap.add_argument("--address", default=None, help="real: a Ray cluster (default: RAY_ADDRESS, else local)")
-    ap.add_argument("--threads", type=int, default=None, help="real: torch threads per seed (default: every "
+    ap.add_argument("--threads", type=at_least(1), default=None, help="real: torch threads per seed (default: every "
                                                               "core in order, 1 on Ray); plan: torch threads")
-    ap.add_argument("--clients", type=int, default=8, help="concurrent clients (serve)")
-    ap.add_argument("--calls", type=int, default=10000, help="compensate calls in all (serve)")
+    ap.add_argument("--clients", type=at_least(1), default=8, help="concurrent clients (serve)")
+    ap.add_argument("--calls", type=at_least(10), default=10000, help="compensate calls in all (serve)")
     ap.add_argument("--paths", nargs="+", choices=["onnx", "eager", "compiled"], default=["onnx", "eager", "compiled"],
                     help="serve: the controller paths to start the service with, one after the other")
     ap.add_argument("--hostile", action="store_true",
                     help="serve: 4 good clients alone, then beside each class of hostile client (serve_hostile.json)")
-    ap.add_argument("--seconds", type=float, default=10.0, help="serve --hostile: seconds of each phase")
-    ap.add_argument("--soak", type=float, default=600.0, help="speed: seconds of the onnxruntime controller path alone")
-    ap.add_argument("--rounds", type=int, default=None,
+    ap.add_argument("--seconds", type=positive, default=10.0, help="serve --hostile: seconds of each phase")
+    ap.add_argument("--soak", type=positive, default=600.0, help="speed: seconds of the onnxruntime controller path alone")
+    ap.add_argument("--rounds", type=at_least(1), default=None,
                     help="speed: rounds over the test targets, the controller paths interleaved call by call "
                          "(default 20); export: rounds of the six exports (default 2)")
-    ap.add_argument("--torch-threads", type=int, default=1,
+    ap.add_argument("--torch-threads", type=at_least(1), default=1,
                     help="speed: torch threads of the PyTorch controller path in the comparison (onnxruntime: 1)")
     ap.add_argument("--only", choices=["controller"], default=None,
                     help="speed: only the controller path's part (replaces that part of speed.json)")
-    ap.add_argument("--n", type=int, default=60, help="plan: poses planned (and drawn at random) per variant")
-    ap.add_argument("--waypoints", type=int, default=20, help="plan: the side program's waypoints")
-    ap.add_argument("--rows", type=int, nargs="+", default=[10_000, 30_000, 300_000],
+    ap.add_argument("--n", type=at_least(1), default=60, help="plan: poses planned (and drawn at random) per variant")
+    ap.add_argument("--waypoints", type=at_least(1), default=20, help="plan: the side program's waypoints")
+    ap.add_argument("--rows", type=at_least(0), nargs="+", default=[10_000, 30_000, 300_000],
                     help="scale: the synthetic campaigns' sizes (0: none)")
-    ap.add_argument("--programs", type=int, nargs="+", default=[200_000],
+    ap.add_argument("--programs", type=at_least(0), nargs="+", default=[200_000],
                     help="scale: the synthetic programs' waypoints (0: none)")
     ap.add_argument("--variants", nargs="+", choices=list(VARIANTS), default=list(VARIANTS),
                     help="plan: the variants beside today's project (closed loop)")
-    ap.add_argument("--se-check", type=int, default=5, help="plan: Monte Carlo identifications of the planned "
+    ap.add_argument("--se-check", type=at_least(0), default=5, help="plan: Monte Carlo identifications of the planned "
                                                             "poses' standard errors (first seed; 0 off)")
     ap.add_argument("--curve", action="store_true", help="plan: the learning curve instead of the closed loop")
-    ap.add_argument("--sizes", type=int, nargs="+", default=[25, 50, 100, 200, 400, 700],
+    ap.add_argument("--sizes", type=at_least(1), nargs="+", default=[25, 50, 100, 200, 400, 700],
                     help="plan --curve: numbers of measured poses")
     ap.add_argument("--extend", action="store_true",
                     help="plan --curve: add --sizes to the curve in plan.json (same seeds, -S, epochs), keeping its runs")
-    ap.add_argument("--work", type=int, default=40, help="plan --curve: the front work region's waypoints")
+    ap.add_argument("--work", type=at_least(1), default=40, help="plan --curve: the front work region's waypoints")
     ap.add_argument("--keep", default=None, help="plan, scale: keep the scratch projects in this folder")
     ap.add_argument("--station", choices=["new", "same"], default="new",
                     help="plan: measure the new poses from a tracker station of their own (facing the side), "
                          "or from the default campaign's")
-    ap.add_argument("--spacings", type=float, nargs="+", default=list(SPACINGS),
+    ap.add_argument("--spacings", type=positive, nargs="+", default=list(SPACINGS),
                     help="path: the compensated samples' spacings, mm")
     ap.add_argument("--names", nargs="+", choices=list(PATHS), default=list(PATHS),
                     help="path: the paths to judge")
     a = ap.parse_args(argv)
+    if a.seeds and len(set(a.seeds)) != len(a.seeds):   # a repeated seed: a spread of 0 and an ensemble of copies
+        ap.error(f"--seeds: distinct seeds, got {a.seeds}")
     if a.what == "export":
         bench_export(a.rounds or 2)
     elif a.what == "path":
@@ -111,6 +139,16 @@ def main(argv=None):
         bench_sweep()
     else:
         bench_speed(a.soak, a.rounds or 20, a.only, a.torch_threads)
+
+
+def main(argv=None):
+    """run, with a failed job of a sweep (the others finished, and saved) or a bad setting said in one line."""
+    from pipeline.lib.learning.sweep import SweepFailed
+    try:
+        return run(argv)
+    except (SweepFailed, ValueError) as e:
+        print(f"python -m pipeline.commands.bench: error: {e}", file=sys.stderr)
+        raise SystemExit(1) from None
 
 
 if __name__ == "__main__":

@@ -219,8 +219,15 @@ def run_set(name: str, seeds: list[int], epochs: int | None, other_physics: bool
             done[i] = r
             if on_seed:
                 on_seed({**summary(done), "engine": engine, "threads_per_seed": threads})
-        sweep.run(seed_run, jobs, engine, address, threads, desc=f"{name} seeds", on_result=finished,
-                  shared=prepared_files)
+        try:
+            sweep.run(seed_run, jobs, engine, address, threads, desc=f"{name} seeds", on_result=finished,
+                      shared=prepared_files)
+        except sweep.SweepFailed as e:        # the other seeds finished: saved, with the failed ones named
+            failed = [{"seed": seeds[i], "error": err} for i, _, err in e.failures]
+            if on_seed and done:
+                on_seed({**summary(done), "engine": engine, "threads_per_seed": threads, "failed": failed})
+            raise sweep.SweepFailed(f"bench real {name} (seeds {[f['seed'] for f in failed]} failed)", e.failures,
+                                    e.results, e.timing) from None
     return {**summary(done), "engine": engine, "threads_per_seed": threads}
 
 

@@ -25,12 +25,15 @@ GROUPS = {                                   # name -> params changes (one sourc
 }
 
 
-@dataclass
+@dataclass(repr=False)
 class Job:
     """One training run: the sections model, loss, train, workspace and ablation, a group and a seed."""
     params: dict
     group: str
     seed: int
+
+    def __repr__(self) -> str:                     # a failed run named by what tells it apart
+        return f"{self.group} seed {self.seed}"
 
 
 @dataclass

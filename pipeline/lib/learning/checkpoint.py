@@ -32,11 +32,24 @@ def save_model(model, path, cfg: dict) -> None:
 def load_model(path) -> BoTER | Ensemble:
     """The trained BoTER or Ensemble of a checkpoint (save_model; weights_only=True), in eval mode.
     Needs no params: the checkpoint says how to build it, its state holds the geometry."""
-    ckpt = torch.load(path, weights_only=True, map_location="cpu")     # saved from the CPU; loads anywhere
+    try:
+        ckpt = torch.load(path, weights_only=True, map_location="cpu")     # saved from the CPU; loads anywhere
+    except (FileNotFoundError, IsADirectoryError, PermissionError):
+        raise                                                                # OSErrors name the file
+    except Exception as e:                 # truncated, not a torch file, unpickling refused: one line, the file
+        raise ValueError(f"{path}: not a readable model checkpoint (truncated or corrupt?): "
+                         f"{type(e).__name__}: {' '.join(str(e).split())[:200]}") from None
+    if not (isinstance(ckpt, dict) and {"config", "members", "state_dict"} <= set(ckpt)):
+        raise ValueError(f"{path}: not a model checkpoint: expected {{config, members, state_dict}} (save_model), "
+                         f"got {sorted(ckpt) if isinstance(ckpt, dict) else type(ckpt).__name__}")
     state = ckpt["state_dict"]
     geometry = {k: state[f"physics.{k}"] for k in RIGID_KEYS + MAP_KEYS if f"physics.{k}" in state}
-    members = [make_model(ckpt["config"], geometry) for _ in range(ckpt["members"])]
-    model = members[0] if len(members) == 1 else Ensemble(members)
-    model.load_state_dict(state)
+    try:
+        members = [make_model(ckpt["config"], geometry) for _ in range(ckpt["members"])]
+        model = members[0] if len(members) == 1 else Ensemble(members)
+        model.load_state_dict(state)
+    except (KeyError, TypeError, ValueError, RuntimeError) as e:   # its config and its weights disagree
+        raise ValueError(f"{path}: the checkpoint's config does not build its weights: {type(e).__name__}: "
+                         f"{' '.join(str(e).split())[:300]}") from None
     model.config = ckpt["config"]
     return model.eval()

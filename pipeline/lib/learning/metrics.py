@@ -5,11 +5,17 @@ import pandas as pd
 from pipeline.lib.project.columns import AXES, MEAS, SPLITS, THEORY
 
 
+def r2(ss_res: float, ss_tot: float) -> float | None:
+    """1 - ss_res / ss_tot (eqs. 39-42); None where ss_tot is 0 (nothing to explain: R² is undefined)."""
+    return float(1 - ss_res / ss_tot) if ss_tot > 0 else None
+
+
 def regression_metrics(pred: np.ndarray, real: np.ndarray, theory: np.ndarray) -> dict:
     """pred, real, theory: (n, 3) mm -> {"x"|"y"|"z"|"3d": {"mae", "mse", "rmse", "r2"}}.
 
     R² compares the predicted error Δ̂ = pred - theory with the real error
-    Δ = real - theory, the denominator taken around the mean real Δ (docs/method.md).
+    Δ = real - theory, the denominator taken around the mean real Δ (docs/method.md). Where the real
+    errors do not vary (a split of one point) R² is undefined: None (JSON null), never ±inf or NaN.
     """
     e = pred - real                                        # (n, 3) prediction error
     d_real = real - theory                                 # (n, 3) real error vectors
@@ -18,11 +24,11 @@ def regression_metrics(pred: np.ndarray, real: np.ndarray, theory: np.ndarray) -
     for k, ax in enumerate(AXES):
         mse = float(np.mean(e[:, k] ** 2))
         out[ax] = {"mae": float(np.mean(np.abs(e[:, k]))), "mse": mse, "rmse": float(np.sqrt(mse)),
-                   "r2": float(1 - np.sum(e[:, k] ** 2) / ss_tot[:, k].sum())}
+                   "r2": r2(np.sum(e[:, k] ** 2), ss_tot[:, k].sum())}
     mse3 = float(np.mean((e ** 2).sum(1)))                 # eq. 34
     out["3d"] = {"mae": float(np.mean(np.linalg.norm(e, axis=1))),   # eq. 30
                  "mse": mse3, "rmse": float(np.sqrt(mse3)),          # eq. 38
-                 "r2": float(1 - (e ** 2).sum() / ss_tot.sum())}      # eq. 42
+                 "r2": r2((e ** 2).sum(), ss_tot.sum())}               # eq. 42
     return out
 
 

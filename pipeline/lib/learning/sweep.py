@@ -23,6 +23,11 @@ Each job runs with `cpus_per_job` torch threads in either engine, so the two giv
 (a job's float reductions depend on its thread count) and Ray's tasks do not oversubscribe the cores.
 timing["job_nodes"] (Ray: the node id each job ran on) and timing["job_code"] (the folder each job
 imported `pipeline` from) say where the work ran and which code it ran.
+
+A job that raises does not stop the others (in either engine): every job runs, each result is handed
+to on_result as it comes, and then `run` raises SweepFailed, which names each failed job (its index,
+the job and the error in one line) and carries the results of the others (None where a job failed)
+and the timing, so a caller can write what finished and say what did not.
 """
 import os
 import time
@@ -35,6 +40,23 @@ ENGINES = ("sequential", "ray")
 CODE_ROOT = Path(__file__).resolve().parents[3]   # holds the `pipeline` package this process runs: the
 PACKAGE = CODE_ROOT / "pipeline"                  # project, or on a Ray worker the copy shipped with the job
 _NO_SHARED = object()
+
+
+class SweepFailed(RuntimeError):
+    """Some jobs of a sweep raised; every other job ran. failures: [(index, job, "Type: message")];
+    results: one per job (None where it failed); timing: as `run` returns it."""
+
+    def __init__(self, desc: str, failures: list, results: list, timing: dict):
+        self.failures, self.results, self.timing = failures, results, timing
+        said = "; ".join(f"job {i} ({job!r:.80}): {err}" for i, job, err in failures)
+        super().__init__(f"{desc}: {len(failures)} of {len(results)} job(s) failed, the others finished: {said}")
+
+
+def _said(e: BaseException) -> str:
+    """An error in one line: its type and message (a Ray task's error: the error it wraps)."""
+    e = getattr(e, "cause", None) or e
+    text = " ".join(str(e).split()) or "(no message)"
+    return f"{type(e).__name__}: {text}"
 
 
 def runtime_env() -> dict:
@@ -93,23 +115,35 @@ def run(fn, jobs: list, engine: str = "sequential", address: str | None = None, 
     t0 = time.perf_counter()
     on_result = on_result or (lambda i, r: None)
     extra = () if shared is _NO_SHARED else (shared,)
+    failures = []
     if engine == "sequential":
         threads = torch.get_num_threads()
         out = []
         try:
             for i, j in enumerate(tqdm(jobs, desc=desc)):
-                out.append((*_call(fn, j, cpus_per_job, *extra), None, str(CODE_ROOT)))
+                t1 = time.perf_counter()
+                try:
+                    out.append((*_call(fn, j, cpus_per_job, *extra), None, str(CODE_ROOT)))
+                except Exception as e:                # the others still run; said at the end
+                    failures.append((i, j, _said(e)))
+                    out.append((None, time.perf_counter() - t1, None, str(CODE_ROOT)))
+                    continue
                 on_result(i, out[-1][0])
         finally:
             torch.set_num_threads(threads)
     else:
-        out = _ray(fn, jobs, address or os.environ.get("RAY_ADDRESS"), cpus_per_job, desc, on_result, extra)
-    return [r[0] for r in out], {"engine": engine, "seconds": time.perf_counter() - t0,
-                                 "job_seconds": [r[1] for r in out], "cpus_per_job": cpus_per_job,
-                                 "job_nodes": [r[2] for r in out], "job_code": [r[3] for r in out]}
+        out = _ray(fn, jobs, address or os.environ.get("RAY_ADDRESS"), cpus_per_job, desc, on_result, extra,
+                   failures)
+    results = [r[0] for r in out]
+    timing = {"engine": engine, "seconds": time.perf_counter() - t0,
+              "job_seconds": [r[1] for r in out], "cpus_per_job": cpus_per_job,
+              "job_nodes": [r[2] for r in out], "job_code": [r[3] for r in out]}
+    if failures:
+        raise SweepFailed(desc, sorted(failures, key=lambda f: f[0]), results, timing)
+    return results, timing
 
 
-def _ray(fn, jobs, address, cpus_per_job, desc, on_result, extra):
+def _ray(fn, jobs, address, cpus_per_job, desc, on_result, extra, failures):
     import ray
     started = not ray.is_initialized()
     if started:   # local (every core a task slot) or the cluster at `address`; the code goes with the job
@@ -124,9 +158,14 @@ def _ray(fn, jobs, address, cpus_per_job, desc, on_result, extra):
             while pending:
                 done, pending = ray.wait(pending, num_returns=1)
                 i = index.pop(done[0])
-                out[i] = ray.get(done[0])
-                on_result(i, out[i][0])
                 bar.update(len(done))
+                try:
+                    out[i] = ray.get(done[0])
+                except Exception as e:                # the others still run; said at the end
+                    failures.append((i, jobs[i], _said(e)))
+                    out[i] = (None, None, None, None)
+                    continue
+                on_result(i, out[i][0])
         return out
     finally:
         if started:

@@ -215,6 +215,9 @@ def fit(model, loss_fn, train, val, cfg: dict, live=None, desc="train", progress
             live.next_step()
         if epoch - best_epoch >= cfg["patience"]:
             break
+    if best_state is None:                    # never a finite validation error: nothing to keep
+        raise ValueError(f"{desc}: training diverged: the validation 3D MAE was {val_mae} in each of its "
+                         f"{epoch + 1} epoch(s), never finite; lower train.lr ({cfg['lr']}) or check the data")
     model.load_state_dict(best_state)
     if device.type != "cpu":                                 # predictions and the checkpoint: CPU tensors
         model.to("cpu")

@@ -15,7 +15,7 @@ def program_joints(q0_deg, target, geometry: dict, limits_deg, iterations: int =
     minimum-norm steps, joint limits kept): where a program given as positions will actually go; and
     how far (n,) mm each stays from its target there (a target it cannot reach stays far)."""
     q = torch.as_tensor(np.radians(np.asarray(q0_deg, float)), dtype=DTYPE)
-    t = torch.as_tensor(np.asarray(target, float), dtype=DTYPE)
+    t = torch.tensor(np.asarray(target, float), dtype=DTYPE)              # a copy: a table's column may be read-only
     lim = torch.as_tensor(np.radians(np.asarray(limits_deg, float)), dtype=DTYPE)
     with torch.no_grad():
         for _ in range(iterations):

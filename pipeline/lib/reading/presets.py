@@ -40,6 +40,7 @@ def load_preset(name_or_path) -> dict:
     return preset if base is None else deep_merge(load_preset(base), preset)
 
 
+REMOVED = "(removed)"                  # changes(): the new value of a key the merge no longer holds
 REPLACED = {"campaigns", "target"}   # mappings replaced whole: a preset's own (validation or training)
                                     # campaigns; a rigid target's geometry (ingest.target: a campaign's own)
 
@@ -61,8 +62,9 @@ def merged_params(name_or_path, base: dict) -> dict:
 
 
 def changes(old: dict, new: dict, prefix: str = "") -> list:
-    """[(dotted key, old value, new value)] for every leaf that differs."""
-    out = []
+    """[(dotted key, old value, new value)] for every leaf that differs, and (new value REMOVED) every key of
+    old that new no longer holds (a REPLACED mapping's)."""
+    out = [(f"{prefix}{k}", v, REMOVED) for k, v in old.items() if k not in new] if isinstance(old, dict) else []
     for k in new:
         key = f"{prefix}{k}"
         a, b = old.get(k) if isinstance(old, dict) else None, new[k]

@@ -141,7 +141,7 @@ class IngestError(ValueError):
     """Bad input that stops the stage; `file`, `row`, `column` say where."""
 
     def __init__(self, message: str, file=None, row=None, column=None):
-        self.file, self.row, self.column = file, row, column
+        self.message, self.file, self.row, self.column = message, file, row, column
         where = [str(file)] if file is not None else []
         if row is not None:
             where.append(f"row {row}")
@@ -402,8 +402,15 @@ def read_rows(path: str, role: str, cfg: dict, id_setting, groups: list, marker=
     """Read a text table and check every row; groups = [(setting, candidates, what)] of required columns;
     marker: the header naming each row's marker (a multi-marker target), or None."""
     header, cells, lines, sep, decimal = read_table(path, cfg["sep"], cfg["decimal"], cfg["skip_lines"])
-    id_col = pick_id(header, id_setting, role, path)
-    picked = {what: pick_columns(header, setting, cands, what, path) for setting, cands, what in groups}
+    try:
+        id_col = pick_id(header, id_setting, role, path)
+        picked = {what: pick_columns(header, setting, cands, what, path) for setting, cands, what in groups}
+    except IngestError as e:                         # skip_lines cuts every file: was this one's header cut?
+        if not cfg["skip_lines"]:
+            raise
+        raise IngestError(f"{e.message}; ingest.skip_lines = {cfg['skip_lines']} leaves out the "
+                          f"first {cfg['skip_lines']} line(s) of every input file, so this one's header was read "
+                          f"from line {cfg['skip_lines'] + 1}", file=e.file, row=e.row, column=e.column) from None
     cols = [c for idx in picked.values() for c in idx]
     keys = [(id_col, "id")] if id_col is not None else []
     if marker is not None:

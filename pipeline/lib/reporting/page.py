@@ -105,7 +105,7 @@ def section_metrics(m: dict, counts: dict, root: Path = HERE) -> str:
         t = m["test"]["3d"]
         p = PAPER_TEST["3d"]
         out += ["", f"**Test 3D: MAE {t['mae']:.4f} mm (paper {p['mae']}), RMSE {t['rmse']:.4f} mm "
-                f"(paper {p['rmse']}), R² {t['r2']:.4f} (paper {p['r2']}).**", ""]
+                f"(paper {p['rmse']}), R² {fmt(t['r2'])} (paper {p['r2']}).**", ""]
     return "\n".join(out)
 
 
@@ -452,7 +452,7 @@ def write_index(ctx, figs: dict, ply: dict) -> str:
         t, p = m["test"]["3d"], PAPER_TEST["3d"]
         nom = (m.get("baselines") or {}).get("nominal_dh", {}).get("test", {}).get("3d")
         head += [f"**Summary:** model `{m.get('model', '?')}`, test 3D MAE **{t['mae']:.4f} mm**, "
-                 f"RMSE {t['rmse']:.4f} mm, R² {t['r2']:.4f} "
+                 f"RMSE {t['rmse']:.4f} mm, R² {fmt(t['r2'])} "
                  f"(paper: {p['mae']:.4f} / {p['rmse']:.4f} / {p['r2']:.4f})"
                  + (f"; uncompensated nominal DH on the same points: {nom['mae']:.4f} mm" if nom else "")
                  + ".", ""]

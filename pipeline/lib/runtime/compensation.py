@@ -8,7 +8,7 @@ import torch
 
 from pipeline.lib.project.columns import COMPENSATION, DJ_DEG, JCOMP_DEG, JOINTS_DEG, PRED, TARGET
 from pipeline.lib.robot.kinematics import DTYPE, TOOL_ROT, flange_rotations
-from pipeline.lib.runtime.solvers import compensate, orientation_residual
+from pipeline.lib.runtime.solvers import compensate, orientation_angle
 
 
 @dataclass
@@ -27,15 +27,19 @@ def solve(model, q0_deg: np.ndarray, target: np.ndarray, cfg: dict, robot, solve
           history: bool = True, flange_rot: np.ndarray | None = None) -> Solved:
     """Compensate every (q0, target) with `solver` (default cfg["solver"]) within the robot's limits (the
     model evaluated solvers.CHUNK points at a time: one batch's numbers, bounded memory); with flange_rot
-    (n, 3, 3), the flange's orientation is a target too (six equations, lib/runtime/solvers.py)."""
+    (n, 3, 3), the flange's orientation is a target too (six equations, lib/runtime/solvers.py). `converged`:
+    reached, within cfg tol_mm (and tol_arcsec of the whole angle), whatever the solver's own stop rule."""
     if flange_rot is None:
-        return Solved(*compensate(model, q0_deg, target, cfg, robot, solver, history=history))
-    pose = np.hstack([target, flange_rot.reshape(len(target), 9)])    # (n, 12)
-    s = Solved(*compensate(model, q0_deg, pose, cfg, robot, solver, history=history))
-    e = orientation_residual(model.physics.geometry(), torch.as_tensor(np.radians(s.q_deg), dtype=DTYPE),
-                             torch.as_tensor(pose, dtype=DTYPE))
-    s.orientation_arcsec = np.degrees(e.norm(dim=1).numpy()) * 3600
-    return s
+        s = Solved(*compensate(model, q0_deg, target, cfg, robot, solver, history=history))
+    else:
+        pose = np.hstack([target, flange_rot.reshape(len(target), 9)])    # (n, 12)
+        s = Solved(*compensate(model, q0_deg, pose, cfg, robot, solver, history=history))
+        angle = orientation_angle(model.physics.geometry(), torch.as_tensor(np.radians(s.q_deg), dtype=DTYPE),
+                                  torch.as_tensor(pose, dtype=DTYPE))
+        s.orientation_arcsec = np.degrees(angle.numpy()) * 3600   # the whole angle: 648000 for a flange turned half round
+        s.converged &= s.orientation_arcsec <= cfg["tol_arcsec"]  # the solvers' |e| is sin θ: small again near 180°
+    s.converged &= np.linalg.norm(s.pred - target, axis=1) <= cfg["tol_mm"]    # reached, whatever the solver's stop
+    return s                                                                   # (adam's: the paper's MSE)
 
 
 def nominal_flange(q0_deg: np.ndarray, nominal: dict) -> np.ndarray:

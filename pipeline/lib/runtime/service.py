@@ -48,7 +48,7 @@ from pipeline.lib.runtime.paths import ROTVEC_MAX_RAD, n_samples, resample, rota
 from pipeline.lib.runtime.pathsolve import (SOLVED, beyond_reach, deviation, model_position, refusal,
                                             servo_times)
 from pipeline.lib.runtime.realtime import Realtime, answers
-from pipeline.lib.runtime.solvers import LAM0, lm_jacobian, lm_step, pose_weight, residual
+from pipeline.lib.runtime.solvers import LAM0, lm_jacobian, lm_step, orientation_angle, pose_weight, residual
 
 
 METRES_MM = 5.0              # an unreachable target nearer the base origin than this was likely sent in metres
@@ -524,9 +524,18 @@ class Service:
                 field, said, extra = "target_mm", f"{e:.1f} mm", {}
             else:                                         # a pose: the position's residual and the orientation's
                 r = lane.state.r[i].numpy()
-                arcsec = float(np.degrees(np.linalg.norm(r[3:]) / lane.w) * 3600)
+                qi = torch.as_tensor(np.asarray(q[i], float)[None], dtype=DTYPE)
+                angle = orientation_angle(self.model.physics.geometry(), qi,
+                                          torch.as_tensor(np.r_[job.target, job.rot][None], dtype=DTYPE))
+                arcsec = float(np.degrees(angle[0].item()) * 3600)   # the whole angle (|r[3:]| / w is sin θ: 0 at 180°)
                 field, said = "target_mm, target_rotvec", f"{np.linalg.norm(r[:3]):.1f} mm and {arcsec:.0f} arcsec"
                 extra = {"orientation_residual_arcsec": arcsec}
+                if arcsec > 324000.0:                           # past 90°: a flange turned half round
+                    job.future.set_exception(RequestError(
+                        f"{job.where}{field}: unreachable from q_rad (the flange's orientation {arcsec:.0f} arcsec "
+                        f"off after compensation: turned half round; start "
+                        "from joints nearer the target's orientation)"))
+                    continue
             if e < self.tol or e <= self.unreachable:
                 q_rad = (q[i].numpy() if isinstance(q, torch.Tensor) else q[i]).astype(float)   # a copy
                 inside = bool(self.workspace(np.degrees(q_rad)[None])[1][0])

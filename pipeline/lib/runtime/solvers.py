@@ -125,6 +125,15 @@ def orientation_residual(g: dict, q, target):              # (B, 6), (B, 12) -> 
     return rotation_error(flange_rotations(q, g), target_rotations(target))
 
 
+def orientation_angle(g: dict, q, target):                 # (B, 6), (B, 12) -> (B,) rad, in [0, π]
+    """The flange's whole rotation angle off a pose target's orientation: atan2(|sin θ axis|, cos θ). Not the
+    residual's |e| (`rotation_error`: sin θ, zero again at θ = 180°, so a flange turned half round would pass
+    as reached): what `converged` and the reported orientation residual are judged by."""
+    R, T = flange_rotations(q, g), target_rotations(target)
+    cos = ((R @ T.transpose(-1, -2)).diagonal(dim1=-2, dim2=-1).sum(-1) - 1) / 2      # (B,) cos θ
+    return torch.atan2(rotation_error(R, T).norm(dim=-1), cos)
+
+
 def pose_residual(r, q, g: dict, rot, w: float):
     """A pose's residual [r; w e] (B, 6): the position's r (B, 3) mm and the flange's orientation error e
     (B, 3) rad at q (B, 6) under geometry g against rot (B, 3, 3), weighted by w (`pose_weight`)."""

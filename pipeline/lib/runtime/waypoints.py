@@ -8,7 +8,8 @@ pipeline.commands.plan`) and the benchmarks.
                                      row whose cell count does not fit the header (ingest's field_count
                                      rule, readers.shape_problems), a bad number, a duplicate id
     compensate_program(df, ...)      the Δθ table of the waypoints (compensation.delta_table)
-    unreached(table, robot)          the waypoints that must not become moves, and why
+    unreached(table, robot, offline) the waypoints that must not become moves, and why (offline: a Δθ over
+                                     MAX_COMPENSATION_DEG too)
     ID_PATTERN                       what a point id may be: it reaches a URScript comment
 """
 import re
@@ -30,6 +31,19 @@ from pipeline.lib.runtime.paths import ROTVEC, check_rotvecs
 
 log = logger(__name__)
 ID_PATTERN = re.compile(r"[A-Za-z0-9_.:-]{1,64}")          # what a point id may be, to reach a URScript comment
+MAX_COMPENSATION_DEG = 5.0      # an offline waypoint's Δθ on any joint: the twin's campaign-like poses need ≤ 1.5°;
+                                # beyond, the answer is another configuration (near a singularity: joint 5 near 0°
+                                # or 180° turns joints 2-4 and 6 by tens of degrees), not a correction
+
+
+def too_far(q0_deg: np.ndarray, q_deg: np.ndarray, max_deg: float = MAX_COMPENSATION_DEG) -> list:
+    """Per row of joints q0 (n, 6) deg and their compensated q (n, 6): why the answer is not a compensation of
+    q0 (a joint turned more than max_deg), or None."""
+    d = np.abs(np.asarray(q_deg, float) - np.asarray(q0_deg, float))
+    return [None if not (row.max() > max_deg) else
+            f"joint {int(row.argmax()) + 1} turned {row.max():.1f}° from the programmed joints (more than "
+            f"{max_deg:g}°: another configuration, not a compensation; joint 5 at {q[4]:.2f}°: near the wrist's "
+            "singularity?)" for row, q in zip(d, np.asarray(q0_deg, float))]
 
 
 def joint_columns(header: list, path) -> tuple[list, list]:
@@ -155,9 +169,14 @@ def compensate_program(df: pd.DataFrame, model, workspace, robot, nominal: dict,
     return table
 
 
-def unreached(table: pd.DataFrame, robot) -> dict:
-    """{point_id: why} for every waypoint that must not become a move."""
+def unreached(table: pd.DataFrame, robot, offline: bool = False) -> dict:
+    """{point_id: why} for every waypoint that must not become a move; offline (the targets are the nominal
+    poses of the waypoints' joints): also an answer that turned a joint more than MAX_COMPENSATION_DEG."""
     beyond = robot.check_joints(table[JCOMP_DEG].to_numpy()).any(1)
-    return {r.point_id: (f"residual {r.residual_mm:.4f} mm" + (", not converged" if not r.converged else "")
-                         + (", beyond the joint limits" if b else ""))
-            for r, b in zip(table.itertuples(), beyond) if not r.converged or b}
+    far = too_far(table[JOINTS_DEG].to_numpy(), table[JCOMP_DEG].to_numpy()) if offline else [None] * len(table)
+    return {r.point_id: (f"residual {r.residual_mm:.4f} mm"
+                         + (f", orientation {r.orientation_residual_arcsec:.2f} arcsec"
+                            if np.isfinite(r.orientation_residual_arcsec) else "")
+                         + (", not converged" if not r.converged else "")
+                         + (", beyond the joint limits" if b else "") + (f", {f}" if f else ""))
+            for r, b, f in zip(table.itertuples(), beyond, far) if not r.converged or b or f}

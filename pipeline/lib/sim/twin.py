@@ -384,7 +384,12 @@ class Twin:
     def validation_campaign(self, seed: int = VALIDATION["seed"], n: dict = VALIDATION["n"],
                             prefix: str = VALIDATION["prefix"]):
         """A further campaign of this arm (joints_df, tracker_df, tracker pose (R, t)): the tracker at
-        another pose (from `seed`), n[region] poses per region, ids V0001..; measured without misreads."""
+        another pose (from `seed`), n[region] poses per region, ids V0001..; measured without misreads.
+        `seed` must differ from the twin's own: its streams would redraw the training campaign's poses and
+        noise (the same "poses" and "noise" streams), an independent campaign holding training poses."""
+        if seed == self.seed:
+            raise ValueError(f"twin: a further campaign's seed {seed} is the twin's own (its training campaign's "
+                             "poses and noise would be drawn again); use another seed")
         R, t = sample_tracker_pose(seed)
         moved = Twin(self.seed, self.errors, (R, t))
         rng = stream(seed, "poses")
