@@ -1,4 +1,6 @@
 """Inverse compensation (sec. 2.3): both solvers land on their targets through a frozen model."""
+from pathlib import Path
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -81,8 +83,8 @@ def test_unknown_solver_and_bad_target_file(model, tmp_path):
         compensate(model, q0, tgt, CFG, ROBOT, "newton")
     path = tmp_path / "targets.csv"
     pd.DataFrame({"point_id": ["A"], "j1_deg": [0.0]}).to_csv(path, index=False)
-    with pytest.raises(ValueError, match=r"targets.csv: missing column\(s\) \['j2_deg'"):
-        read_targets(str(path))
+    with pytest.raises(ValueError, match=r"targets.csv, column 'j2_deg': missing waypoint column 'j2_deg'"):
+        read_targets(str(path), ROBOT)
 
 
 def true_residual(model, q_rad, tgt):
@@ -318,3 +320,82 @@ def test_a_flange_turned_half_round_is_not_a_reached_pose(model):
     assert (off > 600_000).all()                               # the answer: the flange half a turn off
     assert not s.converged.any()
     np.testing.assert_allclose(s.orientation_arcsec, off, rtol=1e-6)
+
+
+def test_own_targets_hold_their_orientation_and_bad_cells_name_row_and_column(in_trained_project, tmp_path, capsys):
+    """`compensate --targets`: target_rx..rz are a target (as the program command's), not silently dropped: a
+    flange to turn half round from its start is not converged (its Δθ row was converged, the flange 180° off
+    the file's orientation); a bad cell is one line naming file, row and column (it was a traceback)."""
+    from scipy.spatial.transform import Rotation
+    from pipeline.lib.learning.checkpoint import load_model
+    from pipeline.lib.robot.kinematics import DTYPE, flange_rotations, tool_rotation
+    from pipeline.stages import compensate as stage
+    from pipeline.lib.project.cli import one_line
+    from conftest import exit_code
+    cli = lambda argv: one_line("pipeline.stages.compensate", stage.main, argv)   # as `python -m` runs it
+    model = load_model("models/boter.pt").eval()
+    g = model.physics.geometry()
+    q0 = pd.read_csv("reports/compensation.csv")[[f"j{i}_deg" for i in range(1, 7)]].to_numpy()[:3]
+    q = torch.as_tensor(np.radians(q0), dtype=DTYPE)
+    with torch.no_grad():
+        at = model(q)[0].numpy()
+    turned = [0.0, 90.0, 180.0]                       # about the flange's z: the probe's frame's rotvec in the file
+    flange = flange_rotations(q, g).numpy() @ Rotation.from_euler("z", np.array(turned)[:, None],
+                                                                  degrees=True).as_matrix()
+    rotvec = Rotation.from_matrix(flange @ tool_rotation(g).numpy()).as_rotvec()
+    df = pd.DataFrame({"point_id": ["A", "B", "C"]})
+    df[[f"j{i}_deg" for i in range(1, 7)]] = q0
+    df[["target_x", "target_y", "target_z"]] = at
+    df[["target_rx", "target_ry", "target_rz"]] = rotvec
+    src = tmp_path / "own.csv"
+    df.to_csv(src, index=False)
+    out = Path("reports/compensation_own.csv")
+    try:
+        assert exit_code(cli, ["--targets", str(src)], capsys)[0] == 0
+        table = pd.read_csv(out)
+    finally:
+        out.unlink(missing_ok=True)
+    qc = torch.as_tensor(np.radians(table[[f"j{i}_comp_deg" for i in range(1, 7)]].to_numpy()), dtype=DTYPE)
+    off = np.degrees(Rotation.from_matrix(flange_rotations(qc, g).numpy() @ flange.transpose(0, 2, 1)).magnitude())
+    assert not (table.converged & (off * 3600 > in_trained_project["compensate"]["tol_arcsec"])).any(), (table, off)
+    assert table.orientation_residual_arcsec.notna().all() and not table.converged.iloc[2]
+    df = df.astype(object)
+    df.loc[1, "j4_deg"] = "abc"
+    df.loc[2, "target_z"] = None
+    for bad, row, column in ((df.drop(index=2), 3, "j4_deg"), (df.drop(index=1), 3, "target_z")):
+        bad.to_csv(src, index=False)
+        code, said = exit_code(cli, ["--targets", str(src)], capsys)
+        assert code == 2 and said.strip().count("\n") == 0, said
+        assert f"row {row}" in said and f"column '{column}'" in said, said
+
+
+def test_the_pose_controller_path_does_not_verify_a_flange_turned_half_round(model):
+    """realtime.two_steps for a pose (controller_pose.onnx's graph): a target 180° about a flange or a base
+    axis from the seed's flange (the position already met) has w sin θ = 0, so |r1| was ~1e-7 mm and `answers`
+    said verified and converged, the flange half a turn off; |r| now holds the whole angle. A target 0.01° off
+    is still verified in the first step."""
+    from scipy.spatial.transform import Rotation
+    from pipeline.lib.robot.kinematics import flange_rotations
+    from pipeline.lib.runtime.realtime import DAMPING, answers, two_steps
+    from pipeline.lib.runtime.solvers import pose_weight
+    q = torch.as_tensor(np.radians(targets(model, n=6, seed=3)[0]), dtype=torch.float64)   # seeds: the target's position
+    with torch.no_grad():
+        tgt = model(q)[0]
+    g = model.physics.geometry()
+    F = flange_rotations(q, g).numpy()
+    w, tol = pose_weight({"tol_mm": 1e-3, "tol_arcsec": 1.0}), 1e-3
+    lo, hi = (torch.as_tensor(np.radians(ROBOT.limits_deg[:, i])) for i in (0, 1))
+    for name, rot, reachable in (
+            ("flange z 180", F @ Rotation.from_euler("z", 180, degrees=True).as_matrix(), False),
+            ("base x 180", Rotation.from_euler("x", 180, degrees=True).as_matrix() @ F, False),
+            ("flange y 179.9999", F @ Rotation.from_euler("y", 179.9999, degrees=True).as_matrix(), False),
+            ("flange z 0.01", F @ Rotation.from_euler("z", 0.01, degrees=True).as_matrix(), True)):
+        with torch.no_grad():
+            out = [t.numpy() for t in two_steps(model, q, tgt, lo, hi, DAMPING, rot=torch.as_tensor(rot), w=w)]
+        res = answers(*out, tol)
+        got = np.array([r.q for r in res])
+        off = np.degrees(Rotation.from_matrix(flange_rotations(torch.as_tensor(got), g).numpy()
+                                              @ rot.transpose(0, 2, 1)).magnitude()) * 3600
+        said = np.array([r.converged or r.verified for r in res])
+        assert not (said & (off > 1.0)).any(), (name, off, [(r.converged, r.verified, r.residual_mm) for r in res])
+        assert said.all() == reachable, (name, off)

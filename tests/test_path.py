@@ -510,3 +510,18 @@ def test_an_offline_path_at_the_wrist_singularity_does_not_start_in_another_conf
                            capsys)
     assert code == 1 and "sample 1 (arc 0.0 mm): joint 4 turned" in said and "Traceback" not in said, said
     assert not (tmp_path / "o").exists()
+
+
+def test_a_refusal_at_the_first_or_last_sample_says_so():
+    """`refusal` at sample 1 said "solved from sample 0's joints" (there is none: the start joints), and at the
+    path's last sample "the 0 samples after it were not solved"."""
+    from pipeline.lib.runtime.pathsolve import SOLVED, refusal
+    row = lambda arc, ok: [arc, 0.0, 0.0, 0.0, *[10.0] * 6, 0.0 if ok else 0.0001, 1, ok, 648000.0 if not ok else 0.1]
+    limits, speeds = np.array([[-360.0, 360.0]] * 6), np.full(6, 180.0)
+    first = pd.DataFrame([row(0.0, False)], columns=SOLVED).assign(in_workspace=True)
+    said = refusal(first, 3, limits, 0.001, np.zeros(0), 0.5, 2.0, speeds)
+    assert said.startswith("sample 1 (arc 0.0 mm): not reached") and "solved from the start joints; the 2 samples" \
+        in said and "sample 0" not in said, said
+    last = pd.DataFrame([row(0.0, True), row(1.0, True), row(2.0, False)], columns=SOLVED).assign(in_workspace=True)
+    said = refusal(last, 3, limits, 0.001, np.zeros(2), 0.5, 2.0, speeds)
+    assert said.endswith("solved from sample 2's joints") and "0 samples" not in said, said

@@ -877,3 +877,23 @@ def test_compensate_pose_lands_the_position_and_the_orientation(server, client, 
             client.compensate_pose(q0[0].tolist(), target[0].tolist(), [0.0, 0.0, 0.0])
     finally:
         server.service.frame_rot = kept
+
+
+def test_a_path_sample_turned_past_90_degrees_names_rotvecs_and_the_angle(server, client, params, poses):
+    """compensate_path with rotvecs whose first sample's orientation is 150° (or 180°) from the start joints'
+    flange: refused, naming compensate_path's field rotvecs (it named compensate_pose's target_rotvec) and
+    the angle (it said "turned half round" of a flange 150° off)."""
+    from scipy.spatial.transform import Rotation
+    from pipeline.lib.robot.kinematics import fk_pose
+    model = served_model()
+    q0 = poses[0][0]
+    with torch.no_grad():
+        p0 = model(torch.as_tensor(q0[None]))[0][0].numpy()
+        R = fk_pose(torch.as_tensor(q0[None]), model.physics.geometry())[1][0].numpy()   # the probe's frame
+    for turn in (150.0, 180.0):
+        rv = Rotation.from_matrix(R @ Rotation.from_euler("z", turn, degrees=True).as_matrix()).as_rotvec().tolist()
+        with pytest.raises(xmlrpc.client.Fault) as e:
+            client.compensate_path(q0.tolist(), [p0.tolist(), (p0 + [5.0, 0, 0]).tolist()], [], 1.0, 2.0, [rv, rv])
+        said = e.value.faultString
+        assert "\n" not in said and said.startswith("points_mm: sample 1 (arc 0.0 mm), target_mm, rotvecs: "), said
+        assert "target_rotvec" not in said and f"{turn:.1f}°" in said and "half round" not in said, said

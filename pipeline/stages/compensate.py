@@ -16,7 +16,9 @@ model solved is the one served (model.served: the physics alone where evaluate
 switched the network off).
 
 Your own targets, outside DVC: `python -m pipeline.stages.compensate --targets my.csv`
-(columns point_id, j1_deg..j6_deg, target_x..z in the base frame) writes
+(columns point_id, j1_deg..j6_deg, target_x..z in the base frame and, optionally, target_rx..rz: the
+probe frame's orientation, a rotation vector in rad, as the program command reads them; read and checked
+by lib/runtime/waypoints.py, a bad cell naming file, row and column) writes
 reports/compensation_<name>.csv.
 """
 import argparse
@@ -42,8 +44,10 @@ from pipeline.lib.robot.kinematics import fk_numpy, tool_rotation
 from pipeline.lib.robot.robots import load_robot
 from pipeline.lib.robot.tcp import AtTcp, probe_offsets
 from pipeline.lib.runtime.compensation import delta_table, nominal_flange, orientation_targets, solve
+from pipeline.lib.runtime.paths import ROTVEC
 from pipeline.lib.runtime.realtime import Realtime, check
 from pipeline.lib.runtime.solvers import SOLVERS
+from pipeline.lib.runtime.waypoints import flange_targets, read_waypoints
 from pipeline.lib.sim.drive import drive_check, tcp_drive_check
 from pipeline.lib.sim.twin import Twin
 
@@ -58,9 +62,12 @@ def test_targets(points: pd.DataFrame) -> pd.DataFrame:
     return df[["point_id"] + JOINTS_DEG].assign(**dict(zip(TARGET, df[THEORY].to_numpy().T)))
 
 
-def read_targets(path: str) -> pd.DataFrame:
-    df = pd.read_csv(path)
-    missing = [c for c in ["point_id"] + JOINTS_DEG + TARGET if c not in df.columns]
+def read_targets(path: str, robot) -> pd.DataFrame:
+    """Your own targets, read and checked as the program command's waypoints (waypoints.read_waypoints: a bad
+    cell an IngestError naming file, row and column): point_id, the joints, target_x..z and, if given,
+    target_rx..rz (an orientation to reach too, never dropped)."""
+    df = read_waypoints(path, robot)
+    missing = [c for c in TARGET if c not in df.columns]
     if missing:
         raise ValueError(f"{path}: missing column(s) {missing}; found {list(df.columns)}")
     return df
@@ -208,7 +215,12 @@ def main(argv=None, root: Path = HERE):
         return run(params, root)
     p = for_stage(params, PARAMS)
     model, workspace = served_model(root)
-    table, summary, _ = solve_all(model, workspace, p["compensate"], load_robot(p["robot"]), read_targets(a.targets))
+    robot = load_robot(p["robot"])
+    df = read_targets(a.targets, robot)
+    rotvec = df[ROTVEC].to_numpy(float, copy=True) if ROTVEC[0] in df else None
+    flange = None if rotvec is None else flange_targets(model, p["compensate"], df[JOINTS_DEG].to_numpy(), None,
+                                                        False, rotvec)   # the probe frame's rotvec, as program's
+    table, summary, _ = solve_all(model, workspace, p["compensate"], robot, df, flange)
     out = root / REPORTS / f"compensation_{Path(a.targets).stem}.csv"
     table.to_csv(out, index=False, float_format="%.6f")
     log.info("wrote %s (%d targets)", out, len(table))

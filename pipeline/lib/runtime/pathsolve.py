@@ -160,7 +160,9 @@ def refusal(table: pd.DataFrame, n_samples: int, limits_deg: np.ndarray, tol_mm:
     if m < len(table):
         o = table.orientation_residual_arcsec.iloc[m] if "orientation_residual_arcsec" in table else np.nan
         off = "" if np.isnan(o) else f"; the flange's orientation {o:.2f} arcsec off"
-        after = (f"solved from sample {m}'s joints; the {n_samples - m - 1} samples after it were not solved"
+        start = "the start joints" if m == 0 else f"sample {m}'s joints"          # there is no sample 0
+        rest = n_samples - m - 1
+        after = (f"solved from {start}" + (f"; the {rest} samples after it were not solved" if rest else "")
                  if m == len(table) - 1 else f"solved between samples {m} and {m + 2} (chord mode)")
         found.append((m, "not reached", f"{name(m)}: not reached (residual {table.residual_mm.iloc[m]:.4f} mm, "
                                         f"tolerance {tol_mm:g} mm{off}), {after}"))

@@ -96,12 +96,24 @@ def two_steps(model, q0, target, lo, hi, damping, tcp_mm=None, rot=None, w=None)
 
 
 def chord_step(model, q, target, lo, hi, damping, tcp_mm=None, rot=None, w=None):
-    """One chord step from q (B, 6): returns (the next q (B, 6), |residual at q| (B,) mm)."""
+    """One chord step from q (B, 6): returns (the next q (B, 6), |residual at q| (B,) mm). For a pose the step
+    drives [r, w e] (e: sin θ times the axis) to zero, and within 90° of rot the |residual| returned is |[r, w e]|;
+    beyond (cos θ < 0), the orientation's part is w (2 - sin θ), ≥ w, growing to 2w at θ = 180°, where w sin θ
+    is zero again and a flange turned half round would read as reached (`answers`). (Not atan2: onnxruntime
+    has no float64 Atan.)"""
     g = model.physics.geometry()
-    p, J, e = physics_rows(q, g if tcp_mm is None else {**g, "tool": tcp_mm}, rot, w)   # (B, 3), (B, 3|6, 6)
+    g = g if tcp_mm is None else {**g, "tool": tcp_mm}
+    if rot is None:
+        p, J, e = physics_rows(q, g)                      # (B, 3), (B, 3, 6), None
+    else:                                                 # (B, 3), (B, 6, 6), (B, 3), and the flange's R for θ
+        p, J, e, R = physics_rows(q, g, rot, w, flange=True)
     r = with_orientation(p + model.delta(q) - target, e)  # (B, 3), eq. 9; a pose's (B, 6): the orientation below
     q_next = q + min_norm_step(J, r, damping)
-    return torch.clamp(q_next, lo, hi), r.norm(dim=1)
+    if rot is None:
+        return torch.clamp(q_next, lo, hi), r.norm(dim=1)
+    cos = ((R @ rot.transpose(-1, -2)).diagonal(dim1=-2, dim2=-1).sum(-1) - 1) / 2      # (B,) cos θ
+    beyond = torch.sqrt((r[:, :3] ** 2).sum(1) + (2 * w - e.norm(dim=1)) ** 2)          # w (2 - sin θ)
+    return torch.clamp(q_next, lo, hi), torch.where(cos >= 0, r.norm(dim=1), beyond)
 
 
 def answers(q1, q2, r0, r1, tol_mm: float, workspace=None, limits=None) -> list[Result]:

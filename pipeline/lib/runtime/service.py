@@ -116,6 +116,7 @@ class Job:
     call: object = None            # its call (compensate_many's items share one); None: a call of its own
     call_deadline: float = math.inf   # time.monotonic() at which its call's budget ends
     rot: np.ndarray | None = None  # (9,) a pose's flange orientation (row-major, base frame); None: a position
+    rot_field: str = "target_rotvec"   # the request's field that gave rot (compensate_path's: rotvecs)
     future: Future = field(default_factory=Future)
     deadline: float = 0.0          # time.monotonic() at which its budget ends (set when it joins lm)
     err0: float = math.inf         # |r| at its start, mm (the controller path's)
@@ -233,10 +234,12 @@ class Service:
         return [j for lane in self.lanes.values() for j in lane.active]
 
     def submit(self, q: np.ndarray, target: np.ndarray, where: str = "", call=None,
-               call_deadline: float = math.inf, rot: np.ndarray | None = None) -> Future:
+               call_deadline: float = math.inf, rot: np.ndarray | None = None,
+               rot_field: str = "target_rotvec") -> Future:
         """Queue a checked request for the worker (rot (3, 3): a pose's flange orientation); its future holds
         the answer or a RequestError."""
-        job = Job(q, target, where, call, call_deadline, None if rot is None else np.asarray(rot, float).ravel())
+        job = Job(q, target, where, call, call_deadline, None if rot is None else np.asarray(rot, float).ravel(),
+                  rot_field)
         if self.closed.is_set():
             raise RequestError(f"{where}target_mm: the service stopped")
         self.queue.put(job)
@@ -361,7 +364,7 @@ class Service:
             where = f"points_mm: sample {k + 1} (arc {a:.1f} mm), "
             if time.monotonic() >= deadline:
                 raise RequestError(self._unsolved(where))
-            r = self.submit(q, x, where, call, deadline, rot=flange[k]).result()
+            r = self.submit(q, x, where, call, deadline, rot=flange[k], rot_field="rotvecs").result()
             q = np.array(r["q_rad"])
             rows.append([a, *x, *np.degrees(q), r["residual_mm"], 0, r["converged"],
                          r.get("orientation_residual_arcsec", np.nan), r["in_workspace"]])
@@ -528,12 +531,12 @@ class Service:
                 angle = orientation_angle(self.model.physics.geometry(), qi,
                                           torch.as_tensor(np.r_[job.target, job.rot][None], dtype=DTYPE))
                 arcsec = float(np.degrees(angle[0].item()) * 3600)   # the whole angle (|r[3:]| / w is sin θ: 0 at 180°)
-                field, said = "target_mm, target_rotvec", f"{np.linalg.norm(r[:3]):.1f} mm and {arcsec:.0f} arcsec"
+                field, said = f"target_mm, {job.rot_field}", f"{np.linalg.norm(r[:3]):.1f} mm and {arcsec:.0f} arcsec"
                 extra = {"orientation_residual_arcsec": arcsec}
                 if arcsec > 324000.0:                           # past 90°: a flange turned half round
                     job.future.set_exception(RequestError(
-                        f"{job.where}{field}: unreachable from q_rad (the flange's orientation {arcsec:.0f} arcsec "
-                        f"off after compensation: turned half round; start "
+                        f"{job.where}{field}: unreachable from q_rad (the flange's orientation {arcsec:.0f} arcsec, "
+                        f"{arcsec / 3600:.1f}°, off after compensation: beyond 90°, lm turns it no nearer; start "
                         "from joints nearer the target's orientation)"))
                     continue
             if e < self.tol or e <= self.unreachable:

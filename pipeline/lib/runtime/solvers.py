@@ -92,14 +92,16 @@ def pose_weight(cfg: dict) -> float:
     return cfg["tol_mm"] / np.radians(cfg["tol_arcsec"] / 3600)
 
 
-def physics_rows(q, g: dict, rot=None, w: float | None = None):
+def physics_rows(q, g: dict, rot=None, w: float | None = None, flange: bool = False):
     """The physics branch (geometry g) at q (B, 6), one FK pass: its marker position p (B, 3), the Jacobian a
     step solves with and the orientation's residual rows: J (B, 3, 6) and None; for a pose (rot (B, 3, 3), w)
-    `pose_jacobian`'s [J; w Jω] (B, 6, 6) and `pose_residual`'s rows w e (B, 3), to the bit."""
+    `pose_jacobian`'s [J; w Jω] (B, 6, 6) and `pose_residual`'s rows w e (B, 3), to the bit; flange: the
+    flange's R (B, 3, 3) fourth (a pose's)."""
     if rot is None:
         return *fk_jacobian(q, g), None
     p, J, R, Jw = fk_pose_jacobian(q, g)
-    return p, torch.cat([J, w * Jw], 1), w * rotation_error(R, rot)
+    rows = (p, torch.cat([J, w * Jw], 1), w * rotation_error(R, rot))
+    return (*rows, R) if flange else rows
 
 
 def with_orientation(r, e):
