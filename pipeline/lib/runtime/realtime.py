@@ -34,7 +34,7 @@ import numpy as np
 import torch
 
 from pipeline.lib.robot.kinematics import DTYPE
-from pipeline.lib.runtime.solvers import min_norm_step, physics_rows, with_orientation
+from pipeline.lib.runtime.solvers import cos_angle, min_norm_step, physics_rows, with_orientation
 
 DAMPING = 1e-9                                             # μ of the controller's chord steps (tiny, fixed)
 
@@ -111,7 +111,7 @@ def chord_step(model, q, target, lo, hi, damping, tcp_mm=None, rot=None, w=None)
     q_next = q + min_norm_step(J, r, damping)
     if rot is None:
         return torch.clamp(q_next, lo, hi), r.norm(dim=1)
-    cos = ((R @ rot.transpose(-1, -2)).diagonal(dim1=-2, dim2=-1).sum(-1) - 1) / 2      # (B,) cos θ
+    cos = cos_angle(R, rot)                                                           # (B,) cos θ
     beyond = torch.sqrt((r[:, :3] ** 2).sum(1) + (2 * w - e.norm(dim=1)) ** 2)          # w (2 - sin θ)
     return torch.clamp(q_next, lo, hi), torch.where(cos >= 0, r.norm(dim=1), beyond)
 

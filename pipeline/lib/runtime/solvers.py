@@ -132,8 +132,12 @@ def orientation_angle(g: dict, q, target):                 # (B, 6), (B, 12) -> 
     residual's |e| (`rotation_error`: sin θ, zero again at θ = 180°, so a flange turned half round would pass
     as reached): what `converged` and the reported orientation residual are judged by."""
     R, T = flange_rotations(q, g), target_rotations(target)
-    cos = ((R @ T.transpose(-1, -2)).diagonal(dim1=-2, dim2=-1).sum(-1) - 1) / 2      # (B,) cos θ
-    return torch.atan2(rotation_error(R, T).norm(dim=-1), cos)
+    return torch.atan2(rotation_error(R, T).norm(dim=-1), cos_angle(R, T))
+
+
+def cos_angle(R, T):                                       # (B, 3, 3) x2 -> (B,)
+    """cos θ of the rotation between R and T: (trace(R Tᵀ) - 1) / 2."""
+    return ((R @ T.transpose(-1, -2)).diagonal(dim1=-2, dim2=-1).sum(-1) - 1) / 2
 
 
 def pose_residual(r, q, g: dict, rot, w: float):
