@@ -525,3 +525,39 @@ def test_a_refusal_at_the_first_or_last_sample_says_so():
     last = pd.DataFrame([row(0.0, True), row(1.0, True), row(2.0, False)], columns=SOLVED).assign(in_workspace=True)
     said = refusal(last, 3, limits, 0.001, np.zeros(2), 0.5, 2.0, speeds)
     assert said.endswith("solved from sample 2's joints") and "0 samples" not in said, said
+
+
+def test_a_path_from_joints_in_another_configuration_is_refused_at_sample_1(path_server, in_trained_project, tmp_path,
+                                                                            capsys):
+    """A path of explicit poses starts from --start-deg. Joint 5 given mirrored (-25° for a first pose at
+    +25°): lm meets sample 1 through the wrist's singularity, another configuration than the arm's, and the
+    script's movej to it would turn joint 5 by 50°. Refused, nothing written (before: written); from joints
+    3° off, the same path is written. The service's compensate_path, called by a real client, the same."""
+    from scipy.spatial.transform import Rotation
+    from pipeline.lib.runtime.compensation import nominal_flange
+    from pipeline.lib.robot.kinematics import tool_rotation
+    params = in_trained_project
+    robot = load_robot(params["robot"])
+    q = np.array([10.0, -70.0, 100.0, -120.0, 25.0, 30.0])
+    start = nominal_position(params, q)
+    probe = (nominal_flange(q[None], theory_geometry(robot, read_json(FRAME_JSON)["tool_mm"]))
+             @ tool_rotation(served_model().physics.geometry()).numpy())
+    rv = Rotation.from_matrix(probe).as_rotvec()
+    src = write_path(tmp_path, [start, start + [0.0, 0.0, 10.0]], target_rx=rv[0, 0], target_ry=rv[0, 1],
+                     target_rz=rv[0, 2])
+    argv = [str(src), "--out", str(tmp_path / "o"), "--spacing", "5", "--allow-outside-workspace", "--start-deg"]
+    code, said = exit_code(path_command.main, argv + [*map(str, q + [0, 0, 0, 0, -50, 0])], capsys)
+    assert code == 1 and "sample 1 (arc 0.0 mm): another configuration than the given joints': the wrist flipped" \
+        in said, said
+    assert not (tmp_path / "o").exists()
+    table = path_command.run(argv + [*map(str, q + [3, -3, 3, -3, 3, -3])])
+    assert table.converged.all() and (tmp_path / "o" / "path.script").exists()
+    np.testing.assert_allclose(table[JCOMP_DEG].to_numpy()[0], q, atol=1.0)
+
+    c = path_server()                                   # the service refuses it as the path command does
+    points = [start.tolist(), (start + [0.0, 0.0, 10.0]).tolist()]
+    with pytest.raises(xmlrpc.client.Fault, match=r"sample 1 \(arc 0\.0 mm\): another configuration than the given "
+                       r"joints': the wrist flipped"):
+        c.compensate_path(np.radians(q + [0, 0, 0, 0, -50, 0]).tolist(), points, [], 5.0, 20.0, [rv[0].tolist()] * 2)
+    r = c.compensate_path(np.radians(q + [3, -3, 3, -3, 3, -3]).tolist(), points, [], 5.0, 20.0, [rv[0].tolist()] * 2)
+    np.testing.assert_allclose(np.degrees(r["q_rad"][0]), q, atol=1.0)

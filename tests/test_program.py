@@ -13,8 +13,8 @@ from pipeline.commands import plan, program
 from pipeline.lib.project.artifacts import load_points
 from pipeline.lib.project import writing
 from pipeline.lib.project.columns import JCOMP_DEG, JOINTS_DEG, TARGET, THEORY
-from pipeline.lib.robot.kinematics import DTYPE
-from pipeline.lib.robot.robots import load_robot
+from pipeline.lib.robot.kinematics import DTYPE, fk_numpy
+from pipeline.lib.robot.robots import load_robot, nominal_robot
 from pipeline.lib.runtime.waypoints import read_waypoints
 
 
@@ -450,3 +450,62 @@ def test_a_waypoint_near_the_wrist_singularity_is_not_swung_into_another_configu
     assert script.count("movej(") == 1 and "# S: NOT REACHED" in script and "joint 4 turned" in script
     kept = table.point_id != "S"
     assert (np.abs(table[JCOMP_DEG].to_numpy() - table[JOINTS_DEG].to_numpy())[kept.to_numpy()] < 5).all()
+
+
+def test_the_configuration_is_named_by_its_singularities_by_hand():
+    """poses.configuration on the nominal UR5: the wrist is sin q5's sign, the elbow sin q3's, the shoulder the
+    side of joint 2's axis the wrist centre lies on (arm upright at q2 = -90°: leaning forward or back). The
+    wrist-flipped twin of a pose (scipy from q4 + 180°, -q5, q6 + 180°) is the same flange pose, another one;
+    another_configuration names it, and a joint turned more than 180°, but not a crossing within 5° (a
+    compensation at the singularity) nor 20° on joint 1 (the same configuration)."""
+    from scipy.optimize import least_squares
+    from pipeline.lib.robot.kinematics import link_frames, nominal_geometry
+    from pipeline.lib.robot.poses import configuration
+    from pipeline.lib.runtime.waypoints import another_configuration
+    g = nominal_geometry(nominal_robot("ur5"))
+    q = np.array([10.0, -70.0, 100.0, -120.0, 40.0, 30.0])
+    pose = lambda x: link_frames(torch.as_tensor(np.radians(np.atleast_2d(x))), g)[:, 6].numpy()[0]
+    met = lambda x: np.r_[pose(x)[:3, 3] - pose(q)[:3, 3], 1000 * (pose(x)[:3, :3] - pose(q)[:3, :3]).ravel()]
+    flip = least_squares(met, q + [0, 0, 0, 180, -80, 180], method="lm", xtol=1e-15).x    # UR's wrist is not
+    np.testing.assert_allclose(pose(flip), pose(q), atol=1e-9)     # spherical: joints 2-4 move too; same pose
+    upright = np.array([[0, -80, 0, -90, 40, 0], [0, -100, 0, -90, 40, 0], [0, -90, 60, -90, 40, 0],
+                        [0, -90, -60, -90, 40, 0], [0, -90, 60, -90, -40, 0]], float)
+    s = configuration(upright, g)
+    assert s[0, 0] == -s[1, 0] and s[2, 1] == -s[3, 1] and s[2, 2] == -s[4, 2]
+    assert (s[2, :2] == s[4, :2]).all() and s[0, 1:].tolist() == s[1, 1:].tolist()
+    turned = q + [0, 0, 0, 0, 0, 200]
+    crossing = (q + [0, 0, 0, 0, -39, 0], q + [0, 0, 0, 0, -41, 0])                   # joint 5: 1° -> -1°
+    why = another_configuration(np.stack([q, q, crossing[0], q]), np.stack([flip, turned, crossing[1], q + [20, 0, 0, 0, 0, 0]]), g)
+    assert "configuration than the given joints': the wrist flipped" in why[0] and "joint 5 40.0° -> -" in why[0]
+    assert "joint 6 turned 200.0° (the same angle lies 160.0° the other way round)" in why[1], why
+    assert why[2:] == [None, None], why
+
+
+def test_a_pose_target_solved_into_another_configuration_never_becomes_a_move(in_trained_project, tmp_path):
+    """An explicit target's joints are where to start from. Given the joints with joint 5 mirrored (-25° for
+    a pose at +25°), lm reaches the pose by turning joint 5 through the wrist's singularity: the target is
+    met, in another configuration than the program's, and a movej there would turn joint 5 50° from the
+    joints the program gave. Not a move (before: written as a move, 'residual 0.0000 mm'); the same target from
+    joints 3° off is."""
+    from scipy.spatial.transform import Rotation
+    from pipeline.lib.runtime.compensation import nominal_flange
+    from pipeline.lib.project.config import read_json
+    from pipeline.lib.robot.geometry import theory_geometry
+    from pipeline.lib.robot.kinematics import tool_rotation
+    robot = load_robot(in_trained_project["robot"])
+    nominal = theory_geometry(robot, read_json("reports/frame.json")["tool_mm"])
+    q = np.array([[10.0, -70.0, 100.0, -120.0, 25.0, 30.0]] * 2)
+    given = q + [[0, 0, 0, 0, -50, 0], [3, -3, 3, -3, 3, -3]]
+    probe = nominal_flange(q, nominal) @ tool_rotation(served_model().physics.geometry()).numpy()   # its frame
+    rv = Rotation.from_matrix(probe).as_rotvec()
+    p = fk_numpy(q, robot, nominal)
+    src = tmp_path / "far.csv"
+    pd.DataFrame(given, columns=JOINTS_DEG).assign(point_id=["FLIP", "NEAR"], **dict(zip(TARGET, p.T)),
+                                                  **dict(zip(["target_rx", "target_ry", "target_rz"], rv.T))
+                                                  ).to_csv(src, index=False)
+    table = program.run([str(src), "--comment-out-unreached"]).set_index("point_id")
+    assert table.converged.all() and table.orientation_residual_arcsec.max() < 1.0      # both reached
+    np.testing.assert_allclose(table.loc["FLIP", JCOMP_DEG].to_numpy(float)[4], 25.0, atol=1.0)   # joint 5 at +25°
+    script = (tmp_path / "far_comp.script").read_text()
+    assert script.count("movej(") == 1 and "# FLIP: NOT REACHED" in script and "the wrist flipped" in script
+    assert "# NEAR: residual" in script

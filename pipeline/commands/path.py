@@ -30,7 +30,9 @@ puts its joint-space middle farther than `path.chord_mm` from the path (--chord)
 from the previous sample's solution (lib/runtime/pathsolve.py). Safe by construction: only numbers formatted
 here reach the script; a sample not reached, beyond the joint limits, a joint step faster than the joint's
 speed limit at the path's speed, or a step whose joint-space middle leaves the path by more than
-`path.max_deviation_mm` (a branch flip), and a sample outside the trained workspace (unless
+`path.max_deviation_mm` (a branch flip), sample 1 in another configuration than the start joints' (a
+shoulder, elbow or wrist flipped, or a joint turned over 180°; for an offline path, any joint turned over
+5°: waypoints.start_refusal), and a sample outside the trained workspace (unless
 --allow-outside-workspace), refuse the path naming the sample (exit 1), and nothing is written; the
 two files are written together, never over the input. Bad input exits 2 naming file, row and column.
 Needs a finished `dvc repro` (model, workspace, frame).
@@ -50,7 +52,7 @@ from pipeline.lib.project.columns import JCOMP_DEG
 from pipeline.lib.project.config import for_stage, load_params, logger, read_json
 from pipeline.lib.project.writing import check_outputs, csv_text, write_together
 from pipeline.lib.robot.geometry import theory_geometry
-from pipeline.lib.robot.kinematics import fk_numpy
+from pipeline.lib.robot.kinematics import fk_numpy, nominal_geometry
 from pipeline.lib.robot.robots import load_robot
 from pipeline.lib.robot.tcp import at_tcp
 from pipeline.lib.robot.urdf import tcp_transforms
@@ -58,7 +60,7 @@ from pipeline.lib.runtime.compensation import reach_mm
 from pipeline.lib.runtime.paths import n_samples, read_path, resample, rotations_at
 from pipeline.lib.runtime.pathsolve import (beyond_reach, deviation, finish, joint_speeds, model_position,
                                             refine, refusal, servo_times, solve_path, urscript)
-from pipeline.lib.runtime.waypoints import flange_targets, too_far
+from pipeline.lib.runtime.waypoints import flange_targets, start_refusal
 
 log = logger(__name__)
 PARAMS = ("robot", "compensate", "program", "path")
@@ -159,9 +161,7 @@ def run(argv=None) -> pd.DataFrame:
     dev = deviation(model_position(model), table[JCOMP_DEG].to_numpy(), found.segs)
     why = refusal(table, n, robot.limits_deg, p["compensate"]["tol_mm"], dev, cfg["max_deviation_mm"],
                   cfg["speed_mm_s"], speeds, None if a.allow_outside_workspace else workspace)
-    if not why and found.offline:                    # sample 1 is the first row's joints' nominal pose: Δθ bounded
-        jump = too_far(q0[None], table[JCOMP_DEG].to_numpy()[:1])[0]
-        why = None if jump is None else f"sample 1 (arc 0.0 mm): {jump}"
+    why = why or start_refusal(q0, table[JCOMP_DEG].to_numpy()[0], nominal_geometry(robot), found.offline)
     if why:
         raise Refused(f"{src}: {why}; nothing written")
     out.mkdir(parents=True, exist_ok=True)

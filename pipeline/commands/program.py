@@ -21,8 +21,11 @@ The waypoints are read, checked and compensated by lib/runtime/waypoints.py (sha
 Safe by construction (docs/robot-cell.md):
   - nothing from the file reaches the URScript but numbers formatted here and point ids that
     match ID_PATTERN (others are refused with file, row and column);
-  - a waypoint that did not converge, or whose answer lies outside the joint limits, never becomes
-    a move: the program is refused (exit 1, those waypoints listed, nothing written), or, with
+  - a waypoint that did not converge, whose answer lies outside the joint limits, or whose answer is
+    not a compensation of its joints (offline: a joint turned over 5°; with targets: another
+    configuration than the given joints', a shoulder, elbow or wrist flipped or a joint turned over
+    180°: waypoints.unreached) never becomes a move: the program is refused (exit 1, those waypoints
+    listed, nothing written), or, with
     --comment-out-unreached, written with each such waypoint as a comment and no move;
   - angles that look like radians in the *_deg columns are refused, as ingest refuses them;
   - waypoints outside the trained workspace are listed in the summary printed at the end;

@@ -18,6 +18,9 @@ and, when given:
     tracker_mm     (3,)      the marker's side: seen from the base axis, the flange's azimuth lies within
                              `tracker_side_deg` of the tracker's (no rule when the tracker stands within
                              `column_mm` of the axis, straight above or below the arm)
+
+`configuration(q, geometry)` names which of the arm's eight configurations (UR's: shoulder, elbow, wrist)
+a pose is in; `waypoints.another_configuration` refuses an answer that left its seed's.
 """
 import numpy as np
 import torch
@@ -34,6 +37,22 @@ def origins(q_deg: np.ndarray, geometry: dict) -> np.ndarray:
     with torch.no_grad():
         F = link_frames(torch.as_tensor(np.radians(np.asarray(q_deg, float)), dtype=DTYPE), geometry).numpy()
     return F[:, :, :3, 3]
+
+
+CONFIGURATION = ("shoulder", "elbow", "wrist")
+
+
+def configuration(q_deg: np.ndarray, geometry: dict) -> np.ndarray:
+    """The signs (n, 3) of a pose's configuration on the chain `geometry`, one column per CONFIGURATION:
+    shoulder: the wrist centre o_5 ahead of joint 2's axis or behind it (its coordinate along frame 1's x);
+    elbow: sin q3; wrist: sin q5 (q plus the chain's offsets). Each changes sign only through its singularity
+    (the wrist centre over the base axis, the arm stretched or folded, joints 4 and 6 aligned)."""
+    q = np.atleast_2d(np.asarray(q_deg, float))
+    with torch.no_grad():
+        F = link_frames(torch.as_tensor(np.radians(q), dtype=DTYPE), geometry).numpy()    # (n, 7, 4, 4)
+    ahead = np.einsum("ni,ni->n", F[:, 5, :3, 3] - F[:, 1, :3, 3], F[:, 1, :3, 0])
+    theta = np.radians(q) + np.asarray(geometry["offset"], float)                          # (n, 6)
+    return np.sign(np.stack([ahead, np.sin(theta[:, 2]), np.sin(theta[:, 4])], 1))
 
 
 def azimuth(p: np.ndarray) -> np.ndarray:

@@ -49,6 +49,7 @@ from pipeline.lib.runtime.pathsolve import (SOLVED, beyond_reach, deviation, mod
                                             servo_times)
 from pipeline.lib.runtime.realtime import Realtime, answers
 from pipeline.lib.runtime.solvers import LAM0, lm_jacobian, lm_step, orientation_angle, pose_weight, residual
+from pipeline.lib.runtime.waypoints import start_refusal
 
 
 METRES_MM = 5.0              # an unreachable target nearer the base origin than this was likely sent in metres
@@ -312,7 +313,8 @@ class Service:
         """A TCP path (points_mm, moves as the path command's file: movel, movep, via + movec; [] every
         move movel) resampled at most spacing_mm apart, each sample solved from the previous one's answer, the
         first from q_rad, in order, within one call budget (`call_budget_ms`); refused as the path command
-        refuses (lib/pathsolve.refusal; outside the trained workspace: flagged, not refused), else
+        refuses (lib/pathsolve.refusal, and sample 1 in another configuration than q_rad's:
+        waypoints.start_refusal; outside the trained workspace: flagged, not refused), else
         {q_rad, target_mm, arc_mm, t_s (servoj's times at speed_mm_s), residual_mm, in_workspace: per sample,
         all_in_workspace}. rotvecs, one per point (as compensate_pose's target_rotvec; [] or left out: none): the
         orientation held too, slerped between the points (paths.rotations_at), six equations a sample in the
@@ -372,8 +374,9 @@ class Service:
                 break
         table = pd.DataFrame(rows, columns=SOLVED + ["in_workspace"])       # the path command's, and in_workspace
         qd = table[JCOMP_DEG].to_numpy()
-        why = refusal(table, n, self.limits_deg, self.tol, deviation(self.position, qd, segs), self.max_deviation,
-                      speed, self.joint_speeds)
+        why = (refusal(table, n, self.limits_deg, self.tol, deviation(self.position, qd, segs), self.max_deviation,
+                       speed, self.joint_speeds)
+               or start_refusal(np.degrees(self.joints(q_rad)), qd[0], self.model.physics.geometry(), offline=False))
         if why:
             raise RequestError(f"points_mm: {why}")
         return {"q_rad": np.radians(qd).tolist(), "target_mm": targets.tolist(), "arc_mm": arc.tolist(),

@@ -9,7 +9,8 @@ pipeline.commands.plan`) and the benchmarks.
                                      rule, readers.shape_problems), a bad number, a duplicate id
     compensate_program(df, ...)      the Δθ table of the waypoints (compensation.delta_table)
     unreached(table, robot, offline) the waypoints that must not become moves, and why (offline: a Δθ over
-                                     MAX_COMPENSATION_DEG too)
+                                     MAX_COMPENSATION_DEG too; with targets: an answer in another
+                                     configuration than its joints', another_configuration)
     ID_PATTERN                       what a point id may be: it reaches a URScript comment
 """
 import re
@@ -24,7 +25,8 @@ from pipeline.lib.project.config import logger
 from pipeline.lib.reading.readers import (AUTO_JOINTS, IngestError, find_column, headers_found,
                                           looks_like_radians, parse_number, parse_column, read_table,
                                           shape_problems, unit_of)
-from pipeline.lib.robot.kinematics import TOOL_ROT, fk_numpy, tool_rotation
+from pipeline.lib.robot.kinematics import TOOL_ROT, fk_numpy, nominal_geometry, tool_rotation
+from pipeline.lib.robot.poses import CONFIGURATION, configuration
 from pipeline.lib.runtime.compensation import (delta_table, nominal_flange, orientation_targets, reach_mm,
                                                solve)
 from pipeline.lib.runtime.paths import ROTVEC, check_rotvecs
@@ -44,6 +46,35 @@ def too_far(q0_deg: np.ndarray, q_deg: np.ndarray, max_deg: float = MAX_COMPENSA
             f"joint {int(row.argmax()) + 1} turned {row.max():.1f}° from the programmed joints (more than "
             f"{max_deg:g}°: another configuration, not a compensation; joint 5 at {q[4]:.2f}°: near the wrist's "
             "singularity?)" for row, q in zip(d, np.asarray(q0_deg, float))]
+
+
+def another_configuration(q0_deg: np.ndarray, q_deg: np.ndarray, geometry: dict) -> list:
+    """Per row of joints q0 (n, 6) deg and the answer q (n, 6) solved from them for an explicit target: why q is
+    not in q0's configuration, or None. Another configuration: a joint turned more than 180° (the same angle
+    lies nearer the other way round), or a shoulder, elbow or wrist flipped (poses.configuration) with a joint
+    turned more than MAX_COMPENSATION_DEG (within it, q0 lay at that singularity: no swing)."""
+    q0, q = np.atleast_2d(np.asarray(q0_deg, float)), np.atleast_2d(np.asarray(q_deg, float))
+    d = np.abs(q - q0)
+    flipped = configuration(q0, geometry) != configuration(q, geometry)                 # (n, 3)
+    out = []
+    for row, f, a, b in zip(d, flipped, q0, q):
+        j = int(row.argmax())
+        why = [f"the {CONFIGURATION[k]} flipped" for k in np.flatnonzero(f)] if row[j] > MAX_COMPENSATION_DEG else []
+        why += [f"joint {j + 1} turned {row[j]:.1f}° (the same angle lies {360.0 - row[j]:.1f}° the other way "
+                "round)"] if row[j] > 180.0 else []
+        out.append(None if not why else f"another configuration than the given joints': {', '.join(why)} "
+                   f"(joint {j + 1} turned {row[j]:.1f}°, joint 5 {a[4]:.1f}° -> {b[4]:.1f}°): give joints "
+                   "nearer the target")
+    return out
+
+
+def start_refusal(q0_deg: np.ndarray, first_deg: np.ndarray, geometry: dict, offline: bool) -> str | None:
+    """Why a path's sample 1, solved from the start joints q0 (6,) deg to first (6,) deg, must not be driven
+    to, or None: offline (the start's own nominal pose), a Δθ over MAX_COMPENSATION_DEG (too_far); else
+    another configuration than the start's (another_configuration)."""
+    q0, first = np.asarray(q0_deg, float)[None], np.asarray(first_deg, float)[None]
+    why = (too_far(q0, first) if offline else another_configuration(q0, first, geometry))[0]
+    return None if why is None else f"sample 1 (arc 0.0 mm): {why}"
 
 
 def joint_columns(header: list, path) -> tuple[list, list]:
@@ -171,9 +202,11 @@ def compensate_program(df: pd.DataFrame, model, workspace, robot, nominal: dict,
 
 def unreached(table: pd.DataFrame, robot, offline: bool = False) -> dict:
     """{point_id: why} for every waypoint that must not become a move; offline (the targets are the nominal
-    poses of the waypoints' joints): also an answer that turned a joint more than MAX_COMPENSATION_DEG."""
-    beyond = robot.check_joints(table[JCOMP_DEG].to_numpy()).any(1)
-    far = too_far(table[JOINTS_DEG].to_numpy(), table[JCOMP_DEG].to_numpy()) if offline else [None] * len(table)
+    poses of the waypoints' joints): also an answer that turned a joint more than MAX_COMPENSATION_DEG; with
+    explicit targets: also an answer in another configuration than its joints' (another_configuration)."""
+    q0, q = table[JOINTS_DEG].to_numpy(), table[JCOMP_DEG].to_numpy()
+    beyond = robot.check_joints(q).any(1)
+    far = too_far(q0, q) if offline else another_configuration(q0, q, nominal_geometry(robot))
     return {r.point_id: (f"residual {r.residual_mm:.4f} mm"
                          + (f", orientation {r.orientation_residual_arcsec:.2f} arcsec"
                             if np.isfinite(r.orientation_residual_arcsec) else "")
