@@ -491,3 +491,35 @@ def test_optimise_makes_the_exporters_graph_at_less_cost(tmp_path):
     assert all(np.array_equal(a, b) for a, b in zip(*answers, strict=True))
     with torch.no_grad():
         assert np.allclose(answers[1][0], m(torch.as_tensor(x))[0].numpy(), atol=1e-6)
+
+
+def test_a_model_file_whose_writing_fails_leaves_the_one_before(tmp_path, monkeypatch):
+    """A checkpoint and an ONNX graph, the files the robot cell's commands load, are written whole or not at
+    all: a save that fails halfway (a config that cannot be pickled; a disk full halfway through the graph)
+    leaves the file that was there byte for byte, and no temporary file (before: the checkpoint was cut to
+    a torch archive that does not load, the graph to its first 1000 bytes). Written again, the same bytes:
+    the temporary folder keeps the file's name, which torch.save writes into the archive."""
+    import onnx
+    from pipeline.lib.learning.checkpoint import save_model
+    cfg = load_params(Path(__file__).parents[1] / "params.yaml")["model"]
+    model = make_model(cfg, nominal_geometry(nominal_robot("ur5")))
+    path = tmp_path / "boter.pt"
+    save_model(model, path, cfg)
+    before = path.read_bytes()
+    with pytest.raises(Exception):
+        save_model(model, path, {**cfg, "unpicklable": lambda: 0})
+    assert path.read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == ["boter.pt"]
+    assert isinstance(load_model(path), type(model))
+    save_model(model, path, cfg)
+    assert path.read_bytes() == before
+    graph = tmp_path / "model.onnx"
+    export_onnx(model, graph)
+    first = graph.read_bytes()
+
+    def disk_full(proto, where, **kw):                 # half the graph written, then the disk is full
+        Path(where).write_bytes(proto.SerializeToString()[:1000])
+        raise OSError(28, "No space left on device")
+    monkeypatch.setattr(onnx, "save_model", disk_full)
+    with pytest.raises(OSError, match="No space left"):
+        export_onnx(model, graph)
+    assert graph.read_bytes() == first and sorted(p.name for p in tmp_path.iterdir()) == ["boter.pt", "model.onnx"]

@@ -60,6 +60,7 @@ from pipeline.lib.project.artifacts import (CALIBRATED_GEOMETRY, CONTROLLER_ONNX
 from pipeline.lib.project.cli import one_line, stage_main
 from pipeline.lib.project.columns import JOINTS_DEG, THEORY
 from pipeline.lib.project.config import for_stage, logger, read_json, write_json
+from pipeline.lib.project.writing import write_file
 from pipeline.lib.robot.geometry import Calibration, theory_geometry, with_parts
 from pipeline.lib.robot.identify import identify
 from pipeline.lib.robot.kinematics import DTYPE, RIGID_KEYS, TOOL_ROT, fk, fk_frames, fk_numpy, fk_pose
@@ -144,7 +145,7 @@ def run(params: dict, root: Path = HERE) -> dict:
              fit["mean_mm"], fit["max_mm"], len(pts))
 
     text = to_urdf(g, robot, tcp=p["robot"]["tcp"])
-    (root / URDF_FILE).write_text(text)
+    write_file(root / URDF_FILE, text)
     p_urdf, R_urdf = urdf_poses(text, q.numpy())
     dev = np.linalg.norm(p_urdf - p_rigid, axis=1)
     summary["urdf"] = {"file": str(URDF_FILE), "checked_with": f"pinocchio {pin.__version__}",
@@ -159,7 +160,7 @@ def run(params: dict, root: Path = HERE) -> dict:
 
     if robot.name in TABLES:
         kin = ur_kinematics(g, p["robot"]["tcp"])
-        (root / UR_YAML).write_text(yaml.safe_dump(kin, sort_keys=False))
+        write_file(root / UR_YAML, yaml.safe_dump(kin, sort_keys=False))
         truth = base_transform(g) @ flange6 @ np.linalg.inv(joint_origins(g)[1])   # joint 6's frame
         poses = ur_yaml_poses(kin, q.numpy())
         dev = np.linalg.norm(poses[:, :3, 3] - truth[:, :3, 3], axis=1)

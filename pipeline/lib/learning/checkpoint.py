@@ -7,6 +7,7 @@
 import torch
 
 from pipeline.lib.learning.model import DNN, BoTER, Ensemble, check_config
+from pipeline.lib.project.writing import write_by
 from pipeline.lib.robot.errormaps import MAP_KEYS
 from pipeline.lib.robot.kinematics import RIGID_KEYS
 
@@ -26,7 +27,8 @@ def save_model(model, path, cfg: dict) -> None:
     """A checkpoint that carries its own config: {"config": the `model:` section, "members": K,
     "state_dict"} (the physics branch's geometry and the training poses are buffers of the state)."""
     members = getattr(model, "n_members", 1)
-    torch.save({"config": dict(cfg), "members": members, "state_dict": model.state_dict()}, path)
+    ckpt = {"config": dict(cfg), "members": members, "state_dict": model.state_dict()}
+    write_by(path, lambda p: torch.save(ckpt, p))                  # whole or not at all
 
 
 def load_model(path) -> BoTER | Ensemble:

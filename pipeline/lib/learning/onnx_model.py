@@ -44,6 +44,7 @@ from torch import nn
 
 from pipeline.lib.learning.model import Ensemble, PhysicsOnly
 from pipeline.lib.project.config import logger
+from pipeline.lib.project.writing import write_by
 from pipeline.lib.robot.kinematics import DTYPE, fk_pose
 from pipeline.lib.runtime.realtime import DAMPING, Result, answers, two_steps
 from pipeline.lib.runtime.solvers import lm_keep
@@ -181,12 +182,12 @@ def _export(module, args, inputs, outputs, dynamic):
 
 def save(graph, path) -> None:
     """An onnx_ir Model to path without the exporter's annotations (strip_annotations), as one self-contained
-    file."""
+    file, whole or not at all."""
     import onnx
     import onnx_ir as ir
     proto = ir.serde.serialize_model(graph)
     strip_annotations(proto)
-    onnx.save_model(proto, str(path), save_as_external_data=False)
+    write_by(path, lambda p: onnx.save_model(proto, str(p), save_as_external_data=False))
 
 
 def optimise(model) -> None:

@@ -15,6 +15,7 @@ import numpy as np
 import yaml
 
 from pipeline.lib.project.artifacts import PARAMS_FILE
+from pipeline.lib.project.writing import write_file
 
 # The keys of every section (names only; the values live in params.yaml).
 SECTIONS = {
@@ -405,9 +406,8 @@ def json_text(obj) -> str:
 
 
 def write_json(path: Path | str, obj) -> None:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json_text(obj))
+    """obj as JSON (json_text) at path, whole or not at all."""
+    write_file(path, json_text(obj))
 
 
 TIMING_KEYS = ("seconds", "seconds_per_epoch", "ms_per_point")   # wall-clock: never in a hashed output

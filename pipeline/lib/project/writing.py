@@ -1,6 +1,9 @@
 """Files written whole or not at all, never over an input (docs/robot-cell.md, "Safe by construction").
 
     write_together({path: text or bytes, ...}, inputs=[...])   every file, or none of them
+    write_file(path, text or bytes)                             one file, whole or not at all
+    write_by(path, save)                                        a file save(path) writes itself (torch.save,
+                                                                onnx.save_model), whole or not at all
     csv_text(df, float_format)                                  df.to_csv(index=False, ...)'s text, fast
 
 Each file goes to a temporary file beside it first; only when every one is written are they renamed
@@ -63,6 +66,28 @@ def write_together(files: dict, inputs=()) -> None:
     finally:
         for tmp in temps.values():
             Path(tmp).unlink(missing_ok=True)
+
+
+def write_file(path, data) -> None:
+    """One {path: str | bytes}, whole or not at all (write_together), its folder made."""
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    write_together({Path(path): data})
+
+
+def write_by(path, save) -> None:
+    """save(p) writes a file at p, whole or not at all at path: p has path's name in a new folder beside it
+    (torch.save names its archive's folder after the file: the same bytes), renamed into place once written."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    folder = tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.")
+    try:
+        tmp = Path(folder) / path.name
+        save(tmp)
+        with open(tmp, "rb") as f:
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
 
 
 def replace_all(temps: dict) -> None:

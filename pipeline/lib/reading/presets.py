@@ -17,6 +17,8 @@ from pathlib import Path
 
 import yaml
 
+from pipeline.lib.project.writing import write_file
+
 PRESETS = Path(__file__).resolve().parents[3] / "data" / "presets"
 
 
@@ -126,5 +128,5 @@ def apply_preset(name_or_path, params_path="params.yaml") -> list:
     preset = load_preset(name_or_path)
     diff = changes(yaml.safe_load(text) or {}, deep_merge(yaml.safe_load(text) or {}, preset))
     if diff:
-        path.write_text(render(text, preset))
+        write_file(path, render(text, preset))
     return diff
