@@ -165,3 +165,51 @@ def test_a_campaign_too_small_for_every_split_stops_the_split_stage_naming_it(tm
                                          r"test split is empty"):
         split.run(copy.deepcopy(PARAMS))
     assert not (tmp_path / "data/interim/split.parquet").exists()
+
+
+def test_a_pose_measured_again_is_never_split_across_train_and_test(tmp_path, monkeypatch):
+    """IPA's Series_B measured 290 of its joint configurations twice (within 0.005°, re-measured 0.007-0.026 mm
+    apart): drawn row by row, 55 of its 149 test points were poses also trained on. The split draws over
+    poses (splits.repeats): here 40 of 200 random poses measured again 0.003° off all land in one split with
+    their first measurement, and split.json counts them. A campaign without repeats keeps the paper's split."""
+    from pipeline.lib.learning.splits import repeats, split_indices
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "data/interim").mkdir(parents=True)
+    q = np.random.default_rng(3).uniform(-170, 170, (200, 6))
+    again = np.vstack([q, q[:40] + 0.003])                             # rows 200..239 repeat rows 0..39
+    for j, (name, joints) in enumerate((("plain", q), ("again", again))):
+        pd.DataFrame({"point_id": [f"{name}{i}" for i in range(len(joints))], "campaign": "main",
+                      **{f"j{k + 1}_deg": joints[:, k] for k in range(6)}}).to_parquet("data/interim/points.parquet")
+        summary = split.run(copy.deepcopy(PARAMS))
+        got = pd.read_parquet("data/interim/split.parquet").split.to_numpy()
+        if name == "plain":                                            # the paper's split, row by row
+            want = np.empty(200, object)
+            for k, rows in split_indices(200, [0.8, 0.1, 0.1], 7).items():
+                want[rows] = k
+            assert (got == want).all() and summary["repeated_poses"] == {"main": {"rows": 0, "poses": 0}}
+        else:
+            assert (got[:40] == got[200:]).all(), np.flatnonzero(got[:40] != got[200:])
+            assert summary["repeated_poses"] == {"main": {"rows": 80, "poses": 40}}
+            assert sum(summary["counts"].values()) == 240 and set(got) == {"train", "val", "test"}
+    assert (repeats(again)[200:] == np.arange(40)).all() and repeats(again).max() == 199
+
+
+def test_series_b_repeats_share_a_split():
+    """The real Series_B (skipped where ../shared/datasets is absent): 580 rows are 290 poses measured twice;
+    none of its test points is a pose trained on, where row by row 55 were."""
+    from pipeline.lib.learning.splits import repeats, split_groups, split_indices
+    table = Path(__file__).resolve().parents[2] / "shared/datasets/ipa-ur10/Series_B/measurements_joint_configurations.csv"
+    if not table.exists():
+        pytest.skip(f"dataset ipa-ur10 not present at {table}")
+    joints = ["shoulder_pan_joint", "shoulder_lift_joint", "elbow_joint", "wrist_1_joint", "wrist_2_joint",
+              "wrist_3_joint"]
+    q = np.degrees(pd.read_csv(table, sep=";", decimal=",")[joints].to_numpy(float))
+    g = repeats(q)
+    sizes = np.bincount(g)
+    assert len(q) == 1495 and sizes[sizes > 1].sum() == 580 and (sizes > 1).sum() == 290 and sizes.max() == 2
+
+    def trained_in_test(idx):
+        trained = set(g[idx["train"]])
+        return sum(1 for r in idx["test"] if sizes[g[r]] > 1 and g[r] in trained)
+    assert trained_in_test(split_indices(len(q), [0.8, 0.1, 0.1], 7)) == 55
+    assert trained_in_test(split_groups(g, [0.8, 0.1, 0.1], 7)) == 0

@@ -2,7 +2,8 @@
 
 Several training campaigns: each campaign is split on its own (8:1:1, seed 7,
 in its table order), so every campaign has test points and a campaign's split
-does not change when another campaign is added. One campaign: the paper's split.
+does not change when another campaign is added. One campaign: the paper's split. A pose measured again
+(joints within splits.SAME_POSE_DEG) is one pose: its rows share a split (split.json's `repeated_poses`).
 
 With `split.holdout` (a development check of extrapolation), the poses of a region of joint space
 (splits.region: every listed joint above its quantile) are held out first, split "holdout": nothing
@@ -15,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from pipeline.lib.learning.splits import region, split_indices
+from pipeline.lib.learning.splits import SAME_POSE_DEG, region, repeats, split_groups
 from pipeline.lib.project.artifacts import HERE, POINTS_TABLE, SPLIT_JSON, SPLIT_TABLE
 from pipeline.lib.project.cli import one_line, stage_main
 from pipeline.lib.project.columns import CAMPAIGN, JOINTS_DEG, SPLITS
@@ -30,13 +31,14 @@ def run(params: dict, root: Path = HERE) -> dict:
     cfg = for_stage(params, PARAMS)["split"]
     pts = pd.read_parquet(root / POINTS_TABLE, columns=["point_id", CAMPAIGN] + JOINTS_DEG)
     split = pd.Series("", index=pts.index)
-    per = {}
+    per, repeated = {}, {}
     for campaign in pts[CAMPAIGN].unique():
         rows = np.flatnonzero(pts[CAMPAIGN] == campaign)                           # positions, table order
         held = region(pts[JOINTS_DEG].to_numpy()[rows], cfg["holdout"])
         split.iloc[rows[held]] = "holdout"
         rows = rows[~held]
-        idx = split_indices(len(rows), cfg["fractions"], cfg["seed"])
+        groups = repeats(pts[JOINTS_DEG].to_numpy()[rows])        # a pose measured again: one split
+        idx = split_groups(groups, cfg["fractions"], cfg["seed"])
         empty = [k for k, v in idx.items() if not v]
         if empty:                                  # train, evaluate and the report need every split
             held_note = f" ({int(held.sum())} more held out by split.holdout)" if held.any() else ""
@@ -49,9 +51,14 @@ def run(params: dict, root: Path = HERE) -> dict:
         for name, r in idx.items():
             split.iloc[rows[r]] = name
         per[campaign] = {**{k: len(v) for k, v in idx.items()}, "holdout": int(held.sum())}
+        sizes = np.bincount(groups) if len(groups) else np.zeros(0, int)
+        repeated[campaign] = {"rows": int(sizes[sizes > 1].sum()), "poses": int((sizes > 1).sum())}
+        if repeated[campaign]["rows"]:
+            log.info("campaign %s: %d rows are %d poses measured again (joints within %g°): each pose's rows in "
+                     "one split", campaign, repeated[campaign]["rows"], repeated[campaign]["poses"], SAME_POSE_DEG)
     summary = {"seed": cfg["seed"], "fractions": cfg["fractions"], "holdout": cfg["holdout"],
                "counts": {k: sum(c[k] for c in per.values()) for k in SPLITS},
-               "per_campaign": per}
+               "per_campaign": per, "same_pose_deg": SAME_POSE_DEG, "repeated_poses": repeated}
     for path in (root / SPLIT_TABLE, root / SPLIT_JSON):
         path.parent.mkdir(parents=True, exist_ok=True)
     table = pd.DataFrame({"point_id": pts["point_id"], "split": split}).to_parquet(None, index=False)

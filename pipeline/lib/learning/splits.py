@@ -2,9 +2,16 @@
 
 `random_split(range(n), [0.8, 0.1, 0.1], generator=Generator().manual_seed(7))`
 gives 580/72/72 for 724 rows, as in the paper.
+
+A pose measured again (its joints within SAME_POSE_DEG of another row's on every joint) is one pose: the
+split draws over such groups (`repeats`), so its measurements share a split and a test point is never a
+pose trained on. A campaign without repeats (the twin's, Series_C, gtpn-ur5) splits as the paper's.
 """
 import numpy as np
 import torch
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
 from torch.utils.data import random_split
 
 from pipeline.lib.project.columns import RANDOM_SPLITS
@@ -17,6 +24,34 @@ def region(q_deg: np.ndarray, cfg: dict | None) -> np.ndarray:
         return np.zeros(len(q_deg), bool)
     cols = np.asarray(q_deg, float)[:, [j - 1 for j in cfg["joints"]]]
     return (cols > np.quantile(cols, cfg["quantile"], axis=0)).all(1)
+
+
+SAME_POSE_DEG = 0.01   # IPA Series_B's repeated joint configurations lie within 0.005° (re-measured 0.007-0.026 mm
+                       # apart); distinct random poses are degrees apart
+
+
+def repeats(q_deg: np.ndarray) -> np.ndarray:
+    """A group number per row (n,): rows whose joints lie within SAME_POSE_DEG of each other on every joint
+    (chained) share one; groups numbered by their first row, so without repeats row k is group k."""
+    q = np.asarray(q_deg, float)
+    pairs = cKDTree(q).query_pairs(SAME_POSE_DEG, p=np.inf, output_type="ndarray") if len(q) else np.empty((0, 2), int)
+    link = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(q), len(q)))
+    labels = connected_components(link, directed=False)[1]
+    first = np.unique(labels, return_index=True)[1]                 # each label's first row
+    rank = np.empty(len(first), int)
+    rank[np.argsort(first)] = np.arange(len(first))
+    return rank[labels]
+
+
+def split_groups(groups: np.ndarray, fractions, seed: int) -> dict[str, list[int]]:
+    """Row indices of each split, drawn over the groups (`repeats`) as split_indices draws over rows: every
+    row of a group in its group's split; without repeats, split_indices itself."""
+    groups = np.asarray(groups)
+    idx = split_indices(int(groups.max()) + 1 if len(groups) else 0, fractions, seed)
+    members = {g: [] for g in range(len(groups) and int(groups.max()) + 1)}
+    for row, g in enumerate(groups):
+        members[int(g)].append(row)
+    return {name: [r for g in gs for r in members[g]] for name, gs in idx.items()}
 
 
 def split_indices(n: int, fractions, seed: int) -> dict[str, list[int]]:
