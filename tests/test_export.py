@@ -403,7 +403,8 @@ def test_the_pose_controller_graph_solves_six_equations_as_pytorch_does(in_train
     """Issue 34: models/controller_pose.onnx (two chord steps, six equations: a TCP's position and the flange's
     orientation, the 6×6 solve in closed form) answers as PyTorch's realtime.two_steps, one pose and a batch,
     at x150 and at the marker; from 0.05° off, its verified answers put the model's TCP within tol_mm and the
-    flange (scipy, from the model's chain) within tol_arcsec of the target pose."""
+    flange (scipy, from the model's chain) within tol_arcsec of the target pose. Called as a controller
+    (OnnxRealtime(...)(q, target, rot)), its answer; without rot, an error that says to give it."""
     import onnx
     from scipy.spatial.transform import Rotation
     from pipeline.lib.robot.kinematics import flange_rotations
@@ -435,6 +436,10 @@ def test_the_pose_controller_graph_solves_six_equations_as_pytorch_does(in_train
         assert max(np.abs(a - b).max() for a, b in zip(got[2:], want[2:])) < 1e-6
         one = fast.solve(q0[:1], target[:1], rot=rot[:1])
         assert np.abs(one[0] - got[0][:1]).max() < 1e-12
+        called = fast(q0[:1], target[:1], rot[:1])                                # OnnxRealtime's Result
+        assert np.abs(called.q - np.where(got[3][0] < tol, got[0][0], got[1][0])).max() < 1e-12
+        with pytest.raises(ValueError, match=r"a pose graph .* give rot"):        # was onnxruntime's "target_rot
+            fast(q0[:1], target[:1])                                              # missing"
         assert (got[2] > 10 * tol).all()                                          # real work
         verified = got[3] < tol                                                   # q1, its residual measured
         converged = verified | (got[3] ** 2 / got[2] < tol)                      # else q2, predicted (answers())

@@ -444,6 +444,8 @@ def test_the_service_answers_a_whole_path(path_server, in_trained_project):
         "spacing_mm: expected a number > 0, got 0": (q0, SEAM, [], 0, 20.0),
         "speed_mm_s: expected a number, got a string": (q0, SEAM, [], 2.0, "fast"),
         "moves: expected a list of 2 strings": (q0, SEAM, ["movel"], 2.0, 20.0),
+        "moves[0] (points_mm[0]): the first point is the path's start ('start' or empty), not 'xxxxxxxxxxxxxxxxxxxx'":
+            (q0, SEAM, ["x" * 100_000, "movel"], 2.0, 20.0),                  # echoed cut, as any other move
         "q_rad[2]: 400.0°": (q0[:2] + [float(np.radians(400))] + q0[3:], SEAM, [], 2.0, 20.0),
         "spacing_mm: a 100.0 mm path at 0.01 mm is 10001 samples, more than the limit of 1000 "
         "(serve.max_path_samples)": (q0, SEAM, [], 0.01, 20.0),
@@ -556,8 +558,14 @@ def test_a_path_from_joints_in_another_configuration_is_refused_at_sample_1(path
 
     c = path_server()                                   # the service refuses it as the path command does
     points = [start.tolist(), (start + [0.0, 0.0, 10.0]).tolist()]
-    with pytest.raises(xmlrpc.client.Fault, match=r"sample 1 \(arc 0\.0 mm\): another configuration than the given "
-                       r"joints': the wrist flipped"):
-        c.compensate_path(np.radians(q + [0, 0, 0, 0, -50, 0]).tolist(), points, [], 5.0, 20.0, [rv[0].tolist()] * 2)
-    r = c.compensate_path(np.radians(q + [3, -3, 3, -3, 3, -3]).tolist(), points, [], 5.0, 20.0, [rv[0].tolist()] * 2)
+    mirrored, near = np.radians(q + [0, 0, 0, 0, -50, 0]).tolist(), np.radians(q + [3, -3, 3, -3, 3, -3]).tolist()
+    with pytest.raises(xmlrpc.client.Fault, match=r"sample 1 \(arc 0\.0 mm\), target_mm, rotvecs: reached only in "
+                       r"another configuration than the given joints': the wrist flipped") as fault:
+        c.compensate_path(mirrored, points, [], 5.0, 20.0, [rv[0].tolist()] * 2)
+    said = fault.value.faultString                     # 220 characters, whole (was cut at serve.echo_chars, 200)
+    assert len(said) > 200 and said.endswith("give joints nearer the target (q_rad)"), said
+    r = c.compensate_path(near, points, [], 5.0, 20.0, [rv[0].tolist()] * 2)
     np.testing.assert_allclose(np.degrees(r["q_rad"][0]), q, atol=1.0)
+    with pytest.raises(xmlrpc.client.Fault, match=r"target_mm, target_rotvec: reached only in another configuration"):
+        c.compensate_pose(mirrored, points[0], rv[0].tolist())                   # one pose: the same
+    assert c.compensate_pose(near, points[0], rv[0].tolist())["converged"]

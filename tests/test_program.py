@@ -457,7 +457,8 @@ def test_the_configuration_is_named_by_its_singularities_by_hand():
     side of joint 2's axis the wrist centre lies on (arm upright at q2 = -90°: leaning forward or back). The
     wrist-flipped twin of a pose (scipy from q4 + 180°, -q5, q6 + 180°) is the same flange pose, another one;
     another_configuration names it, and a joint turned more than 180°, but not a crossing within 5° (a
-    compensation at the singularity) nor 20° on joint 1 (the same configuration)."""
+    compensation at the singularity) nor 20° on joint 1 (the same configuration); nor, for a target without
+    an orientation, the wrist's sign (the flange's orientation is free)."""
     from scipy.optimize import least_squares
     from pipeline.lib.robot.kinematics import link_frames, nominal_geometry
     from pipeline.lib.robot.poses import configuration
@@ -479,6 +480,9 @@ def test_the_configuration_is_named_by_its_singularities_by_hand():
     assert "configuration than the given joints': the wrist flipped" in why[0] and "joint 5 40.0° -> -" in why[0]
     assert "joint 6 turned 200.0° (the same angle lies 160.0° the other way round)" in why[1], why
     assert why[2:] == [None, None], why
+    wrist = q + [0, 0, 0, 30, -80, 0]                                             # joint 5: 40° -> -40°
+    assert "the wrist flipped" in another_configuration(q, wrist, g)[0]
+    assert another_configuration(q, wrist, g, orientation=False) == [None]        # a position target: free
 
 
 def test_a_pose_target_solved_into_another_configuration_never_becomes_a_move(in_trained_project, tmp_path):

@@ -161,7 +161,8 @@ def run(argv=None) -> pd.DataFrame:
     dev = deviation(model_position(model), table[JCOMP_DEG].to_numpy(), found.segs)
     why = refusal(table, n, robot.limits_deg, p["compensate"]["tol_mm"], dev, cfg["max_deviation_mm"],
                   cfg["speed_mm_s"], speeds, None if a.allow_outside_workspace else workspace)
-    why = why or start_refusal(q0, table[JCOMP_DEG].to_numpy()[0], nominal_geometry(robot), found.offline)
+    why = why or start_refusal(q0, table[JCOMP_DEG].to_numpy()[0], nominal_geometry(robot), found.offline,
+                               orientation=rotations is not None)
     if why:
         raise Refused(f"{src}: {why}; nothing written")
     out.mkdir(parents=True, exist_ok=True)

@@ -44,8 +44,10 @@ as sent and as gzip-decoded: 413; serve.timeout_s: a request not fully sent that
 after the previous answer on a keep-alive connection, is closed, and so is an answer not taken that
 long; serve.max_connections open at once, beyond: 503 at once, no thread; malformed HTTP, a body that
 is not an XML-RPC call, or has a DOCTYPE or entity declaration (refused before any expansion): 400;
-other methods than POST: 405; HTTP/1.1 keep-alive), messages and log lines cut to serve.echo_chars (a
-connection's error: one line), and loading the artifacts and params. It listens on 127.0.0.1 unless told otherwise (--host
+other methods than POST: 405; HTTP/1.1 keep-alive), messages and log lines that echo a request (an
+unknown method, an internal error, a connection's error: one line) cut to serve.echo_chars, a bad
+request's fault (the service's own words, each value it echoes cut to 40 characters) to MESSAGE_CHARS,
+and loading the artifacts and params. It listens on 127.0.0.1 unless told otherwise (--host
 0.0.0.0 to serve a robot on the network; XML-RPC has no authentication). docs/robot-cell.md: the
 protocol and a URScript example.
 """
@@ -104,6 +106,10 @@ def check_artifacts(root: Path) -> None:
         require(root, REQUIRED)
     except ValueError as e:
         raise SystemExit(f"pipeline.commands.serve: {e}") from None
+
+
+MESSAGE_CHARS = 1000    # a RequestError's fault: the service's own words, every value of the request it echoes cut
+                        # to 40 characters (service.describe); cut at serve.echo_chars, its advice was lost
 
 
 def clip(text: str, n: int) -> str:
@@ -330,7 +336,8 @@ class Server(socketserver.ThreadingMixIn, SimpleXMLRPCServer):
                                             f"argument(s) ({names}), got {len(params)}") from None
             try:
                 return func(*params)
-            except RequestError as e:
+            except RequestError as e:                     # the service's words, each value echoed cut (describe)
+                n = MESSAGE_CHARS
                 raise Fault(INVALID_PARAMS, clip(str(e), n)) from None
         except Fault as f:
             log.warning("%s", clip(f"fault: {f.faultString}" if func is None else f"{method}: fault: {f.faultString}", n))

@@ -304,6 +304,10 @@ class OnnxRealtime:
     def solve(self, q0_rad, target_mm, damping=None, rot=None) -> list[np.ndarray]:
         """The graph's outputs for q0 (B, 6) rad, target (B, 3) mm, damping (B,) (None: the controller's) and,
         on a pose graph, the flange's orientations rot (B, 3, 3): q1, q2 (B, 6), |r0|, |r1| (B,)."""
+        if (rot is None) != ("weight" not in self.fixed):
+            raise ValueError("a pose graph (controller_pose.onnx, weight given) solves a target's orientation too: "
+                             "give rot (B, 3, 3)" if rot is None else
+                             "rot given to a position graph: the orientation is controller_pose.onnx's (and weight)")
         q0 = np.asarray(q0_rad, np.float64).reshape(-1, 6)
         mu = np.full(len(q0), self.damping) if damping is None else np.asarray(damping, np.float64).reshape(-1)
         pose = {} if rot is None else {"target_rot": np.ascontiguousarray(np.asarray(rot, np.float64).reshape(-1, 3, 3))}
@@ -311,11 +315,11 @@ class OnnxRealtime:
             None, {"q0_rad": q0, "target_mm": np.asarray(target_mm, np.float64).reshape(-1, 3), **self.fixed,
                    "damping": mu, **pose})
 
-    def __call__(self, q0_rad, target_mm) -> Result:
-        return self.batch(q0_rad, target_mm)[0]
+    def __call__(self, q0_rad, target_mm, rot=None) -> Result:
+        return self.batch(q0_rad, target_mm, rot)[0]
 
-    def batch(self, q0_rad, target_mm) -> list[Result]:
-        return answers(*self.solve(q0_rad, target_mm), self.tol, self.workspace, self.limits)
+    def batch(self, q0_rad, target_mm, rot=None) -> list[Result]:
+        return answers(*self.solve(q0_rad, target_mm, rot=rot), self.tol, self.workspace, self.limits)
 
     def lm_step(self, q, target, err, lam):
         """solvers.lm_step on the graph, numpy: q (A, 6) rad, target (A, 3) mm, |r| err (A,) mm, λ lam (A,)

@@ -105,7 +105,7 @@ def segments(points: np.ndarray, moves: list, where=lambda i: f"point {i}") -> l
     if len(points) < 2:
         raise ValueError(f"{where(0)}: a path needs at least two points")
     if moves[0] not in ("", "start"):
-        raise ValueError(f"{where(0)}: the first point is the path's start ('start' or empty), not {moves[0]!r}")
+        raise ValueError(f"{where(0)}: the first point is the path's start ('start' or empty), not {moves[0][:20]!r}")
     out, i = [], 1
     while i < len(points):
         m = moves[i]

@@ -23,7 +23,9 @@ worker, in a loop:
      is spent (`call_budget_ms` from the call's start: compensate_many queues no more items then, and
      answers those not solved with an error in their place).
 Left above `unreachable_mm`, a request is a RequestError "unreachable"; within it, an answer with
-converged False. A pose (`compensate_pose`: an orientation too) skips the controller path (its graphs
+converged False. An answer in another configuration than the joints it was solved from (a shoulder, elbow
+or wrist flipped, a joint turned over 180°: waypoints.another_configuration) is a RequestError too: a
+client drives answers as moves. A pose (`compensate_pose`: an orientation too) skips the controller path (its graphs
 solve positions) and joins a lane of its own (`Lane`): lm's six equations in PyTorch (solvers.residual),
 one iteration a loop beside the positions' lane, under the same budgets. `compensate_path` queues a path's samples one at a time, each from the answer before
 (lib/runtime/pathsolve.py), all under one call budget, and refuses the path as the path command does.
@@ -49,7 +51,7 @@ from pipeline.lib.runtime.pathsolve import (SOLVED, beyond_reach, deviation, mod
                                             servo_times)
 from pipeline.lib.runtime.realtime import Realtime, answers
 from pipeline.lib.runtime.solvers import LAM0, lm_jacobian, lm_step, orientation_angle, pose_weight, residual
-from pipeline.lib.runtime.waypoints import start_refusal
+from pipeline.lib.runtime.waypoints import another_configuration
 
 
 METRES_MM = 5.0              # an unreachable target nearer the base origin than this was likely sent in metres
@@ -188,6 +190,7 @@ class Service:
             model, np.radians(self.limits_deg), self.tol, workspace=workspace, compile=compile)
         self.graph = controller if controller is not None and jacobian_of == "physics" else None
         self.frame_rot = None if frame_rot is None else np.asarray(frame_rot, float)
+        self.chain = model.physics.geometry()                  # whose configurations an answer keeps
         w = pose_weight({"tol_mm": self.tol, "tol_arcsec": tol_arcsec})
         self.lanes = {"position": Lane(None, lm_jacobian(model, jacobian_of)),
                       "pose": Lane(w, lm_jacobian(model, jacobian_of, w))}
@@ -313,8 +316,8 @@ class Service:
         """A TCP path (points_mm, moves as the path command's file: movel, movep, via + movec; [] every
         move movel) resampled at most spacing_mm apart, each sample solved from the previous one's answer, the
         first from q_rad, in order, within one call budget (`call_budget_ms`); refused as the path command
-        refuses (lib/pathsolve.refusal, and sample 1 in another configuration than q_rad's:
-        waypoints.start_refusal; outside the trained workspace: flagged, not refused), else
+        refuses (lib/pathsolve.refusal, and a sample in another configuration than the joints it was solved
+        from, as every answer: `_settle`; outside the trained workspace: flagged, not refused), else
         {q_rad, target_mm, arc_mm, t_s (servoj's times at speed_mm_s), residual_mm, in_workspace: per sample,
         all_in_workspace}. rotvecs, one per point (as compensate_pose's target_rotvec; [] or left out: none): the
         orientation held too, slerped between the points (paths.rotations_at), six equations a sample in the
@@ -374,9 +377,8 @@ class Service:
                 break
         table = pd.DataFrame(rows, columns=SOLVED + ["in_workspace"])       # the path command's, and in_workspace
         qd = table[JCOMP_DEG].to_numpy()
-        why = (refusal(table, n, self.limits_deg, self.tol, deviation(self.position, qd, segs), self.max_deviation,
-                       speed, self.joint_speeds)
-               or start_refusal(np.degrees(self.joints(q_rad)), qd[0], self.model.physics.geometry(), offline=False))
+        why = refusal(table, n, self.limits_deg, self.tol, deviation(self.position, qd, segs), self.max_deviation,
+                      speed, self.joint_speeds)
         if why:
             raise RequestError(f"points_mm: {why}")
         return {"q_rad": np.radians(qd).tolist(), "target_mm": targets.tolist(), "arc_mm": arc.tolist(),
@@ -449,7 +451,7 @@ class Service:
             results = self.realtime.batch(q0, target)
         for job, r in zip(jobs, results):
             if r.converged and r.verified:                 # unverified: a predicted residual, lm measures it
-                job.future.set_result(self._answer(r.q, r.residual_mm, True, r.in_workspace))
+                self._settle(job, self._answer(r.q, r.residual_mm, True, r.in_workspace), "target_mm")
             else:
                 self.waiting.append(job)
         self._admit()
@@ -548,7 +550,7 @@ class Service:
                 answer = self._answer(q_rad, e, e < self.tol, inside)
                 if extra:
                     answer["residual_mm"] = float(np.linalg.norm(r[:3]))
-                job.future.set_result({**answer, **extra})
+                self._settle(job, {**answer, **extra}, field)
                 continue
             why = (f"no progress in {self.stall_iter} iterations" if stalled else
                    f"the budget: {job.iters} iterations, {1000 * (now - job.deadline + self.budget):.0f} ms")
@@ -562,6 +564,16 @@ class Service:
             lane.state = lane.state.rows(keep) if keep else None
             if self.waiting:
                 self._admit()
+
+    def _settle(self, job: Job, answer: dict, field: str) -> None:
+        """job's answer, or a RequestError where it left the configuration of the joints it was solved from
+        (waypoints.another_configuration: a client would drive it as a move)."""
+        why = another_configuration(np.degrees(job.q), np.degrees(answer["q_rad"]), self.chain,
+                                    orientation=job.rot is not None)[0]
+        if why is None:
+            job.future.set_result(answer)
+        else:
+            job.future.set_exception(RequestError(f"{job.where}{field}: reached only in {why} (q_rad)"))
 
     @staticmethod
     def _answer(q_rad, residual: float, converged: bool, in_workspace: bool) -> dict:

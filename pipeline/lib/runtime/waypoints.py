@@ -48,32 +48,37 @@ def too_far(q0_deg: np.ndarray, q_deg: np.ndarray, max_deg: float = MAX_COMPENSA
             "singularity?)" for row, q in zip(d, np.asarray(q0_deg, float))]
 
 
-def another_configuration(q0_deg: np.ndarray, q_deg: np.ndarray, geometry: dict) -> list:
+def another_configuration(q0_deg: np.ndarray, q_deg: np.ndarray, geometry: dict, orientation=True) -> list:
     """Per row of joints q0 (n, 6) deg and the answer q (n, 6) solved from them for an explicit target: why q is
     not in q0's configuration, or None. Another configuration: a joint turned more than 180° (the same angle
     lies nearer the other way round), or a shoulder, elbow or wrist flipped (poses.configuration) with a joint
-    turned more than MAX_COMPENSATION_DEG (within it, q0 lay at that singularity: no swing)."""
+    turned more than MAX_COMPENSATION_DEG (within it, q0 lay at that singularity: no swing). The wrist counts
+    only where the target has an orientation (orientation: a bool, or one per row; without one, the flange's
+    orientation, which sets the wrist's sign, is free)."""
     q0, q = np.atleast_2d(np.asarray(q0_deg, float)), np.atleast_2d(np.asarray(q_deg, float))
     d = np.abs(q - q0)
-    flipped = configuration(q0, geometry) != configuration(q, geometry)                 # (n, 3)
-    out = []
-    for row, f, a, b in zip(d, flipped, q0, q):
-        j = int(row.argmax())
-        why = [f"the {CONFIGURATION[k]} flipped" for k in np.flatnonzero(f)] if row[j] > MAX_COMPENSATION_DEG else []
+    out = [None] * len(q)
+    far = np.flatnonzero(d.max(1) > MAX_COMPENSATION_DEG)           # within it: no flip that swings anything
+    flipped = configuration(q0[far], geometry) != configuration(q[far], geometry)     # (len(far), 3)
+    flipped[:, CONFIGURATION.index("wrist")] &= np.broadcast_to(np.asarray(orientation, bool), (len(q),))[far]
+    for k, f in zip(far, flipped):
+        row, j = d[k], int(d[k].argmax())
+        why = [f"the {CONFIGURATION[c]} flipped" for c in np.flatnonzero(f)]
         why += [f"joint {j + 1} turned {row[j]:.1f}° (the same angle lies {360.0 - row[j]:.1f}° the other way "
                 "round)"] if row[j] > 180.0 else []
-        out.append(None if not why else f"another configuration than the given joints': {', '.join(why)} "
-                   f"(joint {j + 1} turned {row[j]:.1f}°, joint 5 {a[4]:.1f}° -> {b[4]:.1f}°): give joints "
-                   "nearer the target")
+        if why:
+            out[k] = (f"another configuration than the given joints': {', '.join(why)} (joint {j + 1} turned "
+                      f"{row[j]:.1f}°, joint 5 {q0[k, 4]:.1f}° -> {q[k, 4]:.1f}°): give joints nearer the target")
     return out
 
 
-def start_refusal(q0_deg: np.ndarray, first_deg: np.ndarray, geometry: dict, offline: bool) -> str | None:
+def start_refusal(q0_deg: np.ndarray, first_deg: np.ndarray, geometry: dict, offline: bool,
+                  orientation: bool) -> str | None:
     """Why a path's sample 1, solved from the start joints q0 (6,) deg to first (6,) deg, must not be driven
     to, or None: offline (the start's own nominal pose), a Δθ over MAX_COMPENSATION_DEG (too_far); else
-    another configuration than the start's (another_configuration)."""
+    another configuration than the start's (another_configuration; orientation: the path holds one)."""
     q0, first = np.asarray(q0_deg, float)[None], np.asarray(first_deg, float)[None]
-    why = (too_far(q0, first) if offline else another_configuration(q0, first, geometry))[0]
+    why = (too_far(q0, first) if offline else another_configuration(q0, first, geometry, orientation))[0]
     return None if why is None else f"sample 1 (arc 0.0 mm): {why}"
 
 
@@ -206,7 +211,8 @@ def unreached(table: pd.DataFrame, robot, offline: bool = False) -> dict:
     explicit targets: also an answer in another configuration than its joints' (another_configuration)."""
     q0, q = table[JOINTS_DEG].to_numpy(), table[JCOMP_DEG].to_numpy()
     beyond = robot.check_joints(q).any(1)
-    far = too_far(q0, q) if offline else another_configuration(q0, q, nominal_geometry(robot))
+    posed = np.isfinite(table.orientation_residual_arcsec.to_numpy(float))     # solved with an orientation
+    far = too_far(q0, q) if offline else another_configuration(q0, q, nominal_geometry(robot), posed)
     return {r.point_id: (f"residual {r.residual_mm:.4f} mm"
                          + (f", orientation {r.orientation_residual_arcsec:.2f} arcsec"
                             if np.isfinite(r.orientation_residual_arcsec) else "")
