@@ -195,7 +195,7 @@ def test_a_pose_measured_again_is_never_split_across_train_and_test(tmp_path, mo
 
 
 def test_series_b_repeats_share_a_split():
-    """The real Series_B (skipped where ../shared/datasets is absent): 580 rows are 290 poses measured twice;
+    """The real Series_B (skipped where the public datasets are absent): 580 rows are 290 poses measured twice;
     none of its test points is a pose trained on, where row by row 55 were."""
     from pipeline.lib.learning.splits import repeats, split_groups, split_indices
     table = Path(__file__).resolve().parents[2] / "shared/datasets/ipa-ur10/Series_B/measurements_joint_configurations.csv"

@@ -54,7 +54,7 @@ from pipeline.lib.project.writing import check_outputs, csv_text, write_together
 from pipeline.lib.robot.geometry import theory_geometry
 from pipeline.lib.robot.kinematics import fk_numpy, nominal_geometry
 from pipeline.lib.robot.robots import load_robot
-from pipeline.lib.robot.tcp import at_tcp
+from pipeline.lib.robot.tcp import at_tcp, in_flange
 from pipeline.lib.robot.urdf import tcp_transforms
 from pipeline.lib.runtime.compensation import reach_mm
 from pipeline.lib.runtime.paths import n_samples, read_path, resample, rotations_at
@@ -129,8 +129,9 @@ def run(argv=None) -> pd.DataFrame:
     model = served(load_model(root / MODEL_WEIGHTS), workspace.network)
     frame_rot = None                                 # target_rx..rz turn the probe's frame, or the TCP's
     if a.tcp is not None:
-        model, nominal = at_tcp(model, p["robot"]["tcp"], a.tcp, nominal)
-        frame_rot = tcp_transforms(p["robot"]["tcp"])[a.tcp][:3, :3]
+        at, nominal = at_tcp(model, p["robot"]["tcp"], a.tcp, nominal)     # refuses an unknown name
+        frame_rot = tcp_transforms(in_flange(p["robot"]["tcp"], model.physics.geometry()))[a.tcp][:3, :3]
+        model = at
     found = read_path(src, robot, lambda q: fk_numpy(q, robot, nominal))
     rotations = None                                 # arc_mm (k,) -> the flange's orientations (k, 3, 3)
     if not a.ignore_orientation:

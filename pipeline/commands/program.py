@@ -51,7 +51,7 @@ from pipeline.lib.project.config import for_stage, load_params, logger, read_jso
 from pipeline.lib.project.writing import check_outputs, csv_text, write_together
 from pipeline.lib.robot.geometry import theory_geometry
 from pipeline.lib.robot.robots import load_robot
-from pipeline.lib.robot.tcp import at_tcp
+from pipeline.lib.robot.tcp import at_tcp, in_flange
 from pipeline.lib.robot.urdf import tcp_transforms
 from pipeline.lib.runtime.waypoints import ID_PATTERN, compensate_program, read_waypoints, unreached
 
@@ -130,8 +130,9 @@ def run(argv=None) -> pd.DataFrame:
     nominal = theory_geometry(robot, read_json(root / FRAME_JSON)["tool_mm"])
     frame_rot = None                                 # target_rx..rz turn the probe's frame, or the TCP's
     if a.tcp is not None:                            # targets and solve at a TCP (lib/robot/tcp.py)
-        model, nominal = at_tcp(model, p["robot"]["tcp"], a.tcp, nominal)
-        frame_rot = tcp_transforms(p["robot"]["tcp"])[a.tcp][:3, :3]
+        at, nominal = at_tcp(model, p["robot"]["tcp"], a.tcp, nominal)     # refuses an unknown name
+        frame_rot = tcp_transforms(in_flange(p["robot"]["tcp"], model.physics.geometry()))[a.tcp][:3, :3]
+        model = at
     table = compensate_program(df, model, workspace, robot, nominal, p["compensate"], frame_rot)
     skipped = unreached(table, robot, offline=TARGET[0] not in df)     # offline: Δθ a compensation, bounded
     text = summary_text(table, skipped, workspace)

@@ -80,7 +80,7 @@ from pipeline.lib.project.config import ParamsError, for_stage, load_params, log
 from pipeline.lib.robot.geometry import theory_geometry
 from pipeline.lib.robot.kinematics import TOOL_ROT, tool_rotation
 from pipeline.lib.robot.robots import load_robot
-from pipeline.lib.robot.tcp import at_tcp
+from pipeline.lib.robot.tcp import at_tcp, in_flange
 from pipeline.lib.robot.urdf import tcp_transforms
 from pipeline.lib.runtime.compensation import reach_mm
 from pipeline.lib.runtime.pathsolve import joint_speeds
@@ -416,8 +416,9 @@ def make_server(params: dict, host: str | None = None, port: int | None = None,
     if tcp is not None:                                   # every target a TCP's, on the graph fed its point
         model = at_tcp(model, params["robot"]["tcp"], tcp, theory_geometry(robot, robot.tool))[0]
         graph = root / (CONTROLLER_TCP_ONNX if workspace.network else CONTROLLER_PHYSICS_TCP_ONNX)
-        tcp_mm = params["robot"]["tcp"][tcp]["xyz_mm"]
-        frame_rot = tcp_transforms(params["robot"]["tcp"])[tcp][:3, :3]    # or the TCP's
+        flange_tcp = in_flange(params["robot"]["tcp"], g)                 # the TCP in the (calibrated) flange frame
+        tcp_mm = flange_tcp[tcp]["xyz_mm"]
+        frame_rot = tcp_transforms(flange_tcp)[tcp][:3, :3]                # or the TCP's
     tol = params["compensate"]["tol_mm"]
     controller = fast_path(model, workspace, limits_deg, tol, graph, tcp_mm) if cfg["onnx"] else None
     log.info("serving %s; the controller path on %s", "the whole model" if workspace.network else

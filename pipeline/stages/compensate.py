@@ -42,7 +42,7 @@ from pipeline.lib.reading.prepared import load_prepared
 from pipeline.lib.robot.geometry import theory_geometry
 from pipeline.lib.robot.kinematics import fk_numpy, tool_rotation
 from pipeline.lib.robot.robots import load_robot
-from pipeline.lib.robot.tcp import AtTcp, probe_offsets
+from pipeline.lib.robot.tcp import AtTcp, in_flange, probe_offsets
 from pipeline.lib.runtime.compensation import delta_table, nominal_flange, orientation_targets, solve
 from pipeline.lib.runtime.paths import ROTVEC
 from pipeline.lib.runtime.realtime import Realtime, check
@@ -155,6 +155,7 @@ def tcp_checks(model, cfg: dict, robot, tcp: dict, table: pd.DataFrame, frame: d
     flange's orientation error."""
     twin, out = Twin.from_json(cfg["twin"]), {}
     q0 = table[JOINTS_DEG].to_numpy()
+    tcp = in_flange(tcp, model.physics.geometry())                # a point given in the probe's frame: carried
     for k, (name, o) in enumerate(probe_offsets(tcp, model.physics.geometry()).items()):
         at = AtTcp(model, o)
         target = fk_numpy(q0, robot, theory_geometry(robot, tcp[name]["xyz_mm"]))   # offline-programmed TCP

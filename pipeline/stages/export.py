@@ -65,7 +65,7 @@ from pipeline.lib.robot.geometry import Calibration, theory_geometry, with_parts
 from pipeline.lib.robot.identify import identify
 from pipeline.lib.robot.kinematics import DTYPE, RIGID_KEYS, TOOL_ROT, fk, fk_frames, fk_numpy, fk_pose
 from pipeline.lib.robot.robots import TABLES, load_robot
-from pipeline.lib.robot.tcp import AtTcp, probe_offsets
+from pipeline.lib.robot.tcp import AtTcp, in_flange, probe_offsets
 from pipeline.lib.robot.urdf import (UR_YAML_NAMES, base_transform, flange_residual, joint_origins, to_urdf,
                                      ur_kinematics)
 from pipeline.lib.runtime.compensation import nominal_flange
@@ -144,7 +144,8 @@ def run(params: dict, root: Path = HERE) -> dict:
     log.info("the calibrated model as a rigid chain: %.4f mm mean, %.4f mm max from it on %d poses",
              fit["mean_mm"], fit["max_mm"], len(pts))
 
-    text = to_urdf(g, robot, tcp=p["robot"]["tcp"])
+    tcp = in_flange(p["robot"]["tcp"], g)            # every TCP in the exported chain's flange frame
+    text = to_urdf(g, robot, tcp=tcp)
     write_file(root / URDF_FILE, text)
     p_urdf, R_urdf = urdf_poses(text, q.numpy())
     dev = np.linalg.norm(p_urdf - p_rigid, axis=1)
@@ -159,7 +160,7 @@ def run(params: dict, root: Path = HERE) -> dict:
              dev.max())
 
     if robot.name in TABLES:
-        kin = ur_kinematics(g, p["robot"]["tcp"])
+        kin = ur_kinematics(g, tcp)
         write_file(root / UR_YAML, yaml.safe_dump(kin, sort_keys=False))
         truth = base_transform(g) @ flange6 @ np.linalg.inv(joint_origins(g)[1])   # joint 6's frame
         poses = ur_yaml_poses(kin, q.numpy())
@@ -199,7 +200,8 @@ def run(params: dict, root: Path = HERE) -> dict:
         log.info("%s: onnxruntime's answers vs the PyTorch controller path's on %d test poses (alone and in a "
                  "batch): max %.1e rad, residual %.1e mm; flags differ in %d", path, test.sum(),
                  dev["max_q_rad"], dev["max_residual_mm"], dev["flags_differ"])
-    tcps = {n: c["xyz_mm"] for n, c in (p["robot"]["tcp"] or {"x150": {"xyz_mm": [150.0, 0.0, 0.0]}}).items()}
+    tcps = {n: c["xyz_mm"] for n, c in (in_flange(p["robot"]["tcp"], model.physics.geometry())
+                                        or {"x150": {"xyz_mm": [150.0, 0.0, 0.0]}}).items()}
     for key, path, m in (("controller_tcp", root / CONTROLLER_TCP_ONNX, model),
                          ("controller_physics_tcp", root / CONTROLLER_PHYSICS_TCP_ONNX, PhysicsOnly(model))):
         summary[key] = {"file": str(path), "checked_with": "onnxruntime"}

@@ -216,7 +216,8 @@ def bench_path(spacings=SPACINGS, names=tuple(PATHS)) -> dict:
         out["paths"][name], curves[name] = judge_path(judge, name, spacings)
     for tcp in params["robot"]["tcp"] or {}:
         at = Judge(params, tcp=tcp)
-        log.info("at the TCP %s (%s mm in the flange frame)", tcp, params["robot"]["tcp"][tcp]["xyz_mm"])
+        c = params["robot"]["tcp"][tcp]
+        log.info("at the TCP %s (%s mm in the %s frame)", tcp, c["xyz_mm"], c.get("frame", "flange"))
         out["at_tcp"][tcp] = {"xyz_mm": params["robot"]["tcp"][tcp]["xyz_mm"], "paths": {
             n: judge_path(at, n, [s for s in spacings if s in (1.0, 10.0)], chord=False)[0]
             for n in GOALS["paths"] if n in names}}

@@ -100,7 +100,8 @@ def _vec3(v):
 def _tcps(v):
     return (isinstance(v, dict) and len(v) > 0 and all(
         isinstance(k, str) and re.fullmatch(r"[A-Za-z0-9_-]{1,40}", k) and isinstance(t, dict)
-        and set(t) <= {"xyz_mm", "rxyz_deg"} and _vec3(t.get("xyz_mm")) and _vec3(t.get("rxyz_deg", [0, 0, 0]))
+        and set(t) <= {"xyz_mm", "rxyz_deg", "frame"} and _vec3(t.get("xyz_mm")) and _vec3(t.get("rxyz_deg", [0, 0, 0]))
+        and t.get("frame", "flange") in ("flange", "probe")
         for k, t in v.items()))
 
 
@@ -147,8 +148,9 @@ REACH_MM = 5000.0          # a plan.rules length beyond this is a typo (the larg
 POS = _num(0, open_lo=True)
 
 RULES = {
-    "robot.tcp": (lambda v: v is None or _tcps(v), "null, or name: {xyz_mm: [x, y, z], rxyz_deg: [rx, ry, rz]} "
-                  "(a tool centre point in the flange frame; rxyz_deg optional), names of letters, digits, _ or -"),
+    "robot.tcp": (lambda v: v is None or _tcps(v), "null, or name: {xyz_mm: [x, y, z], rxyz_deg: [rx, ry, rz], "
+                  "frame: flange or probe} (a tool centre point in the flange frame, or measured in the probe's; "
+                  "rxyz_deg and frame optional), names of letters, digits, _ or -"),
     "calibrate.pose_noise.mm": (_num(0, open_lo=True), "a position noise > 0 mm"),
     "calibrate.pose_noise.arcsec": (_num(0, open_lo=True), "an orientation noise > 0 arcsec"),
     "split.seed": (_int(0), "an integer >= 0"),

@@ -1,6 +1,8 @@
 """The tool centre points (`robot.tcp`) and the pose errors judged where a campaign measures orientation.
 
-A TCP is a point rigidly fixed to the flange, c (mm, flange frame). The tracker measures the probe at
+A TCP is a point rigidly fixed to the flange, c (mm, flange frame), or given where the tracker measured it,
+in the probe's frame (`frame: probe`; `in_flange` moves it to the flange frame by the calibrated probe's pose:
+the calibrated flange frame is not the drawing's, docs/robot-cell.md). The tracker measures the probe at
 the marker, t (the geometry's tool) with rotation R_T (tool_rot) in the flange, so a TCP sits at
 o = R_Tᵀ (c − t) in the probe's frame and its measured position follows from the probe's measured pose:
 p_tcp = p_meas + R_meas o. A method predicts it the same way from its own pose: p_pred + R_pred o, with
@@ -12,19 +14,44 @@ solver (lib/runtime/solvers.py), the Δθ table, the program compensator and the
 """
 import numpy as np
 import torch
+from scipy.spatial.transform import Rotation
 from torch import nn
 
 from pipeline.lib.robot.identify import errors_3d, orientation_errors
 from pipeline.lib.robot.kinematics import DTYPE, TOOL_ROT, DHChain, fk_pose, rotation_xyz
 
 
+def in_flange(tcp: dict | None, geometry: dict) -> dict | None:
+    """`robot.tcp` with every point in the flange frame of `geometry` ({xyz_mm, rxyz_deg}): one given in the
+    probe's frame (`frame: probe`) carried by the geometry's tool and tool_rot, c = t + R_T x and R_T R;
+    refused (ValueError) where the geometry has no tool_rot (the probe's orientation was never measured)."""
+    if not tcp:
+        return tcp
+    t = np.asarray(geometry["tool"], float)
+    out = {}
+    for name, c in tcp.items():
+        if c.get("frame", "flange") == "flange":
+            out[name] = {k: v for k, v in c.items() if k != "frame"}
+            continue
+        if TOOL_ROT not in geometry:
+            raise ValueError(f"robot.tcp {name}: given in the probe's frame, but the calibration has no probe "
+                             "orientation (a campaign without it): give it in the flange frame")
+        R_T = rotation_xyz(torch.as_tensor(geometry[TOOL_ROT], dtype=DTYPE)).numpy()
+        R = R_T @ Rotation.from_euler("xyz", c.get("rxyz_deg", [0.0, 0.0, 0.0]), degrees=True).as_matrix()
+        out[name] = {"xyz_mm": (t + R_T @ np.asarray(c["xyz_mm"], float)).tolist(),
+                     "rxyz_deg": Rotation.from_matrix(R).as_euler("xyz", degrees=True).tolist()}
+    return out
+
+
 def probe_offsets(tcp: dict | None, geometry: dict) -> dict:
-    """{name: o (3,)}: each `robot.tcp` point in the probe's frame, from the geometry's tool and tool_rot."""
+    """{name: o (3,)}: each `robot.tcp` point in the probe's frame, from the geometry's tool and tool_rot (a
+    point given there: itself)."""
     if not tcp:
         return {}
     t = np.asarray(geometry["tool"], float)
     R_T = rotation_xyz(torch.as_tensor(geometry[TOOL_ROT], dtype=DTYPE)).numpy() if TOOL_ROT in geometry else np.eye(3)
-    return {name: R_T.T @ (np.asarray(c["xyz_mm"], float) - t) for name, c in tcp.items()}
+    return {name: (np.asarray(c["xyz_mm"], float) if c.get("frame") == "probe" else
+                   R_T.T @ (np.asarray(c["xyz_mm"], float) - t)) for name, c in tcp.items()}
 
 
 def pose_of(q_deg: np.ndarray, geometry: dict) -> tuple[np.ndarray, np.ndarray]:
@@ -74,4 +101,4 @@ def at_tcp(model, tcp: dict | None, name: str, nominal: dict):
         raise ValueError(f"--tcp {name}: the model was calibrated without the probe's orientation, so a point "
                          "off the marker has no measured accuracy; calibrate on a campaign with orientation")
     return AtTcp(model, probe_offsets(tcp, g)[name]), {**nominal, "tool": torch.as_tensor(
-        np.asarray(tcp[name]["xyz_mm"], float), dtype=DTYPE)}
+        np.asarray(in_flange(tcp, g)[name]["xyz_mm"], float), dtype=DTYPE)}

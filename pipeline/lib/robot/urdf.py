@@ -72,7 +72,11 @@ def tool_transform(g: dict) -> np.ndarray:
 
 
 def tcp_transforms(tcp: dict | None) -> dict:
-    """{name: (4, 4) mm}: each `robot.tcp` point's frame in the flange frame (rxyz_deg as rotation_xyz)."""
+    """{name: (4, 4) mm}: each `robot.tcp` point's frame in the flange frame (rxyz_deg as rotation_xyz); a point
+    given in the probe's frame is refused (tcp.in_flange carries it to the flange frame first)."""
+    probe = [n for n, c in (tcp or {}).items() if c.get("frame", "flange") != "flange"]
+    if probe:
+        raise ValueError(f"robot.tcp {probe[0]}: in the probe's frame; tcp.in_flange carries it to the flange's")
     return {n: transform(Rotation.from_euler("xyz", c.get("rxyz_deg", [0, 0, 0]), degrees=True).as_matrix(),
                          c["xyz_mm"]) for n, c in (tcp or {}).items()}
 
