@@ -129,6 +129,38 @@ def test_a_tcp_follows_from_the_probe_pose_and_is_judged_there():
     assert abs(shifted["tcp"]["torch"]["mean_mm"] - 0.1) < 1e-9 and shifted["orientation"]["max_arcsec"] < 1e-6
 
 
+def test_a_tcp_given_in_the_probes_frame_is_the_same_point_and_frame_in_the_flanges():
+    """tcp.in_flange: a TCP with a rotation entered where the tracker measures it (`frame: probe`, x and R_x
+    in the probe's frame) is the flange-frame TCP c = t + R_T x, R_c = R_T R_x (by hand from the probe's mount):
+    the same point at every pose (p + R x), the same URDF frame (urdf.tcp_transforms), the same probe offset.
+    A flange-frame entry passes as it is; a probe-frame one is refused without a measured probe orientation,
+    and tcp_transforms refuses one not carried first."""
+    import pytest
+    from pipeline.lib.robot.kinematics import rotation_xyz
+    from pipeline.lib.robot.tcp import in_flange
+    from pipeline.lib.robot.urdf import tcp_transforms
+    g = true_arm()
+    R_T, t = rotation_xyz(g[TOOL_ROT]).numpy(), g["tool"].numpy()
+    x, rx = np.array([12.0, -30.0, 140.0]), [10.0, -20.0, 35.0]
+    R_x = Rotation.from_euler("xyz", rx, degrees=True).as_matrix()
+    spec = {"nozzle": {"xyz_mm": x.tolist(), "rxyz_deg": rx, "frame": "probe"}, "x150": {"xyz_mm": [150.0, 0, 0]}}
+    got = in_flange(spec, g)
+    np.testing.assert_allclose(got["nozzle"]["xyz_mm"], t + R_T @ x, atol=1e-12)
+    T = tcp_transforms(got)["nozzle"]
+    np.testing.assert_allclose(T[:3, :3], R_T @ R_x, atol=1e-12)
+    assert got["x150"] == {"xyz_mm": [150.0, 0, 0]}
+    np.testing.assert_allclose(probe_offsets(spec, g)["nozzle"], x, atol=0)
+    np.testing.assert_allclose(probe_offsets(got, g)["nozzle"], x, atol=1e-12)
+    q = poses(10)
+    p, R = pose(q, g)
+    flange = pose(q, {**g, "tool": torch.zeros(3, dtype=DTYPE), TOOL_ROT: torch.zeros(3, dtype=DTYPE)})
+    np.testing.assert_allclose(p + R @ x, flange[0] + flange[1] @ np.asarray(got["nozzle"]["xyz_mm"]), atol=1e-9)
+    with pytest.raises(ValueError, match="robot.tcp nozzle: given in the probe's frame, but the calibration has no"):
+        in_flange(spec, {k: v for k, v in g.items() if k != TOOL_ROT})
+    with pytest.raises(ValueError, match="robot.tcp nozzle: in the probe's frame"):
+        tcp_transforms(spec)
+
+
 class Arm(torch.nn.Module):
     def __init__(self, g):
         super().__init__()

@@ -47,10 +47,11 @@ def split_groups(groups: np.ndarray, fractions, seed: int) -> dict[str, list[int
     """Row indices of each split, drawn over the groups (`repeats`) as split_indices draws over rows: every
     row of a group in its group's split; without repeats, split_indices itself."""
     groups = np.asarray(groups)
-    idx = split_indices(int(groups.max()) + 1 if len(groups) else 0, fractions, seed)
-    members = {g: [] for g in range(len(groups) and int(groups.max()) + 1)}
+    n = int(groups.max()) + 1 if len(groups) else 0
+    members = [[] for _ in range(n)]                                 # each group's rows, in table order
     for row, g in enumerate(groups):
         members[int(g)].append(row)
+    idx = split_indices(n, fractions, seed)
     return {name: [r for g in gs for r in members[g]] for name, gs in idx.items()}
 
 
