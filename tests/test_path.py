@@ -560,12 +560,19 @@ def test_a_path_from_joints_in_another_configuration_is_refused_at_sample_1(path
     points = [start.tolist(), (start + [0.0, 0.0, 10.0]).tolist()]
     mirrored, near = np.radians(q + [0, 0, 0, 0, -50, 0]).tolist(), np.radians(q + [3, -3, 3, -3, 3, -3]).tolist()
     with pytest.raises(xmlrpc.client.Fault, match=r"sample 1 \(arc 0\.0 mm\), target_mm, rotvecs: reached only in "
-                       r"another configuration than the given joints': the wrist flipped") as fault:
+                       r"another configuration than the given joints' \(q_rad\): the wrist flipped") as fault:
         c.compensate_path(mirrored, points, [], 5.0, 20.0, [rv[0].tolist()] * 2)
     said = fault.value.faultString                     # 220 characters, whole (was cut at serve.echo_chars, 200)
-    assert len(said) > 200 and said.endswith("give joints nearer the target (q_rad)"), said
+    assert len(said) > 200 and said.endswith("give joints nearer the target"), said
     r = c.compensate_path(near, points, [], 5.0, 20.0, [rv[0].tolist()] * 2)
     np.testing.assert_allclose(np.degrees(r["q_rad"][0]), q, atol=1.0)
+    home = [0.0, -90.0, 0.0, -90.0, 0.0, 0.0]                 # UR's home, on every singularity: from it, a path to
+    away = nominal_position(params, [8.0, -80.0, -15.0, -85.0, 12.0, 4.0])     # a pose 15° off is written (was
+    src = write_path(tmp_path, [away, nominal_position(params, [10.0, -78.0, -20.0, -82.0, 12.0, 4.0])],
+                     name="home.csv")                                           # refused: "the elbow flipped")
+    assert path_command.run([str(src), "--out", str(tmp_path / "h"), "--spacing", "5", "--allow-outside-workspace",
+                             "--start-deg", *map(str, home)]).converged.all()
+    assert c.compensate(np.radians(home).tolist(), away.tolist())["converged"]
     with pytest.raises(xmlrpc.client.Fault, match=r"target_mm, target_rotvec: reached only in another configuration"):
         c.compensate_pose(mirrored, points[0], rv[0].tolist())                   # one pose: the same
     assert c.compensate_pose(near, points[0], rv[0].tolist())["converged"]

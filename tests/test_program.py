@@ -483,6 +483,30 @@ def test_the_configuration_is_named_by_its_singularities_by_hand():
     wrist = q + [0, 0, 0, 30, -80, 0]                                             # joint 5: 40° -> -40°
     assert "the wrist flipped" in another_configuration(q, wrist, g)[0]
     assert another_configuration(q, wrist, g, orientation=False) == [None]        # a position target: free
+    home = np.array([0.0, -90.0, 0.0, -90.0, 0.0, 0.0])                          # UR's home: on every singularity
+    assert (configuration(home, g) == 0).all()                                    # (was rounding's sign)
+    assert another_configuration(home, [8.0, -80.0, -15.0, -85.0, 12.0, 4.0], g) == [None]     # a move from it
+
+
+def test_the_elbow_of_an_arm_with_an_offset_forearm_is_where_it_stretches():
+    """A custom chain (a PUMA 560's DH, its forearm offset: a3 20 mm, d4 432 mm) is stretched at q3 = -87°,
+    not at 0°: a 7° move through q3 = 0 keeps its configuration (was refused as the elbow flipped), one
+    through -87° flips it."""
+    from pipeline.lib.robot.kinematics import nominal_geometry
+    from pipeline.lib.robot.poses import configuration_margin
+    from pipeline.lib.runtime.waypoints import another_configuration
+    puma = load_robot({"model": "custom", "dh": {"d": [0, 0, 150.05, 431.8, 0, 0], "a": [0, 431.8, 20.32, 0, 0, 0],
+                       "alpha_deg": [90, 0, -90, 90, -90, 0], "offset_deg": [0] * 6}, "joint_limits_deg": None,
+                       "tool_mm": [0, 0, 0], "tcp": None})
+    g = nominal_geometry(puma)
+    q3 = np.linspace(-180, 180, 3601)
+    m = configuration_margin(np.stack([np.zeros_like(q3), np.full_like(q3, 30.0), q3, *[np.zeros_like(q3)] * 2,
+                                       np.zeros_like(q3)], 1) + [0, 0, 0, 0, 40, 0], g)[:, 1]
+    crossings = q3[1:][np.diff(np.sign(m)) != 0]
+    np.testing.assert_allclose(sorted(crossings), [-87.3, 92.7], atol=0.2)
+    q0 = np.array([0.0, 30.0, 3.0, 0.0, 40.0, 0.0])
+    assert another_configuration(q0, q0 + [4, 2, -7, 2, -2, 0], g, orientation=False) == [None]
+    assert "the elbow flipped" in another_configuration(q0 - [0, 0, 80, 0, 0, 0], q0 - [0, 0, 95, 0, 0, 0], g)[0]
 
 
 def test_a_pose_target_solved_into_another_configuration_never_becomes_a_move(in_trained_project, tmp_path):

@@ -42,17 +42,33 @@ def origins(q_deg: np.ndarray, geometry: dict) -> np.ndarray:
 CONFIGURATION = ("shoulder", "elbow", "wrist")
 
 
-def configuration(q_deg: np.ndarray, geometry: dict) -> np.ndarray:
-    """The signs (n, 3) of a pose's configuration on the chain `geometry`, one column per CONFIGURATION:
-    shoulder: the wrist centre o_5 ahead of joint 2's axis or behind it (its coordinate along frame 1's x);
-    elbow: sin q3; wrist: sin q5 (q plus the chain's offsets). Each changes sign only through its singularity
-    (the wrist centre over the base axis, the arm stretched or folded, joints 4 and 6 aligned)."""
+def configuration_margin(q_deg: np.ndarray, geometry: dict) -> np.ndarray:
+    """How far (n, 3) a pose lies from each CONFIGURATION's singularity, signed by the side (the sine of an
+    angle, in [-1, 1]): shoulder: the wrist centre o_5's bearing about the base axis, ahead of or behind joint
+    2's axis (its coordinate along frame 1's x over its distance from the base axis); elbow: the turn at the
+    elbow, from the upper arm (o_1 -> o_2) to the forearm (o_2 -> o_4) about joint 3's axis (a UR arm: sin q3;
+    an arm whose forearm is offset, as a PUMA's: zero where it is stretched or folded, not at q3 = 0); wrist:
+    sin q5 (q plus the chain's offsets). Each changes sign only through its singularity."""
     q = np.atleast_2d(np.asarray(q_deg, float))
     with torch.no_grad():
         F = link_frames(torch.as_tensor(np.radians(q), dtype=DTYPE), geometry).numpy()    # (n, 7, 4, 4)
-    ahead = np.einsum("ni,ni->n", F[:, 5, :3, 3] - F[:, 1, :3, 3], F[:, 1, :3, 0])
+    o, z0 = F[:, :, :3, 3], F[:, 0, :3, 2]
+    w = o[:, 5] - o[:, 0]
+    across = np.linalg.norm(w - np.einsum("ni,ni->n", w, z0)[:, None] * z0, axis=1)      # from the base axis
+    ahead = np.einsum("ni,ni->n", w, F[:, 1, :3, 0]) / np.maximum(across, 1e-9)
+    upper, fore, axis = o[:, 2] - o[:, 1], o[:, 4] - o[:, 2], F[:, 2, :3, 2]
+    fore = fore - np.einsum("ni,ni->n", fore, axis)[:, None] * axis                      # in the arm's plane
+    elbow = np.einsum("ni,ni->n", np.cross(upper, fore), axis) / np.maximum(
+        np.linalg.norm(upper, axis=1) * np.linalg.norm(fore, axis=1), 1e-9)
     theta = np.radians(q) + np.asarray(geometry["offset"], float)                          # (n, 6)
-    return np.sign(np.stack([ahead, np.sin(theta[:, 2]), np.sin(theta[:, 4])], 1))
+    m = np.stack([ahead, elbow, np.sin(theta[:, 4])], 1)
+    return np.where(np.abs(m) < 1e-12, 0.0, m)                  # at a singularity: 0, not rounding's sign
+
+
+def configuration(q_deg: np.ndarray, geometry: dict) -> np.ndarray:
+    """The signs (n, 3) of a pose's configuration on the chain `geometry`, one column per CONFIGURATION
+    (configuration_margin's signs)."""
+    return np.sign(configuration_margin(q_deg, geometry))
 
 
 def azimuth(p: np.ndarray) -> np.ndarray:

@@ -120,6 +120,7 @@ class Job:
     call_deadline: float = math.inf   # time.monotonic() at which its call's budget ends
     rot: np.ndarray | None = None  # (9,) a pose's flange orientation (row-major, base frame); None: a position
     rot_field: str = "target_rotvec"   # the request's field that gave rot (compensate_path's: rotvecs)
+    start: str = ""                # where q came from, when not the request's q_rad (a path's previous sample)
     future: Future = field(default_factory=Future)
     deadline: float = 0.0          # time.monotonic() at which its budget ends (set when it joins lm)
     err0: float = math.inf         # |r| at its start, mm (the controller path's)
@@ -239,11 +240,11 @@ class Service:
 
     def submit(self, q: np.ndarray, target: np.ndarray, where: str = "", call=None,
                call_deadline: float = math.inf, rot: np.ndarray | None = None,
-               rot_field: str = "target_rotvec") -> Future:
-        """Queue a checked request for the worker (rot (3, 3): a pose's flange orientation); its future holds
-        the answer or a RequestError."""
+               rot_field: str = "target_rotvec", start: str = "") -> Future:
+        """Queue a checked request for the worker (rot (3, 3): a pose's flange orientation; start: where q came
+        from, when not the request's q_rad); its future holds the answer or a RequestError."""
         job = Job(q, target, where, call, call_deadline, None if rot is None else np.asarray(rot, float).ravel(),
-                  rot_field)
+                  rot_field, start)
         if self.closed.is_set():
             raise RequestError(f"{where}target_mm: the service stopped")
         self.queue.put(job)
@@ -369,7 +370,8 @@ class Service:
             where = f"points_mm: sample {k + 1} (arc {a:.1f} mm), "
             if time.monotonic() >= deadline:
                 raise RequestError(self._unsolved(where))
-            r = self.submit(q, x, where, call, deadline, rot=flange[k], rot_field="rotvecs").result()
+            r = self.submit(q, x, where, call, deadline, rot=flange[k], rot_field="rotvecs",
+                            start=f"sample {k}'s answer" if k else "").result()
             q = np.array(r["q_rad"])
             rows.append([a, *x, *np.degrees(q), r["residual_mm"], 0, r["converged"],
                          r.get("orientation_residual_arcsec", np.nan), r["in_workspace"]])
@@ -569,11 +571,13 @@ class Service:
         """job's answer, or a RequestError where it left the configuration of the joints it was solved from
         (waypoints.another_configuration: a client would drive it as a move)."""
         why = another_configuration(np.degrees(job.q), np.degrees(answer["q_rad"]), self.chain,
-                                    orientation=job.rot is not None)[0]
+                                    orientation=job.rot is not None, than=job.start or "the given joints' (q_rad)",
+                                    advice="a branch flip: a finer spacing_mm, or another path" if job.start
+                                    else "give joints nearer the target")[0]
         if why is None:
             job.future.set_result(answer)
         else:
-            job.future.set_exception(RequestError(f"{job.where}{field}: reached only in {why} (q_rad)"))
+            job.future.set_exception(RequestError(f"{job.where}{field}: reached only in {why}"))
 
     @staticmethod
     def _answer(q_rad, residual: float, converged: bool, in_workspace: bool) -> dict:

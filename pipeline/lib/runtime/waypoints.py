@@ -26,7 +26,7 @@ from pipeline.lib.reading.readers import (AUTO_JOINTS, IngestError, find_column,
                                           looks_like_radians, parse_number, parse_column, read_table,
                                           shape_problems, unit_of)
 from pipeline.lib.robot.kinematics import TOOL_ROT, fk_numpy, nominal_geometry, tool_rotation
-from pipeline.lib.robot.poses import CONFIGURATION, configuration
+from pipeline.lib.robot.poses import CONFIGURATION, configuration_margin
 from pipeline.lib.runtime.compensation import (delta_table, nominal_flange, orientation_targets, reach_mm,
                                                solve)
 from pipeline.lib.runtime.paths import ROTVEC, check_rotvecs
@@ -48,18 +48,22 @@ def too_far(q0_deg: np.ndarray, q_deg: np.ndarray, max_deg: float = MAX_COMPENSA
             "singularity?)" for row, q in zip(d, np.asarray(q0_deg, float))]
 
 
-def another_configuration(q0_deg: np.ndarray, q_deg: np.ndarray, geometry: dict, orientation=True) -> list:
+def another_configuration(q0_deg: np.ndarray, q_deg: np.ndarray, geometry: dict, orientation=True,
+                          than: str = "the given joints'", advice: str = "give joints nearer the target") -> list:
     """Per row of joints q0 (n, 6) deg and the answer q (n, 6) solved from them for an explicit target: why q is
     not in q0's configuration, or None. Another configuration: a joint turned more than 180° (the same angle
     lies nearer the other way round), or a shoulder, elbow or wrist flipped (poses.configuration) with a joint
     turned more than MAX_COMPENSATION_DEG (within it, q0 lay at that singularity: no swing). The wrist counts
     only where the target has an orientation (orientation: a bool, or one per row; without one, the flange's
-    orientation, which sets the wrist's sign, is free)."""
+    orientation, which sets the wrist's sign, is free). Given joints within 5° of a singularity are on neither
+    side of it (UR's home: q3 = q5 = 0). than, advice: what q0 is and what to do, in the message."""
     q0, q = np.atleast_2d(np.asarray(q0_deg, float)), np.atleast_2d(np.asarray(q_deg, float))
     d = np.abs(q - q0)
     out = [None] * len(q)
     far = np.flatnonzero(d.max(1) > MAX_COMPENSATION_DEG)           # within it: no flip that swings anything
-    flipped = configuration(q0[far], geometry) != configuration(q[far], geometry)     # (len(far), 3)
+    m0, m = configuration_margin(q0[far], geometry), configuration_margin(q[far], geometry)    # (len(far), 3)
+    flipped = (m0 * m < 0) & (np.abs(m0) > np.sin(np.radians(MAX_COMPENSATION_DEG)))  # q0 at a singularity
+    # (within 5° of it: UR's home, q3 = q5 = 0, the wrist centre over the base axis) is in neither configuration
     flipped[:, CONFIGURATION.index("wrist")] &= np.broadcast_to(np.asarray(orientation, bool), (len(q),))[far]
     for k, f in zip(far, flipped):
         row, j = d[k], int(d[k].argmax())
@@ -67,8 +71,8 @@ def another_configuration(q0_deg: np.ndarray, q_deg: np.ndarray, geometry: dict,
         why += [f"joint {j + 1} turned {row[j]:.1f}° (the same angle lies {360.0 - row[j]:.1f}° the other way "
                 "round)"] if row[j] > 180.0 else []
         if why:
-            out[k] = (f"another configuration than the given joints': {', '.join(why)} (joint {j + 1} turned "
-                      f"{row[j]:.1f}°, joint 5 {q0[k, 4]:.1f}° -> {q[k, 4]:.1f}°): give joints nearer the target")
+            out[k] = (f"another configuration than {than}: {', '.join(why)} (joint {j + 1} turned {row[j]:.1f}°, "
+                      f"joint 5 {q0[k, 4]:.1f}° -> {q[k, 4]:.1f}°): {advice}")
     return out
 
 
