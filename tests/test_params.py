@@ -192,6 +192,11 @@ def test_a_pose_measured_again_is_never_split_across_train_and_test(tmp_path, mo
             assert summary["repeated_poses"] == {"main": {"rows": 80, "poses": 40}}
             assert sum(summary["counts"].values()) == 240 and set(got) == {"train", "val", "test"}
     assert (repeats(again)[200:] == np.arange(40)).all() and repeats(again).max() == 199
+    few = np.vstack([q[:6], q[:6] + 0.003])                            # 12 rows, 6 poses: too few for 8:1:1
+    pd.DataFrame({"point_id": [f"few{i}" for i in range(12)], "campaign": "main",
+                  **{f"j{k + 1}_deg": few[:, k] for k in range(6)}}).to_parquet("data/interim/points.parquet")
+    with pytest.raises(ValueError, match=r"its 12 points \(6 poses, the others measured again\) split"):
+        split.run(copy.deepcopy(PARAMS))
 
 
 def test_series_b_repeats_share_a_split():

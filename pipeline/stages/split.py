@@ -42,8 +42,10 @@ def run(params: dict, root: Path = HERE) -> dict:
         empty = [k for k, v in idx.items() if not v]
         if empty:                                  # train, evaluate and the report need every split
             held_note = f" ({int(held.sum())} more held out by split.holdout)" if held.any() else ""
+            n_poses = int(groups.max()) + 1 if len(groups) else 0
+            poses = "" if n_poses == len(rows) else f" ({n_poses} poses, the others measured again)"
             raise ValueError(
-                f"campaign {campaign!r}: its {len(rows)} points{held_note} split "
+                f"campaign {campaign!r}: its {len(rows)} points{poses}{held_note} split "
                 f"{', '.join(f'{k} {len(v)}' for k, v in idx.items())} with split.fractions "
                 f"{list(cfg['fractions'])}: the {' and '.join(empty)} split is empty. Measure more poses: "
                 f"the ingest keeps at least 10, but the frame fit's outliers (reports/theory.json) are "
