@@ -461,8 +461,9 @@ def test_the_configuration_is_named_by_its_singularities_by_hand():
     an orientation, the wrist's sign (the flange's orientation is free)."""
     from scipy.optimize import least_squares
     from pipeline.lib.robot.kinematics import link_frames, nominal_geometry
-    from pipeline.lib.robot.poses import configuration
+    from pipeline.lib.robot.poses import configuration_margin
     from pipeline.lib.runtime.waypoints import another_configuration
+    configuration = lambda q, g: np.sign(configuration_margin(q, g))             # (n, 3): the sides
     g = nominal_geometry(nominal_robot("ur5"))
     q = np.array([10.0, -70.0, 100.0, -120.0, 40.0, 30.0])
     pose = lambda x: link_frames(torch.as_tensor(np.radians(np.atleast_2d(x))), g)[:, 6].numpy()[0]

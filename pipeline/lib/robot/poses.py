@@ -19,8 +19,9 @@ and, when given:
                              `tracker_side_deg` of the tracker's (no rule when the tracker stands within
                              `column_mm` of the axis, straight above or below the arm)
 
-`configuration(q, geometry)` names which of the arm's eight configurations (UR's: shoulder, elbow, wrist)
-a pose is in; `waypoints.another_configuration` refuses an answer that left its seed's.
+`configuration_margin(q, geometry)` says which of the arm's eight configurations (UR's: shoulder, elbow,
+wrist) a pose is in, by its signs, and how far from each singularity; `waypoints.another_configuration`
+refuses an answer that left its seed's.
 """
 import numpy as np
 import torch
@@ -63,12 +64,6 @@ def configuration_margin(q_deg: np.ndarray, geometry: dict) -> np.ndarray:
     theta = np.radians(q) + np.asarray(geometry["offset"], float)                          # (n, 6)
     m = np.stack([ahead, elbow, np.sin(theta[:, 4])], 1)
     return np.where(np.abs(m) < 1e-12, 0.0, m)                  # at a singularity: 0, not rounding's sign
-
-
-def configuration(q_deg: np.ndarray, geometry: dict) -> np.ndarray:
-    """The signs (n, 3) of a pose's configuration on the chain `geometry`, one column per CONFIGURATION
-    (configuration_margin's signs)."""
-    return np.sign(configuration_margin(q_deg, geometry))
 
 
 def azimuth(p: np.ndarray) -> np.ndarray:

@@ -52,11 +52,11 @@ def another_configuration(q0_deg: np.ndarray, q_deg: np.ndarray, geometry: dict,
                           than: str = "the given joints'", advice: str = "give joints nearer the target") -> list:
     """Per row of joints q0 (n, 6) deg and the answer q (n, 6) solved from them for an explicit target: why q is
     not in q0's configuration, or None. Another configuration: a joint turned more than 180° (the same angle
-    lies nearer the other way round), or a shoulder, elbow or wrist flipped (poses.configuration) with a joint
-    turned more than MAX_COMPENSATION_DEG (within it, q0 lay at that singularity: no swing). The wrist counts
-    only where the target has an orientation (orientation: a bool, or one per row; without one, the flange's
-    orientation, which sets the wrist's sign, is free). Given joints within 5° of a singularity are on neither
-    side of it (UR's home: q3 = q5 = 0). than, advice: what q0 is and what to do, in the message."""
+    lies nearer the other way round), or, with a joint turned more than MAX_COMPENSATION_DEG, a shoulder, elbow
+    or wrist on the other side of its singularity (poses.configuration_margin) than q0, where q0 lies at least
+    5° from it (nearer, as UR's home with q3 = q5 = 0, it is on neither side). The wrist counts only where the
+    target has an orientation (orientation: a bool, or one per row; without one, the flange's orientation,
+    which sets the wrist's side, is free). than, advice: what q0 is and what to do, in the message."""
     q0, q = np.atleast_2d(np.asarray(q0_deg, float)), np.atleast_2d(np.asarray(q_deg, float))
     d = np.abs(q - q0)
     out = [None] * len(q)
