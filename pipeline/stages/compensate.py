@@ -155,14 +155,15 @@ def tcp_checks(model, cfg: dict, robot, tcp: dict, table: pd.DataFrame, frame: d
     flange's orientation error."""
     twin, out = Twin.from_json(cfg["twin"]), {}
     q0 = table[JOINTS_DEG].to_numpy()
-    tcp = in_flange(tcp, model.physics.geometry())                # a point given in the probe's frame: carried
-    for k, (name, o) in enumerate(probe_offsets(tcp, model.physics.geometry()).items()):
+    g = model.physics.geometry()
+    tcp = in_flange(tcp, g)                                       # a point given in the probe's frame: carried
+    for k, (name, o) in enumerate(probe_offsets(tcp, g).items()):
         at = AtTcp(model, o)
         target = fk_numpy(q0, robot, theory_geometry(robot, tcp[name]["xyz_mm"]))   # offline-programmed TCP
         s = solve(at, q0, target, cfg, robot, history=False, flange_rot=flange if orientation else None)
         rng = np.random.default_rng([cfg["drive_seed"], k + 1])
         out[name], _ = tcp_drive_check(twin, frame, rng, np.random.default_rng([cfg["drive_seed"], k + 1, 1]),
-                                       q0, s.q_deg, target, o, tool_rotation(model.physics.geometry()).numpy(),
+                                       q0, s.q_deg, target, o, tool_rotation(g).numpy(),
                                        flange)
         out[name]["converged_share"] = float(s.converged.mean())
         if "orientation_arcsec" in out[name]:

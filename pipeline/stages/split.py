@@ -39,11 +39,11 @@ def run(params: dict, root: Path = HERE) -> dict:
         rows = rows[~held]
         groups = repeats(pts[JOINTS_DEG].to_numpy()[rows])        # a pose measured again: one split
         idx = split_groups(groups, cfg["fractions"], cfg["seed"])
+        sizes = np.bincount(groups)                                # rows per pose
         empty = [k for k, v in idx.items() if not v]
         if empty:                                  # train, evaluate and the report need every split
             held_note = f" ({int(held.sum())} more held out by split.holdout)" if held.any() else ""
-            n_poses = int(groups.max()) + 1 if len(groups) else 0
-            poses = "" if n_poses == len(rows) else f" ({n_poses} poses, the others measured again)"
+            poses = "" if len(sizes) == len(rows) else f" ({len(sizes)} poses, the others measured again)"
             raise ValueError(
                 f"campaign {campaign!r}: its {len(rows)} points{poses}{held_note} split "
                 f"{', '.join(f'{k} {len(v)}' for k, v in idx.items())} with split.fractions "
@@ -53,7 +53,6 @@ def run(params: dict, root: Path = HERE) -> dict:
         for name, r in idx.items():
             split.iloc[rows[r]] = name
         per[campaign] = {**{k: len(v) for k, v in idx.items()}, "holdout": int(held.sum())}
-        sizes = np.bincount(groups) if len(groups) else np.zeros(0, int)
         repeated[campaign] = {"rows": int(sizes[sizes > 1].sum()), "poses": int((sizes > 1).sum())}
         if repeated[campaign]["rows"]:
             log.info("campaign %s: %d rows are %d poses measured again (joints within %g°): each pose's rows in "
