@@ -9,15 +9,19 @@ are where to start from, and the waypoint is where the calibrated chain reaches 
 Writes, in DIR (made if missing):
     poses.csv       pose_id, j1_deg..j6_deg: the N joint configurations to measure, in the order to visit
     measure.script  URScript: def measure_campaign(): one movej per pose (rad), then a wait for the tracker
-                    (plan.settle_s; with plan.handshake_io, a digital-I/O handshake too); only numbers
-                    formatted here and fixed text
+                    (plan.settle_s; with plan.handshake_io, a digital-I/O handshake too), and a movej by
+                    way of a candidate pose where no order keeps a move clear; only numbers formatted here
+                    and fixed text
     plan.json       the criterion, the program's coverage before and after, the predicted identifiability
                     (condition number, the standard error of every identified parameter) and the travel
 The choice (lib/planner/planning.py, docs/planning.md): coverage first (every part of the correction that
 leaves a waypoint outside the trained workspace, as Workspace.parts defines it), then D-optimality
 (log det JᵀJ of the calibration's identified parameters, the existing campaigns' training poses
 counted as measured); every pose acceptable (lib/robot/poses.py: joint limits, no singular wrist or elbow,
-table and column clearance, the tracker's side with --station or --tracker-mm); ordered as a short tour.
+table and column clearance, the tracker's side with --station or --tracker-mm); ordered as a short tour
+whose every movej keeps the clearance rules all along it (poses.moves_clear; the first movej comes from
+wherever the arm stands): a move no order avoids goes by way of a candidate pose both its ends may move
+to, and a plan with a move that has none is refused.
 
 --station NAME      the poses are measured from tracker station NAME of reports/frame.json (the side rule
                     from its tracker position)
@@ -50,6 +54,7 @@ from pipeline.lib.project.writing import check_outputs, csv_text, write_together
 from pipeline.lib.robot.geometry import Calibration
 from pipeline.lib.robot.identify import parameter_spec
 from pipeline.lib.robot.kinematics import nominal_geometry
+from pipeline.lib.robot.poses import CLEARANCE, moves_clear
 from pipeline.lib.robot.robots import load_robot
 from pipeline.lib.runtime.paths import ROTVEC
 from pipeline.lib.runtime.waypoints import read_waypoints
@@ -71,24 +76,28 @@ def number(v: float, what: str) -> float:
     return float(v)
 
 
-def measure_script(q_deg: np.ndarray, cfg: dict) -> str:
+def measure_script(q_deg: np.ndarray, cfg: dict, via_deg: dict | None = None) -> str:
     """URScript visiting the poses q (n, 6) deg in order with movej (rad), waiting plan.settle_s at each
     for the tracker (and, with plan.handshake_io k: set standard digital output k, wait for input k,
-    clear output k). Only numbers formatted here and fixed text."""
+    clear output k), by way of via_deg[k] (6,) deg, where given, from pose k to k + 1 (no measurement
+    there). Only numbers formatted here and fixed text."""
     acc, vel, settle = number(cfg["acc"], "acc"), number(cfg["vel"], "vel"), number(cfg["settle_s"], "settle_s")
     io = cfg["handshake_io"]
     if io is not None and (isinstance(io, bool) or not isinstance(io, int) or not 0 <= io <= 7):
         raise ValueError(f"params.yaml plan.handshake_io: null or a standard digital I/O number 0-7, got {io!r}")
-    ids = pose_ids(len(q_deg))
+    ids, via_deg = pose_ids(len(q_deg)), via_deg or {}
+    movej = lambda q: "  movej([" + ", ".join(f"{v:.12f}" for v in np.radians(q)) + "], a=acc, v=vel)"
     lines = [f"# measurement campaign planned by `python -m pipeline.commands.plan`: {len(q_deg):d} poses, "
              f"{settle:.3f} s at each for the tracker" + ("" if io is None else f", handshake on digital I/O {io:d}"),
              "def measure_campaign():", f"  acc = {acc:.6f}", f"  vel = {vel:.6f}", f"  settle = {settle:.6f}"]
-    for pid, q in zip(ids, np.radians(np.asarray(q_deg, float))):
-        lines += [f"  # {pid}", "  movej([" + ", ".join(f"{v:.12f}" for v in q) + "], a=acc, v=vel)",
-                  "  sleep(settle)"]
+    for k, (pid, q) in enumerate(zip(ids, np.asarray(q_deg, float))):
+        lines += [f"  # {pid}", movej(q), "  sleep(settle)"]
         if io is not None:
             lines += [f"  set_standard_digital_out({io:d}, True)", f"  while not get_standard_digital_in({io:d}):",
                       "    sync()", "  end", f"  set_standard_digital_out({io:d}, False)"]
+        if k in via_deg:
+            lines += [f"  # by way of a pose clear of the table and column, not measured, to {ids[k + 1]}",
+                      movej(np.asarray(via_deg[k], float))]
     return "\n".join(lines + ["end", ""])
 
 
@@ -166,7 +175,8 @@ def run(argv=None) -> dict:
                            report["residual_sigma_mm"], station["new_station"],       # orientation rows where
                            weight=report.get("orientation_weight_mm_per_rad"))         # calibrate had them
     seed = cfg["seed"] if a.seed is None else a.seed
-    cand = candidates(q_wp, np.random.default_rng(seed), nominal_geometry(robot), cfg["rules"], robot.limits_deg,
+    nominal = nominal_geometry(robot)
+    cand = candidates(q_wp, np.random.default_rng(seed), nominal, cfg["rules"], robot.limits_deg,
                       cov, cfg["per_waypoint"], cfg["region"], cfg["region_margin_deg"], tracker,
                       link_q=cov.train_q if station["new_station"] else None)
     maps = MapBlock(cov.joints, a_cfg["knot_deg"], a_cfg["prior_arcsec"], a_cfg["smooth_arcsec"],
@@ -176,9 +186,19 @@ def run(argv=None) -> dict:
                       f"{ {k: v for k, v in cand['rejected_by'].items() if v} }); nothing written. "
                       "Check params.yaml plan.rules and the tracker's position")
     result = plan(q_wp, a.n, cov, ident, cand, cfg["cover_k"], not a.identifiability_only,
-                  train_fraction=p["split"]["fractions"][0], maps=maps)
+                  train_fraction=p["split"]["fractions"][0], maps=maps,
+                  move_ok=lambda q0, q1: bool(moves_clear(q0, q1, nominal, cfg["rules"])[0]))
     ids = pose_ids(len(result.q_deg))
     rep = result.report
+    clearance = rep["travel"]["clearance"]
+    if clearance["failing"]:
+        raise Refused(f"{src}: {len(clearance['failing'])} move(s) between planned poses break "
+                      f"{' or '.join(k for k in CLEARANCE if cfg['rules'].get(k) is not None)} (plan.rules) on the "
+                      "way, with no candidate pose to go by; nothing written: "
+                      + ", ".join(f"{ids[i]} -> {ids[j]}" for i, j in clearance["failing"][:10])
+                      + ". Plan another --seed or fewer poses (--n)")
+    for v in clearance["via"]:
+        v["after"] = ids[v["after"]]
     rep["identifiability"]["reported_se"] = {k: report["estimates"][k]["se"] for k in ident.names
                                              if k in report.get("estimates", {})}
     if (root / PARTS_REPORT).exists() and read_json(root / PARTS_JSON)["enabled"]:   # what calibration + maps leave
@@ -199,7 +219,8 @@ def run(argv=None) -> dict:
     poses = pd.DataFrame(result.q_deg, columns=JOINTS_DEG)
     poses.insert(0, "pose_id", ids)
     write_together({out / "poses.csv": csv_text(poses),
-                    out / "measure.script": measure_script(result.q_deg, cfg), out / "plan.json": json_text(rep)},
+                    out / "measure.script": measure_script(result.q_deg, cfg, result.via_deg),
+                    out / "plan.json": json_text(rep)},
                    [src])
     c, i, t = rep["coverage"], rep["identifiability"], rep["travel"]
     cond = lambda x: "-" if x is None else f"{x:.1f}"

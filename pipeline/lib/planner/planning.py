@@ -34,19 +34,23 @@ prediction   the information matrix JᵀJ of the calibration's parameters (and a
 tour         nearest neighbour in joint space from the pose nearest the program's first waypoint,
              improved by 2-opt; the metric, a step's largest joint move (deg, unwrapped: what a movej
              takes); its travel: the sum of those, and of the steps' joint-space (Euclidean) distances.
+             With `move_ok`, a move that fails it (poses.moves_clear: the arm through the table or the
+             column between two acceptable poses) is taken only where no order avoids it, and then by
+             way of a candidate both its ends may move to (`via_deg`); `travel.clearance.failing` lists
+             the moves that have none.
 
 Coverage after is computed as if every planned pose were a training pose (the same radius); the
 8:1:1 split keeps about one in five out of training, which `cover_k` > 1 absorbs:
 `expected_after_split` is the share still covered when each planned pose trains with probability
 `train_fraction`.
 """
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from pipeline.lib.planner.coverage import Coverage
 from pipeline.lib.planner.design import DCriterion, Identification, MapBlock, information, map_se, prediction
-from pipeline.lib.planner.tour import step_cost, tour, travel
+from pipeline.lib.planner.tour import step_cost, tour, travel, vias
 
 CRITERION = "coverage_then_d_optimal"
 CRITERION_TEXT = ("coverage first (greedy: every uncovered part of every waypoint, as Workspace.parts defines it, "
@@ -67,6 +71,7 @@ class Plan:
     role: list                      # "coverage" | "d_optimal" per pose
     near: list                      # the waypoint index it was made from, or -1
     report: dict
+    via_deg: dict = field(default_factory=dict)     # {k: (6,)}: a pose passed through between poses k and k + 1
 
 
 def expected_split_coverage(S: np.ndarray, reqs: list, n_wp: int, covered_before: np.ndarray,
@@ -89,12 +94,14 @@ def expected_split_coverage(S: np.ndarray, reqs: list, n_wp: int, covered_before
 
 
 def plan(q_wp, n: int, cov: Coverage, ident: Identification, cand: dict, cover_k: int = 2,
-         cover: bool = True, start_q=None, train_fraction: float = 0.8, maps: MapBlock | None = None) -> Plan:
+         cover: bool = True, start_q=None, train_fraction: float = 0.8, maps: MapBlock | None = None,
+         move_ok=None) -> Plan:
     """Choose n poses among the candidates `cand` (candidates()) for the program's waypoints q_wp (k, 6)
     deg by CRITERION (cover=False: D_ONLY), order them (tour) and report coverage, identifiability and
     travel (module docstring). start_q: where the tour starts from (default the first waypoint). maps:
     the angle maps' settings (MapBlock); the joints whose coverage the program lacks enter the
-    D-criterion with their priors (None: the calibration's parameters alone)."""
+    D-criterion with their priors (None: the calibration's parameters alone). move_ok(q_from (6,), q_to (6,))
+    -> bool: the moves the tour may take (None: any)."""
     if n < 1:
         raise ValueError(f"plan: n must be at least 1, got {n}")
     q_wp = np.atleast_2d(np.asarray(q_wp, float))
@@ -134,10 +141,12 @@ def plan(q_wp, n: int, cov: Coverage, ident: Identification, cand: dict, cover_k
     chosen = np.array(chosen)
     start_q = q_wp[0] if start_q is None else np.asarray(start_q, float)
     first = int(np.argmin(step_cost(Q[chosen], start_q)))
-    order = tour(Q[chosen], first)
+    order = tour(Q[chosen], first, move_ok=move_ok)
     nn_travel = travel(Q[chosen][tour(Q[chosen], first, passes=0)])
     chosen, role = chosen[order], [role[i] for i in order]
     q = Q[chosen]
+    via = {} if move_ok is None else vias(q, Q, move_ok)
+    path = np.concatenate([np.vstack([q[k]] + ([via[k]] if via.get(k) is not None else [])) for k in range(len(q))])
 
     before, after = cov.parts(q_wp), cov.parts(q_wp, q)
     share = lambda p: {k: float(v.mean()) for k, v in p.items()}
@@ -168,12 +177,16 @@ def plan(q_wp, n: int, cov: Coverage, ident: Identification, cand: dict, cover_k
                             "new_station": ident.new_station,
                             "angle_maps": map_se(block, crit, Minv_before, q_wp, ident.geometry),
                             "before": prediction(M_before, ident, robot_only=ident.new_station), "after": prediction(M_after, ident)},
-        "travel": {**travel(q), "order": "nearest neighbour from the pose nearest the program's first waypoint, "
-                                         "then 2-opt; a step costs its largest joint move",
-                   "nearest_neighbour_only": nn_travel},
+        "travel": {**travel(path), "order": "nearest neighbour from the pose nearest the program's first waypoint, "
+                                            "then 2-opt; a step costs its largest joint move",
+                   "nearest_neighbour_only": nn_travel,
+                   "clearance": {"checked": move_ok is not None,
+                                 "via": [{"after": k, "j_deg": v.tolist()} for k, v in via.items() if v is not None],
+                                 "failing": [[k, k + 1] for k, v in via.items() if v is None]}},
         "candidates": {"made": cand["made"], "acceptable": cand.get("acceptable", int(len(Q))),
                        "rejected_by": cand["rejected_by"],
                        "chosen": {kd: int((cand["kind"][chosen] == kd).sum()) for kd in np.unique(cand["kind"])},
                        "waypoints_acceptable": int(np.sum(cand["waypoints_acceptable"]))},
     }
-    return Plan(q, role, [int(cand["near"][c]) for c in chosen], report)
+    return Plan(q, role, [int(cand["near"][c]) for c in chosen], report,
+                {k: v for k, v in via.items() if v is not None})

@@ -19,6 +19,9 @@ and, when given:
                              `tracker_side_deg` of the tracker's (no rule when the tracker stands within
                              `column_mm` of the axis, straight above or below the arm)
 
+A move between two poses (a `movej`: every joint linear in time, all together) keeps CLEARANCE, the rules
+that say where the arm may be, all along it (`moves_clear`); the others say where it may be measured.
+
 `configuration_margin(q, geometry)` says which of the arm's eight configurations (UR's: shoulder, elbow,
 wrist) a pose is in, by its signs, and how far from each singularity; `waypoints.another_configuration`
 refuses an answer that left its seed's.
@@ -64,6 +67,8 @@ def configuration_margin(q_deg: np.ndarray, geometry: dict) -> np.ndarray:
     theta = np.radians(q) + np.asarray(geometry["offset"], float)                          # (n, 6)
     m = np.stack([ahead, elbow, np.sin(theta[:, 4])], 1)
     return np.where(np.abs(m) < 1e-12, 0.0, m)                  # at a singularity: 0, not rounding's sign
+CLEARANCE = ("elbow_min_mm", "table_mm", "column_mm")
+MOVE_STEP_DEG = 0.25            # a move is checked at every quarter degree of its largest joint move
 
 
 def azimuth(p: np.ndarray) -> np.ndarray:
@@ -117,6 +122,19 @@ def acceptable(q_deg: np.ndarray, geometry: dict, rules: dict, limits_deg=None, 
     for v in checks(q, geometry, rules, limits_deg, azimuth_deg, tracker_mm).values():
         ok &= v
     return ok
+
+
+def moves_clear(q_from: np.ndarray, q_to: np.ndarray, geometry: dict, rules: dict,
+                step_deg: float = MOVE_STEP_DEG) -> np.ndarray:
+    """(m,) bool: each movej from q_from to q_to (m, 6) deg keeps the CLEARANCE rules that apply at every
+    step_deg of its largest joint move, both ends included."""
+    a, b = np.atleast_2d(np.asarray(q_from, float)), np.atleast_2d(np.asarray(q_to, float))
+    clearance = {k: rules.get(k) for k in CLEARANCE}
+    out = np.ones(len(a), bool)
+    for i, (qa, qb) in enumerate(zip(a, b)):
+        s = np.linspace(0.0, 1.0, max(1, int(np.ceil(np.abs(qb - qa).max() / step_deg))) + 1)[:, None]
+        out[i] = acceptable(qa + s * (qb - qa), geometry, clearance).all()        # (k, 6) along the move
+    return out
 
 
 def rejected(q_deg: np.ndarray, geometry: dict, rules: dict, limits_deg=None, azimuth_deg=None,
