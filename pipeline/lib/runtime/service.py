@@ -12,7 +12,8 @@ worker, in a loop:
      not verify, whose residual is a prediction, goes on to lm);
   2. the others join the lm set, at most `lm_per_call` of one call's at a time (the rest of a
      compensate_many's wait for its slots, so one call's many unreachable items cannot crowd out the
-     others' requests), solved by `lm` from their start (solvers.lm_step, the residual
+     others' requests), solved by `lm` from the controller path's answer where it predicted one within
+     tol_mm (lm measures it there: one iteration), else from their start (solvers.lm_step, the residual
      then measured on the model; on the exported graph when the controller path runs there and lm
      steps with the DH branch's Jacobian, OnnxRealtime.lm_step, an iteration 2.5x cheaper than in
      PyTorch at batch 1): one iteration for the whole set per loop, so requests arriving
@@ -123,7 +124,8 @@ class Job:
     start: str = ""                # where q came from, when not the request's q_rad (a path's previous sample)
     future: Future = field(default_factory=Future)
     deadline: float = 0.0          # time.monotonic() at which its budget ends (set when it joins lm)
-    err0: float = math.inf         # |r| at its start, mm (the controller path's)
+    err0: float = math.inf         # |r| at seed, mm (the controller path's; inf: not measured there)
+    seed: np.ndarray | None = None  # (6,) rad where lm starts: q, or the controller path's predicted answer
     iters: int = 0
     history: list = field(default_factory=list)   # |r| (mm) after each lm iteration, the start first
 
@@ -433,7 +435,8 @@ class Service:
 
     def _chord(self, jobs: list[Job]) -> None:
         """The controller path for every job at once; the converged (on a measured residual) answered, the
-        others on to lm from their start (`_admit`). Jobs whose call's budget is spent: answered so."""
+        others on to lm (`_admit`): from the answer where its predicted residual is within tol, else from their
+        start. Jobs whose call's budget is spent: answered so."""
         start = time.monotonic()
         for job in [j for j in jobs if start >= j.call_deadline]:
             job.future.set_exception(RequestError(self._unsolved(job.where)))
@@ -452,10 +455,12 @@ class Service:
         else:
             results = self.realtime.batch(q0, target)
         for job, r in zip(jobs, results):
-            if r.converged and r.verified:                 # unverified: a predicted residual, lm measures it
+            if r.converged and r.verified:
                 self._settle(job, self._answer(r.q, r.residual_mm, True, r.in_workspace), "target_mm")
-            else:
-                self.waiting.append(job)
+                continue
+            if r.converged:                                # a predicted residual: lm measures it there
+                job.seed, job.err0 = r.q, math.inf
+            self.waiting.append(job)
         self._admit()
 
     def _admit(self) -> None:
@@ -480,10 +485,15 @@ class Service:
                 self._join(lane, jobs)
 
     def _join(self, lane: Lane, admit: list[Job]) -> None:
-        """Jobs into a lane's lm set, from their start."""
-        q0, target = np.array([j.q for j in admit]), np.array([j.target for j in admit])
+        """Jobs into a lane's lm set, each from its seed (its start where it has none)."""
+        q0 = np.array([j.q if j.seed is None else j.seed for j in admit])
+        target = np.array([j.target for j in admit])
         if lane.w is None and self.graph is not None:
-            new = LMSet(q0, None, np.array([j.err0 for j in admit]), np.full(len(admit), LAM0), target)
+            err0 = np.array([j.err0 for j in admit])
+            seeded = ~np.isfinite(err0)                    # |r| at a predicted answer: measured by one run
+            if seeded.any():
+                err0[seeded] = self.graph.solve(q0[seeded], target[seeded])[2]
+            new = LMSet(q0, None, err0, np.full(len(admit), LAM0), target)
         else:
             if lane.w is not None:                        # (A, 12): the position and the flange's orientation
                 target = np.hstack([target, np.array([j.rot for j in admit])])

@@ -61,6 +61,8 @@ def another_configuration(q0_deg: np.ndarray, q_deg: np.ndarray, geometry: dict,
     d = np.abs(q - q0)
     out = [None] * len(q)
     far = np.flatnonzero(d.max(1) > MAX_COMPENSATION_DEG)           # within it: no flip that swings anything
+    if not len(far):
+        return out
     m0, m = configuration_margin(q0[far], geometry), configuration_margin(q[far], geometry)    # (len(far), 3)
     flipped = (m0 * m < 0) & (np.abs(m0) > np.sin(np.radians(MAX_COMPENSATION_DEG)))  # q0 at a singularity
     # (within 5° of it: UR's home, q3 = q5 = 0, the wrist centre over the base axis) is in neither configuration
