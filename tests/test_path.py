@@ -240,7 +240,12 @@ def test_a_path_the_solver_cannot_follow_is_refused_naming_the_sample(in_trained
     assert code == 1 and m and "Traceback" not in said, said
     k, arc = int(m[1]), float(m[2])
     assert 40 < k < 71 and arc == 5 * (k - 1) and float(m[3]) > 0.01 and int(m[4]) == k - 1 and int(m[5]) == 71 - k
-    assert not (tmp_path / "o").exists()
+    assert not (tmp_path / "o").exists() and "earlier run" not in said
+    (tmp_path / "o").mkdir()                                  # an earlier run's script there: said, kept
+    (tmp_path / "o/path.script").write_text("def earlier():\nend\n")
+    code, said = exit_code(path_command.main, argv, capsys)
+    assert code == 1 and f"nothing written; {tmp_path / 'o/path.script'}: an earlier run's, left as they were" in said
+    assert (tmp_path / "o/path.script").read_text() == "def earlier():\nend\n"
 
 
 @pytest.mark.parametrize("option, message", [

@@ -271,7 +271,42 @@ def test_a_move_no_order_avoids_goes_by_way_of_a_pose_both_ends_may_move_to():
     script = plan_cmd.measure_script(q, {"acc": 1.0, "vel": 0.5, "settle_s": 1.0, "handshake_io": None}, via)
     moves = re.findall(r"movej\(\[([^\]]+)\]", script)
     assert np.degrees([float(m.split(", ")[0]) for m in moves]).round(9).tolist() == [0.0, 45.0, 100.0]
-    assert script.count("sleep(settle)") == 2 and "# by way of a pose clear of the table and column, not measured, to M002" in script
+    assert script.count("sleep(settle)") == 2 and "# via, not measured, to M002: the direct move breaks the clearance rules" in script
+
+
+def test_the_script_goes_by_way_of_a_pose_where_the_direct_move_breaks_the_rules(in_trained_project, tmp_path,
+                                                                              monkeypatch, capsys):
+    """A two-pose plan whose one move is made to break the clearance rules (poses.moves_clear replaced: that
+    move alone fails): the script goes from M001 by way of a candidate pose to M002, measuring nothing there,
+    as plan.json says; every move it makes passes. A plan whose every move breaks them is refused: exit 1,
+    nothing written, and the earlier plan's files in the folder named as not this program's."""
+    src, first = tmp_path / "prog.csv", tmp_path / "first"
+    q = sample_poses(2, np.random.default_rng(5))
+    pd.DataFrame(q, columns=JOINTS_DEG).to_csv(src, index=False)
+    plan_cmd.run([str(src), "--n", "2", "--out", str(first)])
+    a, b = pd.read_csv(first / "poses.csv")[JOINTS_DEG].to_numpy()
+    pair = lambda x, y: {tuple(np.round(x, 6)), tuple(np.round(y, 6))} == {tuple(np.round(a, 6)), tuple(np.round(b, 6))}
+    monkeypatch.setattr(plan_cmd, "moves_clear", lambda x, y, g, r: np.array([not pair(np.ravel(x), np.ravel(y))]))
+    out = tmp_path / "second"
+    rep = plan_cmd.run([str(src), "--n", "2", "--out", str(out)])
+    via = rep["travel"]["clearance"]["via"]
+    assert [v["after"] for v in via] == ["M001"] and rep["travel"]["clearance"]["failing"] == []
+    script = (out / "measure.script").read_text()
+    moves = np.degrees([[float(v) for v in m.split(", ")] for m in re.findall(r"movej\(\[([^\]]+)\]", script)])
+    assert len(moves) == 3 and script.count("sleep(settle)") == 2 and rep["travel"]["steps"] == 2
+    np.testing.assert_allclose(moves[[0, 2]], [a, b], atol=1e-9)
+    np.testing.assert_allclose(moves[1], via[0]["j_deg"], atol=1e-9)
+    assert not pair(moves[0], moves[1]) and not pair(moves[1], moves[2])
+    assert "  # via, not measured, to M002: the direct move breaks the clearance rules" in script.split("\n")
+    monkeypatch.setattr(plan_cmd, "moves_clear", lambda x, y, g, r: np.array([False]))
+    before = {f: (out / f).read_bytes() for f in plan_cmd.FILES}
+    code, said = exit_code(plan_cmd.main, [str(src), "--n", "2", "--out", str(out)], capsys)
+    assert code == 1 and "the move M001 -> M002 between planned poses breaks" in said, said
+    assert (f"; {out / 'poses.csv'}, {out / 'measure.script'}, {out / 'plan.json'}: an earlier run's, left as they "
+            "were, not this one's") in said
+    assert {f: (out / f).read_bytes() for f in plan_cmd.FILES} == before
+    code, said = exit_code(plan_cmd.main, [str(src), "--n", "2", "--out", str(tmp_path / "third")], capsys)
+    assert code == 1 and not (tmp_path / "third").exists() and "earlier run" not in said
 
 
 def twin_identification(q_deg, params, sigma):

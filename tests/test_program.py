@@ -130,6 +130,10 @@ def test_an_unreached_waypoint_never_becomes_a_move(in_trained_project, tmp_path
     assert not re.search(r"# C:.*\n  movej", script)                         # no move follows it
     table = pd.read_csv(tmp_path / "prog_comp.csv")
     assert not table.set_index("point_id").loc["C", "converged"]
+    written = (tmp_path / "prog_comp.script").read_bytes()          # refused again: that script is not this run's
+    code, said = exit_code(program.main, [str(src)], capsys)
+    assert code == 1 and "prog_comp.script: an earlier run's, left as they were, not this one's" in said, said
+    assert (tmp_path / "prog_comp.script").read_bytes() == written
 
 
 def test_radians_in_degree_columns_are_refused(in_trained_project, tmp_path, capsys):

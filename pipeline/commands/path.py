@@ -50,7 +50,7 @@ from pipeline.lib.project.artifacts import FRAME_JSON, MODEL_WEIGHTS, PARAMS_FIL
 from pipeline.lib.project.cli import Refused, add_project, one_line
 from pipeline.lib.project.columns import JCOMP_DEG
 from pipeline.lib.project.config import for_stage, load_params, logger, read_json
-from pipeline.lib.project.writing import check_outputs, csv_text, write_together
+from pipeline.lib.project.writing import check_outputs, csv_text, left_as_they_were, write_together
 from pipeline.lib.robot.geometry import theory_geometry
 from pipeline.lib.robot.kinematics import fk_numpy, nominal_geometry
 from pipeline.lib.robot.robots import load_robot
@@ -115,6 +115,7 @@ def run(argv=None) -> pd.DataFrame:
     a = ap.parse_args(argv)
     src, out, root = Path(a.path), Path(a.out), a.project
     check_outputs([out / f for f in FILES], [src])   # by inode too: a hard link to the input is the input
+    earlier = left_as_they_were([out / f for f in FILES])
     p = for_stage(load_params(root / PARAMS_FILE), PARAMS)
     cfg = {**p["path"], **{k: v for k, v in (("spacing_mm", a.spacing), ("chord_mm", a.chord),
                                              ("speed_mm_s", a.speed)) if v is not None}}
@@ -140,7 +141,7 @@ def run(argv=None) -> pd.DataFrame:
                                   frame_rot)
         except Refused as e:
             raise Refused(f"{src}: {e}; rerun with --ignore-orientation to compensate the position alone; "
-                          "nothing written") from None
+                          f"nothing written{earlier}") from None
         if rots is not None:
             rotations = lambda arc: rotations_at(found.segs, rots, arc)
     q0 = start_joints(found, a.start_deg, robot, src)
@@ -153,7 +154,7 @@ def run(argv=None) -> pd.DataFrame:
     servo_times(arc, cfg["speed_mm_s"])              # a ValueError where --speed is too low for URScript
     far = beyond_reach(targets, arc, reach_mm(model.physics.geometry()))
     if far:
-        raise Refused(f"{src}: {far}; nothing written")
+        raise Refused(f"{src}: {far}; nothing written{earlier}")
     table = solve_path(model, targets, arc, q0, p["compensate"], robot,
                        None if rotations is None else rotations(arc))
     if cfg["chord_mm"] is not None and table.converged.all():
@@ -165,7 +166,7 @@ def run(argv=None) -> pd.DataFrame:
     why = why or start_refusal(q0, table[JCOMP_DEG].to_numpy()[0], nominal_geometry(robot), found.offline,
                                orientation=rotations is not None)
     if why:
-        raise Refused(f"{src}: {why}; nothing written")
+        raise Refused(f"{src}: {why}; nothing written{earlier}")
     out.mkdir(parents=True, exist_ok=True)
     approach = p["program"]["movej"]
     write_together({out / "path.csv": csv_text(table),

@@ -19,9 +19,9 @@ leaves a waypoint outside the trained workspace, as Workspace.parts defines it),
 (log det JᵀJ of the calibration's identified parameters, the existing campaigns' training poses
 counted as measured); every pose acceptable (lib/robot/poses.py: joint limits, no singular wrist or elbow,
 table and column clearance, the tracker's side with --station or --tracker-mm); ordered as a short tour
-whose every movej keeps the clearance rules all along it (poses.moves_clear; the first movej comes from
-wherever the arm stands): a move no order avoids goes by way of a candidate pose both its ends may move
-to, and a plan with a move that has none is refused.
+whose every movej keeps the clearance rules all along it (poses.moves_clear: the nominal chain's frame
+origins; the first movej comes from wherever the arm stands): a move no order avoids goes by way of a
+candidate pose both its ends may move to, and a plan with a move that has none is refused.
 
 --station NAME      the poses are measured from tracker station NAME of reports/frame.json (the side rule
                     from its tracker position)
@@ -50,7 +50,7 @@ from pipeline.lib.project.artifacts import (CALIBRATED_GEOMETRY, CALIBRATION_JSO
 from pipeline.lib.project.cli import Refused, add_project, one_line
 from pipeline.lib.project.columns import JOINTS_DEG, TARGET
 from pipeline.lib.project.config import for_stage, json_text, load_params, logger, read_json
-from pipeline.lib.project.writing import check_outputs, csv_text, write_together
+from pipeline.lib.project.writing import check_outputs, csv_text, left_as_they_were, write_together
 from pipeline.lib.robot.geometry import Calibration
 from pipeline.lib.robot.identify import parameter_spec
 from pipeline.lib.robot.kinematics import nominal_geometry
@@ -96,7 +96,7 @@ def measure_script(q_deg: np.ndarray, cfg: dict, via_deg: dict | None = None) ->
             lines += [f"  set_standard_digital_out({io:d}, True)", f"  while not get_standard_digital_in({io:d}):",
                       "    sync()", "  end", f"  set_standard_digital_out({io:d}, False)"]
         if k in via_deg:
-            lines += [f"  # by way of a pose clear of the table and column, not measured, to {ids[k + 1]}",
+            lines += [f"  # via, not measured, to {ids[k + 1]}: the direct move breaks the clearance rules",
                       movej(np.asarray(via_deg[k], float))]
     return "\n".join(lines + ["end", ""])
 
@@ -148,6 +148,7 @@ def run(argv=None) -> dict:
     if not src.is_file():
         raise ValueError(f"{src}: no such file")
     check_outputs([out / f for f in FILES], [src])   # by inode too: a hard link to the program is the program
+    earlier = left_as_they_were([out / f for f in FILES])
     p = for_stage(load_params(root / PARAMS_FILE), PARAMS)
     cfg = p["plan"]
     robot = load_robot(p["robot"])
@@ -164,7 +165,8 @@ def run(argv=None) -> dict:
         if far.any():
             raise Refused(f"{src}: {int(far.sum())} target(s) the calibrated arm does not reach from their joints "
                           "within its limits; nothing written: " + "; ".join(
-                              f"{p}: {m:.1f} mm short" for p, m in zip(df.point_id[far][:10], miss[far][:10])))
+                              f"{p}: {m:.1f} mm short" for p, m in zip(df.point_id[far][:10], miss[far][:10]))
+                          + earlier)
     tracker, station = tracker_position(frame, a.station, a.tracker_mm)
     station["new_station"] |= a.new_station
     a_cfg = p["parts"]["angle_map"]
@@ -184,7 +186,7 @@ def run(argv=None) -> dict:
     if len(cand["q"]) == 0:
         raise Refused(f"{src}: no acceptable candidate pose near the program (rules failed: "
                       f"{ {k: v for k, v in cand['rejected_by'].items() if v} }); nothing written. "
-                      "Check params.yaml plan.rules and the tracker's position")
+                      "Check params.yaml plan.rules and the tracker's position" + earlier)
     result = plan(q_wp, a.n, cov, ident, cand, cfg["cover_k"], not a.identifiability_only,
                   train_fraction=p["split"]["fractions"][0], maps=maps,
                   move_ok=lambda q0, q1: bool(moves_clear(q0, q1, nominal, cfg["rules"])[0]))
@@ -192,11 +194,11 @@ def run(argv=None) -> dict:
     rep = result.report
     clearance = rep["travel"]["clearance"]
     if clearance["failing"]:
-        raise Refused(f"{src}: {len(clearance['failing'])} move(s) between planned poses break "
+        i, j = clearance["failing"][0]
+        raise Refused(f"{src}: the move {ids[i]} -> {ids[j]} between planned poses breaks "
                       f"{' or '.join(k for k in CLEARANCE if cfg['rules'].get(k) is not None)} (plan.rules) on the "
-                      "way, with no candidate pose to go by; nothing written: "
-                      + ", ".join(f"{ids[i]} -> {ids[j]}" for i, j in clearance["failing"][:10])
-                      + ". Plan another --seed or fewer poses (--n)")
+                      "way, and no candidate pose lets it go by; nothing written (plan another --seed or fewer "
+                      "poses, --n)" + earlier)
     for v in clearance["via"]:
         v["after"] = ids[v["after"]]
     rep["identifiability"]["reported_se"] = {k: report["estimates"][k]["se"] for k in ident.names

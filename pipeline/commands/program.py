@@ -25,7 +25,7 @@ Safe by construction (docs/robot-cell.md):
     not a compensation of its joints (offline: a joint turned over 5°; with targets: another
     configuration than the given joints', a shoulder, elbow or wrist flipped or a joint turned over
     180°: waypoints.unreached) never becomes a move: the program is refused (exit 1, those waypoints
-    listed, nothing written), or, with
+    listed, nothing written; an earlier run's files at the output paths are named, left as they were), or, with
     --comment-out-unreached, written with each such waypoint as a comment and no move;
   - angles that look like radians in the *_deg columns are refused, as ingest refuses them;
   - waypoints outside the trained workspace are listed in the summary printed at the end;
@@ -48,7 +48,7 @@ from pipeline.lib.project.artifacts import FRAME_JSON, MODEL_WEIGHTS, PARAMS_FIL
 from pipeline.lib.project.cli import Refused, add_project, one_line
 from pipeline.lib.project.columns import JCOMP_DEG, TARGET
 from pipeline.lib.project.config import for_stage, load_params, logger, read_json
-from pipeline.lib.project.writing import check_outputs, csv_text, write_together
+from pipeline.lib.project.writing import check_outputs, csv_text, left_as_they_were, write_together
 from pipeline.lib.robot.geometry import theory_geometry
 from pipeline.lib.robot.robots import load_robot
 from pipeline.lib.robot.tcp import at_tcp, in_flange
@@ -138,7 +138,8 @@ def run(argv=None) -> pd.DataFrame:
     text = summary_text(table, skipped, workspace)
     if skipped and not a.comment_out_unreached:
         raise Refused(f"{src}: {len(skipped)} waypoint(s) not reached; nothing written (or rerun with "
-                      f"--comment-out-unreached to write them as comments, no move)\n{text}")
+                      f"--comment-out-unreached to write them as comments, no move){left_as_they_were([out, script])}"
+                      f"\n{text}")
     c = p["program"]
     write_together({out: csv_text(table),
                     script: urscript(table, skipped, c["move"], **c[c["move"]])}, [src])

@@ -36,8 +36,8 @@ tour         nearest neighbour in joint space from the pose nearest the program'
              takes); its travel: the sum of those, and of the steps' joint-space (Euclidean) distances.
              With `move_ok`, a move that fails it (poses.moves_clear: the arm through the table or the
              column between two acceptable poses) is taken only where no order avoids it, and then by
-             way of a candidate both its ends may move to (`via_deg`); `travel.clearance.failing` lists
-             the moves that have none.
+             way of a candidate both its ends may move to (`via_deg`); `travel.clearance.failing` holds
+             the first move that has none.
 
 Coverage after is computed as if every planned pose were a training pose (the same radius); the
 8:1:1 split keeps about one in five out of training, which `cover_k` > 1 absorbs:
@@ -142,7 +142,7 @@ def plan(q_wp, n: int, cov: Coverage, ident: Identification, cand: dict, cover_k
     start_q = q_wp[0] if start_q is None else np.asarray(start_q, float)
     first = int(np.argmin(step_cost(Q[chosen], start_q)))
     order = tour(Q[chosen], first, move_ok=move_ok)
-    nn_travel = travel(Q[chosen][tour(Q[chosen], first, passes=0)])
+    nn_travel = travel(Q[chosen][tour(Q[chosen], first, passes=0, move_ok=move_ok)])
     chosen, role = chosen[order], [role[i] for i in order]
     q = Q[chosen]
     via = {} if move_ok is None else vias(q, Q, move_ok)

@@ -66,9 +66,9 @@ def tour(q_deg: np.ndarray, start: int = 0, passes: int = 50, move_ok=None) -> n
 
 
 def vias(q_deg: np.ndarray, pool_deg: np.ndarray, move_ok) -> dict:
-    """{k: via (6,) deg or None} for each step k (q[k] -> q[k + 1]) of visiting q (n, 6) deg in order that
-    fails move_ok: the pose of pool (m, 6) deg that both ends may move to and back from, the nearest to both
-    (`step_cost` summed); None where the pool has none."""
+    """{k: via (6,) deg} for each step k (q[k] -> q[k + 1]) of visiting q (n, 6) deg in order that fails
+    move_ok: the pose of pool (m, 6) deg that both ends may move to and back from, the nearest to both
+    (`step_cost` summed). It stops at the first such step the pool has none for: {k: None} is its last entry."""
     q, pool = np.asarray(q_deg, float), np.asarray(pool_deg, float)
     out = {}
     for k in range(len(q) - 1):
@@ -77,6 +77,8 @@ def vias(q_deg: np.ndarray, pool_deg: np.ndarray, move_ok) -> dict:
         cost = step_cost(pool, q[k]) + step_cost(pool, q[k + 1])
         out[k] = next((pool[w] for w in np.argsort(cost, kind="stable")
                        if move_ok(q[k], pool[w]) and move_ok(pool[w], q[k + 1])), None)
+        if out[k] is None:
+            break
     return out
 
 

@@ -41,6 +41,13 @@ def check_outputs(outputs, inputs=()) -> None:
                 raise ValueError(f"{a} and {b} are the same file: choose two output paths")
 
 
+def left_as_they_were(outputs) -> str:
+    """For a refusal that writes nothing: which of the outputs exist already (an earlier run's, which a user
+    could take for this one's), as the end of its message; "" when none does."""
+    old = [str(p) for p in outputs if Path(p).exists()]
+    return f"; {', '.join(old)}: an earlier run's, left as they were, not this one's" if old else ""
+
+
 def write_together(files: dict, inputs=()) -> None:
     """Write every {path: str | bytes} or none (an OSError naming the path that failed)."""
     check_outputs(files, inputs)
