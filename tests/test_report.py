@@ -227,6 +227,34 @@ def test_ablation_summary_writes_table_with_paper_epochs_and_figure(tmp_path, mo
     assert json.loads((tmp_path / "reports/ablation.json").read_text()) == summary
 
 
+def test_the_ablation_summary_leaves_out_groups_run_on_other_settings(tmp_path, monkeypatch):
+    """`ablation sweep GROUP` re-runs some groups: the summary put them beside groups trained on other settings
+    or inputs, in one table. Now it holds the groups run on those of the group run last, and lists the others."""
+    import copy
+    import os
+    from pipeline.commands import ablation
+    monkeypatch.chdir(tmp_path)
+    for f in ablation.INPUTS:
+        Path(f).parent.mkdir(parents=True, exist_ok=True)
+        Path(f).write_bytes(b"inputs")
+    params = load_params(ROOT / "params.yaml")
+    first = ablation.settings_sha256(params)
+    wider = copy.deepcopy(params)
+    wider["model"]["d_model"] += 6
+    assert ablation.settings_sha256(wider) != first
+    Path(ablation.INPUTS[0]).write_bytes(b"other points")
+    second = ablation.settings_sha256(params)
+    assert second != first
+    runs = [{"seed": 1, "test": {"3d": {"mae": 0.25, "rmse": 0.3, "r2": 0.9}}, "epochs_to_best": 10, "n_params": 5}]
+    for k, (g, sha) in enumerate((("baseline", first), ("no_mask", first), ("paper_weights", second))):
+        path = tmp_path / "reports/ablation" / f"{g}.json"
+        write_json(path, {"group": g, "changes": ablation.GROUPS[g], "settings_sha256": sha, "runs": runs})
+        os.utime(path, ns=(10**18 + k, 10**18 + k))                    # written in this order
+    summary = ablation.summarise()
+    assert set(summary["groups"]) == {"paper_weights"} and summary["stale"] == ["baseline", "no_mask"]
+    assert "Left out, run on other settings or inputs than `paper_weights`" in (tmp_path / "reports/ablation.md").read_text()
+
+
 def test_scatter_r2_is_the_metrics_r2():
     rng = np.random.default_rng(1)
     theory = rng.normal(0, 100, (50, 3))

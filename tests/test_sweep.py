@@ -200,6 +200,7 @@ def test_an_ablation_with_a_failed_run_writes_the_others_and_names_it(tmp_path, 
     monkeypatch.setattr(ablation, "jobs_for", lambda params, groups: (
         [ablation.Job({}, g, s) for g in groups for s in (3, 4, 5)], None))
     monkeypatch.setattr(ablation, "train_one", flaky)
+    monkeypatch.setattr(ablation, "settings_sha256", lambda params: "the same")
     monkeypatch.setattr(ablation, "OUT", tmp_path / "ablation")
     monkeypatch.setattr(ablation, "TIMINGS", tmp_path / "timings")
     params = {"ablation": {"seeds": [3, 4, 5]}}

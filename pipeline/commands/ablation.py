@@ -13,6 +13,7 @@ Each group is the main settings with the changes below; a seed sets both the
 weight init and the data order.
 """
 import argparse
+import hashlib
 import json
 import os
 import subprocess
@@ -24,8 +25,10 @@ import numpy as np
 
 from pipeline.lib.learning import sweep
 from pipeline.lib.learning.ablations import GROUPS, Data, Job, train_one
-from pipeline.lib.project.artifacts import REPORTS, TIMINGS
+from pipeline.lib.project.artifacts import (CALIBRATED_GEOMETRY, FRAME_JSON, PARTS_JSON, POINTS_TABLE, REPORTS,
+                                            SPLIT_TABLE, TIMINGS)
 from pipeline.lib.project.config import for_stage, load_params, logger, read_json, split_timings, write_json
+from pipeline.lib.reading.campaigns import file_sha256
 from pipeline.lib.reading.prepared import load_prepared
 from pipeline.lib.reporting.figures import fig_ablation, save
 from pipeline.lib.reporting.paper import PAPER_ABLATION, PAPER_ABLATION_EPOCHS
@@ -34,6 +37,16 @@ log = logger(__name__)
 OUT = REPORTS / "ablation"
 PARAMS = {"group": ("robot", "model", "loss", "train", "ablation", "workspace"),   # ablation/dvc.yaml
           "summary": ()}
+
+
+INPUTS = (POINTS_TABLE, SPLIT_TABLE, FRAME_JSON, CALIBRATED_GEOMETRY, PARTS_JSON)     # what load_prepared reads
+
+
+def settings_sha256(params: dict) -> str:
+    """What a group's runs depend on besides its own changes (the group stage's params and INPUTS), as one
+    hash: the summary puts together only groups run on the same."""
+    state = {"params": for_stage(params, PARAMS["group"]), "inputs": {str(f): file_sha256(f) for f in INPUTS}}
+    return hashlib.sha256(json.dumps(state, sort_keys=True, default=str).encode()).hexdigest()
 
 
 def jobs_for(params: dict, groups: list[str]) -> tuple[list[Job], Data]:
@@ -53,7 +66,7 @@ def run_groups(params: dict, groups: list[str], engine: str = "sequential", addr
     writes reports/ablation/<group>.json per group. threads: torch threads per job (default:
     every core when sequential, 1 on Ray)."""
     jobs, data = jobs_for(params, groups)
-    seeds = params["ablation"]["seeds"]
+    seeds, settings = params["ablation"]["seeds"], settings_sha256(params)
     threads = sweep.threads_per_job(engine, threads)
     try:
         runs, timing = sweep.run(train_one, jobs, engine, address, threads, desc="ablation", shared=data)
@@ -64,7 +77,8 @@ def run_groups(params: dict, groups: list[str], engine: str = "sequential", addr
     out = {}
     for k, g in enumerate(groups):
         mine = range(k * len(seeds), (k + 1) * len(seeds))
-        rec = {"group": g, "changes": GROUPS[g], "runs": [runs[i] for i in mine if i not in errors],
+        rec = {"group": g, "changes": GROUPS[g], "settings_sha256": settings,
+               "runs": [runs[i] for i in mine if i not in errors],
                "seconds": sum(timing["job_seconds"][i] or 0.0 for i in mine), "engine": engine,
                "threads_per_job": threads}
         if any(i in errors for i in mine):
@@ -82,14 +96,16 @@ def run_groups(params: dict, groups: list[str], engine: str = "sequential", addr
 
 def summarise() -> dict:
     """reports/ablation.json (the issue's layout), a markdown table beside the paper's numbers
-    (reports/ablation.md) and its figure (reports/ablation.png)."""
+    (reports/ablation.md) and its figure (reports/ablation.png), over the groups run on the settings and
+    inputs of the group run last (`settings_sha256`); the others are listed as stale."""
+    found = sorted((p for p in (OUT / f"{g}.json" for g in GROUPS) if p.exists()), key=lambda p: p.stat().st_mtime_ns)
+    records = {p.stem: read_json(p) for p in found}
+    last = records[found[-1].stem].get("settings_sha256") if found else None
+    stale = sorted(g for g, r in records.items() if r.get("settings_sha256") != last)
     groups = {}
     for g in GROUPS:
-        path = OUT / f"{g}.json"
-        if not path.exists():
-            continue
-        r = read_json(path)
-        if not r["runs"]:                         # every seed failed (r["failed"] says why)
+        r = records.get(g)
+        if r is None or g in stale or not r["runs"]:     # no runs: every seed failed (r["failed"] says why)
             continue
         mae = [run["test"]["3d"]["mae"] for run in r["runs"]]
         groups[g] = {"seeds": [run["seed"] for run in r["runs"]], "runs": mae,
@@ -101,7 +117,10 @@ def summarise() -> dict:
                      "params": r["runs"][0]["n_params"], "changes": r["changes"],
                      **({"failed": r["failed"]} if r.get("failed") else {}),
                      "paper_test_3d_mae": PAPER_ABLATION.get(g)}
-    summary = {"groups": groups}
+    summary = {"groups": groups, **({"stale": stale} if stale else {})}
+    if stale:
+        log.warning("left out, run on other settings or inputs than %s: %s (rerun them: python -m "
+                    "pipeline.commands.ablation sweep %s)", found[-1].stem, ", ".join(stale), " ".join(stale))
     write_json(REPORTS / "ablation.json", summary)
     rows = ["| group | changes | test 3D MAE mm (mean ± std) | paper | epochs to best | paper epochs "
             "| parameters |", "|---|---|---|---|---|---|---|"]
@@ -111,6 +130,9 @@ def summarise() -> dict:
                     f"{s['test_3d_mae_std']:.4f} | {paper} | "
                     f"{int(np.mean(s['epochs_to_best']))} | {PAPER_ABLATION_EPOCHS.get(g, '–')} | "
                     f"{s['params']:,} |")
+    if stale:
+        rows += ["", f"Left out, run on other settings or inputs than `{found[-1].stem}` (the group run last): "
+                 + ", ".join(f"`{g}`" for g in stale) + "."]
     (REPORTS / "ablation.md").write_text("\n".join(rows) + "\n")
     if groups:
         save(fig_ablation(summary), REPORTS / "ablation.png")
