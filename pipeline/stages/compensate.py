@@ -105,8 +105,9 @@ def solve_all(model, workspace, cfg: dict, robot, df: pd.DataFrame, flange_rot: 
             summary["outside_workspace"] = int((~table["in_workspace"]).sum())
     rt = Realtime(model, np.radians(robot.limits_deg), cfg["tol_mm"], workspace=workspace)   # same targets
     summary["realtime"] = check(rt, np.radians(q0), target)
-    log.info("realtime (one pose per call, 2 model evaluations): %.0f%% verified, %.0f%% converged, "
+    log.info("realtime (one pose per call, 2 model evaluations%s): %.0f%% verified, %.0f%% converged, "
              "residual max %.2e mm; %d of %d targets outside the trained workspace (%s table: %d)",
+             ", the positions alone" if flange_rot is not None else "",
              100 * summary["realtime"]["verified_share"], 100 * summary["realtime"]["converged_share"],
              summary["realtime"]["true_residual_mm_max"], summary["realtime"]["outside_workspace"], len(df),
              cfg["solver"], summary["outside_workspace"])
