@@ -243,8 +243,10 @@ def test_a_path_the_solver_cannot_follow_is_refused_naming_the_sample(in_trained
     assert not (tmp_path / "o").exists() and "earlier run" not in said
     (tmp_path / "o").mkdir()                                  # an earlier run's script there: said, kept
     (tmp_path / "o/path.script").write_text("def earlier():\nend\n")
+    write_path(tmp_path, [[-650.0, -200.0, 250.0], [-5000.0, -200.0, 250.0]])      # refused before solving
     code, said = exit_code(path_command.main, argv, capsys)
-    assert code == 1 and f"nothing written; {tmp_path / 'o/path.script'}: an earlier run's, left as they were" in said
+    assert code == 1 and "beyond the arm's reach" in said, said
+    assert f"nothing written; {tmp_path / 'o/path.script'}: an earlier run's, left as they were" in said
     assert (tmp_path / "o/path.script").read_text() == "def earlier():\nend\n"
 
 
