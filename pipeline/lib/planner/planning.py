@@ -50,7 +50,7 @@ import numpy as np
 
 from pipeline.lib.planner.coverage import Coverage
 from pipeline.lib.planner.design import DCriterion, Identification, MapBlock, information, map_se, prediction
-from pipeline.lib.planner.tour import step_cost, tour, travel, vias
+from pipeline.lib.planner.tour import once_a_pair, step_cost, tour, travel, vias
 
 CRITERION = "coverage_then_d_optimal"
 CRITERION_TEXT = ("coverage first (greedy: every uncovered part of every waypoint, as Workspace.parts defines it, "
@@ -141,6 +141,7 @@ def plan(q_wp, n: int, cov: Coverage, ident: Identification, cand: dict, cover_k
     chosen = np.array(chosen)
     start_q = q_wp[0] if start_q is None else np.asarray(start_q, float)
     first = int(np.argmin(step_cost(Q[chosen], start_q)))
+    move_ok = None if move_ok is None else once_a_pair(move_ok)
     order = tour(Q[chosen], first, move_ok=move_ok)
     nn_travel = travel(Q[chosen][tour(Q[chosen], first, passes=0, move_ok=move_ok)])
     chosen, role = chosen[order], [role[i] for i in order]

@@ -65,6 +65,19 @@ def tour(q_deg: np.ndarray, start: int = 0, passes: int = 50, move_ok=None) -> n
     return order
 
 
+def once_a_pair(move_ok):
+    """move_ok(q_from (6,), q_to (6,)) -> bool asked once for each pair of poses (in either order): the tours
+    and `vias` of one plan ask about the same moves."""
+    seen = {}
+
+    def ok(a, b):
+        key = tuple(sorted((np.asarray(a, float).tobytes(), np.asarray(b, float).tobytes())))
+        if key not in seen:
+            seen[key] = bool(move_ok(a, b))
+        return seen[key]
+    return ok
+
+
 def vias(q_deg: np.ndarray, pool_deg: np.ndarray, move_ok) -> dict:
     """{k: via (6,) deg} for each step k (q[k] -> q[k + 1]) of visiting q (n, 6) deg in order that fails
     move_ok: the pose of pool (m, 6) deg that both ends may move to and back from, the nearest to both

@@ -34,6 +34,8 @@ from pipeline.lib.robot.kinematics import DTYPE, link_frames
 # The twin's rules (a UR5 on a table, docs/method.md): every key a planner's settings may set.
 RULES = {"radius_mm": (300.0, 850.0), "height_mm": (0.0, 750.0), "elbow_up": True, "elbow_min_mm": 150.0,
          "table_mm": 40.0, "column_mm": 180.0, "sin_elbow": 0.15, "sin_wrist": 0.2, "tracker_side_deg": 90.0}
+CLEARANCE = ("elbow_min_mm", "table_mm", "column_mm")     # the rules a move keeps all along it (moves_clear)
+MOVE_STEP_DEG = 0.25            # a move is checked at every quarter degree of its largest joint move
 
 
 def origins(q_deg: np.ndarray, geometry: dict) -> np.ndarray:
@@ -67,8 +69,6 @@ def configuration_margin(q_deg: np.ndarray, geometry: dict) -> np.ndarray:
     theta = np.radians(q) + np.asarray(geometry["offset"], float)                          # (n, 6)
     m = np.stack([ahead, elbow, np.sin(theta[:, 4])], 1)
     return np.where(np.abs(m) < 1e-12, 0.0, m)                  # at a singularity: 0, not rounding's sign
-CLEARANCE = ("elbow_min_mm", "table_mm", "column_mm")
-MOVE_STEP_DEG = 0.25            # a move is checked at every quarter degree of its largest joint move
 
 
 def azimuth(p: np.ndarray) -> np.ndarray:
