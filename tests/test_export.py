@@ -89,6 +89,52 @@ def test_the_urdf_and_yaml_carry_the_probe_and_tcp_frames():
     assert np.linalg.norm(frames["torch"]["ur_pose"][3:]) > 0.1   # 30° about y: rpy and a rotation vector differ
 
 
+def test_a_custom_robots_chain_files_are_both_written_and_read_back_with_its_tcp_links():
+    """Review (2026-11-29): for robot.model custom the stage wrote no ur_calibration.yaml, which dvc.yaml declares,
+    so `dvc repro` failed there; and the tcp_<name> links the docs say are read back were not."""
+    from pipeline.stages.export import chain_files
+    dh = {k: v.tolist() for k, v in (("d", UR5.d), ("a", UR5.a))}
+    custom = load_robot({"model": "custom", "tool_mm": [0.0, 0.0, 0.0], "joint_limits_deg": None, "tcp": None,
+                         "dh": {**dh, "alpha_deg": np.degrees(UR5.alpha).tolist(), "offset_deg": [0.0] * 6}})
+    g = calibrated_like()
+    tcp = {"torch": {"xyz_mm": [150.0, 0.0, 80.0], "rxyz_deg": [10.0, -20.0, 30.0]}}
+    files, checked = chain_files(g, custom, tcp, poses(40), Path("out"))
+    assert sorted(map(str, files)) == ["out/models/calibrated.urdf", "out/models/ur_calibration.yaml"]
+    assert checked["ur_yaml"]["max_deviation_mm"] < 1e-6 and "no Universal Robots arm" in checked["ur_yaml"]["robot"]
+    link = checked["urdf"]["tcp"]["torch"]
+    assert link["max_deviation_mm"] < 1e-6 and link["max_rotation_deviation_arcsec"] < 1e-3
+    kin = yaml.safe_load(files[Path("out/models/ur_calibration.yaml")])
+    assert list(kin["tool_frames"]) == ["marker", "torch"]
+    bent = {"torch": {"xyz_mm": [150.0, 0.0, 80.0], "rxyz_deg": [10.0, -20.0, 31.0]}}      # a link 1 deg off
+    text = to_urdf(g, custom, tcp=bent)
+    from pipeline.stages.export import tcp_links
+    assert 3500 < tcp_links(text, tcp, poses(10), g)["torch"]["max_rotation_deviation_arcsec"] < 3700
+
+
+def test_an_export_that_fails_leaves_every_file_of_the_run_before(in_trained_project, tmp_path, monkeypatch):
+    """Review (2026-11-29): the URDF and the YAML were written before the graphs were made: a run that failed
+    there (a disk full) left a new URDF beside the old run's graphs and export.json."""
+    import shutil
+    from pipeline.stages import export
+    for f in ("data/interim/points.parquet", "data/interim/split.parquet", "reports/frame.json",
+              "models/calibration.json", "models/parts.json", "models/boter.pt"):
+        (tmp_path / f).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy(f, tmp_path / f)
+    old = {f: f"an earlier run's {f}" for f in ("models/calibrated.urdf", "models/ur_calibration.yaml",
+                                                 "models/model.onnx", "reports/export.json")}
+    for f, text in old.items():
+        (tmp_path / f).write_text(text)
+
+    def disk_full(model, paths):
+        raise OSError(28, "No space left on device")
+    monkeypatch.setattr(export, "export_all", disk_full)
+    params = {**in_trained_project, "robot": {**in_trained_project["robot"],
+                                              "tcp": {"torch": {"xyz_mm": [150.0, 0.0, 80.0]}}}}
+    with pytest.raises(OSError, match="No space left"):
+        export.run(params, tmp_path)
+    assert {f: (tmp_path / f).read_text() for f in old} == old
+
+
 def test_nominal_ur5_at_zero_is_where_the_datasheet_puts_it():
     """Hand-checked: at q = 0 the UR5's flange is at x = a2 + a3, y = -(d4 + d6), z = d1 - d5 (m)."""
     text = to_urdf(nominal_geometry(UR5), UR5)
@@ -241,6 +287,23 @@ def test_controller_onnx_answers_as_the_pytorch_controller_path(in_trained_proje
         x, y = OnnxRealtime("models/controller.onnx", lim, tol)(a, b), Realtime(model, lim, tol)(a, b)
         assert_same_answers([x], [y])
         assert np.abs(x.q - a).max() <= np.radians(0.01) + 1e-12 and not x.converged
+
+
+def test_a_nan_in_a_batch_is_that_rows_failure_not_the_batchs(in_trained_project):
+    """Review (2026-11-29): one NaN angle or target in a batch made every graph fail (onnxruntime: GatherND
+    index -2^63, the load maps' knot index of a NaN torque) and the PyTorch path raise IndexError: the whole
+    batch lost. Now that row's answer is NaN, not converged; the others are what they are alone."""
+    params = in_trained_project
+    model, ws = load_model("models/boter.pt"), Workspace.from_dict(read_json("models/workspace.json"))
+    limits, tol = np.radians(load_robot(params["robot"]).limits_deg), params["compensate"]["tol_mm"]
+    q0, tgt = (a[:4].copy() for a in controller_cases(model, params))
+    q0[1, 2], tgt[2, 0] = np.nan, np.nan
+    for rt in (Realtime(model, limits, tol, workspace=ws), OnnxRealtime("models/controller.onnx", limits, tol, ws)):
+        got = rt.batch(q0, tgt)
+        assert [r.converged for r in got[1:3]] == [False, False] and not got[1].in_workspace
+        assert_same_answers([got[0], got[3]], [rt(q0[0], tgt[0]), rt(q0[3], tgt[3])])
+    p = OnnxModel("models/model.onnx")(q0.astype(np.float32))
+    assert np.isnan(p[1]).all() and np.isfinite(p[[0, 2, 3]]).all()
 
 
 def test_lm_step_on_the_controller_graph_is_lm_in_pytorch(in_trained_project):

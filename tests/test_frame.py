@@ -130,6 +130,23 @@ def test_swapped_tracker_axes_stop_the_frame_stage(tmp_path, monkeypatch):
     assert not (tmp_path / "reports" / "frame.json").exists()
 
 
+def test_misread_orientations_stop_the_frame_stage(tmp_path, monkeypatch):
+    """Review (2026-11-29): orientation columns read in another convention (the twin's w x y z quaternions as
+    x y z w) passed every check: the probe's rotation was fitted to noise-like data, scattered by tens of degrees.
+    Read right, the twin's scatter is its tracker noise and kinematic error."""
+    run_stages(tmp_path, monkeypatch)
+    right = read_json(tmp_path / "reports" / "frame.json")["stations"]["main"]["orientation_scatter_arcsec"]["mean"]
+    assert right < 1800                                       # a quarter of the limit (1046: the twin's wrist errors)
+    (tmp_path / "reports" / "frame.json").unlink()
+    with pytest.raises(FrameFitError) as info:
+        run_stages(tmp_path, monkeypatch, orientation={**PARAMS["ingest"]["orientation"], "scalar_first": False})
+    msg = str(info.value)
+    scatter = float(msg.split("scatter ")[1].split(" arcsec")[0])
+    assert scatter > 5 * 7200 and "frame.max_orientation_scatter_arcsec = 7200" in msg
+    assert "station main (main)" in msg and "ingest.orientation" in msg
+    assert not (tmp_path / "reports" / "frame.json").exists()
+
+
 def test_wrong_scale_stops_on_the_rms_threshold(tmp_path, monkeypatch):
     """Positions x1.5 (inside ingest's scale window; its distance check off): rms ~167 mm."""
     with pytest.raises(FrameFitError) as info:

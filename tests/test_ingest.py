@@ -362,7 +362,8 @@ def test_ambiguous_empty_and_wrong_separator(tmp_path):
     (tmp_path / "header.csv").write_text("point_id,j1_deg\n")
     raises(["header.csv", "no data rows"], ingest, params(joints=str(tmp_path / "header.csv")))
     raises([joints, "single column: is ingest.sep right?"], ingest, params(joints=joints, tracker=_, sep=";"))
-    raises(["params.yaml", "ingest.length_unit"], ingest, params(length_unit="cm"))
+    with pytest.raises(ParamsError, match="params.yaml ingest.length_unit: mm or m, got 'cm'"):
+        ingest(params(length_unit="cm"))
 
 
 def test_mostly_unreadable_cells_stop(tmp_path):
@@ -835,6 +836,19 @@ def test_euler_degrees_near_the_tracker_axes_read_and_an_angle_beyond_a_turn_is_
     assert [(d["row"], d["reason"]) for d in by_file(s, tracker)] == [(6, "bad_rotation")]
     assert "angle 1 = 123.4 is beyond one turn (+-6.28319 rad)" in by_file(s, tracker)[0]["detail"]
 
+
+def test_euler_angles_beyond_a_turn_in_most_rows_stop_naming_their_column(tmp_path):
+    """Review (2026-11-29): the third angle lost its decimal point in 12 of 20 rows; the stage stopped naming
+    column 'rx' (the first of the three), not 'rz', where the bad cells are."""
+    ids, q, m = campaign(20, seed=16)
+    deg = Rotation.random(20, random_state=3).as_euler("XYZ", degrees=True)
+    deg[:12, 2] *= 1000.0
+    deg[:12, 2] += np.where(deg[:12, 2] >= 0, 1000.0, -1000.0)           # beyond one turn, whatever the angle
+    joints, tracker = write_oriented(tmp_path, ids, q, m, EULER, deg)
+    e = raises([tracker, "row 2", "angle 3 =", "12 of 20 rows are no rotation"], ingest,
+               params(joints=joints, tracker=tracker, columns={"orientation": EULER}))
+    assert e.column == "rz" and e.row == 2
+
 def test_the_bundled_campaign_ingests_to_the_bytes_dvc_lock_records(tmp_path, monkeypatch):
     """A campaign without orientation: the ingest stage writes the same table and ingest.json, byte for
     byte, as before the orientation settings (dvc.lock's md5 of both)."""
@@ -966,6 +980,34 @@ def test_a_target_marker_not_in_the_geometry_stops(tmp_path):
            params(joints=joints, tracker=tracker, columns={"marker": "Marker"}))
 
 
+def test_empty_marker_cells_and_a_pose_left_with_two_markers_are_listed_as_they_are(tmp_path):
+    """Review (2026-11-29): P0005's A and B with empty marker cells: the second was listed as a duplicate
+    (marker '' already on the row before), and the joints row's partner_dropped named the first empty row
+    (missing_id) as the pose dropped for too_few_markers, not the two marker rows left."""
+    ids, q, m, R, rows = marker_campaign(12, seed=9)
+    rows[16][1] = rows[17][1] = ""                                        # P0005: A and B on file lines 18, 19
+    joints, _ = write_pair(tmp_path, ids, q, m)
+    tracker = write(tmp_path / "targets.csv", ["Name", "Marker", "X", "Y", "Z", "Time", "Std"], rows)
+    df, s = ingest(params(joints=joints, tracker=tracker, columns={"marker": "Marker"}, target={"markers": TARGET}))
+    got = [(d["row"], d["reason"]) for d in by_file(s, tracker)]
+    assert got == [(18, "missing_id"), (19, "missing_id"), (20, "too_few_markers"), (21, "too_few_markers")]
+    partner = by_file(s, joints)
+    assert [(d["row"], d["reason"]) for d in partner] == [(6, "partner_dropped")]
+    assert partner[0]["detail"] == f"its rows 20, 21 in {tracker} were dropped (too_few_markers)"
+    assert s["n_kept"] == 11
+
+
+def test_one_mislabelled_marker_with_an_estimated_geometry_stops_naming_its_row(tmp_path):
+    """Review (2026-11-29): no row was named, where with a given geometry the same file names row 22."""
+    ids, q, m, R, rows = marker_campaign(30, seed=8)
+    rows[20][1] = "a"                                                     # P0006's A, file line 22
+    joints, _ = write_pair(tmp_path, ids, q, m)
+    tracker = write(tmp_path / "targets.csv", ["Name", "Marker", "X", "Y", "Z", "Time", "Std"], rows)
+    e = raises([tracker, "row 22", "no pose holds all 5 markers (A, B, C, D, a); marker 'a' is in 1 of 30 poses "
+                "(row(s) 22): mislabelled?"], ingest, params(joints=joints, tracker=tracker, columns={"marker": "Marker"}))
+    assert (e.row, e.column) == (22, "Marker")
+
+
 def test_a_pose_whose_markers_nearly_line_up_is_dropped_not_turned_at_random(tmp_path):
     """A, B, C 0.05 mm off one line: without D the rotation about that line rests on 0.02 mm marker noise
     (turns of up to 157 deg seen). Markers within 10 x target_residual_mm (RMS) of a line: the pose is dropped."""
@@ -998,6 +1040,38 @@ def test_one_mislabelled_pose_does_not_move_the_estimated_geometry(tmp_path):
     true = np.array(list(TARGET.values())) - np.mean(list(TARGET.values()), axis=0)
     got = np.array([s["target"]["markers_mm"][n] for n in TARGET])
     assert abs(np.linalg.norm(got[:, None] - got[None], axis=2) - np.linalg.norm(true[:, None] - true[None], axis=2)).max() < 0.05
+
+
+def test_two_campaigns_of_one_target_estimated_apart_stop_and_given_run(tmp_path, monkeypatch):
+    """Review (2026-11-29): a target's geometry estimated per campaign (ingest.target: null) gave each campaign
+    its own target frame (the tracker's axes at its first pose): the frame stage averaged probe rotations 88 deg
+    apart without a word. Now the ingest stops, naming the campaigns and an estimate to give; given, both
+    campaigns' poses are the one target frame's."""
+    from pipeline.stages.ingest import run_campaign
+    monkeypatch.chdir(tmp_path)
+    head = ["Name", "Marker", "X", "Y", "Z", "Time", "Std"]
+    ids, q, m, R, rows = marker_campaign(15, seed=8)
+    write_pair(tmp_path, ids, q, m)
+    write(tmp_path / "targets.csv", head, rows)
+    (tmp_path / "b").mkdir()
+    ids_b, q_b, m_b, R_b, rows_b = marker_campaign(15, seed=11)
+    joints_b, _ = write_pair(tmp_path / "b", ids_b, q_b, m_b)
+    tracker_b = write(tmp_path / "b/targets.csv", head, rows_b)
+    p = params(tracker="targets.csv", columns={"marker": "Marker"})
+    p["campaigns"]["more"] = {"b": {"station": "main", "ingest": {"joints": joints_b, "tracker": tracker_b}}}
+    run_campaign(p, "b")
+    with pytest.raises(ValueError, match=r"campaigns main, b measure the probe's orientation, and main, b estimated "
+                                         r"the multi-marker target's geometry .* Give the target's geometry in "
+                                         r"ingest.target, e.g. campaign main's estimate: \{markers: \{A: \["):
+        run(p)
+    assert not Path("data/interim/ingest.parquet").exists()
+    p["ingest"]["target"] = {"markers": TARGET}
+    run_campaign(p, "b")
+    run(p)
+    df = pd.read_parquet("data/interim/ingest.parquet")
+    got = rotations(df[MEAS_Q].to_numpy())
+    assert max_angle(got, np.concatenate([R, R_b])) < 2e-3                 # one frame: TARGET's, in both
+    assert np.abs(df[MEAS].to_numpy() - np.concatenate([m, m_b])).max() < 0.05
 
 
 def test_a_further_campaigns_target_replaces_the_main_ones(tmp_path):

@@ -76,7 +76,7 @@ def test_matrix_columns_are_row_major():
 def test_bad_rotations_are_named_not_repaired():
     q, bad = orientation.rotations(np.array([[1.01, 0, 0, 0], [1.0005, 0, 0, 0], [0, 0, 0, 0],
                                              [np.nan, 0, 0, 1]]), spec("quaternion"))
-    assert "quaternion norm 1.01, not 1" in bad[0] and "quaternion norm 0," in bad[2]
+    assert "quaternion norm 1.01, not 1" in bad[0][0] and "quaternion norm 0," in bad[2][0] and bad[0][1] == 0
     assert bad[1] is None and np.allclose(q[1], [1, 0, 0, 0])                 # within 1e-3: normalised
     assert bad[3] is None and np.isnan(q[3]).all()                            # an unreadable cell: its own problem
     assert np.isnan(q[[0, 2]]).all()
@@ -84,8 +84,8 @@ def test_bad_rotations_are_named_not_repaired():
     stretched = 1.01 * np.eye(3)
     slightly = Rotation.from_rotvec([0.1, 0.2, 0.3]).as_matrix() + 1e-4
     q, bad = orientation.rotations(np.stack([mirror, stretched, slightly]).reshape(3, 9), spec("matrix"))
-    assert bad[0] == "a reflection (det -1 < 0)"
-    assert bad[1].startswith("not orthonormal: max |R Rᵀ - I| = 0.0201")
+    assert bad[0] == ("a reflection (det -1 < 0)", 0)
+    assert bad[1][0].startswith("not orthonormal: max |R Rᵀ - I| = 0.0201")
     assert bad[2] is None and angle(matrix(q[2]), Rotation.from_rotvec([0.1, 0.2, 0.3]).as_matrix()) < 1e-3
 
 

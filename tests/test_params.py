@@ -142,6 +142,8 @@ NAN = float("nan")
     ("serve.host", ""), ("serve.onnx", "true"), ("serve.compile", 0), ("serve.call_budget_ms", 0),
     ("serve.lm_per_call", 0), ("serve.max_connections", 0),
     ("summary.instrument", 5),
+    ("robot.tcp", {"marker": {"xyz_mm": [0, 0, 200]}}),          # the probe's frame in ur_calibration.yaml
+    ("ingest.sep", "|"), ("ingest.skip_lines", -1), ("ingest.decimal", ";"), ("ingest.length_unit", "cm"),
 ])
 def test_a_bad_value_of_a_reviewed_key_stops_naming_it(key, value):
     p = copy.deepcopy(PARAMS)

@@ -222,6 +222,17 @@ def test_more_campaigns_are_checked_with_the_params_key(tmp_path, monkeypatch):
                                     "frame": "same"}}
     with pytest.raises(ValueError, match=r"campaigns.campaign: unknown key\(s\) \['frame'\]"):
         ingest.run(p)
+    for override, key in (({"target_residual_mm": 0}, "target_residual_mm: a distance > 0 mm, got 0"),
+                          ({"orientation": {"sequence": "XYW"}}, "orientation.sequence: "),
+                          ({"sep": "|"}, "sep: auto, ',', ';' or tab, got '|'"),
+                          ({"colums": {}}, "unknown key(s) ['colums']")):
+        # review (2026-11-29): named params.yaml ingest.<key>, whose own value was valid
+        p["campaigns"]["more"] = {"b": {"ingest": {"joints": "x.csv", "tracker": "x.csv", **override},
+                                        "station": "s2"}}
+        with pytest.raises(ValueError) as e:
+            ingest.run_campaign(p, "b")
+        sep = ": " if key.startswith("unknown") else "."
+        assert f"params.yaml campaigns.more.b.ingest{sep}{key}" in str(e.value), str(e.value)
     p["campaigns"]["more"] = {"b": {"ingest": {"joints": "x.csv", "tracker": "x.csv"}, "station": "s2"}}
     monkeypatch.chdir(tmp_path)
     with pytest.raises(FileNotFoundError, match=r"campaign 'b' .* is not ingested"):

@@ -171,6 +171,43 @@ def test_campaign_needs_its_own_files(project):
         validate.run_campaign(project, "moved")
 
 
+def test_a_same_frame_campaign_whose_tracker_moved_stops_before_writing(project):
+    """Review (2026-11-29): `frame: same` on a campaign measured from a moved tracker was judged in the training
+    frame: metres of "error" reported as accuracy, exit 0. The fixture's campaign is the twin's, whose tracker
+    stands elsewhere than the fixture's identity frame."""
+    project["validate"]["campaigns"]["moved"]["frame"] = "same"
+    with pytest.raises(ValueError, match=r"validate.campaigns.moved: frame: same, but in the training frame the "
+                                         r"nominal chain is \d+\.\d mm .* above frame.max_rms_mm = 20 mm: the "
+                                         r"tracker moved .*use frame: refit"):
+        validate.run_campaign(project, "moved")
+    assert not Path("reports/validation/moved.json").exists()
+    P = np.array([[100.0, 0, 0], [0, 200, 0], [0, 0, 300], [50, 50, 50]])
+    frame = {"R": np.eye(3).tolist(), "t": [0.0, 0.0, 0.0]}
+    errors, registered, _ = judge({"nominal": P + [0.0, 0.0, 1.5]}, P, "same", frame, 3, PARAMS["frame"])
+    assert not registered.any() and errors["nominal"] == pytest.approx([1.5] * 4)    # a real robot's error: judged
+
+
+def test_a_campaign_whose_target_would_be_estimated_takes_the_training_campaigns_geometry():
+    """Review (2026-11-29): a validation campaign's target estimated from its own poses has its own frame, not
+    the one the model's probe rotation was trained in."""
+    markers = {"A": [60.0, 0.0, 10.0], "B": [0.0, 70.0, -5.0], "C": [-50.0, -40.0, 20.0]}
+    cfg = {"columns": {"marker": "Marker"}, "target": None}
+    trained = {"units": {"orientation": {"kind": "target"}}, "target": {"geometry": "estimated", "markers_mm": markers}}
+    assert validate.training_target(cfg, trained, "b") == {"columns": {"marker": "Marker"}, "target": {"markers": markers}}
+    with pytest.raises(ValueError, match=r"validate.campaigns.b.ingest: .* give it in ingest.target"):
+        validate.training_target(cfg, {"units": {"orientation": {"kind": "euler"}}}, "b")
+    assert validate.training_target(cfg, {"units": {}}, "b") is cfg         # trained on positions: its own frame will do
+
+
+def test_a_bad_setting_of_a_campaigns_ingest_is_named_there(project):
+    """Review (2026-11-29): validate.campaigns.<name>.ingest's bad value was named params.yaml ingest.<key>."""
+    project["validate"]["campaigns"]["moved"]["ingest"]["orientation"] = {"angle_unit": "grad"}
+    with pytest.raises(ValueError, match=r"params.yaml validate.campaigns.moved.ingest.orientation.angle_unit: deg "
+                                         r"or rad, got 'grad'"):
+        validate.run_campaign(project, "moved")
+    assert not Path("reports/validation/moved.json").exists()
+
+
 def test_position_accuracy_worked_example():
     """Two commanded positions, each reached 3 times; the robot lands 1 mm off in x at the first
     (spread ±0.5 mm in y), exactly at the second; a method predicting exactly the measurements."""

@@ -1,7 +1,7 @@
 """Stage export: the calibration into the robot cell (docs/data-format.md, "Exports for the robot cell").
 
     models/calibrated.urdf       the calibrated rigid chain (lib/robot/urdf.py), base_link .. flange, tool0
-    models/ur_calibration.yaml   UR robots: the UR ROS description's kinematics calibration
+    models/ur_calibration.yaml   the UR ROS description's kinematics calibration (any robot's chain in its layout)
     models/model.onnx            the trained model, q_rad -> p_mm (lib/learning/onnx_model.py)
     models/controller.onnx       the controller path (lib/runtime/realtime.py: two chord steps) as one graph,
                                  q0_rad, target_mm, joint limits -> q1, q2, |r0|, |r1| (lib/learning/onnx_model.py)
@@ -17,8 +17,8 @@
 
 and reports/export.json, what each file was checked against, by libraries the
 pipeline does not use for its own kinematics:
-    urdf   Pinocchio loads the URDF; its tool0 vs the pipeline's FK of the exported chain, every
-           pose of the campaign
+    urdf   Pinocchio loads the URDF; its tool0, and each robot.tcp link, vs the pipeline's FK of the
+           exported chain, every pose of the campaign
     yaml   the chain the UR description builds from the YAML (joint i's origin = entry i, axis z,
            tool0 on joint 6's frame), built in Pinocchio, vs the exported chain up to joint 6;
            the flange transform after joint 6 the format cannot hold is reported
@@ -42,6 +42,7 @@ squares over the campaign's poses); how far it stays from it, and what it leaves
            the flange's nominal orientation, weighted as compensate's lm weighs them), onnxruntime against
            PyTorch's realtime.two_steps: the largest difference in angles (rad) and |r| (mm)
 """
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -59,8 +60,8 @@ from pipeline.lib.project.artifacts import (CALIBRATED_GEOMETRY, CONTROLLER_ONNX
                                             PARTS_JSON, URDF_FILE, UR_YAML, load_points)
 from pipeline.lib.project.cli import one_line, stage_main
 from pipeline.lib.project.columns import JOINTS_DEG, THEORY
-from pipeline.lib.project.config import for_stage, logger, read_json, write_json
-from pipeline.lib.project.writing import write_file
+from pipeline.lib.project.config import for_stage, json_text, logger, read_json
+from pipeline.lib.project.writing import write_together
 from pipeline.lib.robot.geometry import Calibration, theory_geometry, with_parts
 from pipeline.lib.robot.identify import identify
 from pipeline.lib.robot.kinematics import DTYPE, RIGID_KEYS, TOOL_ROT, fk, fk_frames, fk_numpy, fk_pose
@@ -132,21 +133,24 @@ def rigid_equivalent(g: dict, q: torch.Tensor, cfg: dict) -> tuple[dict, dict]:
 
 
 def run(params: dict, root: Path = HERE) -> dict:
-    p = for_stage(params, PARAMS)
-    robot = load_robot(p["robot"])
-    pts = load_points(root)
-    q = torch.as_tensor(np.radians(pts[JOINTS_DEG].to_numpy()), dtype=DTYPE)
-    calibrated = with_parts(Calibration.from_dict(read_json(root / CALIBRATED_GEOMETRY)).geometry, read_json(root / PARTS_JSON))
-    g, fit = rigid_equivalent(calibrated, q, p["calibrate"])      # the model's physics branch, as a rigid chain
+    """Every file of the stage, made and checked in a temporary folder, then written together (writing.py):
+    a run that fails leaves the files of the run before it, all of them, none replaced."""
+    with tempfile.TemporaryDirectory(prefix="export.") as tmp:
+        files, summary = made_and_checked(params, root, Path(tmp))
+    write_together(files)
+    log.info("wrote %s", ", ".join(str(f) for f in files))
+    return summary
+
+
+def chain_files(g: dict, robot, tcp: dict | None, q: torch.Tensor, root: Path) -> tuple[dict, dict]:
+    """The rigid chain g's URDF and UR YAML {path under root: text}, with every `robot.tcp` point (tcp, in g's
+    flange frame), each read back by Pinocchio at joint angles q (n, 6) rad: (files, export.json's `urdf` and
+    `ur_yaml`)."""
     with torch.no_grad():
         p_rigid, flange6 = fk(q, g).numpy(), fk_frames(q, g)[-1].numpy()      # flange6 (n, 4, 4) before the base
-    summary = {"n_poses": len(pts), "rigid_fit": fit}
-    log.info("the calibrated model as a rigid chain: %.4f mm mean, %.4f mm max from it on %d poses",
-             fit["mean_mm"], fit["max_mm"], len(pts))
-
-    tcp = in_flange(p["robot"]["tcp"], g)            # every TCP in the exported chain's flange frame
+    summary = {}
     text = to_urdf(g, robot, tcp=tcp)
-    write_file(root / URDF_FILE, text)
+    files = {root / URDF_FILE: text}
     p_urdf, R_urdf = urdf_poses(text, q.numpy())
     dev = np.linalg.norm(p_urdf - p_rigid, axis=1)
     summary["urdf"] = {"file": str(URDF_FILE), "checked_with": f"pinocchio {pin.__version__}",
@@ -156,31 +160,53 @@ def run(params: dict, root: Path = HERE) -> dict:
             R_rigid = fk_pose(q, g)[1].numpy()
         summary["urdf"]["max_rotation_deviation_arcsec"] = size(
             Rotation.from_matrix(np.einsum("nji,njk->nik", R_urdf, R_rigid)).magnitude().max() * 206264.806)
-    log.info("%s: Pinocchio's tool0 vs the exported chain's FK on %d poses: max %.2e mm", root / URDF_FILE, len(pts),
+    log.info("%s: Pinocchio's tool0 vs the exported chain's FK on %d poses: max %.2e mm", root / URDF_FILE, len(q),
              dev.max())
+    if tcp:                                         # each tcp_<name> link too, against the chain at that point
+        summary["urdf"]["tcp"] = tcp_links(text, tcp, q, g)
+        log.info("%s: Pinocchio's tcp links vs the exported chain's FK: %s", root / URDF_FILE, summary["urdf"]["tcp"])
 
-    if robot.name in TABLES:
-        kin = ur_kinematics(g, tcp)
-        write_file(root / UR_YAML, yaml.safe_dump(kin, sort_keys=False))
-        truth = base_transform(g) @ flange6 @ np.linalg.inv(joint_origins(g)[1])   # joint 6's frame
-        poses = ur_yaml_poses(kin, q.numpy())
-        dev = np.linalg.norm(poses[:, :3, 3] - truth[:, :3, 3], axis=1)
-        summary["ur_yaml"] = {"file": str(UR_YAML), "checked_with": f"pinocchio {pin.__version__}",
-                              "max_deviation_mm": float(dev.max()),
-                              "not_held_after_joint_6": flange_residual(g)}
-        log.info("%s: joint 6's frame from the YAML vs the exported chain: max %.2e mm; the flange "
-                 "transform after joint 6 it cannot hold: %s", root / UR_YAML, dev.max(),
-                 summary["ur_yaml"]["not_held_after_joint_6"])
+    kin = ur_kinematics(g, tcp)                     # any robot's chain fits the layout; a UR's driver reads it
+    files[root / UR_YAML] = yaml.safe_dump(kin, sort_keys=False)
+    truth = base_transform(g) @ flange6 @ np.linalg.inv(joint_origins(g)[1])   # joint 6's frame
+    poses = ur_yaml_poses(kin, q.numpy())
+    dev = np.linalg.norm(poses[:, :3, 3] - truth[:, :3, 3], axis=1)
+    summary["ur_yaml"] = {"file": str(UR_YAML), "checked_with": f"pinocchio {pin.__version__}",
+                          "max_deviation_mm": float(dev.max()),
+                          "not_held_after_joint_6": flange_residual(g)}
+    if robot.name not in TABLES:
+        summary["ur_yaml"]["robot"] = f"{robot.name}: no Universal Robots arm; its chain in the UR description's layout"
+    log.info("%s: joint 6's frame from the YAML vs the exported chain: max %.2e mm; the flange "
+             "transform after joint 6 it cannot hold: %s", root / UR_YAML, dev.max(),
+             summary["ur_yaml"]["not_held_after_joint_6"])
+    return files, summary
+
+
+def made_and_checked(params: dict, root: Path, tmp: Path) -> tuple[dict, dict]:
+    """The stage's files {path under root: text or bytes}, each read back and checked (the ONNX graphs from
+    their copies in tmp), and export.json's summary."""
+    p = for_stage(params, PARAMS)
+    robot = load_robot(p["robot"])
+    pts = load_points(root)
+    q = torch.as_tensor(np.radians(pts[JOINTS_DEG].to_numpy()), dtype=DTYPE)
+    calibrated = with_parts(Calibration.from_dict(read_json(root / CALIBRATED_GEOMETRY)).geometry, read_json(root / PARTS_JSON))
+    g, fit = rigid_equivalent(calibrated, q, p["calibrate"])      # the model's physics branch, as a rigid chain
+    summary = {"n_poses": len(pts), "rigid_fit": fit}
+    log.info("the calibrated model as a rigid chain: %.4f mm mean, %.4f mm max from it on %d poses",
+             fit["mean_mm"], fit["max_mm"], len(pts))
+    files, checked = chain_files(g, robot, in_flange(p["robot"]["tcp"], g), q, root)
+    summary.update(checked)
 
     model = load_model(root / MODEL_WEIGHTS)
-    export_all(model, {f.stem: root / f for f in ONNX_FILES})    # then each read back, against PyTorch
+    at = {f: tmp / f.name for f in ONNX_FILES}                    # the graphs, read back from here first
+    export_all(model, {f.stem: at[f] for f in ONNX_FILES})
     test = (pts["split"] == "test").to_numpy()
     q32 = q[test].float().clone()
-    onnx_p = OnnxModel(root / MODEL_ONNX)(q32.numpy())
+    onnx_p = OnnxModel(at[MODEL_ONNX])(q32.numpy())
     with torch.no_grad():
         same, f64 = model(q32.double())[0].numpy(), model(q[test])[0].numpy()
         R_same = fk_pose(q32.double(), model.physics.geometry())[1].numpy()
-    R_onnx = OnnxModel(root / MODEL_ONNX).pose(q32.numpy())[1]
+    R_onnx = OnnxModel(at[MODEL_ONNX]).pose(q32.numpy())[1]
     summary["onnx"] = {"file": str(MODEL_ONNX), "checked_with": "onnxruntime", "n_test_poses": int(test.sum()),
                        "max_deviation_mm": size(np.abs(onnx_p - same).max()),
                        "max_deviation_from_float64_angles_mm": size(np.abs(onnx_p - f64).max()),
@@ -191,9 +217,10 @@ def run(params: dict, root: Path = HERE) -> dict:
              summary["onnx"]["max_deviation_from_float64_angles_mm"])
 
     limits = np.radians(robot.limits_deg)
-    for key, path, m in (("controller", root / CONTROLLER_ONNX, model),
-                         ("controller_physics", root / CONTROLLER_PHYSICS_ONNX, PhysicsOnly(model))):
-        dev = deviation(Realtime(m, limits), OnnxRealtime(path, limits), q[test].numpy(),
+    for key, f, m in (("controller", CONTROLLER_ONNX, model), ("controller_physics", CONTROLLER_PHYSICS_ONNX,
+                                                                      PhysicsOnly(model))):
+        path = root / f
+        dev = deviation(Realtime(m, limits), OnnxRealtime(at[f], limits), q[test].numpy(),
                         pts.loc[test, THEORY].to_numpy())
         dev.update(max_q_rad=size(dev["max_q_rad"]), max_residual_mm=size(dev["max_residual_mm"]))
         summary[key] = {"file": str(path), "checked_with": "onnxruntime", **dev}
@@ -202,13 +229,14 @@ def run(params: dict, root: Path = HERE) -> dict:
                  dev["max_q_rad"], dev["max_residual_mm"], dev["flags_differ"])
     tcps = {n: c["xyz_mm"] for n, c in (in_flange(p["robot"]["tcp"], model.physics.geometry())
                                         or {"x150": {"xyz_mm": [150.0, 0.0, 0.0]}}).items()}
-    for key, path, m in (("controller_tcp", root / CONTROLLER_TCP_ONNX, model),
-                         ("controller_physics_tcp", root / CONTROLLER_PHYSICS_TCP_ONNX, PhysicsOnly(model))):
+    for key, f, m in (("controller_tcp", CONTROLLER_TCP_ONNX, model),
+                      ("controller_physics_tcp", CONTROLLER_PHYSICS_TCP_ONNX, PhysicsOnly(model))):
+        path = root / f
         summary[key] = {"file": str(path), "checked_with": "onnxruntime"}
         for name, xyz in tcps.items():
             o = probe_offsets({name: {"xyz_mm": xyz}}, m.physics.geometry())[name]
             target = fk_numpy(pts.loc[test, JOINTS_DEG].to_numpy(), robot, theory_geometry(robot, xyz))
-            dev = deviation(Realtime(AtTcp(m, o), limits), OnnxRealtime(path, limits, tcp_mm=xyz), q[test].numpy(),
+            dev = deviation(Realtime(AtTcp(m, o), limits), OnnxRealtime(at[f], limits, tcp_mm=xyz), q[test].numpy(),
                             target)
             summary[key][name] = {**dev, "max_q_rad": size(dev["max_q_rad"]),
                                   "max_residual_mm": size(dev["max_residual_mm"])}
@@ -221,7 +249,7 @@ def run(params: dict, root: Path = HERE) -> dict:
     summary["controller_pose"] = {"file": str(CONTROLLER_POSE_ONNX), "checked_with": "onnxruntime", "weight_mm_per_rad": w}
     for name, xyz in tcps.items():
         target = fk_numpy(pts.loc[test, JOINTS_DEG].to_numpy(), robot, theory_geometry(robot, xyz))
-        got = OnnxRealtime(root / CONTROLLER_POSE_ONNX, limits, tcp_mm=xyz, weight=w).solve(q[test].numpy(), target, rot=rot)
+        got = OnnxRealtime(at[CONTROLLER_POSE_ONNX], limits, tcp_mm=xyz, weight=w).solve(q[test].numpy(), target, rot=rot)
         lo, hi = (torch.as_tensor(limits[:, i], dtype=DTYPE) for i in (0, 1))
         with torch.no_grad():
             want = [t.numpy() for t in two_steps(model.eval(), q[test], torch.as_tensor(target), lo, hi, DAMPING,
@@ -234,8 +262,25 @@ def run(params: dict, root: Path = HERE) -> dict:
                  "%.0f%% verified in one step", root / CONTROLLER_POSE_ONNX, name, test.sum(),
                  summary["controller_pose"][name]["max_q_rad"], summary["controller_pose"][name]["max_residual_mm"],
                  100 * summary["controller_pose"][name]["verified_share"])
-    write_json(root / EXPORT_JSON, summary)
-    return summary
+    files.update({root / f: at[f].read_bytes() for f in ONNX_FILES})
+    files[root / EXPORT_JSON] = json_text(summary)
+    return files, summary
+
+
+def tcp_links(urdf_text: str, tcp: dict, q: torch.Tensor, g: dict) -> dict:
+    """{name: max position (mm) and rotation (arcsec) deviation} of each tcp_<name> link Pinocchio reads from the
+    URDF against the chain g's FK at that point ({xyz_mm, rxyz_deg} in the flange frame) at joint angles q (n, 6)."""
+    out = {}
+    for name, c in tcp.items():
+        p_urdf, R_urdf = urdf_poses(urdf_text, q.numpy(), f"tcp_{name}")
+        at_tcp = {**g, "tool": torch.as_tensor(c["xyz_mm"], dtype=DTYPE),
+                  TOOL_ROT: torch.as_tensor(np.radians(c.get("rxyz_deg", [0.0, 0.0, 0.0])), dtype=DTYPE)}
+        with torch.no_grad():
+            p, R = (t.numpy() for t in fk_pose(q, at_tcp))
+        out[name] = {"max_deviation_mm": float(np.linalg.norm(p_urdf - p, axis=1).max()),
+                     "max_rotation_deviation_arcsec": size(Rotation.from_matrix(np.einsum(
+                         "nji,njk->nik", R_urdf, R)).magnitude().max() * 206264.806)}
+    return out
 
 
 def size(x) -> float:

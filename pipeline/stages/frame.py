@@ -20,7 +20,7 @@ from pipeline.lib.project.artifacts import FRAME_JSON, HERE, INGEST_TABLE
 from pipeline.lib.project.cli import one_line, stage_main
 from pipeline.lib.project.columns import CAMPAIGN, JOINTS_DEG, MEAS, STATION
 from pipeline.lib.project.config import for_stage, logger, write_json
-from pipeline.lib.robot.frames import fit_frames, flange_poses, measured_rotations, probe_rotation
+from pipeline.lib.robot.frames import FrameFitError, fit_frames, flange_poses, measured_rotations, probe_rotation
 from pipeline.lib.robot.kinematics import nominal_geometry
 from pipeline.lib.robot.robots import load_robot
 
@@ -42,6 +42,20 @@ def orientation_fit(Rf: np.ndarray, R_world: np.ndarray, R: np.ndarray, k: float
                                            "max": float(dev.max())}}
 
 
+def check_orientations(station: dict, name: str, limit: float) -> None:
+    """Stop where a station's measured orientations scatter more than `limit` arcsec (mean) about the probe's fitted
+    rotation: no arm's kinematic error turns its flange that far (nominal DH: the IPA UR10 261 arcsec, the twin
+    1046), misread orientation columns do (the IPA T-Mac's read in another Euler convention: 35000-100000)."""
+    scatter = station["orientation_scatter_arcsec"]["mean"]
+    if scatter > limit:
+        raise FrameFitError(f"station {name} ({', '.join(station['campaigns'])}): the measured orientations scatter "
+                            f"{scatter:.0f} arcsec (mean) about the probe's fitted rotation in the flange, above "
+                            f"frame.max_orientation_scatter_arcsec = {limit:g}: the orientation columns are misread. "
+                            "Check ingest.orientation (the Euler sequence, intrinsic XYZ or extrinsic xyz, and "
+                            "angle_unit; a quaternion's scalar_first) and, for a multi-marker target, that every "
+                            "campaign shares its geometry (ingest.target)")
+
+
 def run(params: dict, root: Path = HERE) -> dict:
     p = for_stage(params, PARAMS)
     robot = load_robot(p["robot"])
@@ -60,6 +74,7 @@ def run(params: dict, root: Path = HERE) -> dict:
         if R_world is not None:
             k = m & inl
             stations[s].update(orientation_fit(Rf[k], R_world[k], np.asarray(f["R"]), p["frame"]["outlier_k"]))
+            check_orientations(stations[s], s, p["frame"]["max_orientation_scatter_arcsec"])
     first = next(iter(stations.values()))
     summary = {
         "R": first["R"], "t": first["t"],

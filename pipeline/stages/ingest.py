@@ -47,6 +47,23 @@ def joined(parts: list) -> pd.DataFrame:
     return out[rest[:k] + MEAS_Q + rest[k:]]
 
 
+def one_target_frame(summaries: dict) -> None:
+    """Stop when campaigns measuring orientation ({campaign: its ingest summary}) may not share the probe's
+    frame: one of them estimated its multi-marker target's geometry from its own poses (ingest.target: null),
+    whose frame (the markers' centroid, the tracker's axes at its first pose) is that campaign's alone."""
+    oriented = [c for c, s in summaries.items() if "orientation" in s["units"]]
+    estimated = [c for c in oriented if summaries[c].get("target", {}).get("geometry") == "estimated"]
+    if len(oriented) < 2 or not estimated:
+        return
+    example = summaries[estimated[0]]["target"]["markers_mm"]
+    markers = ", ".join(f"{n}: [{', '.join(f'{v:.3f}' for v in xyz)}]" for n, xyz in example.items())
+    raise ValueError(f"campaigns {', '.join(oriented)} measure the probe's orientation, and {', '.join(estimated)} "
+                     "estimated the multi-marker target's geometry from its own poses (ingest.target: null): each "
+                     "estimate has its own frame (its markers' centroid, the tracker's axes at its first pose), so "
+                     "the campaigns' orientations and positions would disagree by that frame. Give the target's "
+                     f"geometry in ingest.target, e.g. campaign {estimated[0]}'s estimate: {{markers: {{{markers}}}}}")
+
+
 def run_campaign(params: dict, name: str, root: Path = HERE) -> dict:
     """Ingest one campaigns.more campaign; ids become NAME:id."""
     p = for_stage(params, PARAMS)
@@ -68,7 +85,7 @@ def run(params: dict, root: Path = HERE) -> dict:
     df, summary = ingest(rooted_files(p["ingest"], root), load_robot(p["robot"]))
     for info in summary["files"].values():             # the campaign's identity (the twin's drive check)
         info["sha256"] = file_sha256(info["path"])
-    parts = [labelled(df, first, stations[first])]
+    parts, reports = [labelled(df, first, stations[first])], {first: summary}
     summary["campaigns"] = {first: {"station": stations[first], "n_kept": len(df),
                                     "n_dropped": len(summary["dropped"])}}
     for name in more:
@@ -81,9 +98,11 @@ def run(params: dict, root: Path = HERE) -> dict:
             raise ValueError(f"{path}: ingested for station {part[STATION].iloc[0]!r}, params.yaml "
                              f"campaigns.more.{name}.station says {stations[name]!r}; re-run its ingest")
         parts.append(part)
+        reports[name] = rep
         summary["dropped"] += [{**d, "campaign": name} for d in rep["dropped"]]
         summary["campaigns"][name] = {"station": stations[name], "n_kept": len(part),
                                       "n_dropped": len(rep["dropped"]), "files": rep["files"]}
+    one_target_frame(reports)
     out = joined(parts)
     if more:
         summary["n_kept"] = len(out)

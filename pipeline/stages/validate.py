@@ -32,11 +32,10 @@ from pipeline.lib.project.artifacts import (CALIBRATED_GEOMETRY, FRAME_JSON, HER
 from pipeline.lib.project.cli import one_line
 from pipeline.lib.project.columns import JOINTS_DEG, MEAS
 from pipeline.lib.project.config import check_keys, for_stage, load_params, logger, read_json, write_json
-from pipeline.lib.reading.campaigns import ingested_sha256, made_by_twin, named_campaign, pair_sha256
-from pipeline.lib.reading.presets import deep_merge
+from pipeline.lib.reading.campaigns import ingested_sha256, made_by_twin, named_campaign, pair_sha256, with_override
 from pipeline.lib.reading.readers import ingest
 from pipeline.lib.robot.errormaps import angle_covered
-from pipeline.lib.robot.frames import measured_rotations
+from pipeline.lib.robot.frames import FrameFitError, measured_rotations
 from pipeline.lib.robot.geometry import Calibration, at_temperature, theory_geometry, with_parts
 from pipeline.lib.robot.identify import orientation_weight
 from pipeline.lib.robot.kinematics import DTYPE, TOOL_ROT, fk_numpy, fk_pose, flange_rotations
@@ -113,6 +112,22 @@ def twin_only(name: str, c: dict, twin_json: str, root: Path) -> str | None:
             "was calibrated on another: not judged (remove it from validate.campaigns to silence this)")
 
 
+def training_target(cfg: dict, trained: dict, name: str) -> dict:
+    """A validation campaign's ingest settings (cfg) whose multi-marker target's geometry would be estimated from
+    its own poses (ingest.target: null), with the training campaign's instead (`trained`, its reports/ingest.json),
+    so that the campaign's target frame is the one the model was trained in. Stops where the training campaign
+    measured orientation without a target (no geometry to share)."""
+    if "target" in trained:
+        log.info("validate.campaigns.%s: the target's geometry is the training campaign's (%s)", name,
+                 trained["target"]["geometry"])
+        return {**cfg, "target": {"markers": trained["target"]["markers_mm"]}}
+    if "orientation" in trained["units"]:
+        raise ValueError(f"validate.campaigns.{name}.ingest: its multi-marker target's geometry would be estimated "
+                         "from its own poses, whose frame is not the probe's the model was trained with (the training "
+                         "campaign measured orientation without a target); give it in ingest.target")
+    return cfg
+
+
 def run_campaign(params: dict, name: str, root: Path = HERE) -> dict:
     p = for_stage(params, PARAMS["campaign"])
     frame_cfg, cfg = p["frame"], p["validate"]
@@ -126,7 +141,10 @@ def run_campaign(params: dict, name: str, root: Path = HERE) -> dict:
         return {"skipped": skipped}
     robot, frame = load_robot(p["robot"]), read_json(root / FRAME_JSON)
     cal, parts = Calibration.from_dict(read_json(root / CALIBRATED_GEOMETRY)), read_json(root / PARTS_JSON)
-    df, ingested = ingest(rooted_files(deep_merge(p["ingest"], c["ingest"]), root), robot)
+    cfg_in = with_override(p["ingest"], c["ingest"], f"validate.campaigns.{name}.ingest")
+    if cfg_in["columns"]["marker"] is not None and cfg_in["target"] is None:
+        cfg_in = training_target(cfg_in, read_json(root / INGEST_JSON), name)
+    df, ingested = ingest(rooted_files(cfg_in, root), robot)
     q = df[JOINTS_DEG].to_numpy()
     model = load_model(root / MODEL_WEIGHTS)
     thermal = thermal_change(df, parts)
@@ -144,8 +162,12 @@ def run_campaign(params: dict, name: str, root: Path = HERE) -> dict:
         R_world = measured_rotations(df) if TOOL_ROT in cal.geometry else None    # where trained with orientation
         probe = None if R_world is None else {m: fk_pose(qt, g)[1].numpy() for m, g in geometries.items()}
     P = df[MEAS].to_numpy()
-    errors, registered, frames = judge(pred, P, c["frame"], frame, cfg["register_points"], frame_cfg, flange,
-                                       cfg["tool_rank_tol"], probe, R_world, orientation_weight(p["calibrate"]["pose_noise"]))
+    try:
+        errors, registered, frames = judge(pred, P, c["frame"], frame, cfg["register_points"], frame_cfg, flange,
+                                           cfg["tool_rank_tol"], probe, R_world,
+                                           orientation_weight(p["calibrate"]["pose_noise"]))
+    except FrameFitError as e:
+        raise FrameFitError(f"validate.campaigns.{name}: {e}") from None
     if registered.all():                             # refit: every point registers the frame, none is judged
         raise ValueError(f"validate.campaigns.{name}: all {len(df)} points of the campaign go to the "
                          f"{c['frame']} registration (validate.register_points = {cfg['register_points']}): none "

@@ -41,7 +41,7 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from pipeline.lib.learning.metrics import stats
-from pipeline.lib.robot.frames import check_fit, robust_kabsch, to_base
+from pipeline.lib.robot.frames import FrameFitError, check_fit, robust_kabsch, to_base
 from pipeline.lib.robot.identify import identifiability
 from pipeline.lib.robot.tcp import pose_errors
 
@@ -122,11 +122,19 @@ def judge(pred: dict, P_world: np.ndarray, mode: str, frame: dict, n_register: i
     errors are the registration residuals). refit_tool: the frame and a tool offset dt (the probe
     re-mounted) on the registration points, every method's prediction moved by R_flange dt; with measured
     orientations R_world (m, 3, 3) and each method's probe orientations probe_R, fitted on them too
-    (frames[method]["probe_rotation"]: the re-mounted probe's dR).
+    (frames[method]["probe_rotation"]: the re-mounted probe's dR). same: the training frame, refused
+    (FrameFitError) where the nominal chain's median error there exceeds frame.max_rms_mm (the tracker moved).
     """
     if mode == "same":
         P = to_base(P_world, frame)
-        return ({m: np.linalg.norm(p - P, axis=1) for m, p in pred.items()}, np.zeros(len(P), bool),
+        errors = {m: np.linalg.norm(p - P, axis=1) for m, p in pred.items()}
+        off = float(np.median(errors["nominal"])) if "nominal" in errors else 0.0
+        if off > frame_cfg["max_rms_mm"]:                  # the frame fit's own limit: no same tracker is that far
+            raise FrameFitError(f"frame: same, but in the training frame the nominal chain is {off:.1f} mm (median "
+                                f"over {len(P)} points) from the campaign's points, above frame.max_rms_mm = "
+                                f"{frame_cfg['max_rms_mm']:g} mm: the tracker moved since training (or this is "
+                                "another station's campaign); use frame: refit")
+        return (errors, np.zeros(len(P), bool),
                 {m: {"R": np.asarray(frame["R"]), "t": np.asarray(frame["t"]), "tool_offset_mm": np.zeros(3)}
                  for m in pred})
     if mode not in MODES:

@@ -27,7 +27,7 @@ SECTIONS = {
     "campaigns": ("name", "station", "more"),
     "campaigns.campaign": ("ingest", "station"),
     "frame": ("outlier_k", "outlier_min_mm", "estimate_tool", "tool_per_station", "robust_loss", "robust_scale_mm",
-              "max_rms_mm"),
+              "max_rms_mm", "max_orientation_scatter_arcsec"),
     "split": ("seed", "fractions", "holdout"),
     "split.holdout": ("joints", "quantile"),
     "calibrate": ("loss", "loss_scale_mm", "params", "tilt_joints", "pose_noise", "rank_tol", "tol", "max_nfev"),
@@ -99,7 +99,7 @@ def _vec3(v):
 
 def _tcps(v):
     return (isinstance(v, dict) and len(v) > 0 and all(
-        isinstance(k, str) and re.fullmatch(r"[A-Za-z0-9_-]{1,40}", k) and isinstance(t, dict)
+        isinstance(k, str) and re.fullmatch(r"[A-Za-z0-9_-]{1,40}", k) and k != "marker" and isinstance(t, dict)
         and set(t) <= {"xyz_mm", "rxyz_deg", "frame"} and _vec3(t.get("xyz_mm")) and _vec3(t.get("rxyz_deg", [0, 0, 0]))
         and t.get("frame", "flange") in ("flange", "probe")
         for k, t in v.items()))
@@ -150,7 +150,8 @@ POS = _num(0, open_lo=True)
 RULES = {
     "robot.tcp": (lambda v: v is None or _tcps(v), "null, or name: {xyz_mm: [x, y, z], rxyz_deg: [rx, ry, rz], "
                   "frame: flange or probe} (a tool centre point in the flange frame, or measured in the probe's; "
-                  "rxyz_deg and frame optional), names of letters, digits, _ or -"),
+                  "rxyz_deg and frame optional), names of letters, digits, _ or - (not marker: the probe's own, "
+                  "in ur_calibration.yaml's tool_frames)"),
     "calibrate.pose_noise.mm": (_num(0, open_lo=True), "a position noise > 0 mm"),
     "calibrate.pose_noise.arcsec": (_num(0, open_lo=True), "an orientation noise > 0 arcsec"),
     "split.seed": (_int(0), "an integer >= 0"),
@@ -195,6 +196,11 @@ RULES = {
     "serve.timeout_s": (_num(0, open_lo=True), "a time > 0 s"),
     "serve.echo_chars": (_int(20), "an integer >= 20"),
     "serve.refusal_delay_ms": (_num(0, 1000), "a time in 0..1000 ms"),
+    "ingest.skip_lines": (_int(0), "a whole number of lines >= 0"),
+    "ingest.sep": (lambda v: v in ("auto", ",", ";", "\t", "tab", "\\t"), "auto, ',', ';' or tab"),
+    "ingest.decimal": (lambda v: v in ("auto", ".", ","), "auto, '.' or ','"),
+    "ingest.angle_unit": (lambda v: v in ("deg", "rad"), "deg or rad"),
+    "ingest.length_unit": (lambda v: v in ("mm", "m"), "mm or m"),
     "ingest.columns.orientation": (lambda v: v is None or (isinstance(v, list) and len(v) in (3, 4, 9) and all(
         isinstance(h, (str, int)) and not isinstance(h, bool) for h in v) and len({str(h) for h in v}) == len(v)),
         "null, or 3 (Euler angles), 4 (quaternion) or 9 (rotation matrix, row-major) distinct headers"),
@@ -248,6 +254,7 @@ RULES = {
     "frame.robust_loss": (_one_of(*LOSSES), ", ".join(LOSSES)),
     "frame.robust_scale_mm": (POS, "a distance > 0 mm"),
     "frame.max_rms_mm": (POS, "a distance > 0 mm"),
+    "frame.max_orientation_scatter_arcsec": (POS, "an angle > 0 arcsec"),
     "calibrate.loss": (_one_of(*LOSSES), ", ".join(LOSSES)),
     "calibrate.loss_scale_mm": (POS, "a distance > 0 mm"),
     "calibrate.params": (lambda v: isinstance(v, list) and len(v) > 0 and len(set(map(str, v))) == len(v)
@@ -337,6 +344,23 @@ def check_values(cfg: dict, name: str) -> None:
             continue
         if not ok(cfg[path[-1]]):
             raise ParamsError(f"params.yaml {key}: {what}, got {cfg[path[-1]]!r}")
+
+
+def check_given(cfg, name: str, shown: str) -> None:
+    """Some keys of the section `name` (a campaign's override of the ingest section), each known and its value
+    within RULES; a ParamsError names the key where it was given, `shown`.key (campaigns.more.b.ingest.sep)."""
+    if not isinstance(cfg, dict):
+        raise ParamsError(f"params.yaml {shown}: expected a mapping with some of the keys {list(SECTIONS[name])}, "
+                          f"got {cfg!r}")
+    unknown = [k for k in cfg if k not in SECTIONS[name]]
+    if unknown:
+        raise ParamsError(f"params.yaml {shown}: unknown key(s) {unknown}. Valid keys: {', '.join(SECTIONS[name])}")
+    for k, v in cfg.items():
+        key = f"{name}.{k}"
+        if key in SECTIONS and isinstance(v, dict):
+            check_given(v, key, f"{shown}.{k}")
+        elif key in RULES and not RULES[key][0](v):
+            raise ParamsError(f"params.yaml {shown}.{k}: {RULES[key][1]}, got {v!r}")
 
 
 def section(params: dict, name: str) -> dict:

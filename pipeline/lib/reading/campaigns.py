@@ -11,7 +11,7 @@ top-level R, t: the base frame everything downstream works in.
 import hashlib
 from pathlib import Path
 
-from pipeline.lib.project.config import check_keys
+from pipeline.lib.project.config import check_given, check_keys
 from pipeline.lib.reading.presets import deep_merge
 
 
@@ -72,9 +72,16 @@ def campaign_entry(campaigns: dict, name: str) -> dict:
 
 
 def campaign_ingest(ingest: dict, campaigns: dict, name: str) -> dict:
-    """The `ingest:` section overridden by campaign `name`'s (campaigns.more); its `target` replaces the
-    section's whole (presets.REPLACED)."""
-    return deep_merge(ingest, campaign_entry(campaigns, name)["ingest"])
+    """The `ingest:` section overridden by campaign `name`'s (campaigns.more): `with_override`."""
+    return with_override(ingest, campaign_entry(campaigns, name)["ingest"], f"campaigns.more.{name}.ingest")
+
+
+def with_override(ingest: dict, override: dict, where: str) -> dict:
+    """The `ingest:` section with a campaign's override (params.yaml `where`, e.g. campaigns.more.b.ingest)
+    merged over it, its `target` replacing the section's whole (presets.REPLACED). The override's own keys
+    and values are checked first, so that a bad one is named where it was given, not as the ingest section's."""
+    check_given(override, "ingest", where)
+    return deep_merge(ingest, override)
 
 
 def campaign_stations(campaigns: dict) -> dict[str, str]:

@@ -56,27 +56,27 @@ def quaternion(R: np.ndarray) -> np.ndarray:
 
 
 def quaternion_problems(q: np.ndarray) -> list:
-    """(n, 4) -> per row None, or why it is not a unit quaternion (norm off 1 by > NORM_TOL)."""
+    """(n, 4) -> per row None, or (why it is not a unit quaternion (norm off 1 by > NORM_TOL), column 0)."""
     norm = np.linalg.norm(q, axis=1)
-    return [None if abs(n - 1.0) <= NORM_TOL else f"quaternion norm {n:.6g}, not 1 (tolerance {NORM_TOL:g})"
+    return [None if abs(n - 1.0) <= NORM_TOL else (f"quaternion norm {n:.6g}, not 1 (tolerance {NORM_TOL:g})", 0)
             for n in norm]
 
 
 def matrix_problems(M: np.ndarray) -> list:
-    """(n, 3, 3) -> per row None, or why it is not a rotation (not orthonormal, or a reflection)."""
+    """(n, 3, 3) -> per row None, or (why it is not a rotation (not orthonormal, or a reflection), column 0)."""
     off = np.abs(M @ np.swapaxes(M, 1, 2) - np.eye(3)).max(axis=(1, 2))
     det = np.linalg.det(M)
-    return [f"not orthonormal: max |R Rᵀ - I| = {o:.3g} > {ORTHO_TOL:g}" if o > ORTHO_TOL else
-            f"a reflection (det {d:.6g} < 0)" if d < 0 else None for o, d in zip(off, det)]
+    return [(f"not orthonormal: max |R Rᵀ - I| = {o:.3g} > {ORTHO_TOL:g}", 0) if o > ORTHO_TOL else
+            (f"a reflection (det {d:.6g} < 0)", 0) if d < 0 else None for o, d in zip(off, det)]
 
 
 def euler_problems(v: np.ndarray, unit: str) -> list:
-    """(n, 3) angles in `unit` -> per row None, or why not: an angle beyond one turn."""
+    """(n, 3) angles in `unit` -> per row None, or (why not: an angle beyond one turn, that angle's column)."""
     turn, out = TURN[unit], []
     for row in v:
         k = int(np.argmax(np.abs(row)))
         out.append(None if abs(row[k]) <= turn * (1 + TURN_SLACK) else
-                   f"angle {k + 1} = {row[k]:.6g} is beyond one turn (+-{turn:.6g} {unit}): a lost decimal point?")
+                   (f"angle {k + 1} = {row[k]:.6g} is beyond one turn (+-{turn:.6g} {unit}): a lost decimal point?", k))
     return out
 
 
@@ -105,8 +105,8 @@ def unit_mismatch(v: np.ndarray, unit: str, min_rows: int) -> tuple | None:
 
 
 def read(v: np.ndarray, spec: dict) -> tuple[list, Rotation | None]:
-    """Finite rotation columns (n, k) read as `spec` -> (per row None or why it is no rotation, the
-    rotations of the rows without a problem, None if there are none)."""
+    """Finite rotation columns (n, k) read as `spec` -> (per row None or (why it is no rotation, the column
+    (0..k-1) it names), the rotations of the rows without a problem, None if there are none)."""
     if spec["kind"] == "euler":
         bad, make = euler_problems(v, spec["angle_unit"]), lambda x: Rotation.from_euler(
             spec["sequence"], x, degrees=spec["angle_unit"] == "deg")
@@ -121,7 +121,7 @@ def read(v: np.ndarray, spec: dict) -> tuple[list, Rotation | None]:
 
 def rotations(values: np.ndarray, spec: dict) -> tuple[np.ndarray, list]:
     """Rotation columns (n, k) read as `spec` (the ingest.orientation section) -> (quaternions (n, 4),
-    NaN where bad; per row None or why it is a bad rotation). Rows holding NaN give NaN, no problem
+    NaN where bad; per row None or (why it is a bad rotation, the column it names, 0..k-1)). Rows holding NaN give NaN, no problem
     (their cells are already a row problem)."""
     values = np.asarray(values, float).reshape(len(values), KINDS[spec["kind"]])
     out, problems = np.full((len(values), 4), np.nan), [None] * len(values)

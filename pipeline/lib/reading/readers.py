@@ -454,13 +454,14 @@ def mark_duplicates(rows: Rows) -> None:
     """Every row after the first with the same id (a target's file: the same id and marker) gets the
     `duplicate` problem."""
     keys = rows.ids if rows.markers is None else list(zip(rows.ids, rows.markers))
+    named = [bool(pid) and (rows.markers is None or bool(rows.markers[r])) for r, pid in enumerate(rows.ids)]
     first = {}
-    for r, (pid, key) in enumerate(zip(rows.ids, keys)):
-        if pid:
+    for r, key in enumerate(keys):
+        if named[r]:                                    # an empty marker cell is missing_id, no duplicate
             first.setdefault(key, r)
     for r, (pid, key) in enumerate(zip(rows.ids, keys)):
         field_count = rows.problem[r] and rows.problem[r][0] == "field_count"
-        if pid and first[key] != r and not field_count:
+        if named[r] and first[key] != r and not field_count:
             what = f"id {pid!r}" + (f" marker {rows.markers[r]!r}" if rows.markers is not None else "")
             rows.problem[r] = ("duplicate", f"{what} already on row {rows.lines[first[key]]}", None)
 
@@ -491,12 +492,12 @@ def add_orientation(rows: Rows, spec: dict) -> None:
     named = ", ".join(f"'{h}'" for h in headers)
     for r, w in enumerate(why):
         if w and rows.problem[r] is None:
-            rows.problem[r] = ("bad_rotation", f"columns {named}: {w}", headers[0])
+            rows.problem[r] = ("bad_rotation", f"columns {named}: {w[0]}", headers[w[1]])
     bad = [r for r, p in enumerate(rows.problem) if p and p[0] == "bad_rotation"]
     if 2 * len(bad) > len(rows.problem):
         raise IngestError(f"{rows.problem[bad[0]][1]}; {len(bad)} of {len(rows.problem)} rows are no rotation "
                           f"like this: check ingest.orientation (kind {spec['kind']}) and ingest.columns.orientation",
-                          file=rows.path, row=rows.lines[bad[0]], column=headers[0])
+                          file=rows.path, row=rows.lines[bad[0]], column=rows.problem[bad[0]][2])
 
 
 def check_euler_unit(rows: Rows, spec: dict, headers: list) -> None:
@@ -528,8 +529,15 @@ def target_geometry(target, points: dict, rows: Rows) -> tuple[dict, str]:
         try:
             return orientation.estimate_geometry(list(points.values())), "estimated"
         except ValueError as e:
-            raise IngestError(f"{e}: the target's geometry is estimated from the first pose with every marker; "
-                              "give it in ingest.target", file=rows.path, column=rows.groups["marker"][0]) from None
+            seen = Counter(name for p in points.values() for name in p)
+            rare = min(seen, key=seen.get)                  # the marker fewest poses hold: a mislabelled row?
+            lines = [rows.lines[r] for r, (name, p) in enumerate(zip(rows.markers, rows.problem))
+                     if name == rare and p is None] if seen[rare] < len(points) else []
+            hint = (f"; marker {rare!r} is in {seen[rare]} of {len(points)} poses (row(s) "
+                    f"{', '.join(map(str, lines[:5]))}{', ...' if len(lines) > 5 else ''}): mislabelled?" if lines else "")
+            raise IngestError(f"{e}{hint}: the target's geometry is estimated from the first pose with every marker; "
+                              "give it in ingest.target", file=rows.path, row=lines[0] if lines else None,
+                              column=rows.groups["marker"][0]) from None
     geometry = {str(k): np.asarray(v, float) for k, v in target["markers"].items()}
     if orientation.collinear(geometry):
         raise IngestError("ingest.target.markers: the markers lie on a line; a rigid target needs three "
@@ -684,8 +692,10 @@ def pair_by_id(J: Rows, T: Rows) -> tuple[list, list]:
             if o is None:
                 dropped += entries(A, r, "unpaired", f"id {pid!r} is not in {B.path}")
             elif B.problem[o]:
-                dropped += entries(A, r, "partner_dropped",
-                                   f"its row {B.lines[o]} in {B.path} was dropped ({B.problem[o][0]})")
+                lines = B.lines_of(o) or [B.lines[o]]
+                which = f"row {lines[0]}" if len(lines) == 1 else f"rows {', '.join(map(str, lines))}"
+                dropped += entries(A, r, "partner_dropped", f"its {which} in {B.path} "
+                                   f"{'was' if len(lines) == 1 else 'were'} dropped ({B.problem[o][0]})")
             elif from_joints:
                 pairs.append((r, o))
     return pairs, dropped
@@ -941,18 +951,7 @@ def settings(ingest_cfg: dict) -> dict:
     check_orientation_settings(cfg)
     cfg["table"] = cfg["joints"] if str(cfg["joints"]) == str(cfg["tracker"]) else None
     if cfg["sep"] != "auto":
-        if cfg["sep"] not in SEPARATORS:
-            raise IngestError(f"ingest.sep must be auto, ',', ';' or tab, got {cfg['sep']!r}",
-                              file="params.yaml")
         cfg["sep"] = SEPARATORS[cfg["sep"]]
-    if isinstance(cfg["skip_lines"], bool) or not isinstance(cfg["skip_lines"], int) or cfg["skip_lines"] < 0:
-        raise IngestError(f"ingest.skip_lines must be a whole number of lines >= 0, got {cfg['skip_lines']!r}",
-                          file="params.yaml")
-    allowed = {"decimal": ("auto", ".", ","), "angle_unit": ("deg", "rad"), "length_unit": ("mm", "m")}
-    for key, ok in allowed.items():
-        if cfg[key] not in ok:
-            raise IngestError(f"ingest.{key} must be one of {', '.join(ok)}, got {cfg[key]!r}",
-                              file="params.yaml")
     return cfg
 
 

@@ -412,8 +412,8 @@ def section_validation(v: dict | None, uncertainty: dict | None) -> str:
         if c.get("position_accuracy"):
             rows = [[m, a["positions"], a["ap_measured_mm"], a["ap_predicted_mm"], a["bar_error_mm"],
                      a["rp_measured_mm"], a["rp_predicted_mm"]] for m, a in c["position_accuracy"].items()]
-            out += ["ISO 9283 position accuracy over the commanded positions reached several times "
-                    "(means over positions, mm; `|pred − meas| mean`: how far the method's predicted mean "
+            out += ["ISO 9283 position accuracy (means over the judged commanded positions, mm; RP over those "
+                    "reached more than once; `|pred − meas| mean`: how far the method's predicted mean "
                     "attained position is from the measured one):", "",
                     table(["method", "positions", "AP_P measured", "AP_P predicted", "|pred − meas| mean",
                            "RP measured", "RP predicted"], rows), ""]

@@ -63,7 +63,7 @@ def load_terms(tau: torch.Tensor, lo: torch.Tensor, step: torch.Tensor, n: int):
     hi = lo + safe * n
     x = torch.minimum(torch.maximum(tau, lo), hi)
     u = (x - lo) / safe
-    k = torch.minimum(torch.floor(u), torch.full_like(u, n - 1))
+    k = torch.nan_to_num(torch.minimum(torch.floor(u), torch.full_like(u, n - 1)))   # a NaN torque: index 0, NaN out
     fade = (1.0 - torch.maximum(lo - tau, tau - hi).clamp(min=0) / (0.1 * safe * n)).clamp(0.0, 1.0)
     w = cubic_weights(u - k) * (fade * on).unsqueeze(-1)
     return k.long().unsqueeze(-1) + torch.arange(4, device=k.device), w
