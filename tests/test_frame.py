@@ -143,8 +143,37 @@ def test_misread_orientations_stop_the_frame_stage(tmp_path, monkeypatch):
     msg = str(info.value)
     scatter = float(msg.split("scatter ")[1].split(" arcsec")[0])
     assert scatter > 5 * 7200 and "frame.max_orientation_scatter_arcsec = 7200" in msg
-    assert "station main (main)" in msg and "ingest.orientation" in msg
+    assert "campaign main (station main)" in msg and "ingest.orientation" in msg
     assert not (tmp_path / "reports" / "frame.json").exists()
+
+
+def test_a_misread_campaign_beside_one_read_right_stops_the_frame_stage(tmp_path, monkeypatch):
+    """Review (2026-11-29): a second campaign on the station, its quaternions read x y z w: the robust fit of the
+    probe's rotation dropped its every pose, the station's scatter stayed the first campaign's, and calibrate
+    trained on the misread orientations. Each campaign's median is judged now."""
+    t = pd.read_csv(ROOT / "data" / "raw" / "tracker.csv")
+    j = pd.read_csv(ROOT / "data" / "raw" / "joints.csv")
+    (tmp_path / "b").mkdir()
+    j[:200].to_csv(tmp_path / "b/joints.csv", index=False)
+    t[t.Name.isin(j.point_id[:200])].to_csv(tmp_path / "b/tracker.csv", index=False)
+    p = copy.deepcopy(PARAMS)
+    p["ingest"].update(joints=str(ROOT / "data/raw/joints.csv"), tracker=str(ROOT / "data/raw/tracker.csv"))
+    p["campaigns"]["more"] = {"b": {"station": "main", "ingest": {
+        "joints": str(tmp_path / "b/joints.csv"), "tracker": str(tmp_path / "b/tracker.csv"),
+        "orientation": {"scalar_first": False}}}}
+    monkeypatch.chdir(tmp_path)
+    ingest_stage.run_campaign(p, "b")
+    ingest_stage.run(p)
+    with pytest.raises(FrameFitError) as info:
+        frame_stage.run(p)
+    msg = str(info.value)
+    assert "campaign b (station main)" in msg and "(each campaign's median: main " in msg, msg
+    main = float(msg.split("median: main ")[1].split(",")[0])
+    assert main < 1800 and float(msg.split("scatter ")[1].split(" arcsec")[0]) > 5 * 7200
+    p["campaigns"]["more"]["b"]["ingest"]["orientation"]["scalar_first"] = True
+    ingest_stage.run_campaign(p, "b")
+    ingest_stage.run(p)
+    frame_stage.run(p)                                        # read right, both campaigns pass
 
 
 def test_wrong_scale_stops_on_the_rms_threshold(tmp_path, monkeypatch):

@@ -225,7 +225,9 @@ def test_more_campaigns_are_checked_with_the_params_key(tmp_path, monkeypatch):
     for override, key in (({"target_residual_mm": 0}, "target_residual_mm: a distance > 0 mm, got 0"),
                           ({"orientation": {"sequence": "XYW"}}, "orientation.sequence: "),
                           ({"sep": "|"}, "sep: auto, ',', ';' or tab, got '|'"),
-                          ({"colums": {}}, "unknown key(s) ['colums']")):
+                          ({"colums": {}}, "unknown key(s) ['colums']"),
+                          ({"orientation": "euler"}, "orientation: expected a mapping"),
+                          ({"columns": None}, "columns: expected a mapping")):
         # review (2026-11-29): named params.yaml ingest.<key>, whose own value was valid
         p["campaigns"]["more"] = {"b": {"ingest": {"joints": "x.csv", "tracker": "x.csv", **override},
                                         "station": "s2"}}

@@ -131,7 +131,7 @@ def soak(rt, q0: np.ndarray, tgt: np.ndarray, seconds: float) -> dict:
     gc.collect()
     ms, at, i = [], [], 0
     start = time.perf_counter()
-    while (now := time.perf_counter()) - start < seconds:
+    while time.perf_counter() - start < seconds:
         a, b = q0[i % len(q0)], tgt[i % len(tgt)]
         i += 1
         t = time.perf_counter()

@@ -168,7 +168,7 @@ def judge_poses(pred: dict, probe_R: dict, flange_R: dict, frames: dict, P_world
     out = {}
     for m, p in pred.items():
         f = frames[m]
-        R, t = np.asarray(f["R"]), np.asarray(f["t"])
+        R = np.asarray(f["R"])
         p_m = p + np.einsum("mij,j->mi", flange_R[m], f["tool_offset_mm"])
         R_m = probe_R[m] @ f.get("probe_rotation", np.eye(3))
         out[m] = pose_errors(p_m[judged], R_m[judged], to_base(P_world, f)[judged],

@@ -357,7 +357,7 @@ def check_given(cfg, name: str, shown: str) -> None:
         raise ParamsError(f"params.yaml {shown}: unknown key(s) {unknown}. Valid keys: {', '.join(SECTIONS[name])}")
     for k, v in cfg.items():
         key = f"{name}.{k}"
-        if key in SECTIONS and isinstance(v, dict):
+        if key in SECTIONS:
             check_given(v, key, f"{shown}.{k}")
         elif key in RULES and not RULES[key][0](v):
             raise ParamsError(f"params.yaml {shown}.{k}: {RULES[key][1]}, got {v!r}")

@@ -194,7 +194,6 @@ def fit(q_deg: np.ndarray, tau: np.ndarray, J: np.ndarray, r: np.ndarray, cfg: d
     if not blocks:
         return {}, {"blocks": [], "n_coefficients": 0}, np.zeros(E.shape[1])
     noise = cfg["noise_mm"]
-    prior, smooth = {}, {}
     pen = []
     for name, _, m in blocks:
         c, V = cfg[name], calibration_like(name, m)
