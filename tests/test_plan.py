@@ -198,6 +198,22 @@ def test_bad_arguments_are_refused(in_trained_project, tmp_path, capsys):
 
 # ----------------------------------------------------------------------------- the library, on the twin
 
+def test_the_singularity_rules_judge_the_chains_own_angles_however_its_table_is_written():
+    """Review (2026-11-29): sin_elbow and sin_wrist read the raw q3, q5, so a custom table with joints 3 and 5
+    re-zeroed (offset_deg 90) had the stretched elbow and the singular wrist pass, and good poses fail."""
+    ur5 = {"d": [89.159, 0, 0, 109.15, 94.65, 82.3], "a": [0, -425.0, -392.25, 0, 0, 0], "alpha_deg": [90, 0, 0, 90, -90, 0]}
+    def geometry(offset):
+        return nominal_geometry(load_robot({"model": "custom", "dh": {**ur5, "offset_deg": offset},
+                                            "joint_limits_deg": None, "tool_mm": [0, 0, 0], "tcp": None}))
+    shift = np.array([0, 0, 90, 0, 90, 0], float)
+    phys = np.array([[10.0, -60.0, 0.0, -90.0, 0.0, 30.0],             # elbow stretched, wrist singular
+                     [10.0, -60.0, 70.0, -90.0, 60.0, 30.0]])          # both well bent
+    rules = {"sin_elbow": 0.15, "sin_wrist": 0.2}
+    as_is, rezeroed = poses.checks(phys, geometry([0] * 6), rules), poses.checks(phys - shift, geometry(shift), rules)
+    for c in (as_is, rezeroed):
+        assert c["sin_elbow"].tolist() == c["sin_wrist"].tolist() == [False, True]
+
+
 def test_the_twin_samples_by_the_library_rules():
     """twin.sample_poses keeps exactly the poses poses.acceptable accepts (RULES in the region's window)."""
     g = nominal_geometry(Twin().robot)

@@ -430,3 +430,15 @@ def test_the_summary_names_the_instrument_when_it_is_set(tmp_path, monkeypatch):
     params["summary"]["instrument"] = "Leica AT960 laser tracker, T-Mac probe"
     report.run(params)
     assert "**Instrument:** Leica AT960 laser tracker, T-Mac probe." in (tmp_path / "reports/summary.md").read_text()
+
+
+def test_the_summary_says_how_a_custom_robots_table_was_given_and_what_was_calibrated():
+    """Review (2026-11-29): a custom robot's table given in modified DH read "standard Denavit-Hartenberg ... from
+    its own DH table", and a calibration without joint compliance (no link masses) read "elasto-geometric"."""
+    custom = {"model": "custom", "tool_mm": [0.0, 0.0, 0.0], "dh": {"convention": "modified"}}
+    assert "given in modified DH (Craig) and converted" in sheet.robot_text(custom, None, False)[0]
+    assert "modified" not in sheet.robot_text({**custom, "dh": {}}, None, False)[0]
+    rigid = {"identified": ["d1", "a2", "offset3", "beta2"], "n_candidates": 30}
+    assert "classical geometric calibration (4 of 30" in sheet.method_text({}, rigid, None)
+    elastic = {**rigid, "identified": rigid["identified"] + ["c2"]}
+    assert "classical elasto-geometric calibration (5 of 30" in sheet.method_text({}, elastic, None)

@@ -119,8 +119,9 @@ def rigid_equivalent(g: dict, q: torch.Tensor, cfg: dict) -> tuple[dict, dict]:
     with torch.no_grad():
         p = fk(q, g).numpy()
     left_out = (["joint compliance under gravity"] if g["compliance"].any() else []) + \
-        [name for key, name in (("amap_coef", "per-joint angle error maps"), ("lmap_coef", "per-joint load error maps"))
-         if key in g]
+        (["per-joint angle error maps"] if "amap_coef" in g and g["amap_coef"].any() else []) + \
+        (["per-joint load error maps"] if "lmap_coef" in g and (g["lmap_step"] > 0).any() and g["lmap_coef"].any()
+         else [])                                 # a load map with no torque to act on (no link masses) does nothing
     rigid = {k: v for k, v in g.items() if k in RIGID_KEYS} | {"compliance": torch.zeros(6, dtype=DTYPE)}
     if left_out:                                  # g's orientations too, where it has a probe rotation
         cfg = {**cfg, "params": [k for k in cfg["params"] if k != "compliance"], "loss": "linear"}

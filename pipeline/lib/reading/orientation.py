@@ -121,8 +121,8 @@ def read(v: np.ndarray, spec: dict) -> tuple[list, Rotation | None]:
 
 def rotations(values: np.ndarray, spec: dict) -> tuple[np.ndarray, list]:
     """Rotation columns (n, k) read as `spec` (the ingest.orientation section) -> (quaternions (n, 4),
-    NaN where bad; per row None or (why it is a bad rotation, the column it names, 0..k-1)). Rows holding NaN give NaN, no problem
-    (their cells are already a row problem)."""
+    NaN where bad; per row None or (why it is a bad rotation, the column it names, 0..k-1)). Rows holding
+    NaN give NaN, no problem (their cells are already a row problem)."""
     values = np.asarray(values, float).reshape(len(values), KINDS[spec["kind"]])
     out, problems = np.full((len(values), 4), np.nan), [None] * len(values)
     rows = np.flatnonzero(np.isfinite(values).all(axis=1))

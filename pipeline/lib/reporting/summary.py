@@ -155,7 +155,9 @@ def temperature_text(c: dict | None) -> str:
 def robot_text(robot: dict, frame: dict | None, estimate_tool: bool) -> list:
     """The robot's and the measured point's lines."""
     name = ROBOTS.get(robot["model"], f"`{robot['model']}`")
-    dh = ("its own DH table (`robot.dh`)" if robot["model"] == "custom" else "the vendor's nominal DH table")
+    dh = ("the vendor's nominal DH table" if robot["model"] != "custom" else
+          "its own DH table (`robot.dh`), given in modified DH (Craig) and converted"
+          if (robot.get("dh") or {}).get("convention") == "modified" else "its own DH table (`robot.dh`)")
     tool = (frame or {}).get("tool_mm", robot["tool_mm"])
     how = "estimated with the base frame" if estimate_tool else "as set in `robot.tool_mm`"
     return [f"**Robot:** {name} (`robot.model: {robot['model']}`); standard Denavit-Hartenberg convention, "
@@ -165,9 +167,11 @@ def robot_text(robot: dict, frame: dict | None, estimate_tool: bool) -> list:
 
 
 def method_text(metrics: dict, calibration: dict | None, parts: dict | None) -> str:
-    cal = (f"classical elasto-geometric calibration ({len(calibration.get('identified', []))} of "
-           f"{calibration.get('n_candidates')} parameters identified)" if calibration else
-           "classical elasto-geometric calibration")
+    identified = (calibration or {}).get("identified", [])
+    elastic = not calibration or any(re.fullmatch(r"c\d", p) for p in identified)    # a joint's compliance identified
+    kind = "elasto-geometric" if elastic else "geometric"
+    cal = (f"classical {kind} calibration ({len(identified)} of {calibration.get('n_candidates')} parameters "
+           f"identified)" if calibration else f"classical {kind} calibration")
     maps = ("" if parts is None else
             ", per-joint error maps (" + ("on" if parts.get("enabled") else
                                           "off: they did not lower the validation error") + ")")

@@ -10,8 +10,9 @@ flange), every rule whose setting is not None (`rules`, the keys of RULES):
     elbow_min_mm   h         ... and above h
     table_mm       h         every wrist frame (o_3..o_6) above h: clear of the table the base stands on
     column_mm      r         every wrist frame farther than r from the base axis: clear of the base column
-    sin_elbow      s         |sin q3| > s: away from the elbow singularity (arm stretched or folded)
-    sin_wrist      s         |sin q5| > s: away from the wrist singularity (joints 4 and 6 aligned)
+    sin_elbow      s         |sin q3| > s: away from the elbow singularity (arm stretched or folded; the turn
+                             at the elbow, configuration_margin's, so a table's offsets and an offset forearm count)
+    sin_wrist      s         |sin q5| > s: away from the wrist singularity (joints 4 and 6 aligned; q5 with its offset)
 and, when given:
     limits_deg     (6, 2)    every joint within its limits (inclusive)
     azimuth_deg    (lo, hi)  the flange's azimuth, atan2(y, -x) in degrees, strictly between (a region)
@@ -102,10 +103,12 @@ def checks(q_deg: np.ndarray, geometry: dict, rules: dict, limits_deg=None, azim
         out["table_mm"] = o[:, 3:, 2].min(1) > rules["table_mm"]
     if rules.get("column_mm") is not None:
         out["column_mm"] = np.hypot(o[:, 3:, 0], o[:, 3:, 1]).min(1) > rules["column_mm"]
+    if rules.get("sin_elbow") is not None or rules.get("sin_wrist") is not None:
+        margin = configuration_margin(q, geometry)         # the chain's own angles: its offsets, an offset forearm
     if rules.get("sin_elbow") is not None:
-        out["sin_elbow"] = np.abs(np.sin(np.radians(q[:, 2]))) > rules["sin_elbow"]
+        out["sin_elbow"] = np.abs(margin[:, 1]) > rules["sin_elbow"]
     if rules.get("sin_wrist") is not None:
-        out["sin_wrist"] = np.abs(np.sin(np.radians(q[:, 4]))) > rules["sin_wrist"]
+        out["sin_wrist"] = np.abs(margin[:, 2]) > rules["sin_wrist"]
     if tracker_mm is not None and rules.get("tracker_side_deg") is not None:
         t = np.asarray(tracker_mm, float)
         if np.hypot(t[0], t[1]) > (rules.get("column_mm") or 0.0):
