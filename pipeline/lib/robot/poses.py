@@ -39,26 +39,30 @@ CLEARANCE = ("elbow_min_mm", "table_mm", "column_mm")     # the rules a move kee
 MOVE_STEP_DEG = 0.25            # a move is checked at every quarter degree of its largest joint move
 
 
+def frames(q_deg: np.ndarray, geometry: dict) -> np.ndarray:
+    """Frames 0..6 (n, 7, 4, 4) mm of the rigid chain `geometry` at joint angles q (n, 6) deg."""
+    with torch.no_grad():
+        return link_frames(torch.as_tensor(np.radians(np.asarray(q_deg, float)), dtype=DTYPE), geometry).numpy()
+
+
 def origins(q_deg: np.ndarray, geometry: dict) -> np.ndarray:
     """Frame origins o_0..o_6 (n, 7, 3) mm of the rigid chain `geometry` at joint angles q (n, 6) deg."""
-    with torch.no_grad():
-        F = link_frames(torch.as_tensor(np.radians(np.asarray(q_deg, float)), dtype=DTYPE), geometry).numpy()
-    return F[:, :, :3, 3]
+    return frames(q_deg, geometry)[:, :, :3, 3]
 
 
 CONFIGURATION = ("shoulder", "elbow", "wrist")
 
 
-def configuration_margin(q_deg: np.ndarray, geometry: dict) -> np.ndarray:
+def configuration_margin(q_deg: np.ndarray, geometry: dict, F: np.ndarray | None = None) -> np.ndarray:
     """How far (n, 3) a pose lies from each CONFIGURATION's singularity, signed by the side (the sine of an
     angle, in [-1, 1]): shoulder: the wrist centre o_5's bearing about the base axis, ahead of or behind joint
     2's axis (its coordinate along frame 1's x over its distance from the base axis); elbow: the turn at the
     elbow, from the upper arm (o_1 -> o_2) to the forearm (o_2 -> o_4) about joint 3's axis (a UR arm: sin q3;
     an arm whose forearm is offset, as a PUMA's: zero where it is stretched or folded, not at q3 = 0); wrist:
-    sin q5 (q plus the chain's offsets). Each changes sign only through its singularity."""
+    sin q5 (q plus the chain's offsets). Each changes sign only through its singularity. F: the chain's
+    `frames` at q, where already computed."""
     q = np.atleast_2d(np.asarray(q_deg, float))
-    with torch.no_grad():
-        F = link_frames(torch.as_tensor(np.radians(q), dtype=DTYPE), geometry).numpy()    # (n, 7, 4, 4)
+    F = frames(q, geometry) if F is None else F                                            # (n, 7, 4, 4)
     o, z0 = F[:, :, :3, 3], F[:, 0, :3, 2]
     w = o[:, 5] - o[:, 0]
     across = np.linalg.norm(w - np.einsum("ni,ni->n", w, z0)[:, None] * z0, axis=1)      # from the base axis
@@ -81,7 +85,8 @@ def checks(q_deg: np.ndarray, geometry: dict, rules: dict, limits_deg=None, azim
            tracker_mm=None) -> dict:
     """{rule: (n,) bool, True where the pose passes it} for every rule that applies (module docstring)."""
     q = np.atleast_2d(np.asarray(q_deg, float))
-    o = origins(q, geometry)
+    F = frames(q, geometry)
+    o = F[:, :, :3, 3]
     p = o[:, 6]
     r = np.hypot(p[:, 0], p[:, 1])
     out = {}
@@ -104,7 +109,7 @@ def checks(q_deg: np.ndarray, geometry: dict, rules: dict, limits_deg=None, azim
     if rules.get("column_mm") is not None:
         out["column_mm"] = np.hypot(o[:, 3:, 0], o[:, 3:, 1]).min(1) > rules["column_mm"]
     if rules.get("sin_elbow") is not None or rules.get("sin_wrist") is not None:
-        margin = configuration_margin(q, geometry)         # the chain's own angles: its offsets, an offset forearm
+        margin = configuration_margin(q, geometry, F)      # the chain's own angles: its offsets, an offset forearm
     if rules.get("sin_elbow") is not None:
         out["sin_elbow"] = np.abs(margin[:, 1]) > rules["sin_elbow"]
     if rules.get("sin_wrist") is not None:
