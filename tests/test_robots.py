@@ -130,3 +130,23 @@ def test_standard_is_the_default_convention_and_bad_tables_are_refused():
         custom({**PUMA, "convention": "craig"})
     with pytest.raises(ValueError, match=r"robot.dh: unknown key\(s\) \['theta'\]"):
         custom({**std, "theta": [0] * 6})
+
+
+def test_a_custom_robots_joint_limits_reach_its_urdf_and_the_path_command():
+    """Review (2026-11-29): a custom robot had no place for its joints' speed and torque limits, so its URDF
+    said velocity and effort 0 on every joint (a planner may read "cannot move") and path needed its own."""
+    import pinocchio as pin
+    from pipeline.lib.robot.kinematics import nominal_geometry
+    from pipeline.lib.robot.urdf import to_urdf
+    from pipeline.lib.runtime.pathsolve import joint_speeds
+    speeds, torques = [120.0, 120.0, 180.0, 180.0, 180.0, 180.0], [150.0, 150.0, 28.0, 28.0, 28.0, 28.0]
+    arm = custom({**PUMA, "velocity_deg_s": speeds, "effort_nm": torques})
+    m = pin.buildModelFromXML(to_urdf(nominal_geometry(arm), arm))
+    np.testing.assert_allclose(m.velocityLimit, np.radians(speeds), rtol=1e-12)
+    np.testing.assert_allclose(m.effortLimit, torques, rtol=1e-12)
+    np.testing.assert_allclose(joint_speeds(arm, None), speeds, rtol=1e-12)
+    with pytest.raises(ValueError, match=r"set them, here or as robot.dh.velocity_deg_s"):
+        joint_speeds(custom(PUMA), None)
+    for bad in ([100.0] * 5, [100.0] * 5 + [0.0], [100.0] * 5 + [float("nan")], "fast"):
+        with pytest.raises(ValueError, match=r"params.yaml robot.dh.velocity_deg_s: 6 numbers > 0"):
+            custom({**PUMA, "velocity_deg_s": bad})

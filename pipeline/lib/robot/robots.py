@@ -169,6 +169,7 @@ class Robot:
 
 
 DH_KEYS = ("d", "a", "alpha_deg", "offset_deg")
+JOINT_LIMIT_KEYS = ("velocity_deg_s", "effort_nm")     # a custom robot's datasheet joint limits (optional)
 CONVENTIONS = ("standard", "modified")
 
 
@@ -198,7 +199,8 @@ def load_robot(cfg: dict) -> Robot:
 
     cfg = {"model": one of TABLES | "custom",
            "dh": {"d": [...], "a": [...], "alpha_deg": [...], "offset_deg": [...],
-                  "convention": "standard" | "modified" (optional, standard)}  (custom only),
+                  "convention": "standard" | "modified" (optional, standard),
+                  "velocity_deg_s": [6], "effort_nm": [6] (optional: 0, unknown)}  (custom only),
            "joint_limits_deg": [[lo, hi]] * 6 or null,
            "tool_mm": [x, y, z]}
     A modified-DH table is converted to the standard one here (modified_to_standard).
@@ -211,18 +213,24 @@ def load_robot(cfg: dict) -> Robot:
         if missing:
             raise ValueError(f"params.yaml robot.dh: custom robot needs {missing} "
                              f"(keys d, a, alpha_deg, offset_deg)")
-        unknown = sorted(set(dh) - {*DH_KEYS, "convention"})
+        unknown = sorted(set(dh) - {*DH_KEYS, "convention", *JOINT_LIMIT_KEYS})
         if unknown:
             raise ValueError(f"params.yaml robot.dh: unknown key(s) {unknown}; "
-                             f"use {list(DH_KEYS)} and optionally convention")
+                             f"use {list(DH_KEYS)} and optionally convention, {', '.join(JOINT_LIMIT_KEYS)}")
+        for key in JOINT_LIMIT_KEYS:
+            v = dh.get(key)
+            if v is not None and not (isinstance(v, list) and len(v) == 6 and all(
+                    isinstance(x, (int, float)) and not isinstance(x, bool) and np.isfinite(x) and x > 0 for x in v)):
+                raise ValueError(f"params.yaml robot.dh.{key}: 6 numbers > 0 (each joint's), got {v!r}")
         convention = dh.get("convention", "standard")
         if convention not in CONVENTIONS:
             raise ValueError(f"params.yaml robot.dh.convention: {convention!r}; use one of {list(CONVENTIONS)}")
         dh_table = dict(d=dh["d"], a=dh["a"], alpha=np.radians(dh["alpha_deg"]), offset=np.radians(dh["offset_deg"]))
         if convention == "modified":
             dh_table = modified_to_standard(**dh_table)
-        table = dict(dh_table, limits_deg=[[-360.0, 360.0]] * 6,
-                     mass=[0.0] * 6, com=[[0.0] * 3] * 6, effort_nm=[0.0] * 6, velocity_rad_s=[0.0] * 6)
+        table = dict(dh_table, limits_deg=[[-360.0, 360.0]] * 6, mass=[0.0] * 6, com=[[0.0] * 3] * 6,
+                     effort_nm=dh.get("effort_nm") or [0.0] * 6,                     # 0: unknown
+                     velocity_rad_s=np.radians(dh.get("velocity_deg_s") or [0.0] * 6))
     elif name in TABLES:
         table = dict(TABLES[name], offset=[0.0] * 6)
     else:

@@ -130,7 +130,7 @@ def joint_speeds(robot, setting) -> np.ndarray:
     v = np.degrees(np.asarray(robot.velocity_rad_s, float))
     if not (v > 0).all():
         raise ValueError("params.yaml path.joint_speed_deg_s: the robot's joint speed limits are unknown "
-                         "(a custom robot): set them")
+                         "(a custom robot): set them, here or as robot.dh.velocity_deg_s")
     return v
 
 
