@@ -322,45 +322,41 @@ class ParamsError(ValueError):
     """A params.yaml section with an unknown, misspelt or missing key."""
 
 
-def check_keys(cfg, name: str) -> dict:
-    """cfg (the section `name`, e.g. "ingest.columns") if its keys are exactly SECTIONS[name]."""
-    valid = SECTIONS[name]
+def check_keys(cfg, name: str, shown: str | None = None, partial: bool = False) -> dict:
+    """cfg (the section `name`, e.g. "ingest.columns") if its keys are exactly SECTIONS[name] (partial: some of
+    them); a ParamsError names it as `shown` (where it was given; default `name`)."""
+    valid, shown = SECTIONS[name], shown or name
     if not isinstance(cfg, dict):
-        raise ParamsError(f"params.yaml {name}: expected a mapping with keys {list(valid)}, got {cfg!r}")
+        raise ParamsError(f"params.yaml {shown}: expected a mapping with {'some of the ' if partial else ''}keys "
+                          f"{list(valid)}, got {cfg!r}")
     unknown = [k for k in cfg if k not in valid]
-    missing = [k for k in valid if k not in cfg]
+    missing = [] if partial else [k for k in valid if k not in cfg]
     if unknown or missing:
         what = "; ".join(([f"unknown key(s) {unknown}"] if unknown else [])
                          + ([f"missing key(s) {missing}"] if missing else []))
-        raise ParamsError(f"params.yaml {name}: {what}. Valid keys: {', '.join(valid)}")
+        raise ParamsError(f"params.yaml {shown}: {what}. Valid keys: {', '.join(valid)}")
     return cfg
 
 
-def check_values(cfg: dict, name: str) -> None:
-    """A ParamsError naming the key for a value of the section `name` that breaks its RULES."""
+def check_values(cfg: dict, name: str, shown: str | None = None) -> None:
+    """A ParamsError naming the key (as `shown`.key; default the section's own) for a value of the section
+    `name` that breaks its RULES; keys cfg does not hold are not checked."""
     for key, (ok, what) in RULES.items():
         path = key.split(".")
-        if ".".join(path[:-1]) != name:
+        if ".".join(path[:-1]) != name or path[-1] not in cfg:
             continue
         if not ok(cfg[path[-1]]):
-            raise ParamsError(f"params.yaml {key}: {what}, got {cfg[path[-1]]!r}")
+            raise ParamsError(f"params.yaml {shown or name}.{path[-1]}: {what}, got {cfg[path[-1]]!r}")
 
 
 def check_given(cfg, name: str, shown: str) -> None:
     """Some keys of the section `name` (a campaign's override of the ingest section), each known and its value
-    within RULES; a ParamsError names the key where it was given, `shown`.key (campaigns.more.b.ingest.sep)."""
-    if not isinstance(cfg, dict):
-        raise ParamsError(f"params.yaml {shown}: expected a mapping with some of the keys {list(SECTIONS[name])}, "
-                          f"got {cfg!r}")
-    unknown = [k for k in cfg if k not in SECTIONS[name]]
-    if unknown:
-        raise ParamsError(f"params.yaml {shown}: unknown key(s) {unknown}. Valid keys: {', '.join(SECTIONS[name])}")
+    within RULES, nested sections too; a ParamsError names the key where it was given, `shown`.key
+    (campaigns.more.b.ingest.sep)."""
+    check_values(check_keys(cfg, name, shown, partial=True), name, shown)
     for k, v in cfg.items():
-        key = f"{name}.{k}"
-        if key in SECTIONS:
-            check_given(v, key, f"{shown}.{k}")
-        elif key in RULES and not RULES[key][0](v):
-            raise ParamsError(f"params.yaml {shown}.{k}: {RULES[key][1]}, got {v!r}")
+        if f"{name}.{k}" in SECTIONS:
+            check_given(v, f"{name}.{k}", f"{shown}.{k}")
 
 
 def section(params: dict, name: str) -> dict:
