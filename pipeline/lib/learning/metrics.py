@@ -33,8 +33,8 @@ def regression_metrics(pred: np.ndarray, real: np.ndarray, theory: np.ndarray) -
 
 
 def drive_table(achieved: np.ndarray, target: np.ndarray, tol_mm: float = 0.5) -> dict:
-    """The paper's Table 9 layout for a drive check: per-axis |error| mean/std/max/min (mm),
-    the 3D error, and the share of points within ±tol on every axis."""
+    """The paper's Table 9 layout for a drive check (mm): per axis the mean, max and min of |error| and the
+    signed error's std; the 3D error's; and the share of points within ±tol on every axis."""
     e = achieved - target
     out = {ax: {"mean": float(np.abs(e[:, k]).mean()), "std": float(e[:, k].std()),
                 "max": float(np.abs(e[:, k]).max()), "min": float(np.abs(e[:, k]).min())}

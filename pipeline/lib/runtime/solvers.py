@@ -119,6 +119,10 @@ def residual(model, q, target, w: float):
     return pose_residual(r, q, model.physics.geometry(), target_rotations(target), w)
 
 
+def position_error(r):                                     # (B, 3|6) -> (B,): |pred - target| mm, a pose's too
+    return r[:, :3].norm(dim=1)
+
+
 def target_rotations(target):                              # (B, 12) -> (B, 3, 3): a pose target's orientation
     return target[:, 3:].reshape(-1, 3, 3)
 
@@ -201,8 +205,9 @@ def solve_adam(model, q0, target, cfg: dict, limits=None, chunk: int | None = No
             rs.append(r.detach())
             ms.append(mse.detach())
         r, mse = (torch.cat(x) if len(x) > 1 else x[0] for x in (rs, ms))
-        if history:
-            hist.append(r.norm(dim=1))
+        if history:                                         # |pred - target| mm, a point's held from its stop
+            e = position_error(r)
+            hist.append(e if not hist else torch.where(done, hist[-1], e))
         new = (mse < tol_mse) & ~done
         q_final[new], iters[new] = q.detach()[new], it
         done |= new
@@ -304,7 +309,7 @@ def solve_lm(model, q0, target, cfg: dict, limits=None, lam0=LAM0, chunk: int | 
     with torch.no_grad():
         r = torch.cat([residual(model, q[s], target[s], w) for s in slices(n, chunk)])   # (B, 3|6) mm
     err = r.norm(dim=1)
-    hist, t0 = [err.clone()] if history else None, time.perf_counter()
+    hist, t0 = [position_error(r)] if history else None, time.perf_counter()
     for it in range(max_iter):
         new = (err < tol_mm) & ~done
         iters[new] = it
@@ -319,7 +324,7 @@ def solve_lm(model, q0, target, cfg: dict, limits=None, lam0=LAM0, chunk: int | 
             q[a], r[a], err[a], lam[a] = lm_step(model, jac, q[a], r[a], err[a], lam[a], target[a], limits,
                                                    physics_steps, w)
         if history:
-            hist.append(err.clone())
+            hist.append(position_error(r))
     else:
         new = (err < tol_mm) & ~done
         iters[new] = max_iter
@@ -363,7 +368,8 @@ def compensate(model, q0_deg: np.ndarray, target: np.ndarray, cfg: dict, robot=N
                chunk: int = CHUNK, history: bool = True):
     """Solve for every point, in blocks of `chunk` points on every core (`in_blocks`: bounded memory, a
     log line per block); returns (q_deg (n, 6), pred (n, 3), iterations, converged,
-    history (iterations + 1, n) or None when not asked for, seconds)."""
+    history (iterations + 1, n): each point's |pred - target| mm, held from its stop; or None when not asked
+    for, seconds)."""
     solver = solver or cfg["solver"]
     if solver not in SOLVERS:
         raise ValueError(f"params.yaml compensate.solver: unknown {solver!r}; use one of {sorted(SOLVERS)}")
