@@ -114,6 +114,18 @@ def test_bad_moves_are_named_by_row_and_column(tmp_path, cells, moves, message):
     assert str(src) in str(e.value)
 
 
+def test_without_a_move_column_a_degenerate_path_names_the_positions(tmp_path):
+    """The defect: a file without a `move` column was told "column 'move'" for a move of length 0 or a single
+    point. It now names the columns the points came from."""
+    src = tmp_path / "p.csv"
+    src.write_text("target_x,target_y,target_z\n0,0,400\n0,0,400\n")
+    with pytest.raises(ValueError, match=r"p.csv, row 3, column target_x, target_y, target_z: the same point as"):
+        read_path(src, load_robot(UR5))
+    src.write_text("target_x,target_y,target_z\n0,0,400\n")
+    with pytest.raises(ValueError, match=r"row 2, column target_x, target_y, target_z: a path needs at least two"):
+        read_path(src, load_robot(UR5))
+
+
 def test_bad_cells_are_named_by_row_and_column(tmp_path):
     robot = load_robot(UR5)
     src = tmp_path / "p.csv"
@@ -253,7 +265,11 @@ def test_a_path_the_solver_cannot_follow_is_refused_naming_the_sample(in_trained
 @pytest.mark.parametrize("option, message", [
     (["--start-deg", "nan", "-60.4", "91.1", "-182.3", "-61.2", "-100.7"], r"--start-deg: joint 1 at nan° beyond its limits"),
     (["--speed", "1e-300", "--start-deg", *map(str, SEAM_START)], r"speed 1e-300 mm/s: a step of 1\.000 mm would take "
-     r"more than 2147483647 controller cycles \(URScript's int\): a higher speed"),
+     r"more than 16777216 controller cycles \(URScript's 32-bit float counts no further\): a higher speed"),
+    (["--speed", "1e-5", "--start-deg", *map(str, SEAM_START)], r"speed 1e-05 mm/s: a step of 1\.000 mm would take "
+     r"more than 16777216 controller cycles"),   # was written: 5e7 cycles, a float counter stuck at 2^24: no end
+    (["--chord", "0.001", "--start-deg", *map(str, SEAM_START)], r"--chord: 0\.001 mm is not above "
+     r"compensate\.tol_mm \(0\.001 mm\), to which each sample is solved"),  # was 4096 times the samples
     (["--spacing", "1e-307", "--start-deg", *map(str, SEAM_START)], r"inf samples at a spacing of 1e-307 mm over 100\.0 mm, "
      r"more than path.max_samples"),
 ])
@@ -391,6 +407,26 @@ def test_chord_mode_halves_the_steps_that_leave_the_path(in_trained_project, tmp
     np.testing.assert_allclose(table[TARGET].to_numpy(), at(segs, table.arc_mm.to_numpy()), atol=1e-9)
 
 
+def test_chord_mode_stops_at_max_samples(in_trained_project, tmp_path):
+    """The defect: chord mode ignored path.max_samples (checked before it only): a chord near the solve's
+    tolerance halved every step 12 times, 4097 samples for a 3 mm path under a limit of 100. Refine now stops
+    before a round that would pass the limit, naming it."""
+    segs = segments(np.array(SEAM), ["", "movel"])
+    cfg, robot = in_trained_project["compensate"], load_robot(in_trained_project["robot"])
+    table = pathsolve.solve_path(served_model(), *resample(segs, 50.0), SEAM_START, cfg, robot)
+    assert len(table) == 3
+    with pytest.raises(ValueError, match=r"chord 0\.0011 mm: halving \d+ would make \d+ samples, more than "
+                                         r"path\.max_samples \(8\): a larger --chord"):
+        pathsolve.refine(served_model(), table, segs, 0.0011, cfg, robot, max_samples=8)
+
+
+def test_an_out_folder_that_is_a_file_is_refused_before_solving(tmp_path, capsys):
+    """The defect: `--out` naming a file solved the whole path, then said "[Errno 17] File exists"."""
+    src = write_path(tmp_path, SEAM)
+    code, said = exit_code(path_command.main, [str(src), "--out", str(src)], capsys)
+    assert code == 2 and re.search(r"seam.csv is a file, not a folder: cannot write .*path.csv there", said), said
+
+
 def test_a_chord_mode_sample_not_reached_refuses_the_path(in_trained_project, tmp_path, capsys, monkeypatch):
     """A sample chord mode adds between two reached ones, not reached itself, refuses the path and writes
     nothing, even with --allow-outside-workspace (the defect: only the table's last sample was judged, so
@@ -458,8 +494,8 @@ def test_the_service_answers_a_whole_path(path_server, in_trained_project):
         "(serve.max_path_samples)": (q0, SEAM, [], 0.01, 20.0),
         "points_mm: sample ": (q0, [SEAM[0], [0.0, 0.0, 30.0]], [], 20.0, 20.0),
         "spacing_mm: a 100.0 mm path at 1e-307 mm is inf samples": (q0, SEAM, [], 1e-307, 20.0),   # was an
-        "speed_mm_s: speed 1e-300 mm/s: a step of 2.000 mm would take more than 2147483647 controller cycles "
-        "(URScript's int)": (q0, SEAM, [], 2.0, 1e-300),                     # OverflowError, or inf in t_s
+        "speed_mm_s: speed 1e-300 mm/s: a step of 2.000 mm would take more than 16777216 controller cycles "
+        "(URScript's 32-bit float counts no further)": (q0, SEAM, [], 2.0, 1e-300),   # OverflowError, or inf in t_s
     }
     for words, args in bad.items():
         with pytest.raises(xmlrpc.client.Fault, match=re.escape(words)):

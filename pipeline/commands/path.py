@@ -122,6 +122,10 @@ def run(argv=None) -> pd.DataFrame:
     for key in ("spacing_mm", "chord_mm", "speed_mm_s"):
         if cfg[key] is not None and not (np.isfinite(cfg[key]) and cfg[key] > 0):
             raise ValueError(f"--{key.split('_')[0]}: expected a number > 0, got {cfg[key]}")
+    tol = p["compensate"]["tol_mm"]
+    if cfg["chord_mm"] is not None and cfg["chord_mm"] <= tol:    # a step's middle sits up to tol off anyway
+        raise ValueError(f"--chord: {cfg['chord_mm']:g} mm is not above compensate.tol_mm ({tol:g} mm), to which "
+                         "each sample is solved: no step could meet it")
     robot = load_robot(p["robot"])
     speeds = joint_speeds(robot, cfg["joint_speed_deg_s"])
     require(root, (MODEL_WEIGHTS, WORKSPACE_JSON, FRAME_JSON))
@@ -158,7 +162,8 @@ def run(argv=None) -> pd.DataFrame:
     table = solve_path(model, targets, arc, q0, p["compensate"], robot,
                        None if rotations is None else rotations(arc))
     if cfg["chord_mm"] is not None and table.converged.all():
-        table = refine(model, table, found.segs, cfg["chord_mm"], p["compensate"], robot, rotations)
+        table = refine(model, table, found.segs, cfg["chord_mm"], p["compensate"], robot, rotations,
+                       cfg["max_samples"])
     table = finish(table, workspace, cfg["speed_mm_s"])
     dev = deviation(model_position(model), table[JCOMP_DEG].to_numpy(), found.segs)
     why = refusal(table, n, robot.limits_deg, p["compensate"]["tol_mm"], dev, cfg["max_deviation_mm"],

@@ -29,8 +29,12 @@ def same_file(a, b) -> bool:
 
 
 def check_outputs(outputs, inputs=()) -> None:
-    """A ValueError when an output is an input, or two outputs are one file."""
+    """A ValueError when an output is an input, two outputs are one file, or an output's folder is a file."""
     outputs, inputs = [Path(p) for p in outputs], [Path(p) for p in inputs]
+    for o in outputs:
+        folder = next((f for f in o.parents if f.exists()), None)   # the nearest that exists
+        if folder is not None and not folder.is_dir():
+            raise ValueError(f"{folder} is a file, not a folder: cannot write {o} there")
     for o in outputs:
         for i in inputs:
             if same_file(o, i):

@@ -203,9 +203,10 @@ class PathFile:
     path: str
     segs: list | None = None       # its segments (`segments`)
     offline: bool = False          # its points are where the nominal kinematics put its joints
+    columns: str = "move"          # what a bad move names: the move column, or the positions without one
 
     def where(self, i: int) -> str:
-        return f"{self.path}, row {self.lines[i]}, column 'move'"
+        return f"{self.path}, row {self.lines[i]}, column {self.columns}"
 
 
 def check_rotvecs(rotvec: np.ndarray, path, lines: list) -> None:
@@ -274,10 +275,11 @@ def read_path(path, robot, nominal_fk=None) -> PathFile:
     if rotvec is not None:
         check_rotvecs(rotvec, path, lines)
     moves = [""] + ["movel"] * (len(cells) - 1)
+    columns = ", ".join(header[find_column(header, n, "path", path)] for n in groups.get("target", groups.get("joints")))
     if "move" in lower:
         c = find_column(header, "move", "path", path)
-        moves = [row[c] for row in cells]
-    found = PathFile(points, moves, joints, rotvec, lines, path, offline="target" not in groups)
+        moves, columns = [row[c] for row in cells], repr(header[c])
+    found = PathFile(points, moves, joints, rotvec, lines, path, offline="target" not in groups, columns=columns)
     try:
         found.segs = segments(points, moves, found.where)
     except ValueError as e:

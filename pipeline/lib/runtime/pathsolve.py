@@ -29,7 +29,7 @@ from pipeline.lib.runtime.solvers import CHUNK, slices
 CYCLE_S = 0.002                 # the UR controller's cycle (500 Hz): servoj's t is a whole number of them
 REFINE_ROUNDS = 12              # chord mode: halvings at most
 MIN_STEP_MM = 1e-3              # chord mode: a step this short is not halved further
-MAX_CYCLES = 2 ** 31 - 1         # a step's servoj cycles, a URScript int
+MAX_CYCLES = 2 ** 24            # a step's servoj cycles: the script counts them in a float (32 bits, exact to 2^24)
 SOLVED = ["arc_mm"] + TARGET + JCOMP_DEG + ["residual_mm", "iterations", "converged", "orientation_residual_arcsec"]
 PATH_COLUMNS = (["sample", "arc_mm", "t_s"] + TARGET + JCOMP_DEG
                 + ["residual_mm", "iterations", "converged", "in_workspace", "uncertainty_mm",
@@ -79,17 +79,22 @@ def deviation(position, q_deg: np.ndarray, segs: list) -> np.ndarray:
     return distance(position((q[:-1] + q[1:]) / 2), segs)
 
 
-def refine(model, table: pd.DataFrame, segs: list, chord_mm: float, cfg: dict, robot, rotations=None) -> pd.DataFrame:
+def refine(model, table: pd.DataFrame, segs: list, chord_mm: float, cfg: dict, robot, rotations=None,
+           max_samples: int | None = None) -> pd.DataFrame:
     """Chord mode: each step whose middle the model puts farther than chord_mm from the path gets a sample
     at its arc middle, solved from the middle of its ends' joints (continuity); until none does, a step is
     MIN_STEP_MM short, or REFINE_ROUNDS rounds (then `refusal` judges what is left). rotations: arc_mm (k,)
-    -> the flange's orientations there (k, 3, 3), for a path with orientation."""
+    -> the flange's orientations there (k, 3, 3), for a path with orientation. A ValueError, before a round's
+    solves, where it would make more than max_samples samples."""
     position = model_position(model)
-    for _ in range(REFINE_ROUNDS):
+    for k in range(REFINE_ROUNDS):
         q, arc = table[JCOMP_DEG].to_numpy(), table.arc_mm.to_numpy()
         bad = np.flatnonzero((deviation(position, q, segs) > chord_mm) & (np.diff(arc) > MIN_STEP_MM))
         if not len(bad):
             break
+        if max_samples is not None and len(table) + len(bad) > max_samples:
+            raise ValueError(f"chord {chord_mm:g} mm: halving {k + 1} would make {len(table) + len(bad)} samples, "
+                             f"more than path.max_samples ({max_samples}): a larger --chord")
         mid = (arc[bad] + arc[bad + 1]) / 2
         rows, rots = [], [None] * len(mid) if rotations is None else rotations(mid)
         for k, s, x, rot in zip(bad, mid, at(segs, mid), rots):
@@ -102,13 +107,13 @@ def refine(model, table: pd.DataFrame, segs: list, chord_mm: float, cfg: dict, r
 
 def servo_times(arc_mm: np.ndarray, speed_mm_s: float) -> np.ndarray:
     """(m - 1,) s: each step's servoj time at speed_mm_s, a whole number of controller cycles (at least one);
-    a ValueError where a step would take more cycles than URScript's int holds (a speed far too low)."""
+    a ValueError where a step would take more cycles than the script's counter holds exactly (a speed far too low)."""
     with np.errstate(over="ignore"):
         cycles = np.maximum(1, np.round(np.diff(arc_mm) / speed_mm_s / CYCLE_S))
     slow = np.flatnonzero(~(cycles <= MAX_CYCLES))
     if len(slow):
         raise ValueError(f"speed {speed_mm_s:g} mm/s: a step of {np.diff(arc_mm)[slow[0]]:.3f} mm would take more "
-                         f"than {MAX_CYCLES} controller cycles (URScript's int): a higher speed")
+                         f"than {MAX_CYCLES} controller cycles (URScript's 32-bit float counts no further): a higher speed")
     return cycles * CYCLE_S
 
 
