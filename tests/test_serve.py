@@ -6,6 +6,8 @@ On the trained artifacts of conftest's `trained_project` (the project's own afte
 """
 import copy
 import json
+import math
+import re
 import socket
 import subprocess
 import sys
@@ -29,6 +31,7 @@ from pipeline.commands.serve import make_server, url
 from pipeline.lib.learning.model import PhysicsOnly
 from pipeline.lib.learning.onnx_model import OnnxRealtime
 from pipeline.lib.runtime.realtime import Realtime
+from pipeline.lib.runtime.service import Job
 
 ROOT = Path(__file__).resolve().parents[1]
 @pytest.fixture(scope="module")
@@ -319,6 +322,87 @@ def test_a_client_sending_unreachable_targets_does_not_stall_the_others(server, 
     assert max(beside["bad_ms"]) < params["serve"]["budget_ms"] + 500, beside["bad_ms"]
 
 
+def held(server):
+    """The server's Service with its worker stopped (submitted jobs stay queued): the worker's steps by hand."""
+    svc = server.service
+    svc.closed.set()
+    svc.worker.join()
+    svc.closed.clear()
+    return svc
+
+
+def test_a_clients_single_request_is_taken_before_queued_batch_items(params, poses):
+    """The defect (one FIFO queue): a single compensate waited behind every queued compensate_many item;
+    32 clients looping 1000-item calls took a single call from 4 ms to 1.2 s. The worker now takes the
+    calls of their own first, then batched items in their order."""
+    server = serving(params)
+    try:
+        svc, call = held(server), object()
+        batch = [svc.submit(q, x, f"requests[{i}].", call) for i, (q, x) in enumerate(zip(poses[0][:20], poses[1][:20]))]
+        single = svc.submit(poses[0][20], poses[1][20])
+        jobs = svc._take(wait=False)
+        assert len(jobs) == svc.max_batch == 16
+        assert jobs[0].future is single and [j.future for j in jobs[1:]] == batch[:15]
+    finally:
+        server.shutdown()
+        server.server_close()
+
+
+def test_every_batched_calls_items_in_lm_together_are_at_most_max_batch(params, poses):
+    """The defect: lm_per_call (4) held per call, with no bound over calls: ten compensate_many calls put 40
+    rows in every lm iteration, each iteration slower for every client. Together they now hold max_batch."""
+    server = serving(params)
+    try:
+        svc = held(server)
+        calls, far = [object() for _ in range(10)], np.array([0.0, 0.0, 0.0])     # unreachable: lm, not the chord
+        svc.waiting = [Job(poses[0][k], far, f"requests[{k}].", c, time.monotonic() + 60)
+                       for c in calls for k in range(4)]
+        svc._admit()
+        assert sum(svc.in_lm.values()) == len(svc.lanes["position"].active) == svc.max_batch == 16
+        assert len(svc.waiting) == 40 - 16 and max(svc.in_lm.values()) <= svc.lm_per_call
+        single = Job(poses[0][0], far, "", None, math.inf)                     # a call of its own: not held back
+        svc.waiting.append(single)
+        svc._admit()
+        assert single in svc.lanes["position"].active
+    finally:
+        server.shutdown()
+        server.server_close()
+
+
+def test_a_paths_unreachable_point_is_named_before_its_samples_are_counted(client):
+    """The defect: a point 100 m away was told "spacing_mm: ... more than the limit ...: a larger spacing"
+    (and 1e308 mm, an inf-long path), advice no spacing could follow."""
+    q0 = [0.0, -1.57, 1.57, -1.57, -1.57, 0.0]
+    with pytest.raises(xmlrpc.client.Fault, match=r"points_mm\[0\]: unreachable \(100000\.0 mm from the base"):
+        client.compensate_path(q0, [[1e5, 0, 0], [0, 1e5, 0]], [], 1.0, 20.0)
+    with pytest.raises(xmlrpc.client.Fault, match=r"points_mm\[0\]: unreachable \(1e\+308 mm|points_mm\[0\]: unreachable"):
+        client.compensate_path(q0, [[1e308, 0, 0], [-1e308, 0, 0]], [], 1e300, 20.0)
+
+
+def test_a_client_looping_bad_requests_gets_bounded_log_lines(params, caplog):
+    """The defect: every fault was a log line, 2556 a second from one client looping bad requests. Now 20 at
+    once, then one a second; the next line logged counts those not logged."""
+    server = serving(params)
+    client = xmlrpc.client.ServerProxy(url(server))
+    with caplog.at_level("WARNING"):
+        t = time.monotonic()
+        for _ in range(300):
+            with pytest.raises(xmlrpc.client.Fault):
+                client.compensate("x", [1.0])
+        seconds = time.monotonic() - t
+        faults = [r.getMessage() for r in caplog.records if "compensate: fault:" in r.getMessage()]
+        assert 1 <= len(faults) <= 20 + seconds + 1, (len(faults), seconds)
+        time.sleep(1.1)
+        caplog.clear()
+        with pytest.raises(xmlrpc.client.Fault):
+            client.compensate("x", [1.0])
+    server.shutdown()
+    server.server_close()
+    said = [r.getMessage() for r in caplog.records if "compensate: fault:" in r.getMessage()]
+    assert len(said) == 1 and re.match(r"\((\d+) fault\(s\) not logged before this one\) compensate: fault: q_rad", said[0]), said
+    assert int(re.match(r"\((\d+)", said[0])[1]) >= 300 - 20 - seconds - 1
+
+
 @pytest.mark.parametrize("target", [[0.0, 0.0, 0.0], [0.4, 0.1, 0.3]], ids=["origin", "metres sent as mm"])
 def test_an_unreachable_target_is_answered_within_the_budget(client, params, poses, target):
     """Inside the reach bound, yet unreachable: a Fault within serve.budget_ms + 0.3 s (before:
@@ -409,8 +493,9 @@ def test_compensate_many_answers_each_item_in_its_place(client, poses):
     assert errors[5]["error"].startswith("requests[5].target_mm: unreachable (9000.0 mm from the base")
 
 
-def test_a_long_method_name_is_a_fault_echoing_it_cut(client, params, caplog):
+def test_a_long_method_name_is_a_fault_echoing_it_cut(server, client, params, caplog):
     n = params["serve"]["echo_chars"]
+    server.fault_lines = serve_module.FAULT_LINES         # a fresh log budget: the module's earlier faults spent some
     with caplog.at_level("INFO"):
         with pytest.raises(xmlrpc.client.Fault) as e:
             getattr(client, "x" * 100_000)([1.0])

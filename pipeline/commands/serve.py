@@ -37,7 +37,8 @@ without orientation is refused.
 What a request costs and when it is answered, refused or unreachable: lib/runtime/service.py (the logic: a
 worker thread owning the model batches concurrent requests; each has a budget, serve.max_iter and
 serve.budget_ms, a compensate_many call one in all, serve.call_budget_ms, and at most serve.lm_per_call
-of its items in lm at a time). The controller path runs on onnxruntime, from the export stage's models/controller.onnx
+of its items in lm at a time, serve.max_batch of every batched call's together; a client's single
+requests taken before batched items). The controller path runs on onnxruntime, from the export stage's models/controller.onnx
 (serve.onnx; checked against the PyTorch model at start-up), else in PyTorch. A bad or unreachable request gets a Fault (code -32602) naming the field; the
 server keeps serving. This module is the transport: the HTTP limits (serve.max_body_bytes, on the body
 as sent and as gzip-decoded: 413; serve.timeout_s: a request not fully sent that long after it began, or
@@ -47,7 +48,7 @@ is not an XML-RPC call, or has a DOCTYPE or entity declaration (refused before a
 other methods than POST: 405; HTTP/1.1 keep-alive), messages and log lines that echo a request (an
 unknown method, an internal error, a connection's error: one line) cut to serve.echo_chars, a bad
 request's fault (the service's own words, each value it echoes cut to 40 characters) to MESSAGE_CHARS,
-and loading the artifacts and params. It listens on 127.0.0.1 unless told otherwise (--host
+the faults' log lines to FAULT_LINES at once and FAULT_LINES_PER_S after (the others counted), and loading the artifacts and params. It listens on 127.0.0.1 unless told otherwise (--host
 0.0.0.0 to serve a robot on the network; XML-RPC has no authentication). docs/robot-cell.md: the
 protocol and a URScript example.
 """
@@ -108,6 +109,7 @@ def check_artifacts(root: Path) -> None:
         raise SystemExit(f"pipeline.commands.serve: {e}") from None
 
 
+FAULT_LINES, FAULT_LINES_PER_S = 20, 1.0   # the faults' log lines: 20 at once, then one a second; the rest counted
 MESSAGE_CHARS = 1000    # a RequestError's fault: the service's own words, every value of the request it echoes cut
                         # to 40 characters (service.describe); cut at serve.echo_chars, its advice was lost
 
@@ -254,6 +256,7 @@ class Server(socketserver.ThreadingMixIn, SimpleXMLRPCServer):
         self.limits, self.service = limits, service
         self.lock, self.open, self.closing = threading.Lock(), {}, threading.Event()   # open: socket -> deadline
         self.refused, self.refused_logged = 0, 0.0
+        self.fault_lock, self.fault_lines, self.fault_t, self.faults_unlogged = threading.Lock(), FAULT_LINES, 0.0, 0
         super().__init__(address, requestHandler=Handler, allow_none=False, logRequests=False)
         tick = max(0.01, min(0.1, limits["timeout_s"] / 20))
         threading.Thread(target=self._reap, args=(tick,), name="connection reaper", daemon=True).start()
@@ -321,6 +324,20 @@ class Server(socketserver.ThreadingMixIn, SimpleXMLRPCServer):
             answer = xmlrpc.client.dumps(f)
         return answer.encode("utf-8", "xmlcharrefreplace")
 
+    def log_fault(self, text: str, n: int) -> None:
+        """A fault's log line, cut to n characters: FAULT_LINES at once, then FAULT_LINES_PER_S a second; those
+        beyond are counted, and the next line logged says how many."""
+        with self.fault_lock:
+            now = time.monotonic()
+            self.fault_lines = min(FAULT_LINES, self.fault_lines + (now - self.fault_t) * FAULT_LINES_PER_S)
+            self.fault_t = now
+            if self.fault_lines < 1:
+                self.faults_unlogged += 1
+                return
+            self.fault_lines -= 1
+            more, self.faults_unlogged = self.faults_unlogged, 0
+        log.warning("%s", clip((f"({more} fault(s) not logged before this one) " if more else "") + text, n))
+
     def _dispatch(self, method, params):
         n = self.limits["echo_chars"]
         func = self.funcs.get(method)
@@ -340,7 +357,7 @@ class Server(socketserver.ThreadingMixIn, SimpleXMLRPCServer):
                 n = MESSAGE_CHARS
                 raise Fault(INVALID_PARAMS, clip(str(e), n)) from None
         except Fault as f:
-            log.warning("%s", clip(f"fault: {f.faultString}" if func is None else f"{method}: fault: {f.faultString}", n))
+            self.log_fault(f"fault: {f.faultString}" if func is None else f"{method}: fault: {f.faultString}", n)
             raise
         except Exception as e:                            # a bug, not a bad request: say so, keep serving
             log.exception("%s: internal error", method)

@@ -4,15 +4,16 @@ solve it within a bounded budget, answer.
 One worker thread owns the model. A request thread checks its request (`check`: numbers, joint
 limits, reach; a RequestError naming the field), puts it on a queue and waits for its answer. The
 worker, in a loop:
-  1. takes what is queued (up to `max_batch`; when idle, it waits up to `batch_wait_ms` for as
+  1. takes what is queued (up to `max_batch`, a client's single requests before the items of batched
+     calls, compensate_many's and a path's; when idle, it waits up to `batch_wait_ms` for as
      many as its last round took: a lone client never waits) and runs the controller path
      (two model evaluations) on all of them at once: on onnxruntime when given the exported graph
      (onnx_model.OnnxRealtime, the fast path), else in PyTorch (realtime.Realtime); each converged one
      is answered at once: converged only on a measured residual (an answer the controller path did
      not verify, whose residual is a prediction, goes on to lm);
-  2. the others join the lm set, at most `lm_per_call` of one call's at a time (the rest of a
-     compensate_many's wait for its slots, so one call's many unreachable items cannot crowd out the
-     others' requests), solved by `lm` from the controller path's answer where it predicted one within
+  2. the others join the lm set, at most `lm_per_call` of one call's at a time and `max_batch` of every
+     batched call's together (the rest wait for slots, so neither one call's many unreachable items nor
+     many such calls at once can crowd out the others' requests), solved by `lm` from the controller path's answer where it predicted one within
      tol_mm (lm measures it there: one iteration), else from their start (solvers.lm_step, the residual
      then measured on the model; on the exported graph when the controller path runs there and lm
      steps with the DH branch's Jacobian, OnnxRealtime.lm_step, an iteration 2.5x cheaper than in
@@ -31,6 +32,7 @@ solve positions) and joins a lane of its own (`Lane`): lm's six equations in PyT
 one iteration a loop beside the positions' lane, under the same budgets. `compensate_path` queues a path's samples one at a time, each from the answer before
 (lib/runtime/pathsolve.py), all under one call budget, and refuses the path as the path command does.
 """
+import itertools
 import math
 import queue
 import reprlib
@@ -197,7 +199,8 @@ class Service:
         w = pose_weight({"tol_mm": self.tol, "tol_arcsec": tol_arcsec})
         self.lanes = {"position": Lane(None, lm_jacobian(model, jacobian_of)),
                       "pose": Lane(w, lm_jacobian(model, jacobian_of, w))}
-        self.queue: queue.Queue[Job] = queue.Queue()
+        self.queue: queue.PriorityQueue = queue.PriorityQueue()   # (0: a call of its own, 1: a batch's item; seq, job)
+        self.seq = itertools.count()                      # FIFO within a priority
         self.waiting: list[Job] = []                      # unconverged, waiting for a slot of their call's
         self.in_lm: dict[int, int] = {}                   # id(call): its jobs in the lm set
         self.last_round = 0                               # requests in the worker's last round
@@ -209,7 +212,7 @@ class Service:
         """Stop the worker; requests still waiting get a RequestError."""
         self.closed.set()
         self.worker.join()
-        for job in self.active + self.waiting + [self.queue.get_nowait() for _ in range(self.queue.qsize())]:
+        for job in self.active + self.waiting + [self.queue.get_nowait()[2] for _ in range(self.queue.qsize())]:
             job.future.set_exception(RequestError(f"{job.where}target_mm: the service stopped"))
 
     # the service's methods
@@ -249,7 +252,7 @@ class Service:
                   rot_field, start)
         if self.closed.is_set():
             raise RequestError(f"{where}target_mm: the service stopped")
-        self.queue.put(job)
+        self.queue.put((0 if call is None else 1, next(self.seq), job))   # a client's one request first
         return job.future
 
     def compensate(self, q_rad, target_mm) -> dict:
@@ -332,6 +335,11 @@ class Service:
             raise RequestError(f"points_mm: {len(points_mm)} points: a path needs 2 to {self.max_path_samples} "
                                "(serve.max_path_samples)")
         points = np.array([numbers(p, f"points_mm[{i}]", 3) for i, p in enumerate(points_mm)])
+        far = np.flatnonzero(np.linalg.norm(points, axis=1) > self.reach)   # before its length counts samples
+        if len(far):
+            i = int(far[0])
+            raise RequestError(f"points_mm[{i}]: unreachable ({np.linalg.norm(points[i]):.1f} mm from the base, "
+                               f"beyond the arm's reach of {self.reach:.1f} mm)")
         if not isinstance(moves, (list, tuple)) or len(moves) not in (0, len(points)):
             raise RequestError(f"moves: expected a list of {len(points)} strings (or [], every move movel), got "
                                f"{describe(moves)}")
@@ -414,19 +422,20 @@ class Service:
                 self.waiting, self.in_lm = [], {}
 
     def _take(self, wait: bool) -> list[Job]:
-        """What is queued, up to max_batch; wait (the worker is idle): block for the first, then wait up to
+        """What is queued, up to max_batch, the calls of their own before the items of batched calls
+        (compensate_many, a path's samples); wait (the worker is idle): block for the first, then wait up to
         batch_wait while fewer have come than the last round had (a lone client never waits)."""
         jobs = []
         if wait:
             try:
-                jobs.append(self.queue.get(timeout=0.1))  # wakes to see `closed`
+                jobs.append(self.queue.get(timeout=0.1)[2])  # wakes to see `closed`
             except queue.Empty:
                 return jobs
         until = time.monotonic() + (self.batch_wait if wait else 0.0)
         while len(jobs) < self.max_batch:
             left = until - time.monotonic() if len(jobs) < self.last_round else 0.0
             try:
-                jobs.append(self.queue.get(timeout=left) if left > 0 else self.queue.get_nowait())
+                jobs.append((self.queue.get(timeout=left) if left > 0 else self.queue.get_nowait())[2])
             except queue.Empty:
                 break
         if jobs:
@@ -464,16 +473,19 @@ class Service:
         self._admit()
 
     def _admit(self) -> None:
-        """Move waiting jobs into the lm set, in order, as their calls have slots (lm_per_call); those whose
-        call's budget is spent are answered so."""
+        """Move waiting jobs into the lm set, in order, as their calls have slots (lm_per_call each, max_batch
+        for every batched call's together: however many such calls, an lm iteration's rows stay bounded); those
+        whose call's budget is spent are answered so."""
         now, admit, wait = time.monotonic(), [], []
+        batched = sum(self.in_lm.values())
         for job in self.waiting:
             n = self.in_lm.get(id(job.call), 0)
             if now >= job.call_deadline:
                 job.future.set_exception(RequestError(self._unsolved(job.where)))
-            elif job.call is None or n < self.lm_per_call:
+            elif job.call is None or (n < self.lm_per_call and batched < self.max_batch):
                 if job.call is not None:
                     self.in_lm[id(job.call)] = n + 1
+                    batched += 1
                 job.deadline = now + self.budget
                 admit.append(job)
             else:
