@@ -117,7 +117,7 @@ def test_an_export_that_fails_leaves_every_file_of_the_run_before(in_trained_pro
     import shutil
     from pipeline.stages import export
     for f in ("data/interim/points.parquet", "data/interim/split.parquet", "reports/frame.json",
-              "models/calibration.json", "models/parts.json", "models/boter.pt"):
+              "models/calibration.json", "models/parts.json", "models/boter.pt", "models/workspace.json"):
         (tmp_path / f).parent.mkdir(parents=True, exist_ok=True)
         shutil.copy(f, tmp_path / f)
     old = {f: f"an earlier run's {f}" for f in ("models/calibrated.urdf", "models/ur_calibration.yaml",
@@ -133,6 +133,30 @@ def test_an_export_that_fails_leaves_every_file_of_the_run_before(in_trained_pro
     with pytest.raises(OSError, match="No space left"):
         export.run(params, tmp_path)
     assert {f: (tmp_path / f).read_text() for f in old} == old
+
+
+@pytest.mark.parametrize("network", [True, False])
+def test_the_export_is_the_model_evaluate_chose_to_serve(in_trained_project, tmp_path, monkeypatch, network):
+    """The defect: the export stage exported the whole model where evaluate had left the network out
+    (workspace.json network: false): model.onnx and the controller graphs answered with a network the
+    pipeline reports, and the service serves, without. Each graph is now made from model.served."""
+    import shutil
+    from pipeline.stages import export
+    for f in ("data/interim/points.parquet", "data/interim/split.parquet", "reports/frame.json",
+              "models/calibration.json", "models/parts.json", "models/boter.pt", "models/workspace.json"):
+        (tmp_path / f).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy(f, tmp_path / f)
+    ws = json.loads((tmp_path / "models/workspace.json").read_text())
+    (tmp_path / "models/workspace.json").write_text(json.dumps({**ws, "network": network}))
+    exported = []
+
+    def stop_after(model, paths):
+        exported.append(model)
+        raise OSError(28, "No space left on device")
+    monkeypatch.setattr(export, "export_all", stop_after)
+    with pytest.raises(OSError):
+        export.run(in_trained_project, tmp_path)
+    assert isinstance(exported[0], PhysicsOnly) != network
 
 
 def test_nominal_ur5_at_zero_is_where_the_datasheet_puts_it():
@@ -205,9 +229,16 @@ def small_boter(seed=0):
     return m.eval()
 
 
-@pytest.mark.parametrize("ensemble", [False, True], ids=["boter", "ensemble"])
-def test_onnx_read_by_onnxruntime_matches_pytorch(tmp_path, ensemble):
-    model = Ensemble([small_boter(0), small_boter(1)]).eval() if ensemble else small_boter()
+def without_fade(model):
+    model.fade.fade_to = None                                       # model.fade_to: null, a documented setting
+    return model
+
+
+@pytest.mark.parametrize("kind", ["boter", "ensemble", "no fade"])
+def test_onnx_read_by_onnxruntime_matches_pytorch(tmp_path, kind):
+    """No fade (model.fade_to: null): the defect, Fade's ones sized by len(q) fixed the graph's batch at 4."""
+    model = {"boter": small_boter, "ensemble": lambda: Ensemble([small_boter(0), small_boter(1)]).eval(),
+             "no fade": lambda: without_fade(small_boter())}[kind]()
     path = tmp_path / "model.onnx"
     export_onnx(model, path)
     import onnx

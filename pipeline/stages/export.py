@@ -2,7 +2,9 @@
 
     models/calibrated.urdf       the calibrated rigid chain (lib/robot/urdf.py), base_link .. flange, tool0
     models/ur_calibration.yaml   the UR ROS description's kinematics calibration (any robot's chain in its layout)
-    models/model.onnx            the trained model, q_rad -> p_mm (lib/learning/onnx_model.py)
+    models/model.onnx            the trained model as served (model.served: its physics branch alone where
+                                 evaluate left the network out), q_rad -> p_mm (lib/learning/onnx_model.py);
+                                 the controller graphs too
     models/controller.onnx       the controller path (lib/runtime/realtime.py: two chord steps) as one graph,
                                  q0_rad, target_mm, joint limits -> q1, q2, |r0|, |r1| (lib/learning/onnx_model.py)
     models/controller_physics.onnx   the same on the model's physics branch alone (model.PhysicsOnly:
@@ -52,12 +54,13 @@ import yaml
 from scipy.spatial.transform import Rotation
 
 from pipeline.lib.learning.checkpoint import load_model
-from pipeline.lib.learning.model import PhysicsOnly
+from pipeline.lib.learning.model import PhysicsOnly, served
+from pipeline.lib.learning.workspace import Workspace
 from pipeline.lib.learning.onnx_model import OnnxModel, OnnxRealtime, deviation, export_all
 from pipeline.lib.project.artifacts import (CALIBRATED_GEOMETRY, CONTROLLER_ONNX, CONTROLLER_PHYSICS_ONNX,
                                             CONTROLLER_PHYSICS_TCP_ONNX, CONTROLLER_POSE_ONNX, CONTROLLER_TCP_ONNX,
                                             EXPORT_JSON, FRAME_JSON, HERE, MODEL_ONNX, MODEL_WEIGHTS, ONNX_FILES,
-                                            PARTS_JSON, URDF_FILE, UR_YAML, load_points)
+                                            PARTS_JSON, URDF_FILE, UR_YAML, WORKSPACE_JSON, load_points)
 from pipeline.lib.project.cli import one_line, stage_main
 from pipeline.lib.project.columns import JOINTS_DEG, THEORY
 from pipeline.lib.project.config import for_stage, json_text, logger, read_json
@@ -198,7 +201,9 @@ def made_and_checked(params: dict, root: Path, tmp: Path) -> tuple[dict, dict]:
     files, checked = chain_files(g, robot, in_flange(p["robot"]["tcp"], g), q, root)
     summary.update(checked)
 
-    model = load_model(root / MODEL_WEIGHTS)
+    network = Workspace.from_dict(read_json(root / WORKSPACE_JSON)).network
+    model = served(load_model(root / MODEL_WEIGHTS), network)    # evaluate's verdict: what the cell gets
+    summary["network_kept"] = network
     at = {f: tmp / f.name for f in ONNX_FILES}                    # the graphs, read back from here first
     export_all(model, {f.stem: at[f] for f in ONNX_FILES})
     test = (pts["split"] == "test").to_numpy()

@@ -126,7 +126,7 @@ class Fade(nn.Module):
 
     def forward(self, q):                                   # (B, 6) rad -> (B, 1)
         if self.fade_to is None or len(self.ref) == 0:
-            return torch.ones(len(q), 1, dtype=q.dtype, device=q.device)
+            return torch.ones_like(q[:, :1])                # not len(q): an export would fix the batch size
         d = nearest_distance(torch.rad2deg(q.double()), self.ref) / self.radius     # (B,) in radii
         return ((self.fade_to - d) / (self.fade_to - 1.0)).clamp(0.0, 1.0)[:, None].to(q.dtype)
 
