@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from pipeline.lib.project.columns import JOINTS_DEG, MEAS, MEAS_Q
-from pipeline.lib.project.config import ParamsError, load_params
+from pipeline.lib.project.config import ParamsError, load_params, section
 from pipeline.lib.reading import readers
 from pipeline.lib.reading.campaigns import campaign_ingest
 from pipeline.lib.reading.presets import merged_params
@@ -1116,3 +1116,76 @@ def test_real_ipa_ur10_orientation(monkeypatch):
                                          "kind": "euler", "sequence": "XYZ", "angle_unit": "deg",
                                          "to": s["units"]["orientation"]["to"]}
     assert "measurement_rx" not in df.columns and "measurement_std_rx" in df.columns
+
+
+# ---------------------------------------------------------------- a sixth review: a new user's files
+
+def test_quoted_headers_with_a_space_after_the_separator_are_found(tmp_path):
+    """The defect: `"Name", "X", "Y", "Z"` kept the quotes (csv read the space first), so no position column."""
+    ids, q, m = campaign(20, seed=3)
+    joints, _ = write_pair(tmp_path, ids, q, m)
+    tracker = tmp_path / "tracker.csv"
+    tracker.write_text('"Name", "X", "Y", "Z"\n' + "".join(f'"{i}", {float(a)!r}, {float(b)!r}, {float(c)!r}\n' for i, (a, b, c) in zip(ids, m)))
+    df, s = ingest(params(joints=joints, tracker=str(tracker)))
+    assert s["n_kept"] == 20 and np.allclose(df[MEAS].to_numpy(), m)
+
+
+def test_decimal_commas_in_quoted_cells_of_a_comma_separated_file_are_sniffed(tmp_path):
+    """The defect: `decimal: auto` answered '.' for every comma-separated file without looking at the cells;
+    quoted "-1659,1453" then failed every row."""
+    ids, q, m = campaign(20, seed=4)
+    joints, _ = write_pair(tmp_path, ids, q, m)
+    tracker = tmp_path / "tracker.csv"
+    tracker.write_text("Name,X,Y,Z\n" + "".join(f'{i},"{num(a, ",")}","{num(b, ",")}","{num(c, ",")}"\n'
+                                                for i, (a, b, c) in zip(ids, m)))
+    df, s = ingest(params(joints=joints, tracker=str(tracker)))
+    assert s["n_kept"] == 20 and np.allclose(df[MEAS].to_numpy(), m)
+
+
+def test_extra_columns_named_campaign_or_station_keep_their_values(tmp_path):
+    """The defect: a tracker file's own `campaign` and `station` columns were overwritten by the ingest
+    table's (main) without a word. They now get the file's role as a prefix, as any name already taken."""
+    ids, q, m = campaign(20, seed=5)
+    joints, _ = write_pair(tmp_path, ids, q, m)
+    tracker = tmp_path / "tracker.csv"
+    tracker.write_text("Name,X,Y,Z,campaign,station\n" + "".join(f"{i},{float(a)!r},{float(b)!r},{float(c)!r},c1,s1\n"
+                                                               for i, (a, b, c) in zip(ids, m)))
+    df, _ = ingest(params(joints=joints, tracker=str(tracker)))
+    assert (df["tracker_campaign"] == "c1").all() and (df["tracker_station"] == "s1").all()
+
+
+def test_radians_under_degree_headers_say_to_rename_the_headers(tmp_path):
+    """The defect: radians in j*_deg columns were told "set ingest.angle_unit: rad", which the header's unit
+    overrides: advice no setting could follow."""
+    ids, q, m = campaign(20, seed=6)
+    joints, tracker = write_pair(tmp_path, ids, np.radians(q), m)
+    raises(["look like radians", "their headers say degrees (j1_deg", "name them j1_rad .. j6_rad"], ingest,
+           params(joints=joints, tracker=tracker, angle_unit="rad"))
+
+
+def test_a_text_cloud_line_without_three_numbers_is_named(tmp_path):
+    """The defect: open3d skips a line of a .xyz file it cannot read, without a word, and every point after it
+    paired with the wrong joint row; only the counts' mismatch was said."""
+    ids, q, m = campaign(20, seed=6)
+    joints, _ = write_pair(tmp_path, ids, q, m)
+    cloud = tmp_path / "points.xyz"
+    lines = [" ".join(repr(float(v)) for v in p) for p in m]
+    lines[7] = " ".join(lines[7].split()[:2])
+    cloud.write_text("\n".join(lines) + "\n")
+    raises(["points.xyz", "row 8", "expected x y z"], ingest, params(joints=joints, tracker=str(cloud)))
+
+
+@pytest.mark.parametrize("value, words", [("abc", "null (off) or a distance > 0 mm"), (-5, "a distance > 0 mm")])
+def test_gross_outlier_mm_is_checked_by_key(value, words):
+    """The defect: no rule: 'abc' was "could not convert string to float", -5 blamed the robot model."""
+    p = load_params(ROOT / "params.yaml")
+    p["ingest"]["gross_outlier_mm"] = value
+    with pytest.raises(ParamsError, match=rf"ingest.gross_outlier_mm.*{re.escape(words)}"):
+        section(p, "ingest")
+
+
+def test_an_unknown_key_of_a_more_campaign_is_named_where_it_is_given():
+    """The defect: `params.yaml campaigns.campaign: unknown key(s)`, a path params.yaml does not have."""
+    with pytest.raises(ParamsError, match=r"params.yaml campaigns.more.b: unknown key\(s\) \['extra'\]"):
+        campaign_ingest(params()["ingest"], {"more": {"b": {"station": "b", "ingest": {"joints": "j", "tracker": "t"},
+                                                             "extra": 1}}}, "b")

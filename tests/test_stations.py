@@ -220,7 +220,7 @@ def test_more_campaigns_are_checked_with_the_params_key(tmp_path, monkeypatch):
         ingest.run(p)
     p["campaigns"]["more"] = {"b": {"ingest": {"joints": "x.csv", "tracker": "x.csv"}, "station": "s2",
                                     "frame": "same"}}
-    with pytest.raises(ValueError, match=r"campaigns.campaign: unknown key\(s\) \['frame'\]"):
+    with pytest.raises(ValueError, match=r"campaigns.more.b: unknown key\(s\) \['frame'\]"):
         ingest.run(p)
     for override, key in (({"target_residual_mm": 0}, "target_residual_mm: a distance > 0 mm, got 0"),
                           ({"orientation": {"sequence": "XYW"}}, "orientation.sequence: "),

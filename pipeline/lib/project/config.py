@@ -219,6 +219,7 @@ RULES = {
                                                                                  for k, p in v["markers"].items())),
                       "null (estimated from the poses), or {markers: {name: [x, y, z] mm}} with at least 3 markers"),
     "ingest.target_residual_mm": (_num(0, open_lo=True), "a distance > 0 mm"),
+    "ingest.gross_outlier_mm": (_or_null(POS), "null (off) or a distance > 0 mm"),
     "serve.max_path_samples": (_int(2), "an integer >= 2"),
     "model.d_model": (_int(1), "an integer >= 1"),
     "model.n_layer": (_int(1), "an integer >= 1"),

@@ -56,7 +56,7 @@ def named_campaign(campaigns: dict | None, name: str, where: str, keys: str) -> 
     campaigns = campaigns or {}
     if name not in campaigns:
         raise ValueError(f"params.yaml {where}: no campaign {name!r}; have {sorted(campaigns)}")
-    c = check_keys(campaigns[name], keys)
+    c = check_keys(campaigns[name], keys, f"{where}.{name}")       # named where it is given
     for key in ("joints", "tracker"):
         if key not in (c["ingest"] or {}):
             raise ValueError(f"params.yaml {where}.{name}.ingest: needs {key} (the campaign's file)")

@@ -106,7 +106,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from pipeline.lib.project.columns import JOINTS_DEG, MEAS, MEAS_Q
+from pipeline.lib.project.columns import CAMPAIGN, JOINTS_DEG, MEAS, MEAS_Q, STATION
 from pipeline.lib.project.config import check_keys, check_values, logger
 from pipeline.lib.reading import orientation
 from pipeline.lib.robot.kinematics import fk_numpy
@@ -215,9 +215,8 @@ def sniff_sep(header_line: str) -> str:
 
 
 def sniff_decimal(cells: list, sep: str) -> str:
-    """',' when the cells hold more decimal-comma numbers than decimal-point ones."""
-    if sep == ",":
-        return "."
+    """',' when the cells hold more decimal-comma numbers than decimal-point ones (with sep ',', only
+    quoted cells can hold a decimal comma)."""
     flat = [c.strip() for row in cells for c in row]
     commas = sum(bool(COMMA_DECIMAL.fullmatch(c)) for c in flat)
     dots = sum(bool(DOT_DECIMAL.fullmatch(c)) for c in flat)
@@ -226,7 +225,7 @@ def sniff_decimal(cells: list, sep: str) -> str:
 
 def split_records(text: str, sep: str, path: str):
     """CSV records with the line number of each; blank lines skipped."""
-    reader = csv.reader(io.StringIO(text, newline=""), delimiter=sep)
+    reader = csv.reader(io.StringIO(text, newline=""), delimiter=sep, skipinitialspace=True)   # `"a", "b"`: a, b
     records, last = [], 0
     try:
         for rec in reader:
@@ -439,6 +438,8 @@ def read_cloud(path: str) -> Rows:
     import open3d as o3d      # lazily: it needs system libraries the other stages don't
     if not Path(path).is_file():
         raise IngestError("no such file", file=path)
+    if Path(path).suffix.lower() in (".xyz", ".pts"):
+        check_text_cloud(path)
     pcd = o3d.io.read_point_cloud(str(path), remove_nan_points=False, remove_infinite_points=False)
     pts = np.asarray(pcd.points, dtype=float)
     if len(pts) == 0:
@@ -448,6 +449,23 @@ def read_cloud(path: str) -> Rows:
                for i, b in enumerate(bad)]
     return Rows(path, "tracker", list(range(1, len(pts) + 1)), [""] * len(pts), pts, problem,
                 ["x", "y", "z"], groups={"position": ["x", "y", "z"]})
+
+
+def check_text_cloud(path: str) -> None:
+    """An IngestError naming the first line of a text cloud (.xyz, .pts) without three numbers: open3d skips
+    such a line without a word, and every point after it would pair with the wrong joint row. A .pts file's
+    first line may be its point count."""
+    lines = read_text(path).splitlines()
+    for k, line in enumerate(lines):
+        cells = line.replace(",", " ").split()
+        if not cells or (k == 0 and len(cells) == 1 and cells[0].isdigit() and path.lower().endswith(".pts")):
+            continue
+        try:
+            ok = len(cells) >= 3 and len([float(c) for c in cells[:3]]) == 3    # nan and inf: numbers, flagged later
+        except ValueError:
+            ok = False
+        if not ok:
+            raise IngestError(f"expected x y z, got {line.strip()[:40]!r}", file=path, row=k + 1)
 
 
 def mark_duplicates(rows: Rows) -> None:
@@ -802,8 +820,11 @@ def check_angle_scale(pts: Points, units: list, headers: list, path: str) -> Non
     """Stop if every degree-read angle lies within +-2*pi: they are radians."""
     deg = [i for i, u in enumerate(units) if u == "deg"]
     if len(deg) == 6 and len(pts) >= MIN_POINTS and looks_like_radians(pts.q):
+        named = [h for h in headers if h.strip().lower().endswith("_deg")]      # the header, not the setting, says deg
+        fix = (f"their headers say degrees ({', '.join(named)}): name them j1_rad .. j6_rad" if named
+               else "set ingest.angle_unit: rad")
         raise IngestError(f"every joint angle ({', '.join(headers)}), read as degrees, lies within "
-                          "+-6.29: these look like radians; set ingest.angle_unit: rad", file=path)
+                          f"+-6.29: these look like radians; {fix}", file=path)
 
 
 def reference_points(n: int) -> np.ndarray:
@@ -910,7 +931,7 @@ def numeric_or_text(cells: list, decimal: str):
 
 def extra_columns(pts: Points) -> dict:
     """The inputs' other columns, for the kept points, under unique names."""
-    taken, out = {"point_id", *JOINTS_DEG, *MEAS, *MEAS_Q}, {}
+    taken, out = {"point_id", *JOINTS_DEG, *MEAS, *MEAS_Q, CAMPAIGN, STATION}, {}   # the ingest table's own
     for role, (rows, idx) in pts.src.items():
         for header, cells in rows.extras:
             name = header if header not in taken else f"{role}_{header}"
