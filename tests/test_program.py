@@ -282,6 +282,62 @@ def test_a_failed_rename_puts_back_the_files_renamed_before_it(tmp_path, monkeyp
     assert sorted(f.name for f in tmp_path.iterdir()) == ["a.csv"]
 
 
+def test_a_failed_write_names_its_file(tmp_path, monkeypatch):
+    """The defect: a disk full while writing the second file said only "[Errno 28] No space left on device"."""
+    a, b = tmp_path / "a.csv", tmp_path / "b.script"
+    real, calls = writing.os.fsync, []
+
+    def full(fd):
+        calls.append(fd)
+        if len(calls) == 2:
+            raise OSError(28, "No space left on device")
+        real(fd)
+    monkeypatch.setattr(writing.os, "fsync", full)
+    with pytest.raises(OSError, match=r"cannot write .*b.script \(No space left on device\); nothing written"):
+        writing.write_together({a: "new a", b: "new b"})
+    assert sorted(f.name for f in tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("name", ["target_x_mm", "tx", "pointid", "J1", "rx"])
+def test_a_misnamed_column_is_refused_not_left_unread(in_trained_project, tmp_path, name):
+    """The defect: target_x_mm, target_y_mm, target_z_mm were not read: the waypoints were solved as offline
+    ones, for other positions (50 mm off in the review's file), exit 0. A column the reader does not use and
+    whose name looks like one it would is now refused, naming it; any other is logged as not used."""
+    src = program_file(tmp_path, **{name: 1.0})
+    with pytest.raises(ValueError, match=rf"prog.csv, column '{name}': a column this reader does not know"):
+        read_waypoints(src, nominal_robot("ur5"))
+
+
+def test_a_column_the_reader_does_not_use_is_said(in_trained_project, tmp_path, caplog):
+    src = program_file(tmp_path, speed=0.5, move="movej")
+    with caplog.at_level("WARNING"):
+        read_waypoints(src, nominal_robot("ur5"))
+    assert "prog.csv: column(s) not used: speed, move" in caplog.text
+
+
+def test_an_output_over_a_project_file_is_refused(in_trained_project, tmp_path, capsys):
+    """The defect: `--urscript reports/frame.json` replaced the project's frame with URScript (only the
+    waypoints file counted as an input)."""
+    src = program_file(tmp_path)
+    frame = Path("reports/frame.json").read_bytes()
+    code, said = exit_code(program.main, [str(src), "--urscript", "reports/frame.json"], capsys)
+    assert code == 2 and "reports/frame.json is the input reports/frame.json" in said, said
+    assert Path("reports/frame.json").read_bytes() == frame
+
+
+def test_the_script_is_ascii(in_trained_project, tmp_path, capsys):
+    """The defect: "rad/s²" in the header and "°" in a not-reached comment: a controller's reader need not
+    take UTF-8. Both ASCII now."""
+    pts = load_points().query("split == 'test'").head(3)
+    target = pts[THEORY].to_numpy().copy()
+    target[1] = [0.0, 0.0, 1.0]                                             # unreachable: a comment
+    src = tmp_path / "prog.csv"
+    pts[JOINTS_DEG].assign(point_id=["A", "B", "C"], **dict(zip(TARGET, target.T))).to_csv(src, index=False)
+    assert exit_code(program.main, [str(src), "--comment-out-unreached"], capsys)[0] == 0
+    script = (tmp_path / "prog_comp.script").read_text()
+    assert script.isascii() and "rad/s^2" in script
+
+
 def test_the_planner_refuses_a_target_the_arm_cannot_reach(in_trained_project, tmp_path, capsys):
     """Minor: a program target the calibrated arm could not reach was planned silently ("50% -> 50%")."""
     pts = load_points().query("split == 'test'").head(2)
@@ -316,7 +372,7 @@ def test_the_move_and_its_speeds_are_settings(in_trained_project, tmp_path, caps
     assert exit_code(program.main, [str(src)], capsys)[0] == 0
     script = (tmp_path / "prog_comp.script").read_text()
     assert script.count("  movel([") == 3 and "movej" not in script.split("\n", 1)[1]
-    assert "  acc = 0.500000" in script and "  vel = 0.100000" in script and "m/s², m/s" in script
+    assert "  acc = 0.500000" in script and "  vel = 0.100000" in script and "m/s^2, m/s" in script
 
 
 def test_the_example_program_in_the_readme_runs(in_trained_project, tmp_path, capsys):

@@ -59,7 +59,12 @@ log = logger(__name__)
 PARAMS = ("robot", "compensate", "program")
 
 
-MOVES = {"movej": "rad/s², rad/s", "movel": "m/s², m/s"}     # program.move: the units of its acc, vel
+MOVES = {"movej": "rad/s^2, rad/s", "movel": "m/s^2, m/s"}   # program.move: the units of its acc, vel (ASCII)
+
+
+def ascii_text(text: str) -> str:
+    """A comment's words for the script in ASCII (a controller's reader need not take UTF-8): ° as deg."""
+    return text.replace("°", " deg").replace("″", " arcsec").encode("ascii", "replace").decode()
 
 
 def urscript(table: pd.DataFrame, skipped: dict, move: str = "movej", acc: float = 1.4, vel: float = 1.05) -> str:
@@ -76,7 +81,7 @@ def urscript(table: pd.DataFrame, skipped: dict, move: str = "movej", acc: float
                                             table.residual_mm, table.orientation_residual_arcsec):
         pid = pid if ID_PATTERN.fullmatch(str(pid)) else "?"                  # read_waypoints refused others
         if pid in skipped or pid == "?":
-            lines.append(f"  # {pid}: NOT REACHED ({skipped.get(pid, 'invalid id')}): no move")
+            lines.append(f"  # {pid}: NOT REACHED ({ascii_text(skipped.get(pid, 'invalid id'))}): no move")
             continue
         q = ", ".join(f"{v:.9f}" for v in q)
         flag = "" if inside else f", outside the trained workspace (uncertainty {u:.3f} mm)"
@@ -117,7 +122,8 @@ def run(argv=None) -> pd.DataFrame:
     src = Path(a.waypoints)
     out = Path(a.out or src.with_name(src.stem + "_comp.csv"))
     script = Path(a.urscript or src.with_name(src.stem + "_comp.script"))
-    check_outputs([out, script], [src])              # by inode too: a hard link to the input is the input
+    inputs = [src, root / PARAMS_FILE, root / MODEL_WEIGHTS, root / WORKSPACE_JSON, root / FRAME_JSON]
+    check_outputs([out, script], inputs)             # by inode too: a hard link to an input is the input
     for f in (out, script):                          # said before solving, not after
         if not f.parent.is_dir():
             raise ValueError(f"{f}: its folder {f.parent} does not exist; nothing written")
@@ -142,7 +148,7 @@ def run(argv=None) -> pd.DataFrame:
                       f"\n{text}")
     c = p["program"]
     write_together({out: csv_text(table),
-                    script: urscript(table, skipped, c["move"], **c[c["move"]])}, [src])
+                    script: urscript(table, skipped, c["move"], **c[c["move"]])}, inputs)
     print(text)
     log.info("wrote %s and %s", out, script)
     return table

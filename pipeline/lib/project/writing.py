@@ -67,11 +67,14 @@ def write_together(files: dict, inputs=()) -> None:
             except OSError as e:
                 raise OSError(f"cannot write {path} ({e.strerror}); nothing written") from None
             temps[path] = tmp
-            with os.fdopen(fd, "wb") as f:
-                f.write(data.encode() if isinstance(data, str) else data)
-                f.flush()
-                os.fsync(f.fileno())
-            os.chmod(tmp, 0o644)
+            try:
+                with os.fdopen(fd, "wb") as f:
+                    f.write(data.encode() if isinstance(data, str) else data)
+                    f.flush()
+                    os.fsync(f.fileno())
+                os.chmod(tmp, 0o644)
+            except OSError as e:                          # a disk full: which file, not only the errno
+                raise OSError(f"cannot write {path} ({e.strerror or e}); nothing written") from None
         replace_all(temps)
         temps = {}
     finally:

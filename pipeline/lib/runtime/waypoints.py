@@ -116,6 +116,23 @@ def numbers(cells: list, cols: list, names: list, decimal: str, path, lines: lis
     return values
 
 
+MISNAMED = re.compile(r"(target|tgt|point|pid|id$|joint|j\d|q\d|actual_q|theta|t?[xyz]$|[xyz]_|r[xyz]$|rot)", re.I)
+
+
+def check_unused(header: list, used: set, path) -> None:
+    """An IngestError naming a column the reader did not use whose name looks like a target, an id, a joint
+    or an orientation (a typo, `target_x_mm`, would leave the waypoints at other positions without a word);
+    the other unused columns are logged."""
+    unused = [h for c, h in enumerate(header) if c not in used and h.strip()]
+    for h in unused:
+        if MISNAMED.match(h.strip()):
+            raise IngestError(f"a column this reader does not know: the waypoints' columns are point_id, "
+                              f"{JOINTS_DEG[0]}..{JOINTS_DEG[-1]} (or *_rad, actual_q_*), {', '.join(TARGET)} and "
+                              f"{', '.join(ROTVEC)}: rename or remove it", file=path, column=h)
+    if unused:
+        log.warning("%s: column(s) not used: %s", path, ", ".join(unused)[:200])
+
+
 def read_waypoints(path, robot) -> pd.DataFrame:
     """The waypoints file, checked: point_id, the joints (degrees, or radians by their names) and, if given,
     target_x..z; every bad cell is an IngestError naming file, row (the header is row 1) and column."""
@@ -132,6 +149,7 @@ def read_waypoints(path, robot) -> pd.DataFrame:
     given = (TARGET if targets else []) + (ROTVEC if turned else [])
     cols = jcols + [find_column(header, c, "waypoint", str(path)) for c in given]
     names = [header[c] for c in cols]
+    check_unused(header, set(cols) | {c for c, h in enumerate(header) if h.strip().lower() == "point_id"}, path)
     for r, problem in enumerate(shape_problems(cells, len(header))):
         if problem:                                  # its cells would be read shifted: a wrong move
             raise IngestError(problem, file=path, row=lines[r])
