@@ -16,8 +16,8 @@ measurement's noise are drawn from it too):
   planned     `python -m pipeline.commands.plan program.csv --n N --tracker-mm ...` run in that project, its poses
               measured by the twin from a tracker station of their own placed to see the side
               (STATION), as campaigns.more `plan`; the pipeline re-run from ingest (a scratch folder per
-              variant, as bench real does); the program compensated (lib/waypoints.compensate_program)
-              and driven on the twin (twin.drive_check);
+              variant, as bench real does); the program compensated (lib/runtime/waypoints.py compensate_program)
+              and driven on the twin (Twin.drive);
   random      the same, N poses drawn at random in the program's region (twin.sample_poses, side);
   identifiability   the same, N poses chosen by D-optimality alone (`plan --identifiability-only`).
 Reported per variant: the program's driven error (mean 3D, mm; beside it the program's noise floor, where
@@ -31,7 +31,7 @@ a Monte Carlo: the default campaign's training poses and the planned ones measur
 
 The learning curve (--curve), per size N, seed and variant, from scratch (no other campaign):
   random      N poses at random in the front (the default campaign's rules and region);
-  planned     N poses chosen by the planner (lib/planning.plan) for a front work region (`--work`
+  planned     N poses chosen by the planner (lib/planner/planning.py plan) for a front work region (`--work`
               waypoints at random in the front, fixed), with no training poses yet: coverage at the
               default campaign's radius, then D-optimality;
 measured by the twin from the default tracker pose, trained on alone; judged on its test split, on a

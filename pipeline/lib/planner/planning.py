@@ -41,7 +41,7 @@ tour         nearest neighbour in joint space from the pose nearest the program'
 
 Coverage after is computed as if every planned pose were a training pose (the same radius); the
 8:1:1 split keeps about one in five out of training, which `cover_k` > 1 absorbs:
-`expected_after_split` is the share still covered when each planned pose trains with probability
+`after_expected_split` is the share still covered when each planned pose trains with probability
 `train_fraction`.
 """
 from dataclasses import dataclass, field, replace

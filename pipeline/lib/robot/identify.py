@@ -1,6 +1,6 @@
 """Classical elasto-geometric calibration: identify the geometry (the baseline the network must beat).
 
-Identifies small corrections to the geometry (pipeline.kinematics) from
+Identifies small corrections to the geometry (pipeline.lib.robot.kinematics) from
 measured positions in the base frame:
     d, a, alpha, offset   per joint (standard DH, eq. 1)
     beta                  Ry tilt of the parallel axes (`tilt_joints`)
