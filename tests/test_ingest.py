@@ -1120,37 +1120,35 @@ def test_real_ipa_ur10_orientation(monkeypatch):
 
 # ---------------------------------------------------------------- a sixth review: a new user's files
 
-def test_quoted_headers_with_a_space_after_the_separator_are_found(tmp_path):
-    """The defect: `"Name", "X", "Y", "Z"` kept the quotes (csv read the space first), so no position column."""
-    ids, q, m = campaign(20, seed=3)
+def with_tracker(tmp_path, seed: int, header: str, row) -> tuple[dict, np.ndarray]:
+    """A 20-pose campaign whose tracker file is `header`, then row(id, x, y, z) per pose: (params, positions)."""
+    ids, q, m = campaign(20, seed=seed)
     joints, _ = write_pair(tmp_path, ids, q, m)
     tracker = tmp_path / "tracker.csv"
-    tracker.write_text('"Name", "X", "Y", "Z"\n' + "".join(f'"{i}", {float(a)!r}, {float(b)!r}, {float(c)!r}\n' for i, (a, b, c) in zip(ids, m)))
-    df, s = ingest(params(joints=joints, tracker=str(tracker)))
+    tracker.write_text(header + "\n" + "".join(row(i, *map(float, p)) + "\n" for i, p in zip(ids, m)))
+    return params(joints=joints, tracker=str(tracker)), m
+
+
+def test_quoted_headers_with_a_space_after_the_separator_are_found(tmp_path):
+    """The defect: `"Name", "X", "Y", "Z"` kept the quotes (csv read the space first), so no position column."""
+    p, m = with_tracker(tmp_path, 3, '"Name", "X", "Y", "Z"', lambda i, x, y, z: f'"{i}", {x!r}, {y!r}, {z!r}')
+    df, s = ingest(p)
     assert s["n_kept"] == 20 and np.allclose(df[MEAS].to_numpy(), m)
 
 
 def test_decimal_commas_in_quoted_cells_of_a_comma_separated_file_are_sniffed(tmp_path):
     """The defect: `decimal: auto` answered '.' for every comma-separated file without looking at the cells;
     quoted "-1659,1453" then failed every row."""
-    ids, q, m = campaign(20, seed=4)
-    joints, _ = write_pair(tmp_path, ids, q, m)
-    tracker = tmp_path / "tracker.csv"
-    tracker.write_text("Name,X,Y,Z\n" + "".join(f'{i},"{num(a, ",")}","{num(b, ",")}","{num(c, ",")}"\n'
-                                                for i, (a, b, c) in zip(ids, m)))
-    df, s = ingest(params(joints=joints, tracker=str(tracker)))
+    p, m = with_tracker(tmp_path, 4, "Name,X,Y,Z", lambda i, *xyz: i + "".join(f',"{num(v, ",")}"' for v in xyz))
+    df, s = ingest(p)
     assert s["n_kept"] == 20 and np.allclose(df[MEAS].to_numpy(), m)
 
 
 def test_extra_columns_named_campaign_or_station_keep_their_values(tmp_path):
     """The defect: a tracker file's own `campaign` and `station` columns were overwritten by the ingest
     table's (main) without a word. They now get the file's role as a prefix, as any name already taken."""
-    ids, q, m = campaign(20, seed=5)
-    joints, _ = write_pair(tmp_path, ids, q, m)
-    tracker = tmp_path / "tracker.csv"
-    tracker.write_text("Name,X,Y,Z,campaign,station\n" + "".join(f"{i},{float(a)!r},{float(b)!r},{float(c)!r},c1,s1\n"
-                                                               for i, (a, b, c) in zip(ids, m)))
-    df, _ = ingest(params(joints=joints, tracker=str(tracker)))
+    p, _ = with_tracker(tmp_path, 5, "Name,X,Y,Z,campaign,station", lambda i, x, y, z: f"{i},{x!r},{y!r},{z!r},c1,s1")
+    df, _ = ingest(p)
     assert (df["tracker_campaign"] == "c1").all() and (df["tracker_station"] == "s1").all()
 
 
@@ -1189,3 +1187,40 @@ def test_an_unknown_key_of_a_more_campaign_is_named_where_it_is_given():
     with pytest.raises(ParamsError, match=r"params.yaml campaigns.more.b: unknown key\(s\) \['extra'\]"):
         campaign_ingest(params()["ingest"], {"more": {"b": {"station": "b", "ingest": {"joints": "j", "tracker": "t"},
                                                              "extra": 1}}}, "b")
+
+
+def test_a_campaign_no_longer_listed_leaves_no_files_behind(tmp_path):
+    """The defect: after a preset's second campaign and `git checkout params.yaml`, its files stayed in
+    data/interim/campaigns and reports/campaigns, folders the ingest stage depends on whole: dvc.lock changed
+    (nfiles 1 -> 2) and `git status` was not clean. The stage now removes a campaign's files no longer listed."""
+    ids, q, m = campaign(20, seed=7)
+    write_pair(tmp_path, ids, q, m)
+    for f in ("data/interim/campaigns/station_b.parquet", "reports/campaigns/station_b.json",
+              "data/interim/campaigns/keep.txt"):
+        (tmp_path / f).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / f).write_text("an earlier preset's")
+    run(params(), tmp_path)
+    assert not (tmp_path / "data/interim/campaigns/station_b.parquet").exists()
+    assert not (tmp_path / "reports/campaigns/station_b.json").exists()
+    assert (tmp_path / "data/interim/campaigns/keep.txt").exists()          # not a campaign's: kept
+
+
+def test_a_validation_campaign_no_longer_listed_leaves_no_files_behind(tmp_path):
+    from pipeline.stages.validate import run_summary
+    p = load_params(ROOT / "params.yaml")
+    p["validate"]["campaigns"] = {}
+    (tmp_path / "reports/validation").mkdir(parents=True)
+    for f in ("old.json", "old.parquet"):
+        (tmp_path / "reports/validation" / f).write_text("an earlier campaign's")
+    assert run_summary(p, tmp_path) == {"campaigns": {}}
+    assert list((tmp_path / "reports/validation").iterdir()) == []
+
+
+def test_a_trailing_separator_makes_no_column(tmp_path):
+    """The defect: `a;b;c;` on every line (an Excel export) gave an all-empty `joints_col8` column."""
+    ids, q, m = campaign(20, seed=8)
+    joints, tracker = write_pair(tmp_path, ids, q, m, sep=";")
+    for f in (joints, tracker):
+        Path(f).write_text("".join(line + ";\n" for line in Path(f).read_text().splitlines()))
+    df, s = ingest(params(joints=joints, tracker=tracker))
+    assert s["n_kept"] == 20 and not [c for c in df.columns if "_col" in c], list(df.columns)

@@ -23,6 +23,7 @@ from pipeline.lib.project.artifacts import (CAMPAIGNS_DIR, CAMPAIGNS_REPORTS, HE
 from pipeline.lib.project.cli import one_line
 from pipeline.lib.project.columns import CAMPAIGN, MEAS, MEAS_Q, STATION
 from pipeline.lib.project.config import for_stage, load_params, logger, read_json, write_json
+from pipeline.lib.project.writing import remove_stale
 from pipeline.lib.reading.campaigns import (campaign_entry, campaign_ingest, campaign_stations, file_sha256,
                                             point_id)
 from pipeline.lib.reading.readers import ingest
@@ -82,6 +83,9 @@ def run(params: dict, root: Path = HERE) -> dict:
     p = for_stage(params, PARAMS)
     stations = campaign_stations(p["campaigns"])
     first, *more = stations
+    for folder, suffix in ((CAMPAIGNS_DIR, ".parquet"), (CAMPAIGNS_REPORTS, ".json")):
+        for f in remove_stale(root / folder, more, (suffix,)):
+            log.info("removed %s: campaign %r is no longer in campaigns.more", f, f.stem)
     df, summary = ingest(rooted_files(p["ingest"], root), load_robot(p["robot"]))
     for info in summary["files"].values():             # the campaign's identity (the twin's drive check)
         info["sha256"] = file_sha256(info["path"])

@@ -32,6 +32,7 @@ from pipeline.lib.project.artifacts import (CALIBRATED_GEOMETRY, FRAME_JSON, HER
 from pipeline.lib.project.cli import one_line
 from pipeline.lib.project.columns import JOINTS_DEG, MEAS
 from pipeline.lib.project.config import check_keys, for_stage, load_params, logger, read_json, write_json
+from pipeline.lib.project.writing import remove_stale
 from pipeline.lib.reading.campaigns import ingested_sha256, made_by_twin, named_campaign, pair_sha256, with_override
 from pipeline.lib.reading.readers import ingest
 from pipeline.lib.robot.errormaps import angle_covered
@@ -227,6 +228,8 @@ def run_summary(params: dict, root: Path = HERE) -> dict:
     """reports/validation.json and .parquet from the campaigns params.yaml lists now (those not judged
     under "skipped", with the reason)."""
     names = sorted(for_stage(params, PARAMS["summary"])["validate"]["campaigns"] or {})
+    for f in remove_stale(root / VALIDATION_DIR, names, (".json", ".parquet")):
+        log.info("removed %s: campaign %r is no longer in validate.campaigns", f, f.stem)
     each = {n: read_json(root / VALIDATION_DIR / f"{n}.json") for n in names}
     judged = [n for n in names if "skipped" not in each[n]]
     out = {"campaigns": {n: each[n] for n in judged}}

@@ -157,3 +157,13 @@ def csv_text(df: pd.DataFrame, float_format: str = "%.6f") -> str:
     row = ",".join(kinds) + "\n"
     cols = [c.tolist() for _, c in df.items()]
     return ",".join(map(str, df.columns)) + "\n" + "".join(row % r for r in zip(*cols))
+
+
+def remove_stale(folder: Path, names, suffixes: tuple) -> list:
+    """Delete folder's files with one of suffixes whose stem is not in names (the outputs of a campaign no
+    longer in params.yaml: a folder a stage depends on whole would hash them, and dvc.lock would change);
+    the paths removed."""
+    gone = sorted(f for f in Path(folder).glob("*") if f.suffix in suffixes and f.stem not in set(names))
+    for f in gone:
+        f.unlink()
+    return gone

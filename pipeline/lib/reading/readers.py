@@ -32,7 +32,8 @@ Output, data/interim/ingest.parquet, rows in input order (of the joints file):
     rotation probe -> tracker; no such columns without one),
     then every other input column under its own header (float if every kept cell
     is a number, else text); a name already taken gets its file's role as a
-    prefix ("tracker_x"), a blank header becomes "<role>_col<k>".
+    prefix ("tracker_x"), a blank header becomes "<role>_col<k>" (none where its cells are empty too:
+    a trailing separator).
 and reports/ingest.json: files, n_read (data rows per file), n_kept, dropped
 [{point_id, file, row, reason, detail}], dropped_counts {reason: n}, units (with
 an orientation: units.orientation), geometry, gross_outlier (and target, for a
@@ -423,6 +424,8 @@ def read_rows(path: str, role: str, cfg: dict, id_setting, groups: list, marker=
     used = set(cols) | {c for c, _ in keys}
     extras = [(header[c] or f"{role}_col{c + 1}", [row[c] if c < len(row) else "" for row in cells])
               for c in range(width) if c not in used]
+    extras = [(h, v) for (h, v), c in zip(extras, [c for c in range(width) if c not in used])
+              if header[c].strip() or any(x.strip() for x in v)]    # a trailing separator: no column
     rows = Rows(path, role, lines, ids, values, problem, [header[c] for c in cols], extras, sep, decimal,
                 groups={what: [header[c] for c in idx] for what, idx in picked.items()})
     if marker is not None:
