@@ -163,7 +163,8 @@ def remove_stale(folder: Path, names, suffixes: tuple) -> list:
     """Delete folder's files with one of suffixes whose stem is not in names (the outputs of a campaign no
     longer in params.yaml: a folder a stage depends on whole would hash them, and dvc.lock would change);
     the paths removed."""
-    gone = sorted(f for f in Path(folder).glob("*") if f.suffix in suffixes and f.stem not in set(names))
+    names = set(names)
+    gone = sorted(f for f in Path(folder).glob("*") if f.suffix in suffixes and f.stem not in names)
     for f in gone:
         f.unlink()
     return gone

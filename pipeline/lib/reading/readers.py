@@ -422,9 +422,8 @@ def read_rows(path: str, role: str, cfg: dict, id_setting, groups: list, marker=
     problem = [("field_count", shape[r], None) if shape[r] else
                parse_row(row, keys, cols, header, decimal, values[r]) for r, row in enumerate(cells)]
     used = set(cols) | {c for c, _ in keys}
-    extras = [(header[c] or f"{role}_col{c + 1}", [row[c] if c < len(row) else "" for row in cells])
-              for c in range(width) if c not in used]
-    extras = [(h, v) for (h, v), c in zip(extras, [c for c in range(width) if c not in used])
+    unused = [(c, [row[c] if c < len(row) else "" for row in cells]) for c in range(width) if c not in used]
+    extras = [(header[c] or f"{role}_col{c + 1}", v) for c, v in unused
               if header[c].strip() or any(x.strip() for x in v)]    # a trailing separator: no column
     rows = Rows(path, role, lines, ids, values, problem, [header[c] for c in cols], extras, sep, decimal,
                 groups={what: [header[c] for c in idx] for what, idx in picked.items()})
