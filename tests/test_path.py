@@ -420,6 +420,18 @@ def test_chord_mode_stops_at_max_samples(in_trained_project, tmp_path):
         pathsolve.refine(served_model(), table, segs, 0.0011, cfg, robot, max_samples=8)
 
 
+def test_a_long_path_shows_its_progress(in_trained_project, monkeypatch, caplog):
+    """The defect: up to 100 000 samples solved one by one (~40 min) without a line. A log line per
+    PROGRESS_EVERY samples now."""
+    monkeypatch.setattr(pathsolve, "PROGRESS_EVERY", 10)
+    segs = segments(np.array(SEAM), ["", "movel"])
+    with caplog.at_level("INFO"):
+        table = pathsolve.solve_path(served_model(), *resample(segs, 5.0), SEAM_START, in_trained_project["compensate"],
+                                     load_robot(in_trained_project["robot"]))
+    said = [m.split(" (")[0] for m in caplog.messages if m.startswith("path: ")]
+    assert len(table) == 21 and said == ["path: 10 of 21 samples solved", "path: 20 of 21 samples solved"]
+
+
 def test_an_out_folder_that_is_a_file_is_refused_before_solving(tmp_path, capsys):
     """The defect: `--out` naming a file solved the whole path, then said "[Errno 17] File exists"."""
     src = write_path(tmp_path, SEAM)

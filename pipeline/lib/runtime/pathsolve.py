@@ -16,11 +16,14 @@
 The arm is driven joint-linearly between samples (servoj interpolates in joint space), so what lies
 between two samples is the model's joint-space chord: `deviation` measures it on the model.
 """
+import time
+
 import numpy as np
 import pandas as pd
 import torch
 
 from pipeline.lib.project.columns import JCOMP_DEG, TARGET
+from pipeline.lib.project.config import logger
 from pipeline.lib.robot.kinematics import DTYPE
 from pipeline.lib.runtime.compensation import solve
 from pipeline.lib.runtime.paths import at, distance
@@ -29,7 +32,9 @@ from pipeline.lib.runtime.solvers import CHUNK, slices
 CYCLE_S = 0.002                 # the UR controller's cycle (500 Hz): servoj's t is a whole number of them
 REFINE_ROUNDS = 12              # chord mode: halvings at most
 MIN_STEP_MM = 1e-3              # chord mode: a step this short is not halved further
+PROGRESS_EVERY = 1000          # a log line per this many samples solved (a path of 100 000: ~40 min)
 MAX_CYCLES = 2 ** 24            # a step's servoj cycles: the script counts them in a float (32 bits, exact to 2^24)
+log = logger(__name__)
 SOLVED = ["arc_mm"] + TARGET + JCOMP_DEG + ["residual_mm", "iterations", "converged", "orientation_residual_arcsec"]
 PATH_COLUMNS = (["sample", "arc_mm", "t_s"] + TARGET + JCOMP_DEG
                 + ["residual_mm", "iterations", "converged", "in_workspace", "uncertainty_mm",
@@ -52,12 +57,14 @@ def solve_path(model, targets: np.ndarray, arc_mm: np.ndarray, q_start_deg, cfg:
     """Each sample (targets (m, 3), arc_mm (m,), with rots (m, 3, 3) the flange's orientations too) solved
     from the previous sample's solution, the first from q_start_deg; it stops after the first sample not
     converged (the table then ends there)."""
-    rows, q = [], np.asarray(q_start_deg, float)
+    rows, q, t0 = [], np.asarray(q_start_deg, float), time.perf_counter()
     for i, (x, s) in enumerate(zip(targets, arc_mm)):
         q, *solved = solve_sample(model, q, x, cfg, robot, None if rots is None else rots[i])
         rows.append([s, *x, *q, *solved])
         if not solved[2]:
             break
+        if (i + 1) % PROGRESS_EVERY == 0:
+            log.info("path: %d of %d samples solved (%.0f s)", i + 1, len(targets), time.perf_counter() - t0)
     return pd.DataFrame(rows, columns=SOLVED)
 
 
