@@ -210,4 +210,5 @@ def test_own_data_in_another_dialect_runs_to_a_report_with_an_edit_of_ingest_onl
     assert val["campaigns"] == {} and "twin's campaign" in val["skipped"]["twin_side"]
     index = (repo / "reports/index.md").read_text()
     assert "`twin_side` not judged" in index and "No drive check (the campaign is not the twin's" in index
+    assert "validate.campaigns is empty" not in r.stdout + r.stderr       # it lists twin_side, skipped: said so
     assert sh("git status --porcelain", repo).stdout == " M dvc.lock\n"          # the new campaign's, nothing else

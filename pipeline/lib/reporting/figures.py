@@ -472,7 +472,7 @@ def fig_validation(ctx):
     plt = _plt()
     v = ctx.validation
     if v is None or not len(v):
-        return "no validation campaign (validate.campaigns is empty)"
+        return "no validation campaign judged (none in validate.campaigns, or each skipped: reports/validation.json)"
     v = v[~v.registered]
     names = list(dict.fromkeys(v.campaign))
     methods = ("nominal", "calibrated", "calibrated_parts", "model")
