@@ -1224,3 +1224,27 @@ def test_a_trailing_separator_makes_no_column(tmp_path):
         Path(f).write_text("".join(line + ";\n" for line in Path(f).read_text().splitlines()))
     df, s = ingest(params(joints=joints, tracker=tracker))
     assert s["n_kept"] == 20 and not [c for c in df.columns if "_col" in c], list(df.columns)
+
+
+def test_a_text_clouds_header_and_comments_are_no_points_but_a_comma_line_is_named(tmp_path):
+    """A review of the first check refused a header line (`x y z`, `# made by`, `//X Y Z`) open3d skips
+    harmlessly; a line that starts as a point but is not three numbers apart by spaces is named."""
+    ids, q, m = campaign(20, seed=6)
+    joints, _ = write_pair(tmp_path, ids, q, m)
+    cloud = tmp_path / "points.xyz"
+    lines = [" ".join(repr(float(v)) for v in p) for p in m]
+    cloud.write_text("//X Y Z\n# made by a tracker\n" + "\n".join(lines) + "\n")
+    df, s = ingest(params(joints=joints, tracker=str(cloud)))
+    assert s["n_kept"] == 20 and np.allclose(df[MEAS].to_numpy(), m)
+    lines[4] = lines[4].replace(" ", ",")
+    cloud.write_text("\n".join(lines) + "\n")
+    raises(["points.xyz", "row 5", "expected x y z"], ingest, params(joints=joints, tracker=str(cloud)))
+
+
+def test_quoted_thousands_in_a_comma_separated_file_leave_its_decimal_points(tmp_path):
+    """A review of the first sniffing: quoted "1,234" cells in other columns turned a file of decimal points
+    into decimal commas (every position refused)."""
+    p, m = with_tracker(tmp_path, 9, "Name,X,Y,Z,a,b,c,d",
+                        lambda i, x, y, z: f'{i},{x!r},{y!r},{z!r},"1,234","2,345","3,456","4,567"')
+    df, s = ingest(p)
+    assert s["n_kept"] == 20 and np.allclose(df[MEAS].to_numpy(), m)

@@ -265,9 +265,9 @@ def test_a_path_the_solver_cannot_follow_is_refused_naming_the_sample(in_trained
 @pytest.mark.parametrize("option, message", [
     (["--start-deg", "nan", "-60.4", "91.1", "-182.3", "-61.2", "-100.7"], r"--start-deg: joint 1 at nan° beyond its limits"),
     (["--speed", "1e-300", "--start-deg", *map(str, SEAM_START)], r"speed 1e-300 mm/s: a step of 1\.000 mm would take "
-     r"more than 16777216 controller cycles \(URScript's 32-bit float counts no further\): a higher speed"),
+     r"more than 16777215 controller cycles \(URScript's 32-bit float counts no further\): a higher speed"),
     (["--speed", "1e-5", "--start-deg", *map(str, SEAM_START)], r"speed 1e-05 mm/s: a step of 1\.000 mm would take "
-     r"more than 16777216 controller cycles"),   # was written: 5e7 cycles, a float counter stuck at 2^24: no end
+     r"more than 16777215 controller cycles"),   # was written: 5e7 cycles, a float counter stuck at 2^24: no end
     (["--chord", "0.001", "--start-deg", *map(str, SEAM_START)], r"--chord: 0\.001 mm is not above "
      r"compensate\.tol_mm \(0\.001 mm\), to which each sample is solved"),  # was 4096 times the samples
     (["--spacing", "1e-307", "--start-deg", *map(str, SEAM_START)], r"inf samples at a spacing of 1e-307 mm over 100\.0 mm, "
@@ -506,7 +506,7 @@ def test_the_service_answers_a_whole_path(path_server, in_trained_project):
         "(serve.max_path_samples)": (q0, SEAM, [], 0.01, 20.0),
         "points_mm: sample ": (q0, [SEAM[0], [0.0, 0.0, 30.0]], [], 20.0, 20.0),
         "spacing_mm: a 100.0 mm path at 1e-307 mm is inf samples": (q0, SEAM, [], 1e-307, 20.0),   # was an
-        "speed_mm_s: speed 1e-300 mm/s: a step of 2.000 mm would take more than 16777216 controller cycles "
+        "speed_mm_s: speed 1e-300 mm/s: a step of 2.000 mm would take more than 16777215 controller cycles "
         "(URScript's 32-bit float counts no further)": (q0, SEAM, [], 2.0, 1e-300),   # OverflowError, or inf in t_s
     }
     for words, args in bad.items():

@@ -298,7 +298,7 @@ def test_a_failed_write_names_its_file(tmp_path, monkeypatch):
     assert sorted(f.name for f in tmp_path.iterdir()) == []
 
 
-@pytest.mark.parametrize("name", ["target_x_mm", "tx", "pointid", "J1", "rx"])
+@pytest.mark.parametrize("name", ["target_x_mm", "tx", "Target X", "target_rz_rad"])
 def test_a_misnamed_column_is_refused_not_left_unread(in_trained_project, tmp_path, name):
     """The defect: target_x_mm, target_y_mm, target_z_mm were not read: the waypoints were solved as offline
     ones, for other positions (50 mm off in the review's file), exit 0. A column the reader does not use and
@@ -309,10 +309,14 @@ def test_a_misnamed_column_is_refused_not_left_unread(in_trained_project, tmp_pa
 
 
 def test_a_column_the_reader_does_not_use_is_said(in_trained_project, tmp_path, caplog):
-    src = program_file(tmp_path, speed=0.5, move="movej")
+    """Not refused: what a UR log carries beside actual_q_* (target_q_*, actual_qd_*), another joint set, labels,
+    the program's own output columns (a review of the first version refused these)."""
+    extra = {"speed": 0.5, "move": "movej", "target_q_0": 1.0, "actual_qd_0": 0.0, "j1_rad": 0.1, "point_name": "a",
+             "target": "weld", "joint_speed": 1.0, "j1_comp_deg": 1.0}
+    src = program_file(tmp_path, **extra)
     with caplog.at_level("WARNING"):
         read_waypoints(src, nominal_robot("ur5"))
-    assert "prog.csv: column(s) not used: speed, move" in caplog.text
+    assert "prog.csv: column(s) not used: " + ", ".join(extra) in caplog.text
 
 
 def test_an_output_over_a_project_file_is_refused(in_trained_project, tmp_path, capsys):

@@ -634,12 +634,13 @@ def test_without_the_controller_file_or_with_a_stale_one_the_service_runs_pytorc
                                                                                    caplog, poses):
     """No models/controller.onnx, one exported from another model, or one with an older version's inputs (no
     `damping`): a warning saying so, and the PyTorch path. Another model's graph is the project's with the
-    network's gain α tripled: the file an export of that model writes, without the export (~15 s)."""
+    joint offsets tripled (in the whole model's graph and in the physics' alone: the suite's small model
+    serves its physics): the file an export of that model writes, without the export (~15 s)."""
     monkeypatch.setattr(serve_module, "CONTROLLER_ONNX", tmp_path / "controller.onnx")
     monkeypatch.setattr(serve_module, "CONTROLLER_PHYSICS_ONNX", tmp_path / "controller.onnx")   # either served
     for what in ("missing", "another model", "older inputs"):
         if what == "another model":
-            onnx.save(scaled_initializer("models/controller.onnx", "model.alpha", 3.0), tmp_path / "controller.onnx")
+            onnx.save(scaled_initializer("models/controller.onnx", "model.physics.offset", 3.0), tmp_path / "controller.onnx")
         if what == "older inputs":                          # q0_rad, target_mm, q_min_rad, q_max_rad -> 4 outputs
             onnx.save(older_controller(), tmp_path / "controller.onnx")
         with caplog.at_level("WARNING"):

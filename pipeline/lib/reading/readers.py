@@ -131,6 +131,8 @@ POSITION_FAR = 5.0          # x (reach + |tool|): real points lie within (1 + sq
 NUMBER = re.compile(r"[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?")
 NUMBERS = re.compile(r"(?:[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?\n)*")    # NUMBER, one per line
 COMMA_DECIMAL = re.compile(r"[+-]?\d*,\d+([eE][+-]?\d+)?")
+THOUSANDS = re.compile(r"[+-]?\d{1,3}(,\d{3})+")          # "1,234": a grouping, not a decimal comma, in a ',' file
+POINT_START = re.compile(r"[+-]?(\d|\.\d|nan|inf)", re.I)  # a text cloud's line that begins as a point does
 DOT_DECIMAL = re.compile(r"[+-]?\d*\.\d+([eE][+-]?\d+)?")
 REFERENCE_POINTS = 4096       # the gross-outlier check scores a point against at most this many others
 REFERENCE_SEED = 0            # which, when there are more points (reference_points)
@@ -219,6 +221,8 @@ def sniff_decimal(cells: list, sep: str) -> str:
     """',' when the cells hold more decimal-comma numbers than decimal-point ones (with sep ',', only
     quoted cells can hold a decimal comma)."""
     flat = [c.strip() for row in cells for c in row]
+    if sep == ",":                                          # only quoted cells can hold one; "1,234" is grouping
+        flat = [c for c in flat if not THOUSANDS.fullmatch(c)]
     commas = sum(bool(COMMA_DECIMAL.fullmatch(c)) for c in flat)
     dots = sum(bool(DOT_DECIMAL.fullmatch(c)) for c in flat)
     return "," if commas > dots else "."
@@ -454,13 +458,14 @@ def read_cloud(path: str) -> Rows:
 
 
 def check_text_cloud(path: str) -> None:
-    """An IngestError naming the first line of a text cloud (.xyz, .pts) without three numbers: open3d skips
-    such a line without a word, and every point after it would pair with the wrong joint row. A .pts file's
-    first line may be its point count."""
+    """An IngestError naming the first line of a text cloud (.xyz, .pts) that starts as a point does but is not
+    three numbers apart by spaces (`1,2,3`; two numbers): open3d skips such a line without a word, and every
+    point after it would pair with the wrong joint row. Lines that start otherwise (a header, `#` or `//`
+    comments) are no points, to open3d too; a .pts file's first line may be its point count."""
     lines = read_text(path).splitlines()
     for k, line in enumerate(lines):
-        cells = line.replace(",", " ").split()
-        if not cells or (k == 0 and len(cells) == 1 and cells[0].isdigit() and path.lower().endswith(".pts")):
+        cells = line.split()
+        if not cells or not POINT_START.match(cells[0]) or (k == 0 and len(cells) == 1 and path.lower().endswith(".pts")):
             continue
         try:
             ok = len(cells) >= 3 and len([float(c) for c in cells[:3]]) == 3    # nan and inf: numbers, flagged later

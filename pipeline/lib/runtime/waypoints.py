@@ -116,13 +116,13 @@ def numbers(cells: list, cols: list, names: list, decimal: str, path, lines: lis
     return values
 
 
-MISNAMED = re.compile(r"(target|tgt|point|pid|id$|joint|j\d|q\d|actual_q|theta|t?[xyz]$|[xyz]_|r[xyz]$|rot)", re.I)
+MISNAMED = re.compile(r"((target|tgt)[ _-]?r?[xyz]([ _(\[-]|$)|t[xyz]$)", re.I)   # target_x_mm, tx: not target_q_0
 
 
 def check_unused(header: list, used: set, path) -> None:
-    """An IngestError naming a column the reader did not use whose name looks like a target, an id, a joint
-    or an orientation (a typo, `target_x_mm`, would leave the waypoints at other positions without a word);
-    the other unused columns are logged."""
+    """An IngestError naming a column the reader did not use whose name looks like a target's (a typo,
+    `target_x_mm`, would leave the waypoints unread, solved as offline ones for other positions, without a
+    word); the other unused columns are logged (an id's misspelt: W001.. instead, said)."""
     unused = [h for c, h in enumerate(header) if c not in used and h.strip()]
     for h in unused:
         if MISNAMED.match(h.strip()):
