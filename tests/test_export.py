@@ -418,7 +418,7 @@ def test_the_physics_controller_answers_as_the_model_where_its_network_has_faded
     assert 10 <= faded.sum() < len(q)
     for a, b, f in zip(physics.batch(q, t), whole.batch(q, t), faded):
         gap = np.abs(a.q - b.q).max()
-        assert gap < 1e-12 if f else gap > 0
+        assert gap < 1e-12 if f or not ws.network else gap > 0     # no network served: one graph, everywhere
 
 
 def test_controller_onnx_of_an_ensemble_answers_as_realtime(tmp_path):
