@@ -219,12 +219,16 @@ class Service:
     def check(self, q_rad, target_mm, where: str = "") -> tuple[np.ndarray, np.ndarray]:
         """q_rad (6 numbers within the joint limits) and target_mm (3 numbers within reach) as arrays,
         or a RequestError naming the field (prefixed `where`)."""
-        q, target = self.joints(q_rad, where), numbers(target_mm, where + "target_mm", 3)
-        dist = float(np.linalg.norm(target))
+        q = self.joints(q_rad, where)
+        return q, self.within_reach(numbers(target_mm, where + "target_mm", 3), where + "target_mm")
+
+    def within_reach(self, point: np.ndarray, field: str) -> np.ndarray:
+        """point (3,) mm, or a RequestError naming `field` where it lies beyond the arm's reach."""
+        dist = float(np.linalg.norm(point))
         if dist > self.reach:
-            raise RequestError(f"{where}target_mm: unreachable ({dist:.1f} mm from the base, beyond the arm's "
+            raise RequestError(f"{field}: unreachable ({dist:.1f} mm from the base, beyond the arm's "
                                f"reach of {self.reach:.1f} mm)")
-        return q, target
+        return point
 
     def joints(self, q_rad, where: str = "") -> np.ndarray:
         """q_rad as 6 numbers within the joint limits, or a RequestError naming the field."""
@@ -334,12 +338,8 @@ class Service:
         if not 2 <= len(points_mm) <= self.max_path_samples:
             raise RequestError(f"points_mm: {len(points_mm)} points: a path needs 2 to {self.max_path_samples} "
                                "(serve.max_path_samples)")
-        points = np.array([numbers(p, f"points_mm[{i}]", 3) for i, p in enumerate(points_mm)])
-        far = np.flatnonzero(np.linalg.norm(points, axis=1) > self.reach)   # before its length counts samples
-        if len(far):
-            i = int(far[0])
-            raise RequestError(f"points_mm[{i}]: unreachable ({np.linalg.norm(points[i]):.1f} mm from the base, "
-                               f"beyond the arm's reach of {self.reach:.1f} mm)")
+        points = np.array([self.within_reach(numbers(p, f"points_mm[{i}]", 3), f"points_mm[{i}]")   # before its
+                           for i, p in enumerate(points_mm)])                                    # length counts samples
         if not isinstance(moves, (list, tuple)) or len(moves) not in (0, len(points)):
             raise RequestError(f"moves: expected a list of {len(points)} strings (or [], every move movel), got "
                                f"{describe(moves)}")
