@@ -60,7 +60,8 @@ def test_refit_tool_recovers_a_remounted_probe_where_the_orientations_tell(poses
     R, t = Rotation.from_euler("xyz", [5, -15, 70], degrees=True).as_matrix(), np.array([1500.0, 200, -300])
     P = (p + np.einsum("nij,j->ni", Rf, dt)) @ R.T + t + rng.normal(0, 0.01, p.shape)
     errors, registered, frames = judge({"m": p}, P, "refit_tool", {}, 30, PARAMS["frame"], {"m": Rf},
-                                       PARAMS["validate"]["tool_rank_tol"])
+                                       PARAMS["validate"]["tool_rank_tol"],
+                                       tool_significance=PARAMS["validate"]["tool_significance"])
     f = frames["m"]
     if poses == "any":
         np.testing.assert_allclose(f["tool_offset_mm"], dt, atol=0.05)
@@ -71,6 +72,32 @@ def test_refit_tool_recovers_a_remounted_probe_where_the_orientations_tell(poses
     assert errors["m"][~registered].mean() < 0.03
     plain, _, _ = judge({"m": p}, P, "refit", {}, 30, PARAMS["frame"])                 # the frame alone cannot
     assert plain["m"][~registered].mean() > (0.3 if poses == "any" else 0.03)
+
+
+def test_refit_tool_holds_an_offset_the_registration_cannot_tell_from_its_noise():
+    """The probe not re-mounted, the method off by a smooth 0.1 mm (what a calibration leaves) and the tracker's
+    noise: fitted freely (tool_significance 0, as before) the 30 points make up an offset of a few hundredths
+    of a mm that moves every judged point; held under 3 standard errors, the offset stays exactly the
+    training tool's, each component says why, and the judged points are no worse."""
+    rng = np.random.default_rng(11)
+    q = T.sample_poses(200, rng)
+    g = {**nominal_geometry(UR5), "tool": torch.tensor([0.0, 0.0, 100.0], dtype=torch.float64)}
+    qt = torch.as_tensor(np.radians(q))
+    with torch.no_grad():
+        p, Rf = fk(qt, g).numpy(), flange_rotations(qt, g).numpy()
+    R, t = Rotation.from_euler("xyz", [5, -15, 70], degrees=True).as_matrix(), np.array([1500.0, 200, -300])
+    model_error = 0.1 * np.stack([np.sin(np.radians(q[:, 0] + 2 * q[:, 1])), np.cos(np.radians(q[:, 2])),
+                                  np.sin(np.radians(q[:, 1] - q[:, 3]))], 1)
+    P = (p + model_error) @ R.T + t + rng.normal(0, 0.02, p.shape)
+    args = ({"m": p}, P, "refit_tool", {}, 30, PARAMS["frame"], {"m": Rf}, PARAMS["validate"]["tool_rank_tol"])
+    free_err, registered, free = judge(*args, tool_significance=0.0)
+    held_err, _, held = judge(*args, tool_significance=3.0)
+    assert free["m"]["tool_held"] == [] and np.abs(free["m"]["tool_offset_mm"]).max() > 0.01
+    assert held["m"]["tool_held"] == ["tool_x", "tool_y", "tool_z"] and not held["m"]["tool_offset_mm"].any()
+    assert all("not significant" in held["m"]["tool_held_why"][a] for a in ("tool_x", "tool_y", "tool_z"))
+    assert held_err["m"][~registered].mean() <= free_err["m"][~registered].mean()
+    plain, _, _ = judge({"m": p}, P, "refit", {}, 30, PARAMS["frame"])   # no offset at all: the frame alone
+    np.testing.assert_allclose(held_err["m"], plain["m"], atol=1e-6)
 
 
 def test_registration_points_spread_over_the_campaign():

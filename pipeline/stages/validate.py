@@ -166,7 +166,7 @@ def run_campaign(params: dict, name: str, root: Path = HERE) -> dict:
     try:
         errors, registered, frames = judge(pred, P, c["frame"], frame, cfg["register_points"], frame_cfg, flange,
                                            cfg["tool_rank_tol"], probe, R_world,
-                                           orientation_weight(p["calibrate"]["pose_noise"]))
+                                           orientation_weight(p["calibrate"]["pose_noise"]), cfg["tool_significance"])
     except FrameFitError as e:
         raise FrameFitError(f"validate.campaigns.{name}: {e}") from None
     if registered.all():                             # refit: every point registers the frame, none is judged
@@ -184,7 +184,8 @@ def run_campaign(params: dict, name: str, root: Path = HERE) -> dict:
     out["angle_map"]["per_joint"] = per_joint_coverage(ws, q, table)
     out["ingest"] = {k: ingested[k] for k in ("n_read", "n_kept", "dropped", "dropped_counts")}
     out["registration"] = {m: {"tool_offset_mm": f["tool_offset_mm"], "tool_held": f.get("tool_held"),
-                               "rms_mm": f.get("registration_rms_mm")} for m, f in frames.items()}
+                               "tool_held_why": f.get("tool_held_why"), "rms_mm": f.get("registration_rms_mm")}
+                           for m, f in frames.items()}
     out["thermal"] = thermal
     if R_world is not None:                          # the orientation and the tools, where measured
         out["pose"] = judge_poses(pred, probe, flange, frames, P, R_world, probe_offsets(p["robot"]["tcp"], cal.geometry),

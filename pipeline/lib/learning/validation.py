@@ -75,14 +75,18 @@ def small_rotation(A: np.ndarray, B: np.ndarray) -> np.ndarray:
 
 
 def refit_tool(p: np.ndarray, Rf: np.ndarray, P: np.ndarray, R0: np.ndarray, t0: np.ndarray, rank_tol: float,
-               R_probe: np.ndarray | None = None, R_world: np.ndarray | None = None, weight: float = 0.0):
+               R_probe: np.ndarray | None = None, R_world: np.ndarray | None = None, weight: float = 0.0,
+               significance: float = 0.0):
     """Frame and tool offset jointly, P ≈ R (p + Rf dt) + t, from the start (R0, t0): p (k, 3) predicted
     markers, Rf (k, 3, 3) the flange rotations (base frame). Only the offset components the poses'
     orientations determine are fitted (identify.identifiability at rank_tol: an offset along an axis
     the flange never turns away from is a translation of the frame); the others stay 0. With measured
     orientations R_world (k, 3, 3, tracker frame) and the predicted ones R_probe, also R R_probe dR ≈ R_world,
-    weight mm/rad, and the probe's re-mounted rotation dR.
-    Returns R, t, dt (3,) mm, dR (3, 3) and the names of the components held at 0."""
+    weight mm/rad, and the probe's re-mounted rotation dR. Then, one at a time, the least significant offset
+    component whose |estimate| is under `significance` standard errors is held at 0 and the rest refitted
+    (backward elimination; 0: none): an offset the registration cannot tell from its noise is no re-mounting,
+    only a trade with the frame's translation.
+    Returns R, t, dt (3,) mm, dR (3, 3), the names of the components held at 0 and {held: why}."""
     poses = R_world is not None
     names = FRAME_TOOL + (PROBE_ROT if poses else [])
 
@@ -93,27 +97,49 @@ def refit_tool(p: np.ndarray, Rf: np.ndarray, P: np.ndarray, R0: np.ndarray, t0:
             return r
         dR = Rotation.from_rotvec(x[9:12]).as_matrix()
         return np.r_[r, weight * small_rotation(R @ R_probe @ dR, R_world).ravel()]
-    x0 = np.r_[Rotation.from_matrix(R0).as_rotvec(), t0, np.zeros(len(names) - 6)]
-    r0 = residuals(x0)
-    steps = [1e-6] * 3 + [1e-3] * 6 + [1e-6] * (len(names) - 9)
-    J = np.stack([(residuals(x0 + h * e) - r0) / h for e, h in zip(np.eye(len(names)), steps)], 1)
-    keep = identifiability(J, names, rank_tol)["keep"]
-    keep[:6] = True                                       # the frame is always fitted
-    def sub(xk):
+
+    def jacobian(x):                                      # (rows, parameters), forward differences
+        r0 = residuals(x)
+        steps = [1e-6] * 3 + [1e-3] * 6 + [1e-6] * (len(names) - 9)
+        return r0, np.stack([(residuals(x + h * e) - r0) / h for e, h in zip(np.eye(len(names)), steps)], 1)
+
+    def solve(keep):
+        def sub(xk):
+            x = x0.copy()
+            x[keep] = xk
+            return residuals(x)
         x = x0.copy()
-        x[keep] = xk
-        return residuals(x)
-    sol = least_squares(sub, x0[keep], x_scale="jac")
-    x = x0.copy()
-    x[keep] = sol.x
+        x[keep] = least_squares(sub, x0[keep], x_scale="jac").x
+        return x
+
+    x0 = np.r_[Rotation.from_matrix(R0).as_rotvec(), t0, np.zeros(len(names) - 6)]
+    keep = identifiability(jacobian(x0)[1], names, rank_tol)["keep"]
+    keep[:6] = True                                       # the frame is always fitted
+    why = {n: f"not determined by the poses' orientations (pivot below validate.tool_rank_tol = {rank_tol:g})"
+           for n, k in zip(names, keep) if not k}
+    x = solve(keep)
+    while significance > 0 and keep[6:9].any():
+        r, J = jacobian(x)
+        Jk = J[:, keep]
+        s2 = (r ** 2).sum() / max(len(r) - keep.sum(), 1)
+        se = np.sqrt(s2 * np.clip(np.diag(np.linalg.pinv(Jk.T @ Jk)), 0, None))
+        t = np.abs(x[keep]) / np.maximum(se, 1e-300)
+        cand = [(t[i], j) for i, j in enumerate(np.flatnonzero(keep)) if 6 <= j < 9 and t[i] < significance]
+        if not cand:
+            break
+        tj, j = min(cand)
+        keep[j] = False
+        why[names[j]] = (f"not significant: {x[j]:.3g} mm is {tj:.2f} standard errors of the registration "
+                         f"(under validate.tool_significance = {significance:g})")
+        x = solve(keep)
     dR = Rotation.from_rotvec(x[9:12]).as_matrix() if poses else np.eye(3)
     return (Rotation.from_rotvec(x[:3]).as_matrix(), x[3:6], x[6:9], dR,
-            [n for n, k in zip(names, keep) if not k])
+            [n for n, k in zip(names, keep) if not k], why)
 
 
 def judge(pred: dict, P_world: np.ndarray, mode: str, frame: dict, n_register: int, frame_cfg: dict,
           flange_R: dict | None = None, tool_rank_tol: float | None = None, probe_R: dict | None = None,
-          R_world: np.ndarray | None = None, weight: float = 0.0):
+          R_world: np.ndarray | None = None, weight: float = 0.0, tool_significance: float = 0.0):
     """Each method's 3D error per point and the frame it was judged in.
 
     pred: {method: (m, 3) base frame}; P_world: (m, 3) tracker frame; flange_R {method: (m, 3, 3)}: the
@@ -149,14 +175,17 @@ def judge(pred: dict, P_world: np.ndarray, mode: str, frame: dict, n_register: i
         if mode == "refit_tool":
             k = np.flatnonzero(reg)[inl]
             poses = R_world is not None
-            R, t, dt, dR, held = refit_tool(p[k], flange_R[m][k], P_world[k], R, t, tool_rank_tol,
-                                            probe_R[m][k] if poses else None, R_world[k] if poses else None, weight)
+            R, t, dt, dR, held, why = refit_tool(p[k], flange_R[m][k], P_world[k], R, t, tool_rank_tol,
+                                                 probe_R[m][k] if poses else None, R_world[k] if poses else None,
+                                                 weight, tool_significance)
             p = p + np.einsum("mij,j->mi", flange_R[m], dt)
-            frames[m] = {"R": R, "t": t, "tool_offset_mm": dt, "tool_held": held,
+            frames[m] = {"R": R, "t": t, "tool_offset_mm": dt, "tool_held": held, "tool_held_why": why,
                          **({"probe_rotation": dR} if poses else {})}
         errors[m] = np.linalg.norm(p @ R.T + t - P_world, axis=1)
         k = np.flatnonzero(reg)[inl]                      # the registration's own residual, per degree of freedom
-        dof = max(3 * len(k) - (6 + 3 - len(frames[m].get("tool_held", ["x"] * 3))), 1)
+        free = [a for a in ("tool_x", "tool_y", "tool_z") if a not in frames[m].get("tool_held", ["tool_x", "tool_y",
+                                                                                                   "tool_z"])]
+        dof = max(3 * len(k) - (6 + len(free)), 1)
         frames[m]["registration_rms_mm"] = float(np.sqrt((errors[m][k] ** 2).sum() / dof * 3))
     return errors, reg, frames
 
