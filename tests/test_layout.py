@@ -315,20 +315,40 @@ def test_stage_params_are_exactly_the_sections_it_reads(name):
 
 
 def section_keys_read(source: str, section: str) -> set[str]:
-    """Keys the module reads of params section `section` by name: `x["section"]["key"]`, or `v["key"]` where v was
-    bound to `x["section"]` (tuple assignments too)."""
+    """Keys the module reads of params section `section` by name: `x["section"]["key"]` or `.get("key")`, or the
+    same on a name bound to `x["section"]` in that function (plain, annotated or tuple assignment, walrus)."""
     def is_section(node):
         return isinstance(node, ast.Subscript) and isinstance(node.slice, ast.Constant) and node.slice.value == section
-    tree, bound = ast.parse(source), set()
-    for node in ast.walk(tree):
-        if isinstance(node, ast.Assign):
-            pairs = [(t, v) for t in node.targets
-                     for t, v in (zip(t.elts, node.value.elts) if isinstance(t, ast.Tuple) and isinstance(
-                         node.value, ast.Tuple) else [(t, node.value)])]
-            bound |= {t.id for t, v in pairs if isinstance(t, ast.Name) and is_section(v)}
-    return {node.slice.value for node in ast.walk(tree)
-            if isinstance(node, ast.Subscript) and isinstance(node.slice, ast.Constant)
-            and (is_section(node.value) or isinstance(node.value, ast.Name) and node.value.id in bound)}
+
+    def bindings(scope):
+        for node in ast.walk(scope):
+            if isinstance(node, ast.Assign):
+                for t in node.targets:
+                    if isinstance(t, ast.Tuple) and isinstance(node.value, ast.Tuple):
+                        yield from zip(t.elts, node.value.elts)
+                    else:
+                        yield t, node.value
+            elif isinstance(node, (ast.AnnAssign, ast.NamedExpr)) and node.value is not None:
+                yield node.target, node.value
+
+    def reads(scope, bound):
+        on = lambda v: is_section(v) or isinstance(v, ast.Name) and v.id in bound        # noqa: E731
+        for node in ast.walk(scope):
+            if isinstance(node, ast.Subscript) and isinstance(node.slice, ast.Constant) and on(node.value):
+                yield node.slice.value
+            elif (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.func.attr == "get"
+                  and node.args and isinstance(node.args[0], ast.Constant) and on(node.func.value)):
+                yield node.args[0].value
+
+    tree = ast.parse(source)
+    scopes = [n for n in ast.walk(tree) if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef))]
+    module = ast.Module(body=[n for n in tree.body if not isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef,
+                                                                         ast.ClassDef))], type_ignores=[])
+    out = set()
+    for scope in scopes + [module]:
+        bound = {t.id for t, v in bindings(scope) if isinstance(t, ast.Name) and is_section(v)}
+        out |= set(reads(scope, bound))
+    return out
 
 
 @pytest.mark.parametrize("name", sorted(STAGES))

@@ -120,9 +120,15 @@ def refit_tool(p: np.ndarray, Rf: np.ndarray, P: np.ndarray, R0: np.ndarray, t0:
     x = solve(keep)
     while significance > 0 and keep[6:9].any():
         r, J = jacobian(x)
-        Jk = J[:, keep]
-        s2 = (r ** 2).sum() / max(len(r) - keep.sum(), 1)
-        se = np.sqrt(s2 * np.clip(np.diag(np.linalg.pinv(Jk.T @ Jk)), 0, None))
+        dof = len(r) - keep.sum()
+        if dof <= 0:                                      # nothing left to tell an offset from the noise
+            for j in np.flatnonzero(keep[6:9]) + 6:
+                keep[j] = False
+                why[names[j]] = (f"not testable: {len(r)} residuals for {len(r) - dof} parameters leave no degree "
+                                 "of freedom (more validate.register_points)")
+            x = solve(keep)
+            break
+        se = standard_errors(r, J[:, keep], 3 * len(p), dof)
         t = np.abs(x[keep]) / np.maximum(se, 1e-300)
         cand = [(t[i], j) for i, j in enumerate(np.flatnonzero(keep)) if 6 <= j < 9 and t[i] < significance]
         if not cand:
@@ -135,6 +141,18 @@ def refit_tool(p: np.ndarray, Rf: np.ndarray, P: np.ndarray, R0: np.ndarray, t0:
     dR = Rotation.from_rotvec(x[9:12]).as_matrix() if poses else np.eye(3)
     return (Rotation.from_rotvec(x[:3]).as_matrix(), x[3:6], x[6:9], dR,
             [n for n, k in zip(names, keep) if not k], why)
+
+
+def standard_errors(r: np.ndarray, J: np.ndarray, n_position: int, dof: int) -> np.ndarray:
+    """(p,) standard errors of a least-squares fit with residuals r (N,) and Jacobian J (N, p) whose first
+    n_position rows are positions (mm) and the rest weighted orientations: each group's own variance (its mean
+    square, scaled by N / dof), propagated by the sandwich (JᵀJ)⁺ Jᵀ S J (JᵀJ)⁺, so that an orientation residual
+    larger or smaller than calibrate.pose_noise says does not decide an offset that only positions see."""
+    groups = [slice(0, n_position), slice(n_position, len(r))]
+    s2 = np.concatenate([np.full(g.stop - g.start, (r[g] ** 2).mean() if g.stop > g.start else 0.0)
+                         for g in groups]) * len(r) / dof
+    A = np.linalg.pinv(J.T @ J)
+    return np.sqrt(np.clip(np.diag(A @ (J.T * s2) @ J @ A), 0, None))
 
 
 def judge(pred: dict, P_world: np.ndarray, mode: str, frame: dict, n_register: int, frame_cfg: dict,
