@@ -125,6 +125,25 @@ def test_a_real_remount_is_kept_whatever_the_orientation_residual_and_three_poin
     assert all("no degree of freedom" in v or "not determined" in v for v in why3.values())
 
 
+def test_a_probe_turned_far_on_its_flange_is_registered():
+    """The probe re-mounted turned 150° about its x axis: dR started at the identity, where the orientation's
+    residual (the sine of the angle) led least squares to the turn's mirror, 180° off; it now starts at the
+    registration points' mean rotation and lands within the orientation noise."""
+    rng = np.random.default_rng(7)
+    q = T.sample_poses(30, rng)
+    g = {**nominal_geometry(UR5), "tool": torch.tensor([0.0, 0.0, 100.0], dtype=torch.float64)}
+    with torch.no_grad():
+        qt = torch.as_tensor(np.radians(q))
+        p, Rf = fk(qt, g).numpy(), flange_rotations(qt, g).numpy()
+    R, t = Rotation.from_euler("xyz", [5, -15, 70], degrees=True).as_matrix(), np.array([1500.0, 200, -300])
+    dR = Rotation.from_euler("xyz", (150, -0.3, 0.2), degrees=True).as_matrix()
+    P = p @ R.T + t + rng.normal(0, 0.01, p.shape)
+    Rw = Rotation.from_rotvec(rng.normal(0, np.radians(10 / 3600), p.shape)).as_matrix() @ (R @ Rf @ dR)
+    w = orientation_weight(PARAMS["calibrate"]["pose_noise"])
+    _, _, _, dR_fit, _, _ = refit_tool(p, Rf, P, R, t, 0.01, Rf, Rw, w, significance=3.0)
+    assert Rotation.from_matrix(dR_fit @ dR.T).magnitude() < np.radians(10 / 3600)
+
+
 def test_registration_points_spread_over_the_campaign():
     P = np.random.default_rng(1).uniform(-500, 500, (400, 3))
     sel = P[registration_subset(P, 20)]

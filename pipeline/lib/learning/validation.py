@@ -113,6 +113,9 @@ def refit_tool(p: np.ndarray, Rf: np.ndarray, P: np.ndarray, R0: np.ndarray, t0:
         return x
 
     x0 = np.r_[Rotation.from_matrix(R0).as_rotvec(), t0, np.zeros(len(names) - 6)]
+    if poses:                                             # dR starts at the points' mean R_probeᵀ R0ᵀ R_world: a
+        d = np.swapaxes(R_probe, -1, -2) @ R0.T @ R_world   # probe turned 90° is not a local minimum away
+        x0[9:12] = Rotation.from_matrix(d).mean().as_rotvec()
     keep = identifiability(jacobian(x0)[1], names, rank_tol)["keep"]
     keep[:6] = True                                       # the frame is always fitted
     why = {n: f"not determined by the poses' orientations (pivot below validate.tool_rank_tol = {rank_tol:g})"
