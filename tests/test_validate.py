@@ -76,18 +76,25 @@ def test_refit_tool_recovers_a_remounted_probe_where_the_orientations_tell(poses
     assert plain["m"][~registered].mean() > (0.3 if poses == "any" else 0.03)
 
 
+def probe_campaign(n: int, seed: int):
+    """n random UR5 poses with a probe 100 mm out on the flange: rng, q (n, 6) deg, the markers p (n, 3) and
+    flange rotations Rf (n, 3, 3) in the base frame, and a tracker frame R, t to measure them in."""
+    rng = np.random.default_rng(seed)
+    q = T.sample_poses(n, rng)
+    g = {**nominal_geometry(UR5), "tool": torch.tensor([0.0, 0.0, 100.0], dtype=torch.float64)}
+    with torch.no_grad():
+        qt = torch.as_tensor(np.radians(q))
+        p, Rf = fk(qt, g).numpy(), flange_rotations(qt, g).numpy()
+    R, t = Rotation.from_euler("xyz", [5, -15, 70], degrees=True).as_matrix(), np.array([1500.0, 200, -300])
+    return rng, q, p, Rf, R, t
+
+
 def test_refit_tool_holds_an_offset_the_registration_cannot_tell_from_its_noise():
     """The probe not re-mounted, the method off by a smooth 0.1 mm (what a calibration leaves) and the tracker's
     noise: fitted freely (tool_significance 0, as before) the 30 points make up an offset of a few hundredths
     of a mm that moves every judged point; held under 3 standard errors, the offset stays exactly the
     training tool's, each component says why, and the judged points are no worse."""
-    rng = np.random.default_rng(11)
-    q = T.sample_poses(200, rng)
-    g = {**nominal_geometry(UR5), "tool": torch.tensor([0.0, 0.0, 100.0], dtype=torch.float64)}
-    qt = torch.as_tensor(np.radians(q))
-    with torch.no_grad():
-        p, Rf = fk(qt, g).numpy(), flange_rotations(qt, g).numpy()
-    R, t = Rotation.from_euler("xyz", [5, -15, 70], degrees=True).as_matrix(), np.array([1500.0, 200, -300])
+    rng, q, p, Rf, R, t = probe_campaign(200, 11)
     model_error = 0.1 * np.stack([np.sin(np.radians(q[:, 0] + 2 * q[:, 1])), np.cos(np.radians(q[:, 2])),
                                   np.sin(np.radians(q[:, 1] - q[:, 3]))], 1)
     P = (p + model_error) @ R.T + t + rng.normal(0, 0.02, p.shape)
@@ -107,13 +114,7 @@ def test_a_real_remount_is_kept_whatever_the_orientation_residual_and_three_poin
     offset only positions see is judged against their noise alone (one pooled variance held it at 2-2.6
     standard errors, where positions put it at ~10). Three registration points leave no degree of
     freedom: the offset is held, saying so, not kept on a variance of 1e-23."""
-    rng = np.random.default_rng(7)
-    q = T.sample_poses(30, rng)
-    g = {**nominal_geometry(UR5), "tool": torch.tensor([0.0, 0.0, 100.0], dtype=torch.float64)}
-    with torch.no_grad():
-        qt = torch.as_tensor(np.radians(q))
-        p, Rf = fk(qt, g).numpy(), flange_rotations(qt, g).numpy()
-    R, t = Rotation.from_euler("xyz", [5, -15, 70], degrees=True).as_matrix(), np.array([1500.0, 200, -300])
+    rng, q, p, Rf, R, t = probe_campaign(30, 7)
     dt, dR = np.array([0.03, -0.02, 0.025]), Rotation.from_euler("xyz", (0.5, -0.3, 0.2), degrees=True).as_matrix()
     P = (p + np.einsum("nij,j->ni", Rf, dt)) @ R.T + t + rng.normal(0, 0.01, p.shape)
     Rw = Rotation.from_rotvec(rng.normal(0, np.radians(60 / 3600), p.shape)).as_matrix() @ (R @ Rf @ dR)
@@ -129,13 +130,7 @@ def test_a_probe_turned_far_on_its_flange_is_registered():
     """The probe re-mounted turned 150° about its x axis: dR started at the identity, where the orientation's
     residual (the sine of the angle) led least squares to the turn's mirror, 180° off; it now starts at the
     registration points' mean rotation and lands within the orientation noise."""
-    rng = np.random.default_rng(7)
-    q = T.sample_poses(30, rng)
-    g = {**nominal_geometry(UR5), "tool": torch.tensor([0.0, 0.0, 100.0], dtype=torch.float64)}
-    with torch.no_grad():
-        qt = torch.as_tensor(np.radians(q))
-        p, Rf = fk(qt, g).numpy(), flange_rotations(qt, g).numpy()
-    R, t = Rotation.from_euler("xyz", [5, -15, 70], degrees=True).as_matrix(), np.array([1500.0, 200, -300])
+    rng, q, p, Rf, R, t = probe_campaign(30, 7)
     dR = Rotation.from_euler("xyz", (150, -0.3, 0.2), degrees=True).as_matrix()
     P = p @ R.T + t + rng.normal(0, 0.01, p.shape)
     Rw = Rotation.from_rotvec(rng.normal(0, np.radians(10 / 3600), p.shape)).as_matrix() @ (R @ Rf @ dR)
