@@ -113,8 +113,8 @@ def refit_tool(p: np.ndarray, Rf: np.ndarray, P: np.ndarray, R0: np.ndarray, t0:
         return x
 
     x0 = np.r_[Rotation.from_matrix(R0).as_rotvec(), t0, np.zeros(len(names) - 6)]
-    if poses:                                             # dR starts at the points' mean R_probeᵀ R0ᵀ R_world: a
-        d = np.swapaxes(R_probe, -1, -2) @ R0.T @ R_world   # probe turned 90° is not a local minimum away
+    if poses:                                             # dR starts at the points' mean R_probeᵀ R0ᵀ R_world (from
+        d = np.swapaxes(R_probe, -1, -2) @ R0.T @ R_world   # the identity, a probe turned 150° ends at its mirror)
         x0[9:12] = Rotation.from_matrix(d).mean().as_rotvec()
     keep = identifiability(jacobian(x0)[1], names, rank_tol)["keep"]
     keep[:6] = True                                       # the frame is always fitted
@@ -204,9 +204,8 @@ def judge(pred: dict, P_world: np.ndarray, mode: str, frame: dict, n_register: i
                          **({"probe_rotation": dR} if poses else {})}
         errors[m] = np.linalg.norm(p @ R.T + t - P_world, axis=1)
         k = np.flatnonzero(reg)[inl]                      # the registration's own residual, per degree of freedom
-        free = [a for a in ("tool_x", "tool_y", "tool_z") if a not in frames[m].get("tool_held", ["tool_x", "tool_y",
-                                                                                                   "tool_z"])]
-        dof = max(3 * len(k) - (6 + len(free)), 1)
+        held = frames[m].get("tool_held", FRAME_TOOL[6:])        # refit: no offset fitted
+        dof = max(3 * len(k) - 6 - sum(a not in held for a in FRAME_TOOL[6:]), 1)
         frames[m]["registration_rms_mm"] = float(np.sqrt((errors[m][k] ** 2).sum() / dof * 3))
     return errors, reg, frames
 
