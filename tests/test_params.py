@@ -112,6 +112,9 @@ NAN = float("nan")
     ("plan.region_margin_deg", NAN), ("plan.region_margin_deg", "x"), ("plan.region_margin_deg", -30),
     ("plan.seed", 1.5), ("plan.seed", "a"), ("plan.seed", -1),
     ("plan.settle_s", 0), ("plan.acc", NAN), ("plan.vel", "1"),
+    # a review: written with 6 decimals, 4e-7 became `settle = 0.000000`, `acc = 0.000000`, `stopj(0.000000)`
+    ("plan.settle_s", 4e-7), ("plan.acc", 4e-7), ("program.movej.acc", 4e-7), ("program.movej.vel", 9e-4),
+    ("program.movel.acc", 4e-7), ("program.movel.vel", 4e-7),
     ("plan.rules.radius_mm", [300]), ("plan.rules.radius_mm", "x"), ("plan.rules.radius_mm", [850.0, 300.0]),
     ("plan.rules.height_mm", [0.0, NAN]),
     ("plan.rules.elbow_min_mm", -1e9), ("plan.rules.table_mm", "40"), ("plan.rules.sin_wrist", -1),

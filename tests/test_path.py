@@ -146,6 +146,25 @@ def test_bad_cells_are_named_by_row_and_column(tmp_path):
         read_path(src, robot, lambda q: q[:, :3])
 
 
+@pytest.mark.parametrize("name", ["target_x_mm", "tx", "Target X"])
+def test_a_misnamed_target_column_beside_joints_is_refused_not_driven_past(tmp_path, caplog, name):
+    """The defect (a review): `program` refused target_x_mm and tx, `path` did not read them and drove the path
+    through the joints' nominal positions instead (57 mm above the intended one, 35 mm long for 100), exit 0
+    without a word. Now refused, naming the column; a column it does not use otherwise is logged."""
+    robot = load_robot(UR5)
+    q = np.array([[2.5, -60.4, 91.1, -182.3, -61.2, -100.7], [5.5, -60.4, 91.1, -182.3, -61.2, -100.7]])
+    src = tmp_path / "p.csv"
+    table = pd.DataFrame(q, columns=JOINTS_DEG)
+    table[name], table["speed"] = [-650.0, -650.0], 0.5
+    table.to_csv(src, index=False)
+    with pytest.raises(ValueError, match=rf"p.csv, column '{name}': a column this reader does not know"):
+        read_path(src, robot, lambda x: fk_numpy(x, robot))
+    table.drop(columns=name).to_csv(src, index=False)
+    with caplog.at_level("WARNING"):
+        read_path(src, robot, lambda x: fk_numpy(x, robot))
+    assert "p.csv: column(s) not used: speed" in caplog.text
+
+
 def test_an_offline_program_is_where_the_nominal_kinematics_put_its_joints(tmp_path):
     """Joints without targets: each waypoint is the joints' nominal position; the first row's joints are the
     start; radian columns are read as radians."""
@@ -159,6 +178,17 @@ def test_an_offline_program_is_where_the_nominal_kinematics_put_its_joints(tmp_p
         np.testing.assert_allclose(found.points, fk_numpy(q, robot), atol=1e-9)
         np.testing.assert_allclose(found.joints_deg[0], q[0], atol=1e-9)
         assert found.moves == ["", "movel"] and found.rotvec is None and len(found.segs) == 1
+
+
+def test_no_servo_step_is_faster_than_the_speed_asked():
+    """The defect (a review): each step's cycles were rounded to the nearest, so 1 mm at 400 mm/s (1.25 cycles)
+    took one, driven at 500 mm/s. Rounded up now: 2 cycles, 250 mm/s; whole cycles stay exact."""
+    arc = np.array([0.0, 1.0, 2.0, 2.5, 12.5])
+    for speed in (400.0, 20.0, 7.0, 1e308):
+        t = pathsolve.servo_times(arc, speed)
+        assert (np.diff(arc) / t <= speed * (1 + 1e-9)).all() and np.allclose(t / 0.002, np.round(t / 0.002))
+    np.testing.assert_allclose(pathsolve.servo_times(arc, 400.0), [0.004, 0.004, 0.002, 0.026])
+    np.testing.assert_allclose(pathsolve.servo_times(arc, 20.0), [0.05, 0.05, 0.026, 0.5])
 
 
 def test_path_settings_are_checked_by_key():

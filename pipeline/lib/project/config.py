@@ -146,6 +146,7 @@ DEVICES = ("auto", "cpu", "cuda")
 SOLVERS = ("lm", "adam")
 REACH_MM = 5000.0          # a plan.rules length beyond this is a typo (the largest UR reaches 1750 mm)
 POS = _num(0, open_lo=True)
+SCRIPTED = _num(1e-3)          # a robot script's setting, written with 6 decimals: 3 significant digits at least
 
 RULES = {
     "robot.tcp": (lambda v: v is None or _tcps(v), "null, or name: {xyz_mm: [x, y, z], rxyz_deg: [rx, ry, rz], "
@@ -170,10 +171,10 @@ RULES = {
     "compensate.tol_arcsec": (_num(0, open_lo=True), "a tolerance > 0 arcsec"),
     "compensate.orientation": (lambda v: isinstance(v, bool), "true or false"),
     "program.move": (lambda v: v in ("movej", "movel"), "movej or movel"),
-    "program.movej.acc": (_num(0, open_lo=True), "an acceleration > 0 rad/s²"),
-    "program.movej.vel": (_num(0, open_lo=True), "a speed > 0 rad/s"),
-    "program.movel.acc": (_num(0, open_lo=True), "an acceleration > 0 m/s²"),
-    "program.movel.vel": (_num(0, open_lo=True), "a speed > 0 m/s"),
+    "program.movej.acc": (SCRIPTED, "an acceleration >= 0.001 rad/s² (the script writes 6 decimals)"),
+    "program.movej.vel": (SCRIPTED, "a speed >= 0.001 rad/s (the script writes 6 decimals)"),
+    "program.movel.acc": (SCRIPTED, "an acceleration >= 0.001 m/s² (the script writes 6 decimals)"),
+    "program.movel.vel": (SCRIPTED, "a speed >= 0.001 m/s (the script writes 6 decimals)"),
     "path.spacing_mm": (_num(0, open_lo=True), "a spacing > 0 mm"),
     "path.chord_mm": (lambda v: v is None or _num(0, open_lo=True)(v), "null or a tolerance > 0 mm"),
     "path.speed_mm_s": (_num(0, open_lo=True), "a speed > 0 mm/s"),
@@ -235,9 +236,9 @@ RULES = {
     "plan.region": (_int(0), "an integer >= 0 (candidates sampled in the program's joint box)"),
     "plan.region_margin_deg": (_num(0, 360), "an angle 0-360 deg"),
     "plan.seed": (_int(0), "an integer >= 0"),
-    "plan.settle_s": (POS, "a time > 0 s"),
-    "plan.acc": (POS, "an acceleration > 0 rad/s²"),
-    "plan.vel": (POS, "a speed > 0 rad/s"),
+    "plan.settle_s": (SCRIPTED, "a time >= 0.001 s (the script writes 6 decimals)"),
+    "plan.acc": (SCRIPTED, "an acceleration >= 0.001 rad/s² (the script writes 6 decimals)"),
+    "plan.vel": (SCRIPTED, "a speed >= 0.001 rad/s (the script writes 6 decimals)"),
     "plan.rules.radius_mm": (_or_null(_interval(0, REACH_MM)), f"null (off) or [lo, hi] mm, 0 <= lo < hi <= {REACH_MM:g}"),
     "plan.rules.height_mm": (_or_null(_interval(-REACH_MM, REACH_MM)),
                              f"null (off) or [lo, hi] mm, -{REACH_MM:g} <= lo < hi <= {REACH_MM:g}"),

@@ -17,12 +17,14 @@ from a segment's first waypoint's to its last's in proportion to the arc length 
 orientation is not used, as in URScript's movec).
 """
 import math
+import re
 from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from pipeline.lib.project.columns import TARGET
+from pipeline.lib.project.columns import JOINTS_DEG, TARGET
+from pipeline.lib.project.config import logger
 from pipeline.lib.reading.readers import (IngestError, find_column, headers_found, looks_like_radians,
                                           parse_number, read_table, shape_problems, unit_of)
 
@@ -32,6 +34,10 @@ ROTVEC_MAX_RAD = np.pi + 1e-9                              # a rotation vector n
 JOINT_NAMES = ([f"j{i}_deg" for i in range(1, 7)], [f"j{i}_rad" for i in range(1, 7)],
                [f"actual_q_{i}" for i in range(6)])
 MIN_MOVE_MM = 1e-6                                         # a move shorter than this goes nowhere
+
+
+MISNAMED = re.compile(r"((target|tgt)[ _-]?r?[xyz]([ _(\[-]|$)|t[xyz]$)", re.I)   # target_x_mm, tx: not target_q_0
+log = logger(__name__)
 
 
 @dataclass
@@ -221,6 +227,20 @@ def check_rotvecs(rotvec: np.ndarray, path, lines: list) -> None:
                           "radians (degrees given?)", file=path, row=lines[r], column=ROTVEC[0])
 
 
+def check_unused(header: list, used: set, path, known: str) -> None:
+    """An IngestError naming a column the reader did not use whose name looks like a target's (a typo,
+    `target_x_mm`, would leave the targets unread: waypoints solved as offline ones, a path driven through
+    the joints' nominal positions, without a word); the other unused columns are logged. known: the
+    reader's columns, for the message."""
+    unused = [h for c, h in enumerate(header) if c not in used and h.strip()]
+    for h in unused:
+        if MISNAMED.match(h.strip()):
+            raise IngestError(f"a column this reader does not know: its columns are {known}: rename or remove it",
+                              file=path, column=h)
+    if unused:
+        log.warning("%s: column(s) not used: %s", path, ", ".join(unused)[:200])
+
+
 def read_path(path, robot, nominal_fk=None) -> PathFile:
     """The path file: target_x..z (base frame, mm) and/or the joints (j1_deg..j6_deg, j1_rad..., actual_q_0...:
     without targets, a waypoint is where nominal_fk(joints) puts it), optional move and target_rx..rz. Every
@@ -244,6 +264,10 @@ def read_path(path, robot, nominal_fk=None) -> PathFile:
     if "target" not in groups and "joints" not in groups:
         raise IngestError(f"a path needs target_x, target_y, target_z or the joints j1_deg..j6_deg; "
                           f"{headers_found(header)}", file=path)
+    check_unused(header, {lower.index(n) for names in groups.values() for n in names}
+                 | {c for c, h in enumerate(lower) if h == "move"}, path,
+                 f"{', '.join(TARGET)}, {JOINTS_DEG[0]}..{JOINTS_DEG[-1]} (or *_rad, actual_q_*), move and "
+                 f"{', '.join(ROTVEC)}")
 
     def numbers(names):
         cols = [find_column(header, n, "path", path) for n in names]

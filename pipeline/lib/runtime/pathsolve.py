@@ -113,10 +113,11 @@ def refine(model, table: pd.DataFrame, segs: list, chord_mm: float, cfg: dict, r
 
 
 def servo_times(arc_mm: np.ndarray, speed_mm_s: float) -> np.ndarray:
-    """(m - 1,) s: each step's servoj time at speed_mm_s, a whole number of controller cycles (at least one);
-    a ValueError where a step would take more cycles than the script's counter holds exactly (a speed far too low)."""
+    """(m - 1,) s: each step's servoj time at speed_mm_s, a whole number of controller cycles (at least one),
+    rounded up: no step faster than asked; a ValueError where a step would take more cycles than the script's
+    counter holds exactly (a speed far too low)."""
     with np.errstate(over="ignore"):
-        cycles = np.maximum(1, np.round(np.diff(arc_mm) / speed_mm_s / CYCLE_S))
+        cycles = np.maximum(1, np.ceil(np.round(np.diff(arc_mm) / speed_mm_s / CYCLE_S, 9)))
     slow = np.flatnonzero(~(cycles <= MAX_CYCLES))
     if len(slow):
         raise ValueError(f"speed {speed_mm_s:g} mm/s: a step of {np.diff(arc_mm)[slow[0]]:.3f} mm would take more "

@@ -29,7 +29,7 @@ from pipeline.lib.robot.kinematics import TOOL_ROT, fk_numpy, nominal_geometry, 
 from pipeline.lib.robot.poses import CONFIGURATION, configuration_margin
 from pipeline.lib.runtime.compensation import (delta_table, nominal_flange, orientation_targets, reach_mm,
                                                solve)
-from pipeline.lib.runtime.paths import ROTVEC, check_rotvecs
+from pipeline.lib.runtime.paths import ROTVEC, check_rotvecs, check_unused
 
 log = logger(__name__)
 ID_PATTERN = re.compile(r"[A-Za-z0-9_.:-]{1,64}")          # what a point id may be, to reach a URScript comment
@@ -116,23 +116,6 @@ def numbers(cells: list, cols: list, names: list, decimal: str, path, lines: lis
     return values
 
 
-MISNAMED = re.compile(r"((target|tgt)[ _-]?r?[xyz]([ _(\[-]|$)|t[xyz]$)", re.I)   # target_x_mm, tx: not target_q_0
-
-
-def check_unused(header: list, used: set, path) -> None:
-    """An IngestError naming a column the reader did not use whose name looks like a target's (a typo,
-    `target_x_mm`, would leave the waypoints unread, solved as offline ones for other positions, without a
-    word); the other unused columns are logged (an id's misspelt: W001.. instead, said)."""
-    unused = [h for c, h in enumerate(header) if c not in used and h.strip()]
-    for h in unused:
-        if MISNAMED.match(h.strip()):
-            raise IngestError(f"a column this reader does not know: the waypoints' columns are point_id, "
-                              f"{JOINTS_DEG[0]}..{JOINTS_DEG[-1]} (or *_rad, actual_q_*), {', '.join(TARGET)} and "
-                              f"{', '.join(ROTVEC)}: rename or remove it", file=path, column=h)
-    if unused:
-        log.warning("%s: column(s) not used: %s", path, ", ".join(unused)[:200])
-
-
 def read_waypoints(path, robot) -> pd.DataFrame:
     """The waypoints file, checked: point_id, the joints (degrees, or radians by their names) and, if given,
     target_x..z; every bad cell is an IngestError naming file, row (the header is row 1) and column."""
@@ -149,7 +132,9 @@ def read_waypoints(path, robot) -> pd.DataFrame:
     given = (TARGET if targets else []) + (ROTVEC if turned else [])
     cols = jcols + [find_column(header, c, "waypoint", str(path)) for c in given]
     names = [header[c] for c in cols]
-    check_unused(header, set(cols) | {c for c, h in enumerate(header) if h.strip().lower() == "point_id"}, path)
+    check_unused(header, set(cols) | {c for c, h in enumerate(header) if h.strip().lower() == "point_id"}, path,
+                 f"point_id, {JOINTS_DEG[0]}..{JOINTS_DEG[-1]} (or *_rad, actual_q_*), {', '.join(TARGET)} and "
+                 f"{', '.join(ROTVEC)}")
     for r, problem in enumerate(shape_problems(cells, len(header))):
         if problem:                                  # its cells would be read shifted: a wrong move
             raise IngestError(problem, file=path, row=lines[r])
