@@ -7,6 +7,7 @@ choice, and the predicted standard errors against a Monte Carlo identification.
 """
 import json
 import re
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -106,6 +107,17 @@ def test_the_handshake_is_fixed_text_around_a_formatted_number():
                 {"acc": "1.0"}, {"vel": -1.0}):
         with pytest.raises(ValueError, match=r"params.yaml plan\."):
             plan_cmd.measure_script(np.zeros((1, 6)), {**cfg, **bad})
+
+
+def test_plan_into_the_benchmark_records_is_refused(in_trained_project, tmp_path, capsys):
+    """The defect (a review): `--out reports/bench` replaced the committed benchmark record plan.json."""
+    src = tmp_path / "prog.csv"
+    pd.DataFrame(sample_poses(2, np.random.default_rng(1)), columns=JOINTS_DEG).to_csv(src, index=False)
+    before = Path("reports/bench/plan.json").read_bytes() if Path("reports/bench/plan.json").exists() else None
+    code, said = exit_code(plan_cmd.main, [str(src), "--n", "2", "--out", "reports/bench"], capsys)
+    assert code == 2 and "reports/bench/plan.json is the project's own reports/bench" in said, said
+    after = Path("reports/bench/plan.json").read_bytes() if Path("reports/bench/plan.json").exists() else None
+    assert after == before
 
 
 def test_a_programs_orientation_columns_are_said_not_used(in_trained_project, tmp_path, capsys):

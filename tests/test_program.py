@@ -329,6 +329,19 @@ def test_an_output_over_a_project_file_is_refused(in_trained_project, tmp_path, 
     assert Path("reports/frame.json").read_bytes() == frame
 
 
+@pytest.mark.parametrize("flag, target", [("--out", "reports/compensation.csv"), ("--urscript", "reports/bench/x.script"),
+                                          ("--out", "reports/plots/a.csv"), ("--out", "dvc.lock")])
+def test_an_output_over_a_pipeline_output_or_record_is_refused(in_trained_project, tmp_path, capsys, flag, target):
+    """The defect (a review): `--out reports/compensation.csv` replaced the compensate stage's Δθ table, exit 0
+    (only the files a command reads were guarded; `dvc repro` would serve the stale table as its own). Every
+    output dvc.lock records (a folder's files too), the settings and the benchmark records are refused now."""
+    src = program_file(tmp_path)
+    before = Path(target).read_bytes() if Path(target).is_file() else None
+    code, said = exit_code(program.main, [str(src), flag, target], capsys)
+    assert code == 2 and f"{target} is the project's own" in said, said
+    assert (Path(target).read_bytes() if Path(target).is_file() else None) == before
+
+
 def test_the_script_is_ascii(in_trained_project, tmp_path, capsys):
     """The defect: "rad/s²" in the header and "°" in a not-reached comment: a controller's reader need not
     take UTF-8. Both ASCII now."""

@@ -46,7 +46,8 @@ import pandas as pd
 from pipeline.lib.learning.checkpoint import load_model
 from pipeline.lib.learning.model import served
 from pipeline.lib.learning.workspace import Workspace
-from pipeline.lib.project.artifacts import FRAME_JSON, MODEL_WEIGHTS, PARAMS_FILE, WORKSPACE_JSON, require
+from pipeline.lib.project.artifacts import (FRAME_JSON, MODEL_WEIGHTS, PARAMS_FILE, WORKSPACE_JSON, project_owned,
+                                            require)
 from pipeline.lib.project.cli import Refused, add_project, one_line
 from pipeline.lib.project.columns import JCOMP_DEG
 from pipeline.lib.project.config import for_stage, load_params, logger, read_json
@@ -114,7 +115,7 @@ def run(argv=None) -> pd.DataFrame:
     add_project(ap)
     a = ap.parse_args(argv)
     src, out, root = Path(a.path), Path(a.out), a.project
-    check_outputs([out / f for f in FILES], [src])   # by inode too: a hard link to the input is the input
+    check_outputs([out / f for f in FILES], [src], project_owned(root))   # a hard link to the input is the input
     earlier = left_as_they_were([out / f for f in FILES])
     p = for_stage(load_params(root / PARAMS_FILE), PARAMS)
     cfg = {**p["path"], **{k: v for k, v in (("spacing_mm", a.spacing), ("chord_mm", a.chord),

@@ -46,7 +46,7 @@ from pipeline.lib.planner.candidates import candidates, program_joints
 from pipeline.lib.planner.coverage import Coverage
 from pipeline.lib.planner.planning import plan
 from pipeline.lib.project.artifacts import (CALIBRATED_GEOMETRY, CALIBRATION_JSON, FRAME_JSON, PARAMS_FILE,
-                                            PARTS_JSON, PARTS_REPORT, WORKSPACE_JSON, require)
+                                            PARTS_JSON, PARTS_REPORT, WORKSPACE_JSON, project_owned, require)
 from pipeline.lib.project.cli import Refused, add_project, one_line
 from pipeline.lib.project.columns import JOINTS_DEG, TARGET
 from pipeline.lib.project.config import for_stage, json_text, load_params, logger, read_json
@@ -147,7 +147,7 @@ def run(argv=None) -> dict:
         raise ValueError(f"--out {out}: a file, not a folder")
     if not src.is_file():
         raise ValueError(f"{src}: no such file")
-    check_outputs([out / f for f in FILES], [src])   # by inode too: a hard link to the program is the program
+    check_outputs([out / f for f in FILES], [src], project_owned(root))   # a hard link to the program is the program
     earlier = left_as_they_were([out / f for f in FILES])
     p = for_stage(load_params(root / PARAMS_FILE), PARAMS)
     cfg = p["plan"]

@@ -44,7 +44,8 @@ import torch
 from pipeline.lib.learning.checkpoint import load_model
 from pipeline.lib.learning.model import served
 from pipeline.lib.learning.workspace import Workspace
-from pipeline.lib.project.artifacts import FRAME_JSON, MODEL_WEIGHTS, PARAMS_FILE, WORKSPACE_JSON, require
+from pipeline.lib.project.artifacts import (FRAME_JSON, MODEL_WEIGHTS, PARAMS_FILE, WORKSPACE_JSON, project_owned,
+                                            require)
 from pipeline.lib.project.cli import Refused, add_project, one_line
 from pipeline.lib.project.columns import JCOMP_DEG, TARGET
 from pipeline.lib.project.config import for_stage, load_params, logger, read_json
@@ -123,7 +124,7 @@ def run(argv=None) -> pd.DataFrame:
     out = Path(a.out or src.with_name(src.stem + "_comp.csv"))
     script = Path(a.urscript or src.with_name(src.stem + "_comp.script"))
     inputs = [src, root / PARAMS_FILE, root / MODEL_WEIGHTS, root / WORKSPACE_JSON, root / FRAME_JSON]
-    check_outputs([out, script], inputs)             # by inode too: a hard link to an input is the input
+    check_outputs([out, script], inputs, project_owned(root))   # by inode too: a hard link to an input is the input
     for f in (out, script):                          # said before solving, not after
         if not f.parent.is_dir():
             raise ValueError(f"{f}: its folder {f.parent} does not exist; nothing written")

@@ -54,6 +54,7 @@ protocol and a URScript example.
 """
 import argparse
 import inspect
+import math
 import socket
 import socketserver
 import sys
@@ -127,10 +128,26 @@ def refuse_declaration(*args):
     raise Declared("a DOCTYPE or entity declaration: refused (an XML-RPC call has none)")
 
 
+class Unmarshaller(xmlrpc.client.Unmarshaller):
+    """xmlrpc.client's, but an integer of more digits than any float holds is a signed inf (the field's check
+    then names it), not int()'s ValueError past 4300 digits (an HTTP 400 naming nothing)."""
+    dispatch = dict(xmlrpc.client.Unmarshaller.dispatch)
+
+    def end_int(self, data):
+        text = data.strip()
+        if len(text.lstrip("+-").lstrip("0")) > 309:
+            self.append(-math.inf if text.startswith("-") else math.inf)
+            self._value = 0
+        else:
+            super().end_int(data)
+    for tag in ("i1", "i2", "i4", "i8", "int", "biginteger"):
+        dispatch[tag] = end_int
+
+
 def parse_call(data: bytes, use_builtin_types: bool) -> tuple[tuple, str]:
     """(params, method name) of an XML-RPC call, as xmlrpc.client.loads reads it, but a Declared at the
     first DOCTYPE or entity declaration, before any entity is expanded (in any encoding expat reads)."""
-    target = xmlrpc.client.Unmarshaller(use_builtin_types=use_builtin_types)
+    target = Unmarshaller(use_builtin_types=use_builtin_types)
     parser = expat.ParserCreate(None, None)
     parser.StartElementHandler, parser.EndElementHandler = target.start, target.end
     parser.CharacterDataHandler = target.data
@@ -175,11 +192,13 @@ class Handler(SimpleXMLRPCRequestHandler):
             return self.send_error(411, "Content-Length required")
         if not (length.strip().isascii() and length.strip().isdigit()):
             return self.send_error(400, f"bad Content-Length {clip(repr(length), 40)}")
-        if int(length) > limit:
-            return self.refuse_unread(413, f"request body of {int(length)} bytes, more than the limit of "
+        digits = length.strip().lstrip("0") or "0"           # not int() of 4300 digits and more: a ValueError
+        if len(digits) > len(str(limit)) or int(digits) > limit:
+            return self.refuse_unread(413, f"request body of {clip(digits, 40)} bytes, more than the limit of "
                                            f"{limit} (serve.max_body_bytes)")
-        data = self.rfile.read(int(length))               # a TimeoutError: handle_one_request drops it
-        if len(data) < int(length):
+        length = int(digits)
+        data = self.rfile.read(length)                    # a TimeoutError: handle_one_request drops it
+        if len(data) < length:
             self.close_connection = True                  # the client went away, or its deadline passed
             return
         self.server.watch(self.connection, None)          # read: the worker's time is not the client's

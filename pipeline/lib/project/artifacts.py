@@ -70,6 +70,16 @@ def rooted_files(ingest: dict, root: Path) -> dict:
     return {**ingest, "joints": rooted(root, ingest["joints"]), "tracker": rooted(root, ingest["tracker"])}
 
 
+def project_owned(root: Path) -> list[Path]:
+    """The files and folders at `root` a command's output may not replace: every output dvc.lock records, the
+    settings and pipeline files, the committed campaigns and the benchmark records."""
+    import yaml
+    lock = root / "dvc.lock"
+    stages = (yaml.safe_load(lock.read_text()) or {}).get("stages", {}) if lock.exists() else {}
+    outs = [o["path"] for s in stages.values() for o in s.get("outs", [])]
+    return [root / p for p in (PARAMS_FILE, "dvc.yaml", "dvc.lock", "data/raw", REPORTS / "bench", *outs)]
+
+
 def require(root: Path, files) -> None:
     """Raise a ValueError naming each of `files` (artifact paths) missing from the project at `root`."""
     missing = [str(f) for f in files if not (root / f).exists()]

@@ -28,9 +28,16 @@ def same_file(a, b) -> bool:
         return a.resolve() == b.resolve()
 
 
-def check_outputs(outputs, inputs=()) -> None:
-    """A ValueError when an output is an input, two outputs are one file, or an output's folder is a file."""
+def check_outputs(outputs, inputs=(), owned=()) -> None:
+    """A ValueError when an output is an input, two outputs are one file, an output's folder is a file, or an
+    output is (or lies in a folder that is) one of the project's own files, `owned` (artifacts.project_owned):
+    written over, `dvc repro` and `git status` would not say why."""
     outputs, inputs = [Path(p) for p in outputs], [Path(p) for p in inputs]
+    for o in outputs:
+        for w in owned:
+            if same_file(o, w) or Path(w).resolve() in o.resolve().parents:
+                raise ValueError(f"{o} is the project's own {w} (a pipeline output, a setting, a committed "
+                                 "campaign or benchmark record): choose another output path")
     for o in outputs:
         folder = next((f for f in o.parents if f.exists()), None)   # the nearest that exists
         if folder is not None and not folder.is_dir():
