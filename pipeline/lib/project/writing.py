@@ -34,11 +34,6 @@ def check_outputs(outputs, inputs=(), owned=()) -> None:
     written over, `dvc repro` and `git status` would not say why."""
     outputs, inputs = [Path(p) for p in outputs], [Path(p) for p in inputs]
     for o in outputs:
-        for w in owned:
-            if same_file(o, w) or Path(w).resolve() in o.resolve().parents:
-                raise ValueError(f"{o} is the project's own {w} (a pipeline output, a setting, a committed "
-                                 "campaign or benchmark record): choose another output path")
-    for o in outputs:
         folder = next((f for f in o.parents if f.exists()), None)   # the nearest that exists
         if folder is not None and not folder.is_dir():
             raise ValueError(f"{folder} is a file, not a folder: cannot write {o} there")
@@ -46,6 +41,11 @@ def check_outputs(outputs, inputs=(), owned=()) -> None:
         for i in inputs:
             if same_file(o, i):
                 raise ValueError(f"{o} is the input {i} (the same file): choose another output path")
+    for o in outputs:
+        for w in owned:
+            if same_file(o, w) or Path(w).resolve() in o.resolve().parents:
+                raise ValueError(f"{o} is the project's own {w} (a pipeline output, a setting, a committed "
+                                 "campaign or benchmark record): choose another output path")
     for k, a in enumerate(outputs):
         for b in outputs[k + 1:]:
             if same_file(a, b):
