@@ -9,7 +9,8 @@
 Each file goes to a temporary file beside it first; only when every one is written are they renamed
 into place, and should a rename fail, those before it are undone (the files they replaced put back). An
 output that is an input by any spelling (a hard link, a symbolic link, `..`), or a folder, is refused
-before anything is written, as are two outputs that are one file.
+before anything is written, as are two outputs that are one file and (`owned`) one over the project's own
+files.
 """
 import os
 import shutil
