@@ -115,6 +115,9 @@ NAN = float("nan")
     # a review: written with 6 decimals, 4e-7 became `settle = 0.000000`, `acc = 0.000000`, `stopj(0.000000)`
     ("plan.settle_s", 4e-7), ("plan.acc", 4e-7), ("program.movej.acc", 4e-7), ("program.movej.vel", 9e-4),
     ("program.movel.acc", 4e-7), ("program.movel.vel", 4e-7),
+    # a slip of unit went into the script as written: deg/s as rad/s, mm/s as m/s, mm/s² as m/s²
+    ("program.movej.vel", 60), ("program.movej.acc", 80.0), ("program.movel.vel", 250), ("program.movel.acc", 1200),
+    ("plan.vel", 30.0), ("plan.acc", 100),
     ("plan.rules.radius_mm", [300]), ("plan.rules.radius_mm", "x"), ("plan.rules.radius_mm", [850.0, 300.0]),
     ("plan.rules.height_mm", [0.0, NAN]),
     ("plan.rules.elbow_min_mm", -1e9), ("plan.rules.table_mm", "40"), ("plan.rules.sin_wrist", -1),

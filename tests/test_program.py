@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from conftest import exit_code, served_model
-from pipeline.commands import plan, program
+from pipeline.commands import path as path_command, plan, program
 from pipeline.lib.project.artifacts import load_points
 from pipeline.lib.project import writing
 from pipeline.lib.project.columns import JCOMP_DEG, JOINTS_DEG, TARGET, THEORY
@@ -390,6 +390,32 @@ def test_the_move_and_its_speeds_are_settings(in_trained_project, tmp_path, caps
     script = (tmp_path / "prog_comp.script").read_text()
     assert script.count("  movel([") == 3 and "movej" not in script.split("\n", 1)[1]
     assert "  acc = 0.500000" in script and "  vel = 0.100000" in script and "m/s^2, m/s" in script
+
+
+def test_a_movej_faster_than_the_robots_fastest_joint_is_refused_before_any_work(in_trained_project, tmp_path,
+                                                                                capsys, monkeypatch):
+    """A speed under the generic cap (2π rad/s) but above this robot's joints (a UR5's 180 deg/s: π rad/s) went
+    into the script as written; the program compensator and the planner and the path command (its approach) now refuse it, naming the key."""
+    src = program_file(tmp_path, n=3)
+    p = in_trained_project
+    assert p["robot"]["model"] == "ur5"
+    p["program"] = {**p["program"], "move": "movej", "movej": {"acc": 1.4, "vel": 3.2}}
+    p["plan"] = {**p["plan"], "vel": 3.2}
+    monkeypatch.setattr(program, "load_params", lambda path: p)
+    monkeypatch.setattr(plan, "load_params", lambda path: p)
+    monkeypatch.setattr(path_command, "load_params", lambda path: p)
+    code, said = exit_code(program.main, [str(src)], capsys)
+    assert code != 0 and "program.movej.vel: 3.2 rad/s, faster than the ur5's fastest joint (3.142 rad/s" in said, said
+    assert not (tmp_path / "prog_comp.script").exists()
+    code, said = exit_code(plan.main, [str(src), "--n", "5", "--out", str(tmp_path / "plan")], capsys)
+    assert code != 0 and "plan.vel: 3.2 rad/s, faster than the ur5's fastest joint" in said, said
+    assert not (tmp_path / "plan").exists()
+    code, said = exit_code(path_command.main, [str(src), "--out", str(tmp_path / "path")], capsys)
+    assert code != 0 and "program.movej.vel: 3.2 rad/s" in said, said                # the path's approach movej
+    assert not (tmp_path / "path").exists()
+    p["program"]["movej"]["vel"] = 3.14                                # at the joint's speed: written
+    assert exit_code(program.main, [str(src)], capsys)[0] == 0
+    assert "  vel = 3.140000" in (tmp_path / "prog_comp.script").read_text()
 
 
 def test_the_example_program_in_the_readme_runs(in_trained_project, tmp_path, capsys):

@@ -128,6 +128,7 @@ def run(argv=None) -> pd.DataFrame:
         raise ValueError(f"--chord: {cfg['chord_mm']:g} mm is not above compensate.tol_mm ({tol:g} mm), to which "
                          "each sample is solved: no step could meet it")
     robot = load_robot(p["robot"])
+    robot.check_joint_speed(p["program"]["movej"]["vel"], "program.movej.vel")     # the approach's movej
     speeds = joint_speeds(robot, cfg["joint_speed_deg_s"])
     require(root, (MODEL_WEIGHTS, WORKSPACE_JSON, FRAME_JSON))
     nominal = theory_geometry(robot, read_json(root / FRAME_JSON)["tool_mm"])

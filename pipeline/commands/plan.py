@@ -152,6 +152,7 @@ def run(argv=None) -> dict:
     p = for_stage(load_params(root / PARAMS_FILE), PARAMS)
     cfg = p["plan"]
     robot = load_robot(p["robot"])
+    robot.check_joint_speed(cfg["vel"], "plan.vel")
     require(root, (WORKSPACE_JSON, CALIBRATED_GEOMETRY, PARTS_JSON, CALIBRATION_JSON, FRAME_JSON))
     measure_script(np.zeros((0, 6)), cfg)                           # the script's settings, checked before work
     df = read_waypoints(src, robot)

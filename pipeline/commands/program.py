@@ -130,6 +130,8 @@ def run(argv=None) -> pd.DataFrame:
             raise ValueError(f"{f}: its folder {f.parent} does not exist; nothing written")
     p = for_stage(load_params(root / PARAMS_FILE), PARAMS)
     robot = load_robot(p["robot"])
+    if p["program"]["move"] == "movej":
+        robot.check_joint_speed(p["program"]["movej"]["vel"], "program.movej.vel")
     require(root, (MODEL_WEIGHTS, WORKSPACE_JSON, FRAME_JSON))
     df = read_waypoints(src, robot)
     workspace = Workspace.from_dict(read_json(root / WORKSPACE_JSON))

@@ -79,6 +79,11 @@ def _num(lo, hi=None, open_lo=False):
                       and (v > lo if open_lo else v >= lo) and (hi is None or v <= hi))
 
 
+def _scripted(hi: float, unit: str, what: str) -> tuple:
+    """The rule of a robot script's motion setting: SCRIPTED to hi (a slip of unit beyond it), in unit."""
+    return _num(SCRIPTED, hi), f"{what} {SCRIPTED:g}-{hi:.4g} {unit} (the script writes 6 decimals; more is a slip of unit)"
+
+
 def _fractions(v):
     return (isinstance(v, list) and len(v) == 3 and all(_num(0, 1, open_lo=True)(x) for x in v)
             and abs(sum(v) - 1) < 1e-9)
@@ -146,7 +151,14 @@ DEVICES = ("auto", "cpu", "cuda")
 SOLVERS = ("lm", "adam")
 REACH_MM = 5000.0          # a plan.rules length beyond this is a typo (the largest UR reaches 1750 mm)
 POS = _num(0, open_lo=True)
-SCRIPTED = _num(1e-3)          # a robot script's setting, written with 6 decimals: 3 significant digits at least
+SCRIPTED = 1e-3              # a robot script's setting, written with 6 decimals: 3 significant digits at least
+# Upper bounds of a robot script's motion settings: far above what a measurement or compensated move wants,
+# at or above what any arm in robots.py can do, so that a value beyond one is a slip of unit or decimal point
+# (deg/s as rad/s, mm/s as m/s) and stops the command; the robot's safety configuration keeps the last word.
+JOINT_SPEED_MAX = 2 * math.pi   # rad/s: 360 deg/s, the fastest joint in robots.py (the e-series' wrists)
+JOINT_ACC_MAX = 40.0            # rad/s²
+TOOL_SPEED_MAX = 5.0            # m/s: the highest tool speed limit UR's safety configuration takes
+TOOL_ACC_MAX = 15.0             # m/s²
 
 RULES = {
     "robot.tcp": (lambda v: v is None or _tcps(v), "null, or name: {xyz_mm: [x, y, z], rxyz_deg: [rx, ry, rz], "
@@ -171,10 +183,10 @@ RULES = {
     "compensate.tol_arcsec": (_num(0, open_lo=True), "a tolerance > 0 arcsec"),
     "compensate.orientation": (lambda v: isinstance(v, bool), "true or false"),
     "program.move": (lambda v: v in ("movej", "movel"), "movej or movel"),
-    "program.movej.acc": (SCRIPTED, "an acceleration >= 0.001 rad/s² (the script writes 6 decimals)"),
-    "program.movej.vel": (SCRIPTED, "a speed >= 0.001 rad/s (the script writes 6 decimals)"),
-    "program.movel.acc": (SCRIPTED, "an acceleration >= 0.001 m/s² (the script writes 6 decimals)"),
-    "program.movel.vel": (SCRIPTED, "a speed >= 0.001 m/s (the script writes 6 decimals)"),
+    "program.movej.acc": _scripted(JOINT_ACC_MAX, "rad/s²", "an acceleration"),
+    "program.movej.vel": _scripted(JOINT_SPEED_MAX, "rad/s", "a speed"),
+    "program.movel.acc": _scripted(TOOL_ACC_MAX, "m/s²", "an acceleration"),
+    "program.movel.vel": _scripted(TOOL_SPEED_MAX, "m/s", "a speed"),
     "path.spacing_mm": (_num(0, open_lo=True), "a spacing > 0 mm"),
     "path.chord_mm": (lambda v: v is None or _num(0, open_lo=True)(v), "null or a tolerance > 0 mm"),
     "path.speed_mm_s": (_num(0, open_lo=True), "a speed > 0 mm/s"),
@@ -236,9 +248,9 @@ RULES = {
     "plan.region": (_int(0), "an integer >= 0 (candidates sampled in the program's joint box)"),
     "plan.region_margin_deg": (_num(0, 360), "an angle 0-360 deg"),
     "plan.seed": (_int(0), "an integer >= 0"),
-    "plan.settle_s": (SCRIPTED, "a time >= 0.001 s (the script writes 6 decimals)"),
-    "plan.acc": (SCRIPTED, "an acceleration >= 0.001 rad/s² (the script writes 6 decimals)"),
-    "plan.vel": (SCRIPTED, "a speed >= 0.001 rad/s (the script writes 6 decimals)"),
+    "plan.settle_s": (_num(SCRIPTED), "a time >= 0.001 s (the script writes 6 decimals)"),
+    "plan.acc": _scripted(JOINT_ACC_MAX, "rad/s²", "an acceleration"),
+    "plan.vel": _scripted(JOINT_SPEED_MAX, "rad/s", "a speed"),
     "plan.rules.radius_mm": (_or_null(_interval(0, REACH_MM)), f"null (off) or [lo, hi] mm, 0 <= lo < hi <= {REACH_MM:g}"),
     "plan.rules.height_mm": (_or_null(_interval(-REACH_MM, REACH_MM)),
                              f"null (off) or [lo, hi] mm, -{REACH_MM:g} <= lo < hi <= {REACH_MM:g}"),

@@ -167,6 +167,14 @@ class Robot:
         lo, hi = self.limits_deg[:, 0], self.limits_deg[:, 1]
         return ~((q_deg >= lo) & (q_deg <= hi))
 
+    def check_joint_speed(self, vel_rad_s: float, key: str) -> None:
+        """A script's movej speed (rad/s, its leading joint's) no faster than this robot's fastest joint, where
+        its speed limits are known; else a ValueError naming the setting key."""
+        top = float(np.max(self.velocity_rad_s))
+        if top > 0 and vel_rad_s > top:
+            raise ValueError(f"params.yaml {key}: {vel_rad_s:g} rad/s, faster than the {self.name}'s fastest joint "
+                             f"({top:.4g} rad/s, {np.degrees(top):.0f} deg/s): a slip of unit? Nothing written")
+
 
 DH_KEYS = ("d", "a", "alpha_deg", "offset_deg")
 JOINT_LIMIT_KEYS = ("velocity_deg_s", "effort_nm")     # a custom robot's datasheet joint limits (optional)
