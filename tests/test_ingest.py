@@ -866,9 +866,11 @@ def test_the_bundled_campaign_ingests_to_the_bytes_dvc_lock_records(tmp_path, mo
         assert hashlib.md5(Path(path).read_bytes()).hexdigest() == lock[path], path
 
 
-def test_a_campaign_with_orientation_joins_one_without(tmp_path, monkeypatch):
-    """campaigns.more: the further campaign measures orientation, the ingest section's does not: meas_q*
-    follow meas_z, NaN on the points without."""
+def test_a_campaign_with_orientation_beside_one_without_stops_the_ingest_naming_both(tmp_path, monkeypatch):
+    """campaigns.more: the further campaign measures orientation, the ingest section's does not. Joined with
+    NaN on the points without, the frame stage then stopped on scipy's "Found zero norm quaternions", naming
+    no campaign (every stage after ingest fits the orientation from every point). Now the ingest stage stops,
+    naming the campaigns and the keys that settle it; each campaign alone still reads."""
     from pipeline.stages.ingest import run_campaign
     monkeypatch.chdir(tmp_path)
     ids, q, m = campaign(15, seed=14)
@@ -881,12 +883,18 @@ def test_a_campaign_with_orientation_joins_one_without(tmp_path, monkeypatch):
         "joints": joints, "tracker": tracker, "columns": {"orientation": ["qw", "qx", "qy", "qz"]},
         "orientation": {"kind": "quaternion"}}}}
     run_campaign(p, "b")
+    b = pd.read_parquet("data/interim/campaigns/b.parquet")
+    assert max_angle(rotations(b[MEAS_Q].to_numpy()), Rotation.from_quat(quat, scalar_first=True).as_matrix()) < 1e-12
+    with pytest.raises(ValueError, match=r"campaign\(s\) b measure the probe's orientation and main do not: .* Give "
+                                         r"ingest.columns.orientation .* or set campaigns.more.b.ingest.columns."
+                                         r"orientation to null"):
+        run(p)
+    assert not Path("data/interim/ingest.parquet").exists()
+    p["campaigns"]["more"]["b"]["ingest"]["columns"]["orientation"] = None        # positions alone: joined
+    run_campaign(p, "b")
     run(p)
     df = pd.read_parquet("data/interim/ingest.parquet")
-    assert list(df.columns) == ["point_id", *JOINTS_DEG, *MEAS, *MEAS_Q, "campaign", "station"]
-    assert df.loc[df.campaign == "main", MEAS_Q].isna().all().all()
-    assert max_angle(rotations(df.loc[df.campaign == "b", MEAS_Q].to_numpy()),
-                     Rotation.from_quat(quat, scalar_first=True).as_matrix()) < 1e-12
+    assert not set(MEAS_Q) & set(df.columns) and len(df) == 30 and set(df.campaign) == {"main", "b"}
 
 
 def ingest_lock() -> dict:

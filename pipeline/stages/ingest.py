@@ -9,8 +9,8 @@ file); pairing, units, checks and the dropped-row list are lib/reading/readers.p
 A `more` campaign is read the same way with its own overrides (lib/reading/campaigns.py)
 into data/interim/campaigns/NAME.parquet and reports/campaigns/NAME.json.
 Writes the table (with each point's campaign and station) and reports/ingest.json:
-every dropped row, of every campaign, with its reason. Where a campaign measures the probe's
-orientation (meas_qw..meas_qz), those columns follow meas_z, NaN for a campaign that does not.
+every dropped row, of every campaign, with its reason. Where the campaigns measure the probe's
+orientation (meas_qw..meas_qz: all of them or none), those columns follow meas_z.
 """
 import argparse
 from collections import Counter
@@ -39,7 +39,7 @@ def labelled(df: pd.DataFrame, campaign: str, station: str) -> pd.DataFrame:
 
 
 def joined(parts: list) -> pd.DataFrame:
-    """The campaigns' tables as one; meas_q* (where any campaign has them) right after meas_z."""
+    """The campaigns' tables as one; meas_q* (where the campaigns have them) right after meas_z."""
     out = pd.concat(parts, ignore_index=True)
     if MEAS_Q[0] not in out.columns:
         return out
@@ -63,6 +63,22 @@ def one_target_frame(summaries: dict) -> None:
                      "estimate has its own frame (its markers' centroid, the tracker's axes at its first pose), so "
                      "the campaigns' orientations and positions would disagree by that frame. Give the target's "
                      f"geometry in ingest.target, e.g. campaign {estimated[0]}'s estimate: {{markers: {{{markers}}}}}")
+
+
+def all_or_none_oriented(summaries: dict) -> None:
+    """Stop when some campaigns ({campaign: its ingest summary}, the ingest section's first) measure the probe's
+    orientation and others do not: the stages after ingest fit it from every point or from none (the frame
+    stage stopped on the others' missing quaternions, naming no campaign)."""
+    oriented = [c for c, s in summaries.items() if "orientation" in s["units"]]
+    if not oriented or len(oriented) == len(summaries):
+        return
+    plain = [c for c in summaries if c not in oriented]
+    key = lambda c: "ingest.columns.orientation" if c == next(iter(summaries)) else \
+        f"campaigns.more.{c}.ingest.columns.orientation"
+    raise ValueError(f"campaign(s) {', '.join(oriented)} measure the probe's orientation and {', '.join(plain)} "
+                     "do not: the pipeline fits the orientation from every campaign or from none. Give "
+                     f"{' and '.join(key(c) for c in plain)} (the headers of their orientation columns), or set "
+                     f"{' and '.join(key(c) for c in oriented)} to null to calibrate on positions alone")
 
 
 def run_campaign(params: dict, name: str, root: Path = HERE) -> dict:
@@ -106,6 +122,7 @@ def run(params: dict, root: Path = HERE) -> dict:
         summary["dropped"] += [{**d, "campaign": name} for d in rep["dropped"]]
         summary["campaigns"][name] = {"station": stations[name], "n_kept": len(part),
                                       "n_dropped": len(rep["dropped"]), "files": rep["files"]}
+    all_or_none_oriented(reports)
     one_target_frame(reports)
     out = joined(parts)
     if more:
