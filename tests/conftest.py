@@ -54,12 +54,12 @@ def sh(cmd, cwd, check=True):
 
 def pytest_collection_modifyitems(items):
     """The longest work first (a stable sort): the tests on `reproduced` (the first builds it), the other slow
-    tests that need no trained project (the two-station repro, bench real on Ray), the other tests that need
-    none, then those on trained_project (on a fresh clone, `reproduced` too). xdist hands out the "serial"
-    group (the largest scope) and then single tests in this order, so one worker builds `reproduced` from
-    the start while the other runs the group's tests that need nothing of it (the two-station repro, bench
-    real on Ray: ~190 s, longer than the build) before those that do, rather than waiting on its lock
-    (docs/results.md, the suite's timeline)."""
+    tests that need no trained project (the two-station project of the user's own campaign, bench real on
+    Ray), the other tests that need none, then those on trained_project (on a fresh clone, `reproduced` too).
+    xdist hands out the "serial" group (the largest scope) and then single tests in this order, so one worker
+    builds `reproduced` from the start while the other runs the group's tests that need nothing of it (that
+    project's repro, bench real on Ray: ~190 s, longer than the build) before those that do, rather than
+    waiting on its lock (docs/results.md, the suite's timeline)."""
     def rank(item):
         names = set(item.fixturenames)
         if "reproduced" in names:

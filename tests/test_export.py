@@ -378,10 +378,14 @@ def test_lm_step_on_the_controller_graph_is_lm_in_pytorch(in_trained_project):
 def test_controller_onnx_is_the_same_bytes_when_exported_again(in_trained_project, tmp_path):
     """DVC outputs: exported again (another process, another directory), the same file, with no source paths.
     (controller_physics.onnx, written by the same function, is held to its bytes by the fresh copy's repro in
-    test_pipeline_e2e.py, as every output is; exporting it here too cost the suite ~17 s.)"""
+    test_pipeline_e2e.py, as every output is; exporting it here too cost the suite ~17 s. Where the model is
+    served without its network, it is the graph exported here.)"""
     export_controller(served_model(), tmp_path / "controller.onnx")
     data = (tmp_path / "controller.onnx").read_bytes()
     assert data == Path("models/controller.onnx").read_bytes()
+    network = Workspace.from_dict(read_json("models/workspace.json")).network
+    physics = Path("models/controller_physics.onnx").read_bytes()       # served without its network, the model is
+    assert (physics == data) != network                                 # its physics: export_all copies the graph
     assert b"realtime.py" not in data and b"onnx_model.py" not in data
     export = json.loads(Path("reports/export.json").read_text())
     for name in ("controller", "controller_physics"):          # the export stage's read-back of both

@@ -13,7 +13,7 @@ import pandas as pd
 import pytest
 import yaml
 
-from conftest import project_copy, repo_copy, sh
+from conftest import once, project_copy, repo_copy, sh
 from pipeline.lib.project.columns import COMPENSATION
 
 
@@ -146,42 +146,9 @@ def test_exp_run_set_param_and_invalid_combination(reproduced, tmp_path):
     assert head == runs[name]["metrics"]["reports/headline.json"]["data"]["test_3d_mae_mm"]["spi_boter_calibrated"]
 
 
-@pytest.mark.slow
-@pytest.mark.xdist_group("serial")   # conftest: its worker starts with this, not waiting on `reproduced`
-def test_repro_from_two_tracker_stations(tmp_path):
-    """The twin-2stations preset through dvc: the second campaign's own ingest stage, one frame
-    per station, per-campaign metrics and report, and an edit of its export re-runs its stages."""
-    repo = project_copy(tmp_path)
-    sh("python -m pipeline.commands.preset twin-2stations && git commit -qam preset", repo)
-    out = sh("dvc repro", repo).stdout
-    assert "Running stage 'ingest_campaign@station_b'" in out
-    frame = json.loads((repo / "reports/frame.json").read_text())
-    assert list(frame["stations"]) == ["a", "b"] and frame["stations"]["b"]["n"] == 300
-    assert frame["R"] == frame["stations"]["a"]["R"]
-    metrics = json.loads((repo / "reports/metrics.json").read_text())
-    assert {c: v["station"] for c, v in metrics["campaigns"].items()} == {"main": "a", "station_b": "b"}
-    assert metrics["campaigns"]["station_b"]["n"] == {"train": 240, "val": 30, "test": 30, "holdout": 0}
-    for c in ("main", "station_b"):
-        m = metrics["campaigns"][c]
-        assert m["calibrated_dh"]["test"]["mae"] < 0.2 * m["nominal_dh"]["test"]["mae"], c
-    pred = pd.read_parquet(repo / "data/interim/predictions.parquet")
-    assert set(pred.campaign) == {"main", "station_b"} and pred.point_id.str.startswith("station_b:B").sum() == 300
-    index = (repo / "reports/index.md").read_text()
-    assert "Tracker stations" in index and "| station_b (b) | 30 |" in index
-    assert "up to date" in sh("dvc repro", repo).stdout
-    tracker = repo / "data/raw/station_b/tracker.csv"
-    tracker.write_text(tracker.read_text().replace("\n", "\r\n", 1))          # an edited export
-    status = json.loads(sh("dvc status --json", repo).stdout)
-    changed = [k for k in status if not k.startswith(("ablation/", "fleet/"))]   # the opt-in ones never ran
-    assert changed == ["ingest_campaign@station_b"]             # and what follows it, once it re-runs
-
-
-@pytest.mark.slow
-def test_own_data_in_another_dialect_runs_to_a_report_with_an_edit_of_ingest_only(tmp_path):
-    """Issue 33: a user's campaign (a preamble line, `;`, decimal commas, metres, UR's actual_q_* in radians,
-    a few bad rows) with only `ingest:` pointed at it. Before: ~4 min, then a traceback in validate@twin_side
-    (the twin's campaign read with the user's settings), and a twin drive check reported for a real robot."""
-    repo = project_copy(tmp_path)
+def own_campaign(repo: Path) -> None:
+    """The twin's main campaign as a user's export in another dialect (a preamble line, `;`, decimal commas,
+    metres, UR's actual_q_* in radians, two bad rows), and only `ingest:` pointed at it; committed."""
     j = pd.read_csv(repo / "data/raw/joints.csv")
     t = pd.read_csv(repo / "data/raw/tracker.csv").set_index("Name").loc[j.point_id]
     rows = [";".join([pid, *(f"{np.radians(v):.9f}" for v in q), *(f"{v / 1000:.7f}" for v in m)]).replace(".", ",")
@@ -198,8 +165,69 @@ def test_own_data_in_another_dialect_runs_to_a_report_with_an_edit_of_ingest_onl
     params["ingest"]["columns"]["orientation"] = None          # positions only (the twin's has QW..QZ)
     (repo / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
     sh("git add -A && git commit -qm 'my campaign'", repo)
-    r = sh("dvc repro", repo)
-    assert "Traceback" not in r.stdout + r.stderr
+
+
+@pytest.fixture(scope="session")
+def own_two_stations(tmp_path_factory) -> tuple[Path, str]:
+    """One project for the two tests below (one `dvc repro`, ~2 min, instead of two): the twin-2stations preset
+    (committed), then the main campaign replaced by the user's own (own_campaign), station b's read in its
+    own dialect (the twin's; a campaign's ingest settings are the main one's, overridden: positions alone,
+    since the campaigns measure orientation all or none), then `dvc repro`. The repo and what the repro said; read only (a test that changes it works on a copy)."""
+    def make(folder):
+        repo = project_copy(folder)
+        sh("python -m pipeline.commands.preset twin-2stations && git commit -qam preset", repo)
+        own_campaign(repo)
+        params = yaml.safe_load((repo / "params.yaml").read_text())     # station b's export in the twin's dialect
+        params["campaigns"]["more"]["station_b"]["ingest"].update(      # (positions alone, as the main one's)
+            skip_lines=0, length_unit="mm")
+        (repo / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+        sh("git commit -qam 'station b: its own dialect'", repo)
+        r = sh("dvc repro", repo)
+        (folder.parent / "own_two_stations.said").write_text(r.stdout + r.stderr)
+        return repo
+    repo = Path(once(tmp_path_factory, "own_two_stations", make))
+    return repo, (repo.parent / "own_two_stations.said").read_text()
+
+
+@pytest.mark.slow
+@pytest.mark.xdist_group("serial")   # conftest: its worker starts with these, not waiting on `reproduced`
+def test_repro_from_two_tracker_stations(own_two_stations, tmp_path):
+    """The twin-2stations preset through dvc (its main campaign the user's own, as below): the second
+    campaign's own ingest stage, one frame per station, per-campaign metrics and report, and an edit of its
+    export re-runs its stages."""
+    repo, out = own_two_stations
+    assert "Running stage 'ingest_campaign@station_b'" in out
+    frame = json.loads((repo / "reports/frame.json").read_text())
+    assert list(frame["stations"]) == ["a", "b"] and frame["stations"]["b"]["n"] == 300
+    assert frame["R"] == frame["stations"]["a"]["R"]
+    metrics = json.loads((repo / "reports/metrics.json").read_text())
+    assert {c: v["station"] for c, v in metrics["campaigns"].items()} == {"main": "a", "station_b": "b"}
+    assert metrics["campaigns"]["station_b"]["n"] == {"train": 240, "val": 30, "test": 30, "holdout": 0}
+    for c in ("main", "station_b"):
+        m = metrics["campaigns"][c]
+        assert m["calibrated_dh"]["test"]["mae"] < 0.2 * m["nominal_dh"]["test"]["mae"], c
+    pred = pd.read_parquet(repo / "data/interim/predictions.parquet")
+    assert set(pred.campaign) == {"main", "station_b"} and pred.point_id.str.startswith("station_b:B").sum() == 300
+    index = (repo / "reports/index.md").read_text()
+    assert "Tracker stations" in index and "| station_b (b) | 30 |" in index
+    repo = repo_copy(repo, tmp_path / "repo")                   # its own copy: the edit below changes it
+    assert "up to date" in sh("dvc repro", repo).stdout
+    tracker = repo / "data/raw/station_b/tracker.csv"
+    tracker.write_text(tracker.read_text().replace("\n", "\r\n", 1))          # an edited export
+    status = json.loads(sh("dvc status --json", repo).stdout)
+    changed = [k for k in status if not k.startswith(("ablation/", "fleet/"))]   # the opt-in ones never ran
+    assert changed == ["ingest_campaign@station_b"]             # and what follows it, once it re-runs
+
+
+@pytest.mark.slow
+@pytest.mark.xdist_group("serial")
+def test_own_data_in_another_dialect_runs_to_a_report_with_an_edit_of_ingest_only(own_two_stations):
+    """Issue 33: a user's campaign (a preamble line, `;`, decimal commas, metres, UR's actual_q_* in radians,
+    a few bad rows) with only `ingest:` pointed at it (own_campaign; here beside a second station's campaign,
+    the project both tests share). Before: ~4 min, then a traceback in validate@twin_side (the twin's
+    campaign read with the user's settings), and a twin drive check reported for a real robot."""
+    repo, out = own_two_stations
+    assert "Traceback" not in out
     ingest = json.loads((repo / "reports/ingest.json").read_text())
     assert {(d["row"], d["reason"]) for d in ingest["dropped"]} >= {(13, "non_numeric"), (23, "field_count")}
     assert ingest["units"]["position"]["to_mm"] == 1000.0 and ingest["n_kept"] > 700
@@ -210,5 +238,5 @@ def test_own_data_in_another_dialect_runs_to_a_report_with_an_edit_of_ingest_onl
     assert val["campaigns"] == {} and "twin's campaign" in val["skipped"]["twin_side"]
     index = (repo / "reports/index.md").read_text()
     assert "`twin_side` not judged" in index and "No drive check (the campaign is not the twin's" in index
-    assert "validate.campaigns is empty" not in r.stdout + r.stderr       # it lists twin_side, skipped: said so
+    assert "validate.campaigns is empty" not in out       # it lists twin_side, skipped: said so
     assert sh("git status --porcelain", repo).stdout == " M dvc.lock\n"          # the new campaign's, nothing else

@@ -35,6 +35,7 @@ dropped, since they carry the absolute path and line numbers of the exported sou
 `pkg.torch.onnx.stack_trace`), which differ between clones. They never reach the predictions.
 """
 import logging
+import shutil
 import time
 import warnings
 
@@ -93,17 +94,23 @@ class _ControllerPose(_Controller):
 def export_all(model, paths: dict) -> dict:
     """Every graph of the export stage from four traces, in its order: paths {file stem: Path} for model,
     controller_tcp and controller, controller_physics_tcp and controller_physics (the marker graphs from
-    their TCP graphs' traces), controller_pose. The seconds of each trace, {what: s}."""
-    physics = PhysicsOnly(model)
+    their TCP graphs' traces), controller_pose. The seconds of each trace, {what: s}. A model that is its
+    physics branch already (model.served without the network) has physics graphs that are its own, to the
+    byte: they are copied, not traced again."""
     traces = {
         "model": lambda: export_onnx(model, paths["model"]),
         "controller_tcp and controller (one trace)":
             lambda: export_controller(model, paths["controller_tcp"], at_tcp=True, probe_path=paths["controller"]),
         "controller_physics_tcp and controller_physics (one trace)":
-            lambda: export_controller(physics, paths["controller_physics_tcp"], at_tcp=True,
+            lambda: export_controller(PhysicsOnly(model), paths["controller_physics_tcp"], at_tcp=True,
                                       probe_path=paths["controller_physics"]),
         "controller_pose": lambda: export_controller(model, paths["controller_pose"], pose=True),
     }
+    if isinstance(model, PhysicsOnly):
+        del traces["controller_physics_tcp and controller_physics (one trace)"]
+        traces["controller_physics_tcp and controller_physics (copies: the model is its physics)"] = lambda: [
+            shutil.copyfile(paths[own], paths[copy])
+            for own, copy in (("controller_tcp", "controller_physics_tcp"), ("controller", "controller_physics"))]
     seconds = {}
     for what, export in traces.items():
         t = time.perf_counter()
