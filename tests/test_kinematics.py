@@ -79,6 +79,33 @@ def test_custom_robot_and_bad_tables():
         load_robot({"model": "ur5", "dh": None, "joint_limits_deg": None, "tcp": None, "tool": [0, 0, 0]})
 
 
+def test_joint_limits_and_a_custom_table_beyond_the_arm_are_refused_naming_the_key():
+    """A review (2026-12-06): robot.joint_limits_deg of ±100000° let a waypoint 100 turns away become a movej
+    (628 rad); inverted pairs were blamed on the input file's row; a NaN in a custom DH table gave every
+    waypoint "residual nan". And a movej speed was checked against the fastest joint (a UR10's wrists,
+    3.14 rad/s), where its base, which may lead the move, turns at 2.09; a custom robot without speed limits
+    was not checked at all."""
+    def robot(limits=None, model="ur5", **dh):
+        table = {"d": list(UR5.d), "a": list(UR5.a), "alpha_deg": [90, 0, 0, 90, -90, 0], "offset_deg": [0] * 6, **dh}
+        return load_robot({"model": model, "dh": table if model == "custom" else None, "joint_limits_deg": limits,
+                           "tcp": None, "tool_mm": [0, 0, 0]})
+    for bad, said in (([[-100000, 100000]] + [[-360, 360]] * 5, r"joint\(s\) \[1\] beyond the robot's own limits"),
+                      ([[360, -360]] * 6, "min < max"), ([[0, float("nan")]] * 6, "min < max"),
+                      ([[-10, 10]] * 5, "6 pairs"), ("wide", "6 pairs")):
+        with pytest.raises(ValueError, match=rf"^params.yaml robot.joint_limits_deg: .*{said}"):
+            robot(bad)
+    assert robot([[-180, 180]] * 6).limits_deg.tolist() == [[-180.0, 180.0]] * 6
+    with pytest.raises(ValueError, match=r"^params.yaml robot.dh.d: 6 finite numbers"):
+        robot(model="custom", d=[float("nan")] + list(UR5.d[1:]))
+    ur10 = nominal_robot("ur10")
+    with pytest.raises(ValueError, match=r"program.movej.vel: 3.1 rad/s, faster than the ur10's slowest joint \(2.094"):
+        ur10.check_joint_speed(3.1, "program.movej.vel")
+    ur10.check_joint_speed(2.09, "program.movej.vel")
+    with pytest.raises(ValueError, match=r"plan.vel: the robot's joint speed limits are unknown .* robot.dh.velocity_deg_s"):
+        robot(model="custom").check_joint_speed(0.5, "plan.vel")
+    robot(model="custom", velocity_deg_s=[90] * 6).check_joint_speed(1.5, "plan.vel")
+
+
 def test_geometric_jacobian_equals_autograd_with_every_error_term():
     g = nominal_geometry(load_robot({"model": "ur5", "tool_mm": [1.0, -2.0, 100.0], "dh": None, "joint_limits_deg": None, "tcp": None}))
     gen = torch.Generator().manual_seed(3)

@@ -118,6 +118,8 @@ NAN = float("nan")
     # a slip of unit went into the script as written: deg/s as rad/s, mm/s as m/s, mm/s² as m/s²
     ("program.movej.vel", 60), ("program.movej.acc", 80.0), ("program.movel.vel", 250), ("program.movel.acc", 1200),
     ("plan.vel", 30.0), ("plan.acc", 100),
+    # a review: written as given (settle = 1e30 s; a path at 100 m/s; the branch-flip guard off at 1e6 mm)
+    ("plan.settle_s", 1e30), ("path.speed_mm_s", 1e5), ("path.max_deviation_mm", 1e6),
     ("plan.rules.radius_mm", [300]), ("plan.rules.radius_mm", "x"), ("plan.rules.radius_mm", [850.0, 300.0]),
     ("plan.rules.height_mm", [0.0, NAN]),
     ("plan.rules.elbow_min_mm", -1e9), ("plan.rules.table_mm", "40"), ("plan.rules.sin_wrist", -1),

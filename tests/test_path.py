@@ -37,7 +37,7 @@ SCRIPT_LINE = re.compile(                                        # every line th
     r"# the flange's orientation held along the path: residual max [0-9.]+ arcsec|"
     r"  def servo_step\(a, b, n\):|    # from joints a to b in n controller cycles, joint-linear: one servoj a cycle|"
     r"    i = 1\.0|    while i <= n:|      s = i / n|"
-    r"      servoj\(\[(a\[\d\] \+ s \* \(b\[\d\] - a\[\d\]\)(, )?){6}\], t=0\.002, lookahead_time=[0-9.]+, gain=\d+\)|"
+    r"      servoj\(\[(a\[\d\] \+ s \* \(b\[\d\] - a\[\d\]\)(, )?){6}\], t=0\.00[28], lookahead_time=[0-9.]+, gain=\d+\)|"
     r"      i = i \+ 1\.0|    end|  end|end|"
     r"  movej\(\[[-0-9., ]+\], a=[0-9.]+, v=[0-9.]+\)|  servo_step\(\[[-0-9., ]+\], \[[-0-9., ]+\], \d+\)|"
     r"  # sample \d+: outside the trained workspace \(uncertainty [0-9.]+ mm\)|  stopj\([0-9.]+\)|")
@@ -184,11 +184,52 @@ def test_no_servo_step_is_faster_than_the_speed_asked():
     """The defect (a review): each step's cycles were rounded to the nearest, so 1 mm at 400 mm/s (1.25 cycles)
     took one, driven at 500 mm/s. Rounded up now: 2 cycles, 250 mm/s; whole cycles stay exact."""
     arc = np.array([0.0, 1.0, 2.0, 2.5, 12.5])
-    for speed in (400.0, 20.0, 7.0, 1e308):
-        t = pathsolve.servo_times(arc, speed)
-        assert (np.diff(arc) / t <= speed * (1 + 1e-9)).all() and np.allclose(t / 0.002, np.round(t / 0.002))
-    np.testing.assert_allclose(pathsolve.servo_times(arc, 400.0), [0.004, 0.004, 0.002, 0.026])
-    np.testing.assert_allclose(pathsolve.servo_times(arc, 20.0), [0.05, 0.05, 0.026, 0.5])
+    for speed in (400.0, 20.0, 7.0, 5000.0):
+        for cycle in (0.002, 0.008):
+            t = pathsolve.servo_times(arc, speed, cycle)
+            assert (np.diff(arc) / t <= speed * (1 + 1e-9)).all() and np.allclose(t / cycle, np.round(t / cycle))
+    np.testing.assert_allclose(pathsolve.servo_times(arc, 400.0, 0.002), [0.004, 0.004, 0.002, 0.026])
+    np.testing.assert_allclose(pathsolve.servo_times(arc, 20.0, 0.002), [0.05, 0.05, 0.026, 0.5])
+    np.testing.assert_allclose(pathsolve.servo_times(arc, 20.0, 0.008), [0.056, 0.056, 0.032, 0.504])
+
+
+def test_servoj_steps_at_the_robots_own_controller_cycle():
+    """A review (2026-12-06): the script gave servoj t=0.002 for every robot, but a CB3 controller (the UR3, UR5 and
+    UR10 of robots.py, the default UR5 among them) runs at 125 Hz: each call lasts a cycle of 8 ms, so the path ran
+    up to 4 times longer than path.csv's times and the lookahead hold a quarter as long. Now each robot's cycle:
+    8 ms on a CB3, 2 ms on an e-Series, UR20, UR30; 8 ms, a whole number of either's cycles, on a custom robot."""
+    def robot(name, **dh):
+        table = {"d": [89.2, 0, 0, 109.2, 94.7, 82.3], "a": [0, -425, -392.3, 0, 0, 0],
+                 "alpha_deg": [90, 0, 0, 90, -90, 0], "offset_deg": [0] * 6}
+        return load_robot({"model": name, "dh": table if name == "custom" else None, "joint_limits_deg": None,
+                           "tcp": None, "tool_mm": [0, 0, 0]})
+    cycles = {n: pathsolve.cycle_s(robot(n)) for n in ("ur3", "ur5", "ur10", "ur3e", "ur5e", "ur10e", "ur16e", "ur20",
+                                                       "ur30", "custom")}
+    assert cycles == {"ur3": 0.008, "ur5": 0.008, "ur10": 0.008, "ur3e": 0.002, "ur5e": 0.002, "ur10e": 0.002,
+                      "ur16e": 0.002, "ur20": 0.002, "ur30": 0.002, "custom": 0.008}
+    table = pd.DataFrame({"arc_mm": [0.0, 1.0, 2.0], **{c: [0.0, 0.1, 0.2] for c in JCOMP_DEG},
+                          "residual_mm": 0.0, "in_workspace": True, "uncertainty_mm": 0.1, "t_s": [0.0, 0.056, 0.112],
+                          "orientation_residual_arcsec": np.nan})
+    script = pathsolve.urscript(table, 20.0, 0.05, 300, 1.4, 1.05, 0.008)
+    assert "servoj([" in script and ", t=0.008, lookahead_time=0.050, gain=300)" in script
+    assert script.count(", 7)") == 3                         # each 1 mm step 56 ms (7 cycles), and the hold, 50 ms up
+    assert re.search(r"servo_step\((\[[^]]+\]), \1, 7\)", script)                           # to 7 cycles
+
+
+def test_a_path_faster_than_any_tool_or_its_joints_is_refused():
+    """A review (2026-12-06): `--speed 100000` (mm/s, 100 m/s) and path.joint_speed_deg_s 1e6 (above a UR5's
+    180 deg/s) wrote a path whose joints ran at 419 deg/s; the service's compensate_path took the same."""
+    arc = np.array([0.0, 1.0, 2.0])
+    for speed in (5000.1, 1e5, 1e308, float("inf"), float("nan")):
+        with pytest.raises(ValueError, match=r"beyond 5000 mm/s, the highest tool speed"):
+            pathsolve.servo_times(arc, speed, 0.008)
+    ur5 = load_robot({"model": "ur5", "dh": None, "joint_limits_deg": None, "tcp": None, "tool_mm": [0, 0, 0]})
+    with pytest.raises(ValueError, match=r"path.joint_speed_deg_s: joint 1 at 1e\+06 deg/s, beyond the ur5's own 180"):
+        pathsolve.joint_speeds(ur5, 1e6)
+    with pytest.raises(ValueError, match=r"joint 6 at 181 deg/s"):
+        pathsolve.joint_speeds(ur5, [90] * 5 + [181])
+    assert pathsolve.joint_speeds(ur5, 90).tolist() == [90.0] * 6
+    assert pathsolve.joint_speeds(ur5, None).tolist() == pytest.approx([180.0] * 6)
 
 
 def test_path_settings_are_checked_by_key():
@@ -211,7 +252,8 @@ def test_a_compensated_seam_stays_on_the_path_on_the_twin(in_trained_project, tm
     back = pd.read_csv(tmp_path / "out" / "path.csv")
     assert list(back.columns) == pathsolve.PATH_COLUMNS and len(back) == 101 and back.converged.all()
     np.testing.assert_allclose(back.arc_mm, np.arange(101.0), atol=1e-9)
-    np.testing.assert_allclose(back.t_s.iloc[-1], 100 / in_trained_project["path"]["speed_mm_s"], atol=1e-9)
+    step = 1 / in_trained_project["path"]["speed_mm_s"]                  # 1 mm: 50 ms, a UR5's (CB3) 8 ms cycles up
+    np.testing.assert_allclose(back.t_s.iloc[-1], 100 * np.ceil(step / 0.008) * 0.008, atol=1e-9)
     np.testing.assert_allclose(back[TARGET].to_numpy(), np.linspace(*np.array(SEAM), 101), atol=1e-6)
     judge = Judge(in_trained_project, root=Path.cwd())
     segs = segments(np.array(SEAM), ["", "movel"])
@@ -225,8 +267,8 @@ def test_a_compensated_seam_stays_on_the_path_on_the_twin(in_trained_project, tm
     steps = re.findall(r"  servo_step\((\[[^\]]+\]), (\[[^\]]+\]), (\d+)\)", script)
     to = np.array([[float(v) for v in b.strip("[]").split(",")] for _, b, _ in steps])
     np.testing.assert_allclose(to[:-1], np.radians(q[1:]), atol=1e-8)                 # then the end, held
-    cycles = round(1.0 / in_trained_project["path"]["speed_mm_s"] / 0.002)        # 1 mm at the path's speed
-    assert [int(n) for *_, n in steps] == [cycles] * 100 + [25] and len(table) == 101  # the end held 0.05 s
+    cycles = np.ceil(1.0 / in_trained_project["path"]["speed_mm_s"] / 0.008)      # 1 mm at the path's speed, 8 ms
+    assert [int(n) for *_, n in steps] == [cycles] * 100 + [7] and len(table) == 101   # cycles; the end held 0.05 s up
 
 
 def test_a_path_at_a_tcp_keeps_that_tcp_on_the_path_on_the_twin(in_trained_project, tmp_path):
@@ -264,7 +306,7 @@ def test_the_script_holds_only_numbers_and_fixed_text(in_trained_project, tmp_pa
     for (a, _, _), (_, b, _) in zip(steps[1:], steps[:-1]):
         np.testing.assert_array_equal(vec(a), vec(b))                               # continuous
     cycles = np.array([int(n) for *_, n in steps[:-1]])
-    np.testing.assert_allclose(cycles * 0.002, np.diff(table.t_s), atol=1e-12)
+    np.testing.assert_allclose(cycles * 0.008, np.diff(table.t_s), atol=1e-12)           # a UR5: a CB3's cycles
     assert abs(table.arc_mm.iloc[-1] - (20 * np.pi + 10)) < 1e-6 and 0.19 <= np.diff(table.t_s).min()
 
 
@@ -296,8 +338,8 @@ def test_a_path_the_solver_cannot_follow_is_refused_naming_the_sample(in_trained
     (["--start-deg", "nan", "-60.4", "91.1", "-182.3", "-61.2", "-100.7"], r"--start-deg: joint 1 at nan° beyond its limits"),
     (["--speed", "1e-300", "--start-deg", *map(str, SEAM_START)], r"speed 1e-300 mm/s: a step of 1\.000 mm would take "
      r"more than 16777215 controller cycles \(URScript's 32-bit float counts no further\): a higher speed"),
-    (["--speed", "1e-5", "--start-deg", *map(str, SEAM_START)], r"speed 1e-05 mm/s: a step of 1\.000 mm would take "
-     r"more than 16777215 controller cycles"),   # was written: 5e7 cycles, a float counter stuck at 2^24: no end
+    (["--speed", "1e-6", "--start-deg", *map(str, SEAM_START)], r"speed 1e-06 mm/s: a step of 1\.000 mm would take "
+     r"more than 16777215 controller cycles"),   # 1.25e8 cycles of 8 ms: a float counter stuck at 2^24, no end
     (["--chord", "0.001", "--start-deg", *map(str, SEAM_START)], r"--chord: 0\.001 mm is not above "
      r"compensate\.tol_mm \(0\.001 mm\), to which each sample is solved"),  # was 4096 times the samples
     (["--spacing", "1e-307", "--start-deg", *map(str, SEAM_START)], r"inf samples at a spacing of 1e-307 mm over 100\.0 mm, "
@@ -331,7 +373,7 @@ def test_a_branch_flip_between_samples_is_refused(in_trained_project, tmp_path, 
     argv = [str(src), "--out", str(tmp_path / "o"), "--start-deg", *map(str, SEAM_START), "--spacing", "2"]
     code, said = exit_code(path_command.main, argv, capsys)
     assert code == 1 and re.search(r"sample 31 \(arc 60\.0 mm\): joint 4 turns 1(79|80)\.\d\d° from sample 30 in "
-                                   r"0\.100 s .*beyond its 180°/s", said), said
+                                   r"0\.104 s .*beyond its 180°/s", said), said
     calls.clear()
     code, said = exit_code(path_command.main, argv + ["--speed", "0.001"], capsys)
     m = re.search(r"samples 30-31 \(arc 58\.0-60\.0 mm\): the joint-space step between them leaves the path by "
@@ -520,7 +562,7 @@ def test_the_service_answers_a_whole_path(path_server, in_trained_project):
     tol = in_trained_project["compensate"]["tol_mm"]
     assert q.shape == (51, 6) and r["all_in_workspace"] and max(r["residual_mm"]) < tol
     np.testing.assert_allclose(r["arc_mm"], np.arange(0, 101, 2.0), atol=1e-9)
-    np.testing.assert_allclose(r["t_s"][-1], 5.0, atol=1e-9)
+    np.testing.assert_allclose(r["t_s"][-1], 50 * 0.104, atol=1e-9)          # 2 mm at 20 mm/s: 13 cycles of 8 ms
     np.testing.assert_allclose(model_position(served_model())(q), target, atol=tol)
     assert np.abs(np.diff(q, axis=0)).max() < 2.0                                  # no jump between samples
     bad = {
@@ -606,11 +648,11 @@ def test_a_refusal_at_the_first_or_last_sample_says_so():
     row = lambda arc, ok: [arc, 0.0, 0.0, 0.0, *[10.0] * 6, 0.0 if ok else 0.0001, 1, ok, 648000.0 if not ok else 0.1]
     limits, speeds = np.array([[-360.0, 360.0]] * 6), np.full(6, 180.0)
     first = pd.DataFrame([row(0.0, False)], columns=SOLVED).assign(in_workspace=True)
-    said = refusal(first, 3, limits, 0.001, np.zeros(0), 0.5, 2.0, speeds)
+    said = refusal(first, 3, limits, 0.001, np.zeros(0), 0.5, 2.0, speeds, 0.008)
     assert said.startswith("sample 1 (arc 0.0 mm): not reached") and "solved from the start joints; the 2 samples" \
         in said and "sample 0" not in said, said
     last = pd.DataFrame([row(0.0, True), row(1.0, True), row(2.0, False)], columns=SOLVED).assign(in_workspace=True)
-    said = refusal(last, 3, limits, 0.001, np.zeros(2), 0.5, 2.0, speeds)
+    said = refusal(last, 3, limits, 0.001, np.zeros(2), 0.5, 2.0, speeds, 0.008)
     assert said.endswith("solved from sample 2's joints") and "0 samples" not in said, said
 
 

@@ -392,7 +392,7 @@ def test_the_move_and_its_speeds_are_settings(in_trained_project, tmp_path, caps
     assert "  acc = 0.500000" in script and "  vel = 0.100000" in script and "m/s^2, m/s" in script
 
 
-def test_a_movej_faster_than_the_robots_fastest_joint_is_refused_before_any_work(in_trained_project, tmp_path,
+def test_a_movej_faster_than_the_robots_slowest_joint_is_refused_before_any_work(in_trained_project, tmp_path,
                                                                                 capsys, monkeypatch):
     """A speed under the generic cap (2π rad/s) but above this robot's joints (a UR5's 180 deg/s: π rad/s) went
     into the script as written; the program compensator and the planner and the path command (its approach) now refuse it, naming the key."""
@@ -405,10 +405,10 @@ def test_a_movej_faster_than_the_robots_fastest_joint_is_refused_before_any_work
     monkeypatch.setattr(plan, "load_params", lambda path: p)
     monkeypatch.setattr(path_command, "load_params", lambda path: p)
     code, said = exit_code(program.main, [str(src)], capsys)
-    assert code != 0 and "program.movej.vel: 3.2 rad/s, faster than the ur5's fastest joint (3.142 rad/s" in said, said
+    assert code != 0 and "program.movej.vel: 3.2 rad/s, faster than the ur5's slowest joint (3.142 rad/s" in said, said
     assert not (tmp_path / "prog_comp.script").exists()
     code, said = exit_code(plan.main, [str(src), "--n", "5", "--out", str(tmp_path / "plan")], capsys)
-    assert code != 0 and "plan.vel: 3.2 rad/s, faster than the ur5's fastest joint" in said, said
+    assert code != 0 and "plan.vel: 3.2 rad/s, faster than the ur5's slowest joint" in said, said
     assert not (tmp_path / "plan").exists()
     code, said = exit_code(path_command.main, [str(src), "--out", str(tmp_path / "path")], capsys)
     assert code != 0 and "program.movej.vel: 3.2 rad/s" in said, said                # the path's approach movej

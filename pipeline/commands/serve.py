@@ -85,7 +85,7 @@ from pipeline.lib.robot.robots import load_robot
 from pipeline.lib.robot.tcp import at_tcp, in_flange
 from pipeline.lib.robot.urdf import tcp_transforms
 from pipeline.lib.runtime.compensation import reach_mm
-from pipeline.lib.runtime.pathsolve import joint_speeds
+from pipeline.lib.runtime.pathsolve import cycle_s, joint_speeds
 from pipeline.lib.runtime.realtime import Realtime
 from pipeline.lib.runtime.service import RequestError, Service, describe
 
@@ -463,7 +463,7 @@ def make_server(params: dict, host: str | None = None, port: int | None = None,
     service = Service(model, workspace, limits_deg, reach_mm(model.physics.geometry()), tol_mm=tol,
                       jacobian_of=params["compensate"]["jacobian_of"], controller=controller,
                       max_deviation_mm=params["path"]["max_deviation_mm"], joint_speed_deg_s=speeds,
-                      frame_rot=frame_rot, tol_arcsec=params["compensate"]["tol_arcsec"],
+                      frame_rot=frame_rot, tol_arcsec=params["compensate"]["tol_arcsec"], cycle_s=cycle_s(robot),
                       **{k: cfg[k] for k in SERVICE_KEYS})
     try:
         server = Server((host, port), {k: cfg[k] for k in LIMIT_KEYS}, service)

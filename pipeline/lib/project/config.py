@@ -159,6 +159,8 @@ JOINT_SPEED_MAX = 2 * math.pi   # rad/s: 360 deg/s, the fastest joint in robots.
 JOINT_ACC_MAX = 40.0            # rad/s²
 TOOL_SPEED_MAX = 5.0            # m/s: the highest tool speed limit UR's safety configuration takes
 TOOL_ACC_MAX = 15.0             # m/s²
+SETTLE_MAX_S = 3600.0           # plan.settle_s: an hour a pose (URScript's 32-bit float holds it to the ms)
+MAX_DEVIATION_MM = 10.0         # path.max_deviation_mm: a branch flip between two samples is tens of mm
 
 RULES = {
     "robot.tcp": (lambda v: v is None or _tcps(v), "null, or name: {xyz_mm: [x, y, z], rxyz_deg: [rx, ry, rz], "
@@ -189,8 +191,9 @@ RULES = {
     "program.movel.vel": _scripted(TOOL_SPEED_MAX, "m/s", "a speed"),
     "path.spacing_mm": (_num(0, open_lo=True), "a spacing > 0 mm"),
     "path.chord_mm": (lambda v: v is None or _num(0, open_lo=True)(v), "null or a tolerance > 0 mm"),
-    "path.speed_mm_s": (_num(0, open_lo=True), "a speed > 0 mm/s"),
-    "path.max_deviation_mm": (_num(0, open_lo=True), "a distance > 0 mm"),
+    "path.speed_mm_s": (_num(0, 1000 * TOOL_SPEED_MAX, open_lo=True), f"a speed > 0 mm/s, at most {1000 * TOOL_SPEED_MAX:g}"),
+    "path.max_deviation_mm": (_num(0, MAX_DEVIATION_MM, open_lo=True),
+                              f"a distance > 0 mm, at most {MAX_DEVIATION_MM:g} (beyond, a branch flip passes)"),
     "path.joint_speed_deg_s": (_speeds, "null (the robot's), a speed > 0 deg/s or 6 of them"),
     "path.max_samples": (_int(2), "an integer >= 2"),
     "path.lookahead_s": (_num(0.03, 0.2), "servoj's lookahead_time, 0.03-0.2 s"),
@@ -248,7 +251,7 @@ RULES = {
     "plan.region": (_int(0), "an integer >= 0 (candidates sampled in the program's joint box)"),
     "plan.region_margin_deg": (_num(0, 360), "an angle 0-360 deg"),
     "plan.seed": (_int(0), "an integer >= 0"),
-    "plan.settle_s": (_num(SCRIPTED), "a time >= 0.001 s (the script writes 6 decimals)"),
+    "plan.settle_s": (_num(SCRIPTED, SETTLE_MAX_S), f"a time 0.001-{SETTLE_MAX_S:g} s (the script writes 6 decimals)"),
     "plan.acc": _scripted(JOINT_ACC_MAX, "rad/s²", "an acceleration"),
     "plan.vel": _scripted(JOINT_SPEED_MAX, "rad/s", "a speed"),
     "plan.rules.radius_mm": (_or_null(_interval(0, REACH_MM)), f"null (off) or [lo, hi] mm, 0 <= lo < hi <= {REACH_MM:g}"),

@@ -168,12 +168,17 @@ class Robot:
         return ~((q_deg >= lo) & (q_deg <= hi))
 
     def check_joint_speed(self, vel_rad_s: float, key: str) -> None:
-        """A script's movej speed (rad/s, its leading joint's) no faster than this robot's fastest joint, where
-        its speed limits are known; else a ValueError naming the setting key."""
-        top = float(np.max(self.velocity_rad_s))
-        if top > 0 and vel_rad_s > top:
-            raise ValueError(f"params.yaml {key}: {vel_rad_s:g} rad/s, faster than the {self.name}'s fastest joint "
-                             f"({top:.4g} rad/s, {np.degrees(top):.0f} deg/s): a slip of unit? Nothing written")
+        """A script's movej speed (rad/s: its leading joint's, which may be any joint) no faster than this
+        robot's slowest joint; else, or where the limits are unknown (a custom robot without
+        robot.dh.velocity_deg_s), a ValueError naming the setting key."""
+        if not (self.velocity_rad_s > 0).all():
+            raise ValueError(f"params.yaml {key}: the robot's joint speed limits are unknown (a custom robot), so a "
+                             "movej speed cannot be checked: set robot.dh.velocity_deg_s. Nothing written")
+        low = float(np.min(self.velocity_rad_s))
+        if vel_rad_s > low:
+            raise ValueError(f"params.yaml {key}: {vel_rad_s:g} rad/s, faster than the {self.name}'s slowest joint "
+                             f"({low:.4g} rad/s, {np.degrees(low):.0f} deg/s), which may lead the move: a slip of "
+                             "unit? Nothing written")
 
 
 DH_KEYS = ("d", "a", "alpha_deg", "offset_deg")
@@ -200,6 +205,30 @@ def modified_to_standard(d, a, alpha, offset) -> dict:
             f"joint 1, which the nominal chain does not carry (its base frame is joint 1's). Set both to 0: "
             f"the frame stage's base-to-tracker fit takes up that transform")
     return dict(d=d, a=np.append(a[1:], 0.0), alpha=np.append(alpha[1:], 0.0), offset=offset)
+
+
+def finite(v, shape: tuple) -> bool:
+    """v is numbers (a list, tuple or array; no text, no booleans) of this shape, all finite."""
+    try:
+        a = np.asarray(v)
+    except (TypeError, ValueError):
+        return False
+    return a.shape == shape and a.dtype.kind in "iuf" and bool(np.isfinite(a).all())
+
+
+def within_limits(given, own) -> list:
+    """robot.joint_limits_deg: 6 pairs [lo, hi] of finite degrees, lo < hi, within the robot's own limits
+    (own (6, 2): a UR controller's ±360°), else a ValueError naming the key. A range beyond the arm's would let
+    a waypoint 100 turns away reach a script as a movej)."""
+    if not finite(given, (6, 2)) or not (np.asarray(given, float)[:, 0] < np.asarray(given, float)[:, 1]).all():
+        raise ValueError(f"params.yaml robot.joint_limits_deg: null or 6 pairs [min, max] of finite degrees, min < max, "
+                         f"got {given!r}")
+    lim, own = np.asarray(given, float), np.asarray(own, float)
+    off = np.flatnonzero((lim[:, 0] < own[:, 0]) | (lim[:, 1] > own[:, 1])) + 1
+    if len(off):
+        raise ValueError(f"params.yaml robot.joint_limits_deg: joint(s) {off.tolist()} beyond the robot's own limits "
+                         f"{own[off[0] - 1].tolist()} deg; got {given!r}")
+    return lim.tolist()
 
 
 def load_robot(cfg: dict) -> Robot:
@@ -230,6 +259,9 @@ def load_robot(cfg: dict) -> Robot:
             if v is not None and not (isinstance(v, list) and len(v) == 6 and all(
                     isinstance(x, (int, float)) and not isinstance(x, bool) and np.isfinite(x) and x > 0 for x in v)):
                 raise ValueError(f"params.yaml robot.dh.{key}: 6 numbers > 0 (each joint's), got {v!r}")
+        for key in DH_KEYS:
+            if not finite(dh[key], (6,)):
+                raise ValueError(f"params.yaml robot.dh.{key}: 6 finite numbers (each joint's), got {dh[key]!r}")
         convention = dh.get("convention", "standard")
         if convention not in CONVENTIONS:
             raise ValueError(f"params.yaml robot.dh.convention: {convention!r}; use one of {list(CONVENTIONS)}")
@@ -245,7 +277,7 @@ def load_robot(cfg: dict) -> Robot:
         raise ValueError(f"params.yaml robot.model: unknown robot {name!r}; "
                          f"use one of {sorted(TABLES)} or 'custom'")
     if cfg["joint_limits_deg"] is not None:
-        table["limits_deg"] = cfg["joint_limits_deg"]
+        table["limits_deg"] = within_limits(cfg["joint_limits_deg"], table["limits_deg"])
     arr = {k: np.asarray(v, dtype=float) for k, v in table.items()}
     for k in ("d", "a", "alpha", "offset", "mass"):
         if arr[k].shape != (6,):

@@ -8,9 +8,10 @@
     refine(...)                                       halve each step whose joint-space middle leaves the
                                                       path by more than a chordal tolerance
     deviation(position, q_deg, segs)                  how far each joint-linear step's middle leaves the path
-    servo_times(arc_mm, speed)                        each step's servoj time, in whole 2 ms cycles
+    cycle_s(robot)                                    servoj's step on the robot's controller (8 or 2 ms)
+    servo_times(arc_mm, speed, cycle)                 each step's servoj time, in whole controller cycles
     refusal(...)                                      the first sample that must stop the path, and why
-    urscript(table, ...)                              movej to the start, then servoj every 2 ms cycle,
+    urscript(table, ...)                              movej to the start, then servoj every controller cycle,
                                                       joint-linear from sample to sample
 
 The arm is driven joint-linearly between samples (servoj interpolates in joint space), so what lies
@@ -23,13 +24,14 @@ import pandas as pd
 import torch
 
 from pipeline.lib.project.columns import JCOMP_DEG, TARGET
-from pipeline.lib.project.config import logger
+from pipeline.lib.project.config import TOOL_SPEED_MAX, logger
 from pipeline.lib.robot.kinematics import DTYPE
+from pipeline.lib.robot.robots import TABLES
 from pipeline.lib.runtime.compensation import solve
 from pipeline.lib.runtime.paths import at, distance
 from pipeline.lib.runtime.solvers import CHUNK, slices
 
-CYCLE_S = 0.002                 # the UR controller's cycle (500 Hz): servoj's t is a whole number of them
+CB3 = ("ur3", "ur5", "ur10")    # robots.py's arms on a CB3 controller (125 Hz); the others' run at 500 Hz
 REFINE_ROUNDS = 12              # chord mode: halvings at most
 MIN_STEP_MM = 1e-3              # chord mode: a step this short is not halved further
 PROGRESS_EVERY = 1000          # a log line per this many samples solved (a path of 100 000: ~40 min)
@@ -112,35 +114,52 @@ def refine(model, table: pd.DataFrame, segs: list, chord_mm: float, cfg: dict, r
     return table
 
 
-def servo_times(arc_mm: np.ndarray, speed_mm_s: float) -> np.ndarray:
-    """(m - 1,) s: each step's servoj time at speed_mm_s, a whole number of controller cycles (at least one),
+def cycle_s(robot) -> float:
+    """servoj's step (s) on the robot's controller, the t the script gives it: a CB3's cycle, 8 ms (125 Hz: the UR3,
+    UR5, UR10 of robots.py), an e-Series', UR20's or UR30's, 2 ms (500 Hz); a custom robot's 8 ms, a whole
+    number of either controller's cycles."""
+    return 0.002 if robot.name in TABLES and robot.name not in CB3 else 0.008
+
+
+def servo_times(arc_mm: np.ndarray, speed_mm_s: float, cycle: float) -> np.ndarray:
+    """(m - 1,) s: each step's servoj time at speed_mm_s, a whole number of controller cycles (cycle s, at least one),
     rounded up: no step faster than asked; a ValueError where a step would take more cycles than the script's
-    counter holds exactly (a speed far too low)."""
+    counter holds exactly (a speed far too low), or where speed_mm_s is beyond any tool speed (a slip of unit)."""
+    if not speed_mm_s <= 1000 * TOOL_SPEED_MAX:
+        raise ValueError(f"speed {speed_mm_s:g} mm/s: beyond {1000 * TOOL_SPEED_MAX:g} mm/s, the highest tool speed "
+                         "UR's safety configuration takes (mm/s: a speed in m/s?)")
     with np.errstate(over="ignore"):
-        cycles = np.maximum(1, np.ceil(np.round(np.diff(arc_mm) / speed_mm_s / CYCLE_S, 9)))
+        cycles = np.maximum(1, np.ceil(np.round(np.diff(arc_mm) / speed_mm_s / cycle, 9)))
     slow = np.flatnonzero(~(cycles <= MAX_CYCLES))
     if len(slow):
         raise ValueError(f"speed {speed_mm_s:g} mm/s: a step of {np.diff(arc_mm)[slow[0]]:.3f} mm would take more "
                          f"than {MAX_CYCLES} controller cycles (URScript's 32-bit float counts no further): a higher speed")
-    return cycles * CYCLE_S
+    return cycles * cycle
 
 
-def finish(table: pd.DataFrame, workspace, speed_mm_s: float) -> pd.DataFrame:
-    """path.csv's table (PATH_COLUMNS): samples numbered from 1, each one's time along the path (s),
-    in_workspace and uncertainty_mm at its joints."""
+def finish(table: pd.DataFrame, workspace, speed_mm_s: float, cycle: float) -> pd.DataFrame:
+    """path.csv's table (PATH_COLUMNS): samples numbered from 1, each one's time along the path (s, in controller
+    cycles of `cycle` s), in_workspace and uncertainty_mm at its joints."""
     table = table.copy()
     table.insert(0, "sample", np.arange(1, len(table) + 1))
-    table.insert(2, "t_s", np.concatenate([[0.0], np.cumsum(servo_times(table.arc_mm.to_numpy(), speed_mm_s))]))
+    table.insert(2, "t_s", np.concatenate([[0.0], np.cumsum(servo_times(table.arc_mm.to_numpy(), speed_mm_s, cycle))]))
     table["uncertainty_mm"], table["in_workspace"] = workspace(table[JCOMP_DEG].to_numpy())
     table["converged"] = table.converged.astype(bool)
     return table[PATH_COLUMNS]
 
 
 def joint_speeds(robot, setting) -> np.ndarray:
-    """The joint speed limits (6,) deg/s: path.joint_speed_deg_s (a number, or 6), else the robot's."""
-    if setting is not None:
-        return np.broadcast_to(np.asarray(setting, float), (6,)).copy()
+    """The joint speed limits (6,) deg/s: path.joint_speed_deg_s (a number, or 6: none above the robot's own,
+    where known), else the robot's."""
     v = np.degrees(np.asarray(robot.velocity_rad_s, float))
+    if setting is not None:
+        given = np.broadcast_to(np.asarray(setting, float), (6,)).copy()
+        over = np.flatnonzero((v > 0) & (given > v))
+        if len(over):
+            j = int(over[0])
+            raise ValueError(f"params.yaml path.joint_speed_deg_s: joint {j + 1} at {given[j]:g} deg/s, beyond the "
+                             f"{robot.name}'s own {v[j]:.0f} deg/s (robots.py): a path may only be slower")
+        return given
     if not (v > 0).all():
         raise ValueError("params.yaml path.joint_speed_deg_s: the robot's joint speed limits are unknown "
                          "(a custom robot): set them, here or as robot.dh.velocity_deg_s")
@@ -158,7 +177,8 @@ def beyond_reach(targets: np.ndarray, arc_mm: np.ndarray, reach_mm: float) -> st
 
 
 def refusal(table: pd.DataFrame, n_samples: int, limits_deg: np.ndarray, tol_mm: float, dev: np.ndarray,
-            max_deviation_mm: float, speed_mm_s: float, speeds_deg_s: np.ndarray, workspace=None) -> str | None:
+            max_deviation_mm: float, speed_mm_s: float, speeds_deg_s: np.ndarray, cycle: float,
+            workspace=None) -> str | None:
     """Why the path must stop, naming its first sample that must not be driven (numbered from 1), or None:
     not reached (solve_path stops at such a sample; refine's samples in between may be one too), beyond the
     joint limits, a joint step faster than the joint's speed limit at speed_mm_s, or a joint-space step whose
@@ -185,7 +205,7 @@ def refusal(table: pd.DataFrame, n_samples: int, limits_deg: np.ndarray, tol_mm:
         k, j = map(int, beyond[0])
         found.append((k, "beyond the joint limits",
                       f"{name(k)}: joint {j + 1} at {q[k, j]:.1f}°, beyond its limits [{lo[j]:g}, {hi[j]:g}]°"))
-    dt = servo_times(arc[:m], speed_mm_s)
+    dt = servo_times(arc[:m], speed_mm_s, cycle)
     rate = np.abs(np.diff(q[:m], axis=0)) / dt[:, None]                  # deg/s
     fast = np.argwhere(rate > speeds_deg_s)
     if len(fast):
@@ -220,13 +240,14 @@ def fmt(values) -> str:
     return "[" + ", ".join(f"{v:.9f}" for v in np.radians(np.asarray(values, float))) + "]"
 
 
-def urscript(table: pd.DataFrame, speed_mm_s: float, lookahead_s: float, gain: int, acc: float, vel: float) -> str:
+def urscript(table: pd.DataFrame, speed_mm_s: float, lookahead_s: float, gain: int, acc: float, vel: float,
+             cycle: float) -> str:
     """The compensated path: movej (acc rad/s², vel rad/s) to its first sample, then each step driven by
-    servoj every controller cycle (2 ms), the joints interpolated linearly from sample to sample over the
+    servoj every controller cycle (`cycle` s, cycle_s), the joints interpolated linearly from sample to sample over the
     step's time at speed_mm_s (`servo_times`); the last sample held for the lookahead, then stopj. Only
     numbers formatted here and this fixed text reach it."""
-    q, cycles = table[JCOMP_DEG].to_numpy(), np.round(servo_times(table.arc_mm.to_numpy(), speed_mm_s) / CYCLE_S)
-    hold = int(np.ceil(lookahead_s / CYCLE_S - 1e-9))
+    q, cycles = table[JCOMP_DEG].to_numpy(), np.round(servo_times(table.arc_mm.to_numpy(), speed_mm_s, cycle) / cycle)
+    hold = int(np.ceil(lookahead_s / cycle - 1e-9))
     outside = int((~table.in_workspace.to_numpy(bool)).sum())
     mix = ", ".join(f"a[{j}] + s * (b[{j}] - a[{j}])" for j in range(6))
     lines = [f"# compensated path by `python -m pipeline.commands.path`: {len(table)} samples over "
@@ -242,7 +263,7 @@ def urscript(table: pd.DataFrame, speed_mm_s: float, lookahead_s: float, gain: i
              "    i = 1.0",
              "    while i <= n:",
              "      s = i / n",
-             f"      servoj([{mix}], t={CYCLE_S:.3f}, lookahead_time={float(lookahead_s):.3f}, gain={int(gain)})",
+             f"      servoj([{mix}], t={float(cycle):.3f}, lookahead_time={float(lookahead_s):.3f}, gain={int(gain)})",
              "      i = i + 1.0",
              "    end",
              "  end",
