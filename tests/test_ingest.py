@@ -636,6 +636,23 @@ def test_a_preamble_line_is_named_and_skipped_with_the_file_line_numbers_kept(tm
                                                                                  ("tracker.csv", 7, "nan")]
 
 
+def test_a_preamble_in_a_file_of_cr_line_ends_is_skipped_by_line(tmp_path, monkeypatch):
+    """A review (2026-12-06): a "CSV (Macintosh)" export ends its lines with CR alone; with skip_lines the preamble
+    was cut at "\\n" only, the whole file one line, and the stage said "the file is empty". The row numbers
+    stay the file's."""
+    ids, q, m = campaign(20, seed=5)
+    monkeypatch.chdir(tmp_path)
+    j, t = write_pair(tmp_path, ids, q, m)
+    for f in (j, t):
+        text = "// Exported by SpatialAnalyzer 2024.1\n" + Path(f).read_text()
+        Path(f).write_bytes(text.replace("\n", "\r").encode())
+    Path(t).write_bytes(Path(t).read_bytes().replace(num(m[4, 1]).encode(), b"n/a", 1))
+    summary = run(params(skip_lines=1))
+    assert summary["n_kept"] == 19
+    assert [(d["file"], d["row"], d["reason"]) for d in summary["dropped"]] == [("joints.csv", 7, "partner_dropped"),
+                                                                                 ("tracker.csv", 7, "nan")]
+
+
 def test_skip_lines_cutting_a_file_without_a_preamble_says_it_cuts_every_file(tmp_path, monkeypatch):
     """skip_lines leaves out lines of every input file: set for the tracker's preamble alone, it cut the
     controller log's header, and the error said only that the point id column was missing."""
@@ -895,6 +912,26 @@ def test_a_campaign_with_orientation_beside_one_without_stops_the_ingest_naming_
     run(p)
     df = pd.read_parquet("data/interim/ingest.parquet")
     assert not set(MEAS_Q) & set(df.columns) and len(df) == 30 and set(df.campaign) == {"main", "b"}
+
+
+def test_an_extra_column_of_numbers_in_one_campaign_and_text_in_another_is_joined_as_text(tmp_path, monkeypatch):
+    """A review (2026-12-06): a tracker's Timestamp, seconds in one campaign and dates in another, stopped the join
+    on pyarrow's "Could not convert '2024-05-01 10:00' with type str", naming no campaign or file."""
+    from pipeline.stages.ingest import run_campaign
+    monkeypatch.chdir(tmp_path)
+    ids, q, m = campaign(15, seed=14)
+    for folder, stamp in (("", lambda i: f"{i}.5"), ("b", lambda i: f"2024-05-01 10:{i:02d}")):
+        (tmp_path / folder).mkdir(exist_ok=True)
+        j, t = write_pair(tmp_path / folder, ids, q, m)
+        lines = Path(t).read_text().splitlines()
+        Path(t).write_text("\n".join([lines[0] + ",Timestamp"] + [f"{r},{stamp(i)}" for i, r in enumerate(lines[1:])])
+                           + "\n")
+    p = params()
+    p["campaigns"]["more"] = {"b": {"station": "main", "ingest": {"joints": "b/joints.csv", "tracker": "b/tracker.csv"}}}
+    run_campaign(p, "b")
+    run(p)
+    df = pd.read_parquet("data/interim/ingest.parquet")
+    assert df.Timestamp.tolist() == [f"{i}.5" for i in range(15)] + [f"2024-05-01 10:{i:02d}" for i in range(15)]
 
 
 def ingest_lock() -> dict:

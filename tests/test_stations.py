@@ -1,5 +1,6 @@
 """Several campaigns from several tracker stations: one frame per station, the robot identified jointly."""
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -208,6 +209,41 @@ def test_two_twin_stations_recovered_through_frame_and_calibrate_stages(tmp_path
     with torch.no_grad():
         model = fk(torch.as_tensor(np.radians(side[JOINTS_DEG].to_numpy()), dtype=DTYPE), g).numpy()
     assert np.linalg.norm(side[MEAS].to_numpy() - model, axis=1).max() < 0.02
+
+
+def test_a_campaign_name_that_is_a_path_is_refused_before_anything_is_written(tmp_path, monkeypatch):
+    """A review (2026-12-06): `campaigns.more: {'../evil': ...}` made `ingest campaign ../evil` write
+    data/interim/evil.parquet and reports/evil.json outside campaigns/ (`../ingest` would have replaced the
+    ingest stage's own outputs); `x/y` failed after reading, on a folder that does not exist."""
+    monkeypatch.chdir(tmp_path)
+    files = {"joints": str(ROOT / "data/raw/station_b/joints.csv"), "tracker": str(ROOT / "data/raw/station_b/tracker.csv")}
+    for name in ("../evil", "../ingest", "x/y", "a:b", ".hidden", ""):
+        p = json.loads(json.dumps(PARAMS))
+        p["campaigns"]["more"] = {name: {"ingest": files, "station": "s2"}}
+        with pytest.raises(ValueError, match=r"campaigns.more: campaign name .*: letters, digits, _ and -"):
+            ingest.run_campaign(p, name)
+        assert not any(tmp_path.rglob("*")), list(tmp_path.rglob("*"))
+    p["campaigns"]["more"] = {"station_b-2": {"ingest": files, "station": "s2"}}
+    ingest.run_campaign(p, "station_b-2")
+    assert (tmp_path / "data/interim/campaigns/station_b-2.parquet").is_file()
+
+
+def test_an_inherited_setting_that_does_not_fit_a_campaign_is_named_where_it_is_overridden(tmp_path, monkeypatch):
+    """A review (2026-12-06): a campaigns.more campaign inherits the ingest section's settings; where one did
+    not fit its file, the error named `ingest.<key>`, and following it broke the main campaign. It now names
+    the campaign's own key (campaigns.more.b.ingest.<key>), as validate.campaigns' do."""
+    monkeypatch.chdir(tmp_path)
+    for f in ("joints", "tracker"):                                 # station b's export with ';' and decimal commas
+        text = (ROOT / f"data/raw/station_b/{f}.csv").read_text()
+        Path(f"b_{f}.csv").write_text(text.replace(",", ";").replace(".", ","))
+    p = json.loads(json.dumps(PARAMS))
+    p["ingest"]["sep"] = ","                                        # the main campaign's, inherited
+    p["campaigns"]["more"] = {"b": {"ingest": {"joints": "b_joints.csv", "tracker": "b_tracker.csv"}, "station": "s2"}}
+    with pytest.raises(ValueError) as e:
+        ingest.run_campaign(p, "b")
+    assert "campaigns.more.b.ingest.sep" in str(e.value) and not re.search(r"(?<!\.)\bingest\.sep", str(e.value)), e.value
+    p["campaigns"]["more"]["b"]["ingest"]["sep"] = ";"                 # where it says: read
+    assert ingest.run_campaign(p, "b")["n_kept"] == 300
 
 
 def test_more_campaigns_are_checked_with_the_params_key(tmp_path, monkeypatch):

@@ -39,7 +39,18 @@ def labelled(df: pd.DataFrame, campaign: str, station: str) -> pd.DataFrame:
 
 
 def joined(parts: list) -> pd.DataFrame:
-    """The campaigns' tables as one; meas_q* (where the campaigns have them) right after meas_z."""
+    """The campaigns' tables as one; meas_q* (where the campaigns have them) right after meas_z. An extra column
+    of numbers in one campaign and text in another is kept as text (parquet holds one type a column; before,
+    the join stopped on pyarrow's "Could not convert", naming no campaign)."""
+    kinds = {}
+    for part in parts:
+        for col in part.columns:
+            kinds.setdefault(col, {})[part[CAMPAIGN].iloc[0] if len(part) else ""] = part[col].dtype.kind in "biuf"
+    mixed = [c for c, k in kinds.items() if len(set(k.values())) > 1]
+    for c in mixed:
+        log.info("column %s: numbers in %s, text in %s: kept as text", c,
+                 ", ".join(n for n, num in kinds[c].items() if num), ", ".join(n for n, num in kinds[c].items() if not num))
+    parts = [p.astype({c: str for c in mixed if c in p.columns}) for p in parts]
     out = pd.concat(parts, ignore_index=True)
     if MEAS_Q[0] not in out.columns:
         return out
@@ -77,7 +88,8 @@ def all_or_none_oriented(summaries: dict) -> None:
         f"campaigns.more.{c}.ingest.columns.orientation"
     raise ValueError(f"campaign(s) {', '.join(oriented)} measure the probe's orientation and {', '.join(plain)} "
                      "do not: the pipeline fits the orientation from every campaign or from none. Give "
-                     f"{' and '.join(key(c) for c in plain)} (the headers of their orientation columns), or set "
+                     f"{' and '.join(key(c) for c in plain)} (the headers of their orientation columns; or columns.marker, a "
+                     "multi-marker target), or set "
                      f"{' and '.join(key(c) for c in oriented)} to null to calibrate on positions alone")
 
 
@@ -86,7 +98,7 @@ def run_campaign(params: dict, name: str, root: Path = HERE) -> dict:
     p = for_stage(params, PARAMS)
     station = campaign_entry(p["campaigns"], name)["station"]
     df, summary = ingest(rooted_files(campaign_ingest(p["ingest"], p["campaigns"], name), root),
-                         load_robot(p["robot"]))
+                         load_robot(p["robot"]), f"campaigns.more.{name}.ingest")
     df["point_id"] = [point_id(name, p) for p in df["point_id"]]
     (root / CAMPAIGNS_DIR).mkdir(parents=True, exist_ok=True)
     labelled(df, name, station).to_parquet(root / CAMPAIGNS_DIR / f"{name}.parquet", index=False)

@@ -129,6 +129,23 @@ def training_target(cfg: dict, trained: dict, name: str) -> dict:
     return cfg
 
 
+def misread(pose: dict, name: str, limit: float) -> None:
+    """Stop where even the best method's orientation error (mean arcsec over the judged points, `pose` of
+    judge_poses) is above `limit` (frame.max_orientation_scatter_arcsec): no arm's error turns its flange that
+    far, misread orientation columns do. The frame stage's check of a training campaign, for a validation
+    campaign, which no frame stage sees (before, the Euler sequence read wrong was judged: 347 000 arcsec,
+    and with refit_tool its orientations pulled every position 7 mm off)."""
+    best = min(pose, key=lambda m: pose[m]["orientation"]["mean_arcsec"])
+    mean = pose[best]["orientation"]["mean_arcsec"]
+    if mean > limit:
+        raise FrameFitError(f"validate.campaigns.{name}: its measured orientations are {mean:.0f} arcsec (mean) from "
+                            f"every method's, the best ({best}) included, above frame.max_orientation_scatter_arcsec = "
+                            f"{limit:g}: its orientation columns are misread. Check validate.campaigns.{name}.ingest."
+                            "orientation (the Euler sequence, intrinsic XYZ or extrinsic xyz, and angle_unit; a "
+                            "quaternion's scalar_first), or set its ingest.columns.orientation to null to judge "
+                            "positions alone")
+
+
 def run_campaign(params: dict, name: str, root: Path = HERE) -> dict:
     p = for_stage(params, PARAMS["campaign"])
     frame_cfg, cfg = p["frame"], p["validate"]
@@ -145,7 +162,7 @@ def run_campaign(params: dict, name: str, root: Path = HERE) -> dict:
     cfg_in = with_override(p["ingest"], c["ingest"], f"validate.campaigns.{name}.ingest")
     if cfg_in["columns"]["marker"] is not None and cfg_in["target"] is None:
         cfg_in = training_target(cfg_in, read_json(root / INGEST_JSON), name)
-    df, ingested = ingest(rooted_files(cfg_in, root), robot)
+    df, ingested = ingest(rooted_files(cfg_in, root), robot, f"validate.campaigns.{name}.ingest")
     q = df[JOINTS_DEG].to_numpy()
     model = load_model(root / MODEL_WEIGHTS)
     thermal = thermal_change(df, parts)
@@ -190,6 +207,7 @@ def run_campaign(params: dict, name: str, root: Path = HERE) -> dict:
     if R_world is not None:                          # the orientation and the tools, where measured
         out["pose"] = judge_poses(pred, probe, flange, frames, P, R_world, probe_offsets(p["robot"]["tcp"], cal.geometry),
                                   ~registered)
+        misread(out["pose"], name, frame_cfg["max_orientation_scatter_arcsec"])
         for m, f in frames.items():
             if "probe_rotation" in f:
                 out["registration"][m]["probe_rotation_arcsec"] = float(

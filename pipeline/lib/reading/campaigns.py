@@ -9,10 +9,13 @@ first station (the ingest section's) is the one whose frame is reports/frame.jso
 top-level R, t: the base frame everything downstream works in.
 """
 import hashlib
+import re
 from pathlib import Path
 
 from pipeline.lib.project.config import check_given, check_keys
 from pipeline.lib.reading.presets import deep_merge
+
+NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_-]*")      # a campaign's name: it names its files
 
 
 def file_sha256(path) -> str:
@@ -56,6 +59,9 @@ def named_campaign(campaigns: dict | None, name: str, where: str, keys: str) -> 
     campaigns = campaigns or {}
     if name not in campaigns:
         raise ValueError(f"params.yaml {where}: no campaign {name!r}; have {sorted(campaigns)}")
+    if not isinstance(name, str) or not NAME.fullmatch(name):
+        raise ValueError(f"params.yaml {where}: campaign name {name!r}: letters, digits, _ and - (it names the "
+                         "campaign's files: data/interim/campaigns/NAME.parquet, reports/campaigns/NAME.json)")
     c = check_keys(campaigns[name], keys, f"{where}.{name}")       # named where it is given
     for key in ("joints", "tracker"):
         if key not in (c["ingest"] or {}):

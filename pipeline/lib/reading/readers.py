@@ -254,7 +254,7 @@ def read_table(path: str, sep: str, decimal: str, skip_lines: int = 0):
     line numbers in the file, sep, decimal)."""
     text = read_text(path)
     if skip_lines:                                   # blanked, not cut: line numbers stay the file's
-        lines = text.split("\n")
+        lines = re.split(r"\r\n|\r|\n", text)           # any line end (CR alone: a Mac export), as csv reads them
         text = "\n" * min(skip_lines, len(lines)) + "\n".join(lines[skip_lines:])
     header_line = next((ln for ln in text.splitlines() if ln.strip()), None)
     if header_line is None:
@@ -1072,9 +1072,23 @@ def unit_of(header: str, setting: str) -> str:
     return setting
 
 
-def ingest(ingest_cfg: dict, robot):
+SETTING = re.compile(r"(?<![\w/.])ingest\.(?!json|parquet)(?=[a-z_])")    # a message's `ingest.<key>`, not a file
+
+
+def ingest(ingest_cfg: dict, robot, key: str = "ingest"):
     """Read, pair, check and convert the inputs of the `ingest:` section for `robot` (robots.Robot)
-    -> (table, summary). Writes nothing."""
+    -> (table, summary). Writes nothing. key: where params.yaml gives these settings (a campaign's
+    `campaigns.more.NAME.ingest`, merged over the section), which the errors name."""
+    try:
+        return read_campaign(ingest_cfg, robot)
+    except IngestError as e:
+        if key == "ingest":
+            raise
+        raise IngestError(SETTING.sub(f"{key}.", e.message), e.file, e.row, e.column) from None
+
+
+def read_campaign(ingest_cfg: dict, robot):
+    """ingest's work, its errors naming the `ingest:` section's keys."""
     cfg = settings(ingest_cfg)
     t0 = time.perf_counter()
     pts, files, path, target = read_inputs(cfg)
