@@ -381,8 +381,14 @@ def test_radian_columns_are_read_as_radians(tmp_path):
 
 
 def test_the_move_and_its_speeds_are_settings(in_trained_project, tmp_path, capsys, monkeypatch):
-    """Issue 33: every move was a movej with acceleration and speed written into the code."""
-    src = program_file(tmp_path, n=3)
+    """Issue 33: every move was a movej with acceleration and speed written into the code. (Three test poses in
+    one configuration: a movel between two in different ones is refused, below.)"""
+    from pipeline.lib.robot.poses import configuration_margin
+    pts = load_points().query("split == 'test'")
+    side = np.sign(configuration_margin(pts[JOINTS_DEG].to_numpy(), served_model().physics.geometry()))
+    same = pts[(side == side[0]).all(1)].head(3)
+    src = tmp_path / "prog.csv"
+    same[JOINTS_DEG].to_csv(src, index=False)
     p = in_trained_project
     p["program"] = {"move": "movel", "movej": {"acc": 1.4, "vel": 1.05}, "movel": {"acc": 0.5, "vel": 0.1}}
     monkeypatch.setattr(program, "load_params", lambda path: p)
@@ -416,6 +422,25 @@ def test_a_movej_faster_than_the_robots_slowest_joint_is_refused_before_any_work
     p["program"]["movej"]["vel"] = 3.14                                # at the joint's speed: written
     assert exit_code(program.main, [str(src)], capsys)[0] == 0
     assert "  vel = 3.140000" in (tmp_path / "prog_comp.script").read_text()
+
+
+def test_a_movel_program_through_a_singularity_is_refused(in_trained_project, tmp_path, capsys, monkeypatch):
+    """A review (2026-12-06): `program.move: movel` wrote the README's example as 10 movel lines, 5 of whose moves
+    put the wrist on the other side of its singularity: a straight line between them passes through it. Now
+    refused, naming each such move, nothing written; movej writes it."""
+    from pipeline.lib.robot.poses import configuration_margin
+    p = in_trained_project
+    p["program"] = {**p["program"], "move": "movel"}
+    monkeypatch.setattr(program, "load_params", lambda path: p)
+    out = [str(tmp_path / "c.csv"), "--urscript", str(tmp_path / "c.script")]
+    code, said = exit_code(program.main, ["data/examples/waypoints.csv", "--out", *out], capsys)
+    comp = pd.read_csv("data/examples/waypoints.csv")                           # its own joints: where the flips are
+    wrist = configuration_margin(comp[JOINTS_DEG].to_numpy(), served_model().physics.geometry())[:, 2]
+    expected = int((wrist[:-1] * wrist[1:] < 0).sum())
+    assert code != 0 and expected >= 1 and f"{expected} move(s) would take the arm through a singularity" in said, said
+    assert "WP01 -> WP02: the wrist on the other side of its singularity" in said and not (tmp_path / "c.script").exists()
+    p["program"]["move"] = "movej"
+    assert exit_code(program.main, ["data/examples/waypoints.csv", "--out", *out], capsys)[0] == 0
 
 
 def test_the_example_program_in_the_readme_runs(in_trained_project, tmp_path, capsys):

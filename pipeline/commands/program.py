@@ -27,6 +27,8 @@ Safe by construction (docs/robot-cell.md):
     180°: waypoints.unreached) never becomes a move: the program is refused (exit 1, those waypoints
     listed, nothing written; an earlier run's files at the output paths are named, left as they were), or, with
     --comment-out-unreached, written with each such waypoint as a comment and no move;
+  - with program.move movel, a move between two waypoints in different configurations (a shoulder,
+    elbow or wrist across its singularity: waypoints.linear_flips) refuses the program;
   - angles that look like radians in the *_deg columns are refused, as ingest refuses them;
   - waypoints outside the trained workspace are listed in the summary printed at the end;
   - the CSV and the URScript are written together or not at all, never over the input (whatever the
@@ -54,7 +56,7 @@ from pipeline.lib.robot.geometry import theory_geometry
 from pipeline.lib.robot.robots import load_robot
 from pipeline.lib.robot.tcp import at_tcp, in_flange
 from pipeline.lib.robot.urdf import tcp_transforms
-from pipeline.lib.runtime.waypoints import ID_PATTERN, compensate_program, read_waypoints, unreached
+from pipeline.lib.runtime.waypoints import ID_PATTERN, compensate_program, linear_flips, read_waypoints, unreached
 
 log = logger(__name__)
 PARAMS = ("robot", "compensate", "program")
@@ -150,6 +152,11 @@ def run(argv=None) -> pd.DataFrame:
                       f"--comment-out-unreached to write them as comments, no move){left_as_they_were([out, script])}"
                       f"\n{text}")
     c = p["program"]
+    flips = linear_flips(table, skipped, model.physics.geometry()) if c["move"] == "movel" else []
+    if flips:
+        raise Refused(f"{src}: program.move is movel, and {len(flips)} move(s) would take the arm through a "
+                      f"singularity on a straight line: {'; '.join(flips)}; nothing written (movej moves joint by "
+                      f"joint, or add a waypoint that keeps the configuration){left_as_they_were([out, script])}")
     write_together({out: csv_text(table),
                     script: urscript(table, skipped, c["move"], **c[c["move"]])}, inputs)
     print(text)

@@ -214,6 +214,19 @@ def compensate_program(df: pd.DataFrame, model, workspace, robot, nominal: dict,
     return table
 
 
+def linear_flips(table: pd.DataFrame, skipped: dict, geometry: dict) -> list[str]:
+    """The moves a `movel` program cannot make: from each waypoint written as a move to the next, a shoulder,
+    elbow or wrist on the other side of its singularity (poses.configuration_margin of the compensated joints
+    JCOMP_DEG): a straight line between them passes through that singularity. Said per move, in order."""
+    moved = table[~table.point_id.isin(list(skipped))]
+    if len(moved) < 2:
+        return []
+    m = configuration_margin(moved[JCOMP_DEG].to_numpy(), geometry)                  # (n, 3)
+    ids = moved.point_id.tolist()
+    return [f"{ids[k]} -> {ids[k + 1]}: the {' and the '.join(CONFIGURATION[c] for c in np.flatnonzero(f))} on the "
+            "other side of its singularity" for k, f in enumerate(m[:-1] * m[1:] < 0) if f.any()]
+
+
 def unreached(table: pd.DataFrame, robot, offline: bool = False) -> dict:
     """{point_id: why} for every waypoint that must not become a move; offline (the targets are the nominal
     poses of the waypoints' joints): also an answer that turned a joint more than MAX_COMPENSATION_DEG; with
