@@ -32,7 +32,7 @@ SEAM_START = [2.5, -60.4, 91.1, -182.3, -61.2, -100.7]          # a training pos
 SEAM = [[-650.0, -200.0, 250.0], [-650.0, -100.0, 250.0]]        # 100 mm of bench path's seam, inside the workspace
 CIRCLE_START = [-19.8, -63.6, 81.1, 88.5, 105.4, -155.0]
 SCRIPT_LINE = re.compile(                                        # every line the path's URScript may hold
-    r"# compensated path by `python -m pipeline\.commands\.path`: \d+ samples over [0-9.]+ mm at [0-9.]+ mm/s, [0-9.]+ s; "
+    r"# compensated path by `python -m pipeline\.commands\.path`: \d+ samples over [0-9.]+ mm at [0-9.]+ mm/s \([0-9.]+ mm/s\^2 from and to rest\), [0-9.]+ s; "
     r"joints in rad|# residual max [0-9.]+ mm; \d+ samples outside the trained workspace|def compensated_path\(\):|"
     r"# the flange's orientation held along the path: residual max [0-9.]+ arcsec|"
     r"  def servo_step\(a, b, n\):|    # from joints a to b in n controller cycles, joint-linear: one servoj a cycle|"
@@ -180,17 +180,49 @@ def test_an_offline_program_is_where_the_nominal_kinematics_put_its_joints(tmp_p
         assert found.moves == ["", "movel"] and found.rotvec is None and len(found.segs) == 1
 
 
+def line(arc) -> np.ndarray:
+    """Samples (m, 3) along the x axis at arc (m,) mm."""
+    return np.c_[arc, np.zeros(len(arc)), np.zeros(len(arc))]
+
+
 def test_no_servo_step_is_faster_than_the_speed_asked():
     """The defect (a review): each step's cycles were rounded to the nearest, so 1 mm at 400 mm/s (1.25 cycles)
-    took one, driven at 500 mm/s. Rounded up now: 2 cycles, 250 mm/s; whole cycles stay exact."""
+    took one, driven at 500 mm/s. Rounded up now: 2 cycles, 250 mm/s; whole cycles stay exact. (An acceleration
+    too high to matter: the profile is the speed asked from the first sample to the last.)"""
     arc = np.array([0.0, 1.0, 2.0, 2.5, 12.5])
+    timing = lambda speed, cycle: pathsolve.Timing(speed, 1e15, 0.01, cycle)
     for speed in (400.0, 20.0, 7.0, 5000.0):
         for cycle in (0.002, 0.008):
-            t = pathsolve.servo_times(arc, speed, cycle)
+            t = pathsolve.servo_times(line(arc), arc, timing(speed, cycle))
             assert (np.diff(arc) / t <= speed * (1 + 1e-9)).all() and np.allclose(t / cycle, np.round(t / cycle))
-    np.testing.assert_allclose(pathsolve.servo_times(arc, 400.0, 0.002), [0.004, 0.004, 0.002, 0.026])
-    np.testing.assert_allclose(pathsolve.servo_times(arc, 20.0, 0.002), [0.05, 0.05, 0.026, 0.5])
-    np.testing.assert_allclose(pathsolve.servo_times(arc, 20.0, 0.008), [0.056, 0.056, 0.032, 0.504])
+    np.testing.assert_allclose(pathsolve.servo_times(line(arc), arc, timing(400.0, 0.002)), [0.004, 0.004, 0.002, 0.026])
+    np.testing.assert_allclose(pathsolve.servo_times(line(arc), arc, timing(20.0, 0.002)), [0.05, 0.05, 0.026, 0.5])
+    np.testing.assert_allclose(pathsolve.servo_times(line(arc), arc, timing(20.0, 0.008)), [0.056, 0.056, 0.032, 0.504])
+
+
+def test_a_path_starts_and_stops_at_rest_and_slows_round_a_corner():
+    """A review (2026-12-06): every step ran at the path's speed, the first straight out of the movej's stop and
+    the last into stopj (at --speed 800, ~1200 rad/s² at the joints), and a corner turned at full speed. Now a
+    speed profile at path.accel_mm_s2: from rest, to rest, and at a turn of φ at most sqrt(a δ c / (1 - c)),
+    c = cos(φ/2) (δ: path.corner_mm). Hand-checked at 20 mm/s, 1200 mm/s², δ 0.01 mm, 2 ms cycles."""
+    t = pathsolve.Timing(20.0, 1200.0, 0.01, 0.002)
+    arc = np.arange(11.0)                                               # 10 mm straight, 1 mm steps
+    np.testing.assert_allclose(pathsolve.speed_profile(line(arc), arc, t), [0.0] + [20.0] * 9 + [0.0])
+    # the first step: 0 -> 20 mm/s in 20/1200 s over 1/6 mm, the rest at 20 mm/s: 1/60 + (5/6)/20 = 0.0583 s, 30 cycles
+    np.testing.assert_allclose(pathsolve.servo_times(line(arc), arc, t), [0.06] + [0.05] * 8 + [0.06])
+    corner = np.array([[0.0, 0, 0], [1, 0, 0], [1, 1, 0]])            # 90°: c = cos 45°, sqrt(12 c / (1 - c))
+    v = pathsolve.speed_profile(corner, np.array([0.0, 1, 2]), t)
+    np.testing.assert_allclose(v, [0.0, np.sqrt(12 * np.sqrt(0.5) / (1 - np.sqrt(0.5))), 0.0])
+    assert 5.38 < v[1] < 5.39
+    back = np.array([[0.0, 0, 0], [1, 0, 0], [0, 0, 0]])              # a reversal stops
+    assert pathsolve.speed_profile(back, np.array([0.0, 1, 2]), t)[1] == 0.0
+    arc = np.arange(101.0)                                              # 100 mm at 100 mm/s: up over 100²/2400 =
+    t = pathsolve.Timing(100.0, 1200.0, 0.01, 0.002)                    # 4.2 mm, down over as much, in between at
+    dt = pathsolve.servo_times(line(arc), arc, t)                       # speed; the cycles round each step up
+    speed = np.diff(arc) / dt
+    assert (np.diff(speed[:50]) >= 0).all() and (np.diff(speed[50:]) <= 0).all()
+    assert speed[0] < np.sqrt(2 * 1200 * 1) and speed[5:-5].min() == 100.0 and speed[:4].max() < 100.0
+    assert 100 / 100 + 100 / 1200 <= dt.sum() <= 100 / 100 + 100 / 1200 + 100 * 0.002     # the trapezoid's time
 
 
 def test_servoj_steps_at_the_robots_own_controller_cycle():
@@ -207,10 +239,11 @@ def test_servoj_steps_at_the_robots_own_controller_cycle():
                                                        "ur30", "custom")}
     assert cycles == {"ur3": 0.008, "ur5": 0.008, "ur10": 0.008, "ur3e": 0.002, "ur5e": 0.002, "ur10e": 0.002,
                       "ur16e": 0.002, "ur20": 0.002, "ur30": 0.002, "custom": 0.008}
-    table = pd.DataFrame({"arc_mm": [0.0, 1.0, 2.0], **{c: [0.0, 0.1, 0.2] for c in JCOMP_DEG},
+    table = pd.DataFrame({"arc_mm": [0.0, 1.0, 2.0], "target_x": [0.0, 1.0, 2.0], "target_y": 0.0, "target_z": 0.0,
+                          **{c: [0.0, 0.1, 0.2] for c in JCOMP_DEG},
                           "residual_mm": 0.0, "in_workspace": True, "uncertainty_mm": 0.1, "t_s": [0.0, 0.056, 0.112],
                           "orientation_residual_arcsec": np.nan})
-    script = pathsolve.urscript(table, 20.0, 0.05, 300, 1.4, 1.05, 0.008)
+    script = pathsolve.urscript(table, pathsolve.Timing(20.0, 1e15, 0.01, 0.008), 0.05, 300, 1.4, 1.05)
     assert "servoj([" in script and ", t=0.008, lookahead_time=0.050, gain=300)" in script
     assert script.count(", 7)") == 3                         # each 1 mm step 56 ms (7 cycles), and the hold, 50 ms up
     assert re.search(r"servo_step\((\[[^]]+\]), \1, 7\)", script)                           # to 7 cycles
@@ -222,7 +255,7 @@ def test_a_path_faster_than_any_tool_or_its_joints_is_refused():
     arc = np.array([0.0, 1.0, 2.0])
     for speed in (5000.1, 1e5, 1e308, float("inf"), float("nan")):
         with pytest.raises(ValueError, match=r"beyond 5000 mm/s, the highest tool speed"):
-            pathsolve.servo_times(arc, speed, 0.008)
+            pathsolve.servo_times(line(arc), arc, pathsolve.Timing(speed, 1200.0, 0.01, 0.008))
     ur5 = load_robot({"model": "ur5", "dh": None, "joint_limits_deg": None, "tcp": None, "tool_mm": [0, 0, 0]})
     with pytest.raises(ValueError, match=r"path.joint_speed_deg_s: joint 1 at 1e\+06 deg/s, beyond the ur5's own 180"):
         pathsolve.joint_speeds(ur5, 1e6)
@@ -252,8 +285,10 @@ def test_a_compensated_seam_stays_on_the_path_on_the_twin(in_trained_project, tm
     back = pd.read_csv(tmp_path / "out" / "path.csv")
     assert list(back.columns) == pathsolve.PATH_COLUMNS and len(back) == 101 and back.converged.all()
     np.testing.assert_allclose(back.arc_mm, np.arange(101.0), atol=1e-9)
-    step = 1 / in_trained_project["path"]["speed_mm_s"]                  # 1 mm: 50 ms, a UR5's (CB3) 8 ms cycles up
-    np.testing.assert_allclose(back.t_s.iloc[-1], 100 * np.ceil(step / 0.008) * 0.008, atol=1e-9)
+    # 1 mm steps at 20 mm/s: 50 ms, 7 of a UR5's (CB3) 8 ms cycles; the first from rest and the last to rest at
+    # 1200 mm/s² (20/1200 s over 1/6 mm, the rest of the mm at 20 mm/s: 58.3 ms), 8 cycles
+    assert in_trained_project["path"]["speed_mm_s"] == 20.0 and in_trained_project["path"]["accel_mm_s2"] == 1200.0
+    np.testing.assert_allclose(back.t_s.iloc[-1], 98 * 0.056 + 2 * 0.064, atol=1e-9)
     np.testing.assert_allclose(back[TARGET].to_numpy(), np.linspace(*np.array(SEAM), 101), atol=1e-6)
     judge = Judge(in_trained_project, root=Path.cwd())
     segs = segments(np.array(SEAM), ["", "movel"])
@@ -267,8 +302,8 @@ def test_a_compensated_seam_stays_on_the_path_on_the_twin(in_trained_project, tm
     steps = re.findall(r"  servo_step\((\[[^\]]+\]), (\[[^\]]+\]), (\d+)\)", script)
     to = np.array([[float(v) for v in b.strip("[]").split(",")] for _, b, _ in steps])
     np.testing.assert_allclose(to[:-1], np.radians(q[1:]), atol=1e-8)                 # then the end, held
-    cycles = np.ceil(1.0 / in_trained_project["path"]["speed_mm_s"] / 0.008)      # 1 mm at the path's speed, 8 ms
-    assert [int(n) for *_, n in steps] == [cycles] * 100 + [7] and len(table) == 101   # cycles; the end held 0.05 s up
+    assert [int(n) for *_, n in steps] == [8] + [7] * 98 + [8] + [7] and len(table) == 101   # as above; the end held
+                                                                                             # 0.05 s, 7 cycles up
 
 
 def test_a_path_at_a_tcp_keeps_that_tcp_on_the_path_on_the_twin(in_trained_project, tmp_path):
@@ -562,7 +597,8 @@ def test_the_service_answers_a_whole_path(path_server, in_trained_project):
     tol = in_trained_project["compensate"]["tol_mm"]
     assert q.shape == (51, 6) and r["all_in_workspace"] and max(r["residual_mm"]) < tol
     np.testing.assert_allclose(r["arc_mm"], np.arange(0, 101, 2.0), atol=1e-9)
-    np.testing.assert_allclose(r["t_s"][-1], 50 * 0.104, atol=1e-9)          # 2 mm at 20 mm/s: 13 cycles of 8 ms
+    # 2 mm at 20 mm/s: 100 ms, 13 cycles of 8 ms; the first and the last 108.3 ms (from and to rest), 14
+    np.testing.assert_allclose(r["t_s"][-1], 48 * 0.104 + 2 * 0.112, atol=1e-9)
     np.testing.assert_allclose(model_position(served_model())(q), target, atol=tol)
     assert np.abs(np.diff(q, axis=0)).max() < 2.0                                  # no jump between samples
     bad = {
@@ -648,11 +684,11 @@ def test_a_refusal_at_the_first_or_last_sample_says_so():
     row = lambda arc, ok: [arc, 0.0, 0.0, 0.0, *[10.0] * 6, 0.0 if ok else 0.0001, 1, ok, 648000.0 if not ok else 0.1]
     limits, speeds = np.array([[-360.0, 360.0]] * 6), np.full(6, 180.0)
     first = pd.DataFrame([row(0.0, False)], columns=SOLVED).assign(in_workspace=True)
-    said = refusal(first, 3, limits, 0.001, np.zeros(0), 0.5, 2.0, speeds, 0.008)
+    said = refusal(first, 3, limits, 0.001, np.zeros(0), 0.5, pathsolve.Timing(2.0, 1e15, 0.01, 0.008), speeds)
     assert said.startswith("sample 1 (arc 0.0 mm): not reached") and "solved from the start joints; the 2 samples" \
         in said and "sample 0" not in said, said
     last = pd.DataFrame([row(0.0, True), row(1.0, True), row(2.0, False)], columns=SOLVED).assign(in_workspace=True)
-    said = refusal(last, 3, limits, 0.001, np.zeros(2), 0.5, 2.0, speeds, 0.008)
+    said = refusal(last, 3, limits, 0.001, np.zeros(2), 0.5, pathsolve.Timing(2.0, 1e15, 0.01, 0.008), speeds)
     assert said.endswith("solved from sample 2's joints") and "0 samples" not in said, said
 
 

@@ -18,7 +18,8 @@ PATH.csv, one row per waypoint (`,` `;` or tab separated, decimal point or comma
 Writes DIR/path.csv (per sample: sample, arc_mm, t_s, target_x..z, j1_comp_deg..j6_comp_deg,
 residual_mm, iterations, converged, in_workspace, uncertainty_mm, orientation_residual_arcsec) and
 DIR/path.script (URScript: movej to the first sample, then servoj per sample, t = its step's time at the
-speed in whole controller cycles: a CB3's 8 ms, an e-Series' 2 ms, pathsolve.cycle_s).
+speed, from rest to rest at path.accel_mm_s2 and slower round corners, in whole controller cycles: a CB3's
+8 ms, an e-Series' 2 ms, pathsolve.cycle_s).
 
 With an orientation (target_rx..rz, or for an offline path of joints the nominal flange orientation of
 each waypoint's joints, as the program compensator's `compensate.orientation`), each sample is a pose:
@@ -59,8 +60,8 @@ from pipeline.lib.robot.tcp import at_tcp, in_flange
 from pipeline.lib.robot.urdf import tcp_transforms
 from pipeline.lib.runtime.compensation import reach_mm
 from pipeline.lib.runtime.paths import n_samples, read_path, resample, rotations_at
-from pipeline.lib.runtime.pathsolve import (beyond_reach, cycle_s, deviation, finish, joint_speeds, model_position,
-                                            refine, refusal, servo_times, solve_path, urscript)
+from pipeline.lib.runtime.pathsolve import (Timing, beyond_reach, cycle_s, deviation, finish, joint_speeds,
+                                            model_position, refine, refusal, servo_times, solve_path, urscript)
 from pipeline.lib.runtime.waypoints import flange_targets, start_refusal
 
 log = logger(__name__)
@@ -157,8 +158,8 @@ def run(argv=None) -> pd.DataFrame:
         raise ValueError(f"{src}: {n} samples at a spacing of {cfg['spacing_mm']:g} mm over {length:.1f} mm, more "
                          f"than path.max_samples ({cfg['max_samples']}): a larger --spacing")
     targets, arc = resample(found.segs, cfg["spacing_mm"])
-    cycle = cycle_s(robot)                           # servoj's step on the robot's controller
-    servo_times(arc, cfg["speed_mm_s"], cycle)       # a ValueError where --speed is too low for URScript, or too high
+    timing = Timing(cfg["speed_mm_s"], cfg["accel_mm_s2"], cfg["corner_mm"], cycle_s(robot))
+    servo_times(targets, arc, timing)                # a ValueError where --speed is too low for URScript, or too high
     far = beyond_reach(targets, arc, reach_mm(model.physics.geometry()))
     if far:
         raise Refused(f"{src}: {far}; nothing written{earlier}")
@@ -167,10 +168,10 @@ def run(argv=None) -> pd.DataFrame:
     if cfg["chord_mm"] is not None and table.converged.all():
         table = refine(model, table, found.segs, cfg["chord_mm"], p["compensate"], robot, rotations,
                        cfg["max_samples"])
-    table = finish(table, workspace, cfg["speed_mm_s"], cycle)
+    table = finish(table, workspace, timing)
     dev = deviation(model_position(model), table[JCOMP_DEG].to_numpy(), found.segs)
     why = refusal(table, n, robot.limits_deg, p["compensate"]["tol_mm"], dev, cfg["max_deviation_mm"],
-                  cfg["speed_mm_s"], speeds, cycle, None if a.allow_outside_workspace else workspace)
+                  timing, speeds, None if a.allow_outside_workspace else workspace)
     why = why or start_refusal(q0, table[JCOMP_DEG].to_numpy()[0], nominal_geometry(robot), found.offline,
                                orientation=rotations is not None)
     if why:
@@ -178,8 +179,8 @@ def run(argv=None) -> pd.DataFrame:
     out.mkdir(parents=True, exist_ok=True)
     approach = p["program"]["movej"]
     write_together({out / "path.csv": csv_text(table),
-                    out / "path.script": urscript(table, cfg["speed_mm_s"], cfg["lookahead_s"], cfg["gain"],
-                                                  approach["acc"], approach["vel"], cycle)}, [src])
+                    out / "path.script": urscript(table, timing, cfg["lookahead_s"], cfg["gain"],
+                                                  approach["acc"], approach["vel"])}, [src])
     print(summary_text(table, dev, cfg["spacing_mm"], cfg["speed_mm_s"]))
     log.info("wrote %s and %s", out / "path.csv", out / "path.script")
     return table

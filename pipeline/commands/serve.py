@@ -463,7 +463,8 @@ def make_server(params: dict, host: str | None = None, port: int | None = None,
     service = Service(model, workspace, limits_deg, reach_mm(model.physics.geometry()), tol_mm=tol,
                       jacobian_of=params["compensate"]["jacobian_of"], controller=controller,
                       max_deviation_mm=params["path"]["max_deviation_mm"], joint_speed_deg_s=speeds,
-                      frame_rot=frame_rot, tol_arcsec=params["compensate"]["tol_arcsec"], cycle_s=cycle_s(robot),
+                      frame_rot=frame_rot, tol_arcsec=params["compensate"]["tol_arcsec"],
+                      path_timing=(params["path"]["accel_mm_s2"], params["path"]["corner_mm"], cycle_s(robot)),
                       **{k: cfg[k] for k in SERVICE_KEYS})
     try:
         server = Server((host, port), {k: cfg[k] for k in LIMIT_KEYS}, service)

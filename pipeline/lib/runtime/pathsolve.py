@@ -9,7 +9,8 @@
                                                       path by more than a chordal tolerance
     deviation(position, q_deg, segs)                  how far each joint-linear step's middle leaves the path
     cycle_s(robot)                                    servoj's step on the robot's controller (8 or 2 ms)
-    servo_times(arc_mm, speed, cycle)                 each step's servoj time, in whole controller cycles
+    servo_times(points, arc_mm, timing)               each step's servoj time (a speed profile from rest to
+                                                      rest, slower round corners), in whole controller cycles
     refusal(...)                                      the first sample that must stop the path, and why
     urscript(table, ...)                              movej to the start, then servoj every controller cycle,
                                                       joint-linear from sample to sample
@@ -18,6 +19,7 @@ The arm is driven joint-linearly between samples (servoj interpolates in joint s
 between two samples is the model's joint-space chord: `deviation` measures it on the model.
 """
 import time
+from dataclasses import dataclass
 
 import numpy as np
 import pandas as pd
@@ -121,28 +123,65 @@ def cycle_s(robot) -> float:
     return 0.002 if robot.name in TABLES and robot.name not in CB3 else 0.008
 
 
-def servo_times(arc_mm: np.ndarray, speed_mm_s: float, cycle: float) -> np.ndarray:
-    """(m - 1,) s: each step's servoj time at speed_mm_s, a whole number of controller cycles (cycle s, at least one),
-    rounded up: no step faster than asked; a ValueError where a step would take more cycles than the script's
-    counter holds exactly (a speed far too low), or where speed_mm_s is beyond any tool speed (a slip of unit)."""
-    if not speed_mm_s <= 1000 * TOOL_SPEED_MAX:
-        raise ValueError(f"speed {speed_mm_s:g} mm/s: beyond {1000 * TOOL_SPEED_MAX:g} mm/s, the highest tool speed "
+@dataclass(frozen=True)
+class Timing:
+    """How a path is timed: the TCP's speed along it (mm/s), its acceleration (mm/s²) from rest at the start,
+    to rest at the end and round corners, the corners' junction deviation (mm: path.corner_mm) and the
+    controller's cycle (s, cycle_s)."""
+    speed_mm_s: float
+    accel_mm_s2: float
+    corner_mm: float
+    cycle_s: float
+
+
+def speed_profile(points_mm: np.ndarray, arc_mm: np.ndarray, t: Timing) -> np.ndarray:
+    """(m,) mm/s: the TCP's speed at each sample, points (m, 3) along arc (m,): at rest at both ends, at most
+    t.speed_mm_s, at a turn of φ between two steps at most sqrt(a δ c / (1 - c)), c = cos(φ/2) (the junction
+    deviation rule: a 90° corner at 1.2 m/s² and 0.01 mm, 5.4 mm/s), and changing by at most t.accel_mm_s2
+    along the path (a forward and a backward pass: v² ≤ v_prev² + 2 a Δs)."""
+    ds = np.diff(arc_mm)                                                           # (m - 1,)
+    d = np.diff(np.asarray(points_mm, float), axis=0)
+    u = d / np.maximum(np.linalg.norm(d, axis=1), 1e-300)[:, None]                 # (m - 1, 3) each step's direction
+    c = np.sqrt(np.clip(0.5 * (1 + np.einsum("ij,ij->i", u[:-1], u[1:])), 0.0, 1.0))   # cos(φ/2) at inner samples
+    with np.errstate(divide="ignore"):
+        corner = np.sqrt(t.accel_mm_s2 * t.corner_mm * c / (1 - c))                  # inf on a straight
+    v = np.concatenate([[0.0], np.minimum(t.speed_mm_s, corner), [0.0]]) if len(ds) else np.zeros(len(arc_mm))
+    for k in range(len(ds)):                                                       # forward: accelerate
+        v[k + 1] = min(v[k + 1], np.sqrt(v[k] ** 2 + 2 * t.accel_mm_s2 * ds[k]))
+    for k in range(len(ds) - 1, -1, -1):                                           # backward: decelerate
+        v[k] = min(v[k], np.sqrt(v[k + 1] ** 2 + 2 * t.accel_mm_s2 * ds[k]))
+    return v
+
+
+def servo_times(points_mm: np.ndarray, arc_mm: np.ndarray, t: Timing) -> np.ndarray:
+    """(m - 1,) s: each step's servoj time on speed_profile (within a step, from its first sample's speed up to at
+    most the path's and down to its last's at the acceleration: a trapezoid), a whole number of controller cycles
+    (at least one), rounded up: no step faster than the profile; a ValueError where a step would take more
+    cycles than the script's counter holds exactly (a speed far too low), or where the speed is beyond any
+    tool speed (a slip of unit)."""
+    if not t.speed_mm_s <= 1000 * TOOL_SPEED_MAX:
+        raise ValueError(f"speed {t.speed_mm_s:g} mm/s: beyond {1000 * TOOL_SPEED_MAX:g} mm/s, the highest tool speed "
                          "UR's safety configuration takes (mm/s: a speed in m/s?)")
-    with np.errstate(over="ignore"):
-        cycles = np.maximum(1, np.ceil(np.round(np.diff(arc_mm) / speed_mm_s / cycle, 9)))
+    ds, v, a = np.diff(arc_mm), speed_profile(points_mm, arc_mm, t), t.accel_mm_s2
+    va, vb = v[:-1], v[1:]
+    with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
+        top = np.minimum(t.speed_mm_s, np.sqrt((2 * a * ds + va ** 2 + vb ** 2) / 2))      # the step's peak speed
+        step = np.where(ds > 0, (2 * top - va - vb) / a + (ds - (2 * top ** 2 - va ** 2 - vb ** 2) / (2 * a)) / top, 0.0)
+        cycles = np.maximum(1, np.ceil(np.round(step / t.cycle_s, 9)))
     slow = np.flatnonzero(~(cycles <= MAX_CYCLES))
     if len(slow):
-        raise ValueError(f"speed {speed_mm_s:g} mm/s: a step of {np.diff(arc_mm)[slow[0]]:.3f} mm would take more "
+        raise ValueError(f"speed {t.speed_mm_s:g} mm/s: a step of {ds[slow[0]]:.3f} mm would take more "
                          f"than {MAX_CYCLES} controller cycles (URScript's 32-bit float counts no further): a higher speed")
-    return cycles * cycle
+    return cycles * t.cycle_s
 
 
-def finish(table: pd.DataFrame, workspace, speed_mm_s: float, cycle: float) -> pd.DataFrame:
-    """path.csv's table (PATH_COLUMNS): samples numbered from 1, each one's time along the path (s, in controller
-    cycles of `cycle` s), in_workspace and uncertainty_mm at its joints."""
+def finish(table: pd.DataFrame, workspace, timing: Timing) -> pd.DataFrame:
+    """path.csv's table (PATH_COLUMNS): samples numbered from 1, each one's time along the path (s: servo_times),
+    in_workspace and uncertainty_mm at its joints."""
     table = table.copy()
     table.insert(0, "sample", np.arange(1, len(table) + 1))
-    table.insert(2, "t_s", np.concatenate([[0.0], np.cumsum(servo_times(table.arc_mm.to_numpy(), speed_mm_s, cycle))]))
+    table.insert(2, "t_s", np.concatenate([[0.0], np.cumsum(servo_times(table[TARGET].to_numpy(),
+                                                                        table.arc_mm.to_numpy(), timing))]))
     table["uncertainty_mm"], table["in_workspace"] = workspace(table[JCOMP_DEG].to_numpy())
     table["converged"] = table.converged.astype(bool)
     return table[PATH_COLUMNS]
@@ -177,11 +216,10 @@ def beyond_reach(targets: np.ndarray, arc_mm: np.ndarray, reach_mm: float) -> st
 
 
 def refusal(table: pd.DataFrame, n_samples: int, limits_deg: np.ndarray, tol_mm: float, dev: np.ndarray,
-            max_deviation_mm: float, speed_mm_s: float, speeds_deg_s: np.ndarray, cycle: float,
-            workspace=None) -> str | None:
+            max_deviation_mm: float, timing: Timing, speeds_deg_s: np.ndarray, workspace=None) -> str | None:
     """Why the path must stop, naming its first sample that must not be driven (numbered from 1), or None:
     not reached (solve_path stops at such a sample; refine's samples in between may be one too), beyond the
-    joint limits, a joint step faster than the joint's speed limit at speed_mm_s, or a joint-space step whose
+    joint limits, a joint step faster than the joint's speed limit as timed (servo_times), or a joint-space step whose
     middle leaves the path by more than max_deviation_mm (dev: `deviation`: a branch flip), and, with a
     workspace, outside the trained workspace; the kinds found after the first are named with their first
     sample."""
@@ -205,7 +243,7 @@ def refusal(table: pd.DataFrame, n_samples: int, limits_deg: np.ndarray, tol_mm:
         k, j = map(int, beyond[0])
         found.append((k, "beyond the joint limits",
                       f"{name(k)}: joint {j + 1} at {q[k, j]:.1f}°, beyond its limits [{lo[j]:g}, {hi[j]:g}]°"))
-    dt = servo_times(arc[:m], speed_mm_s, cycle)
+    dt = servo_times(table[TARGET].to_numpy()[:m], arc[:m], timing)
     rate = np.abs(np.diff(q[:m], axis=0)) / dt[:, None]                  # deg/s
     fast = np.argwhere(rate > speeds_deg_s)
     if len(fast):
@@ -213,7 +251,7 @@ def refusal(table: pd.DataFrame, n_samples: int, limits_deg: np.ndarray, tol_mm:
         found.append((k + 1, "a joint too fast",
                       f"{name(k + 1)}: joint {j + 1} turns {abs(q[k + 1, j] - q[k, j]):.2f}° from sample {k + 1} in "
                       f"{dt[k]:.3f} s ({rate[k, j]:.0f}°/s, beyond its {speeds_deg_s[j]:.0f}°/s at "
-                      f"{speed_mm_s:g} mm/s): a branch flip?"))
+                      f"{timing.speed_mm_s:g} mm/s): a branch flip?"))
     off = np.flatnonzero(dev[:max(m - 1, 0)] > max_deviation_mm)
     if len(off):
         k = int(off[0])
@@ -240,18 +278,20 @@ def fmt(values) -> str:
     return "[" + ", ".join(f"{v:.9f}" for v in np.radians(np.asarray(values, float))) + "]"
 
 
-def urscript(table: pd.DataFrame, speed_mm_s: float, lookahead_s: float, gain: int, acc: float, vel: float,
-             cycle: float) -> str:
+def urscript(table: pd.DataFrame, timing: Timing, lookahead_s: float, gain: int, acc: float, vel: float) -> str:
     """The compensated path: movej (acc rad/s², vel rad/s) to its first sample, then each step driven by
-    servoj every controller cycle (`cycle` s, cycle_s), the joints interpolated linearly from sample to sample over the
-    step's time at speed_mm_s (`servo_times`); the last sample held for the lookahead, then stopj. Only
+    servoj every controller cycle (timing.cycle_s, cycle_s), the joints interpolated linearly from sample to sample over the
+    step's time (`servo_times`); the last sample held for the lookahead, then stopj. Only
     numbers formatted here and this fixed text reach it."""
-    q, cycles = table[JCOMP_DEG].to_numpy(), np.round(servo_times(table.arc_mm.to_numpy(), speed_mm_s, cycle) / cycle)
+    cycle = timing.cycle_s
+    q = table[JCOMP_DEG].to_numpy()
+    cycles = np.round(servo_times(table[TARGET].to_numpy(), table.arc_mm.to_numpy(), timing) / cycle)
     hold = int(np.ceil(lookahead_s / cycle - 1e-9))
     outside = int((~table.in_workspace.to_numpy(bool)).sum())
     mix = ", ".join(f"a[{j}] + s * (b[{j}] - a[{j}])" for j in range(6))
     lines = [f"# compensated path by `python -m pipeline.commands.path`: {len(table)} samples over "
-             f"{float(table.arc_mm.iloc[-1]):.3f} mm at {float(speed_mm_s):.3f} mm/s, "
+             f"{float(table.arc_mm.iloc[-1]):.3f} mm at {float(timing.speed_mm_s):.3f} mm/s "
+             f"({float(timing.accel_mm_s2):.1f} mm/s^2 from and to rest), "
              f"{float(table.t_s.iloc[-1]):.3f} s; joints in rad",
              f"# residual max {float(table.residual_mm.max()):.6f} mm; {outside} samples outside the trained workspace"]
     arcsec = table.orientation_residual_arcsec.to_numpy(float)

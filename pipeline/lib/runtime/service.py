@@ -51,7 +51,7 @@ from pipeline.lib.project.columns import JCOMP_DEG
 from pipeline.lib.robot.kinematics import DTYPE
 from pipeline.lib.runtime.paths import ROTVEC_MAX_RAD, n_samples, resample, rotations_at, segments
 from pipeline.lib.runtime.pathsolve import (SOLVED, beyond_reach, deviation, model_position, refusal,
-                                            servo_times)
+                                            Timing, servo_times)
 from pipeline.lib.runtime.realtime import Realtime, answers
 from pipeline.lib.runtime.solvers import LAM0, lm_jacobian, lm_step, orientation_angle, pose_weight, residual
 from pipeline.lib.runtime.waypoints import another_configuration
@@ -171,8 +171,9 @@ class Service:
     None: realtime.Realtime on the model, compiled when `compile`. lm runs on the controller's graph when
     it is given and jacobian_of is physics (the graph's steps), else on the PyTorch model. compensate_path:
     at most max_path_samples samples, refused as the path command refuses (max_deviation_mm, the joint
-    speed limits joint_speed_deg_s (6,); a string: why they are unknown), its times in controller cycles of
-    cycle_s (pathsolve.cycle_s: the robot's). frame_rot (3, 3): the served
+    speed limits joint_speed_deg_s (6,); a string: why they are unknown), timed as the path command times it
+    (path_timing: path.accel_mm_s2, path.corner_mm and the robot's pathsolve.cycle_s; a call gives the speed).
+    frame_rot (3, 3): the served
     frame's rotation in the flange (the probe's, or a TCP's) for compensate_pose, None where the model was
     calibrated without orientation (compensate_pose refused); tol_arcsec its orientation's tolerance."""
 
@@ -180,7 +181,8 @@ class Service:
                  unreachable_mm: float, max_iter: int, budget_ms: float, stall_iter: int, stall_ratio: float,
                  max_batch: int, batch_wait_ms: float, max_items: int, call_budget_ms: float, lm_per_call: int,
                  compile: bool, controller=None, max_path_samples: int = 1000, max_deviation_mm: float = 0.5,
-                 joint_speed_deg_s=None, frame_rot=None, tol_arcsec: float = 1.0, cycle_s: float = 0.008):
+                 joint_speed_deg_s=None, frame_rot=None, tol_arcsec: float = 1.0,
+                 path_timing: tuple = (1200.0, 0.01, 0.008)):
         self.model, self.workspace, self.reach = model, workspace, float(reach_mm)
         self.limits_deg = np.asarray(limits_deg, float)
         self.limits = torch.as_tensor(np.radians(self.limits_deg), dtype=DTYPE)
@@ -190,7 +192,7 @@ class Service:
         self.max_batch, self.batch_wait = int(max_batch), float(batch_wait_ms) / 1000
         self.max_items, self.call_budget_ms, self.lm_per_call = int(max_items), float(call_budget_ms), int(lm_per_call)
         self.max_path_samples, self.max_deviation = int(max_path_samples), float(max_deviation_mm)
-        self.joint_speeds, self.cycle = joint_speed_deg_s, float(cycle_s)     # compensate_path's (pathsolve.cycle_s)
+        self.joint_speeds, self.timing = joint_speed_deg_s, tuple(map(float, path_timing))   # compensate_path's
         self.position = model_position(PhysicsOnly(model))     # the path check's kinematics: no network, any thread
         self.realtime = controller if controller is not None else Realtime(
             model, np.radians(self.limits_deg), self.tol, workspace=workspace, compile=compile)
@@ -369,7 +371,8 @@ class Service:
                                "a larger spacing, or split the path")
         targets, arc = resample(segs, spacing)
         try:
-            times = np.concatenate([[0.0], np.cumsum(servo_times(arc, speed, self.cycle))])
+            timing = Timing(speed, *self.timing)
+            times = np.concatenate([[0.0], np.cumsum(servo_times(targets, arc, timing))])
         except ValueError as e:
             raise RequestError(f"speed_mm_s: {e}") from None
         flange = rotations_at(segs, rots, arc) if len(rots) else [None] * len(arc)   # (m, 3, 3): per sample
@@ -391,7 +394,7 @@ class Service:
         table = pd.DataFrame(rows, columns=SOLVED + ["in_workspace"])       # the path command's, and in_workspace
         qd = table[JCOMP_DEG].to_numpy()
         why = refusal(table, n, self.limits_deg, self.tol, deviation(self.position, qd, segs), self.max_deviation,
-                      speed, self.joint_speeds, self.cycle)
+                      timing, self.joint_speeds)
         if why:
             raise RequestError(f"points_mm: {why}")
         return {"q_rad": np.radians(qd).tolist(), "target_mm": targets.tolist(), "arc_mm": arc.tolist(),
