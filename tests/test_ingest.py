@@ -934,6 +934,46 @@ def test_an_extra_column_of_numbers_in_one_campaign_and_text_in_another_is_joine
     assert df.Timestamp.tolist() == [f"{i}.5" for i in range(15)] + [f"2024-05-01 10:{i:02d}" for i in range(15)]
 
 
+def test_a_campaign_table_read_from_other_settings_or_files_stops_the_join(tmp_path, monkeypatch):
+    """A review (2026-12-06): after a campaigns.more campaign's file or settings changed, `python -m
+    pipeline.stages.ingest` alone (as the README runs it) joined the table its stage had read before, exit 0
+    (dvc repro re-runs that stage first). The join now checks what each table was read from."""
+    from pipeline.stages.ingest import run_campaign
+    monkeypatch.chdir(tmp_path)
+    ids, q, m = campaign(15, seed=14)
+    write_pair(tmp_path, ids, q, m)
+    (tmp_path / "b").mkdir()
+    j, t = write_pair(tmp_path / "b", ids, q, m)
+    p = params()
+    p["campaigns"]["more"] = {"b": {"station": "main", "ingest": {"joints": "b/joints.csv", "tracker": "b/tracker.csv"}}}
+    run_campaign(p, "b")
+    run(p)
+    Path(t).write_text(Path(t).read_text().replace(num(m[3, 0]), num(m[3, 0] + 1.0), 1))       # the file edited
+    with pytest.raises(ValueError, match=r"campaign 'b' was ingested from other settings or files than params.yaml's "
+                                         r"and its files' now; re-run python -m pipeline.stages.ingest campaign b"):
+        run(p)
+    run_campaign(p, "b")
+    run(p)
+    p["campaigns"]["more"]["b"]["ingest"]["length_unit"] = "m"                               # a setting changed
+    with pytest.raises(ValueError, match=r"campaign 'b' was ingested from other settings"):
+        run(p)
+
+
+def test_a_pair_of_id_headers_for_one_table_is_refused_naming_the_key(tmp_path, monkeypatch):
+    """A review (2026-12-06): `columns.point_id: [point_id, Name]` (a joints file's and a tracker file's) on a
+    campaign of one table said "missing point id column '['point_id', 'Name']'", though point_id was there."""
+    monkeypatch.chdir(tmp_path)
+    ids, q, m = campaign(15, seed=14)
+    rows = [[i] + [num(v) for v in a] + [num(v) for v in b] for i, a, b in zip(ids, q, m)]
+    write(tmp_path / "table.csv", ["point_id", *JOINTS_DEG, "X", "Y", "Z"], rows, ",")
+    p = params(joints="table.csv", tracker="table.csv")
+    p["ingest"]["columns"]["point_id"] = ["point_id", "Name"]
+    raises(["ingest.columns.point_id: ['point_id', 'Name'] names a joints file's and a tracker file's id columns, "
+            "but table.csv is one table of both: give its one header"], run, p)
+    p["ingest"]["columns"]["point_id"] = "point_id"
+    assert run(p)["n_kept"] == 15
+
+
 def ingest_lock() -> dict:
     """dvc.lock's entry of the ingest stage."""
     return yaml.safe_load((ROOT / "dvc.lock").read_text())["stages"]["ingest"]

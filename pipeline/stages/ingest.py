@@ -13,6 +13,8 @@ every dropped row, of every campaign, with its reason. Where the campaigns measu
 orientation (meas_qw..meas_qz: all of them or none), those columns follow meas_z.
 """
 import argparse
+import hashlib
+import json
 from collections import Counter
 from pathlib import Path
 
@@ -93,12 +95,21 @@ def all_or_none_oriented(summaries: dict) -> None:
                      f"{' and '.join(key(c) for c in oriented)} to null to calibrate on positions alone")
 
 
+def read_as(cfg: dict, root: Path) -> str:
+    """The SHA-256 of a campaign's ingest settings (its override merged over the section, as params.yaml gives
+    them: the same wherever the project lies) and of its files' bytes (opened from root): what its table was
+    read from."""
+    files = {k: file_sha256(v) for k, v in rooted_files(cfg, root).items() if k in ("joints", "tracker")}
+    return hashlib.sha256(json.dumps([cfg, files], sort_keys=True, default=str).encode()).hexdigest()
+
+
 def run_campaign(params: dict, name: str, root: Path = HERE) -> dict:
     """Ingest one campaigns.more campaign; ids become NAME:id."""
     p = for_stage(params, PARAMS)
     station = campaign_entry(p["campaigns"], name)["station"]
-    df, summary = ingest(rooted_files(campaign_ingest(p["ingest"], p["campaigns"], name), root),
-                         load_robot(p["robot"]), f"campaigns.more.{name}.ingest")
+    cfg = campaign_ingest(p["ingest"], p["campaigns"], name)
+    df, summary = ingest(rooted_files(cfg, root), load_robot(p["robot"]), f"campaigns.more.{name}.ingest")
+    summary["read_as"] = read_as(cfg, root)
     df["point_id"] = [point_id(name, p) for p in df["point_id"]]
     (root / CAMPAIGNS_DIR).mkdir(parents=True, exist_ok=True)
     labelled(df, name, station).to_parquet(root / CAMPAIGNS_DIR / f"{name}.parquet", index=False)
@@ -126,6 +137,11 @@ def run(params: dict, root: Path = HERE) -> dict:
             raise FileNotFoundError(f"{path}: campaign {name!r} (params.yaml campaigns.more) is not ingested; "
                                     f"run dvc repro, or python -m pipeline.stages.ingest campaign {name}")
         part, rep = pd.read_parquet(path), read_json(root / CAMPAIGNS_REPORTS / f"{name}.json")
+        now = read_as(campaign_ingest(p["ingest"], p["campaigns"], name), root)
+        if rep.get("read_as") != now:
+            raise ValueError(f"{path}: campaign {name!r} was ingested from other settings or files than params.yaml's "
+                             f"and its files' now; re-run python -m pipeline.stages.ingest campaign {name} (dvc repro "
+                             "does)")
         if (part[STATION] != stations[name]).any():
             raise ValueError(f"{path}: ingested for station {part[STATION].iloc[0]!r}, params.yaml "
                              f"campaigns.more.{name}.station says {stations[name]!r}; re-run its ingest")

@@ -1022,6 +1022,10 @@ def read_inputs(cfg: dict):
         if cols["marker"] is not None:
             raise IngestError("ingest.columns.marker: a multi-marker target has several rows per pose, so it "
                               "needs its own tracker file (ingest.tracker), paired by id", file="params.yaml")
+        if isinstance(cols["point_id"], (list, tuple)):
+            raise IngestError(f"ingest.columns.point_id: {list(cols['point_id'])} names a joints file's and a tracker "
+                              f"file's id columns, but {cfg['table']} is one table of both: give its one header",
+                              file="params.yaml")
         rows = read_rows(str(cfg["table"]), "table", cfg, cols["point_id"], [joint_group, *tracker_groups])
         add_orientation(rows, cfg["orientation"])
         dropped += row_problems(rows)
