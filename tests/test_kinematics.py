@@ -91,7 +91,7 @@ def test_joint_limits_and_a_custom_table_beyond_the_arm_are_refused_naming_the_k
                            "tcp": None, "tool_mm": [0, 0, 0]})
     for bad, said in (([[-100000, 100000]] + [[-360, 360]] * 5, r"joint\(s\) \[1\] beyond the robot's own limits"),
                       ([[360, -360]] * 6, "min < max"), ([[0, float("nan")]] * 6, "min < max"),
-                      ([[-10, 10]] * 5, "6 pairs"), ("wide", "6 pairs")):
+                      ([[-10, 10]] * 5, "6 pairs"), ("wide", "6 pairs"), ([[-360, True]] + [[-10, 10]] * 5, "6 pairs")):
         with pytest.raises(ValueError, match=rf"^params.yaml robot.joint_limits_deg: .*{said}"):
             robot(bad)
     assert robot([[-180, 180]] * 6).limits_deg.tolist() == [[-180.0, 180.0]] * 6

@@ -214,6 +214,11 @@ def test_a_path_starts_and_stops_at_rest_and_slows_round_a_corner():
     v = pathsolve.speed_profile(corner, np.array([0.0, 1, 2]), t)
     np.testing.assert_allclose(v, [0.0, np.sqrt(12 * np.sqrt(0.5) / (1 - np.sqrt(0.5))), 0.0])
     assert 5.38 < v[1] < 5.39
+    for spacing in (1.0, 0.5, 0.25):                                    # a 10 mm arc at 1 m/s: sqrt(a r) mid-way,
+        th = np.arange(0, np.pi, spacing / 10)                          # whatever the spacing (a review: 98, 196,
+        arc_pts = np.c_[10 * np.cos(th), 10 * np.sin(th), 0 * th]       # 392 mm/s, junction deviation alone)
+        mid = pathsolve.speed_profile(arc_pts, 10 * th, pathsolve.Timing(1000.0, 1200.0, 0.01, 0.002))[len(th) // 2]
+        assert mid <= np.sqrt(1200 * 10) * (1 + 1e-3), (spacing, mid)
     back = np.array([[0.0, 0, 0], [1, 0, 0], [0, 0, 0]])              # a reversal stops
     assert pathsolve.speed_profile(back, np.array([0.0, 1, 2]), t)[1] == 0.0
     arc = np.arange(101.0)                                              # 100 mm at 100 mm/s: up over 100²/2400 =

@@ -155,8 +155,9 @@ def run(argv=None) -> pd.DataFrame:
     flips = linear_flips(table, skipped, model.physics.geometry()) if c["move"] == "movel" else []
     if flips:
         raise Refused(f"{src}: program.move is movel, and {len(flips)} move(s) would take the arm through a "
-                      f"singularity on a straight line: {'; '.join(flips)}; nothing written (movej moves joint by "
-                      f"joint, or add a waypoint that keeps the configuration){left_as_they_were([out, script])}")
+                      f"singularity on a straight line: {'; '.join(flips)}; nothing written (program.move: movej moves "
+                      f"joint by joint; or teach the waypoint again in the configuration of the one before)"
+                      f"{left_as_they_were([out, script])}")
     write_together({out: csv_text(table),
                     script: urscript(table, skipped, c["move"], **c[c["move"]])}, inputs)
     print(text)

@@ -23,7 +23,8 @@ from scipy.spatial.transform import Rotation
 
 from pipeline.lib.learning.checkpoint import load_model
 from pipeline.lib.learning.model import predict
-from pipeline.lib.learning.validation import METHODS, judge, judge_poses, position_accuracy, summary
+from pipeline.lib.learning.validation import (METHODS, judge, judge_poses, orientation_medians, position_accuracy,
+                                              summary)
 from pipeline.lib.learning.workspace import Workspace
 from pipeline.lib.project.artifacts import (CALIBRATED_GEOMETRY, FRAME_JSON, HERE, INGEST_JSON,
                                             MODEL_WEIGHTS, PARAMS_FILE, PARTS_JSON, VALIDATION_DIR,
@@ -129,17 +130,15 @@ def training_target(cfg: dict, trained: dict, name: str) -> dict:
     return cfg
 
 
-def misread(pose: dict, name: str, limit: float) -> None:
-    """Stop where even the best method's orientation error (mean arcsec over the judged points, `pose` of
-    judge_poses) is above `limit` (frame.max_orientation_scatter_arcsec): no arm's error turns its flange that
-    far, misread orientation columns do. The frame stage's check of a training campaign, for a validation
-    campaign, which no frame stage sees (before, the Euler sequence read wrong was judged: 347 000 arcsec,
-    and with refit_tool its orientations pulled every position 7 mm off)."""
-    best = min(pose, key=lambda m: pose[m]["orientation"]["mean_arcsec"])
-    mean = pose[best]["orientation"]["mean_arcsec"]
-    if mean > limit:
-        raise FrameFitError(f"validate.campaigns.{name}: its measured orientations are {mean:.0f} arcsec (mean) from "
-                            f"every method's, the best ({best}) included, above frame.max_orientation_scatter_arcsec = "
+def misread(median: dict, name: str, limit: float) -> None:
+    """Stop where even the best method's orientation error (median arcsec over the judged points:
+    validation.orientation_medians) is above `limit` (frame.max_orientation_scatter_arcsec): no arm's error turns
+    its flange that far, misread orientation columns do. The frame stage's check of a training campaign (a
+    median too), for a validation campaign, which no frame stage sees."""
+    best = min(median, key=median.get)
+    if median[best] > limit:
+        raise FrameFitError(f"validate.campaigns.{name}: its measured orientations are {median[best]:.0f} arcsec "
+                            f"(median) from every method's, the best ({best}) included, above frame.max_orientation_scatter_arcsec = "
                             f"{limit:g}: its orientation columns are misread. Check validate.campaigns.{name}.ingest."
                             "orientation (the Euler sequence, intrinsic XYZ or extrinsic xyz, and angle_unit; a "
                             "quaternion's scalar_first), or set its ingest.columns.orientation to null to judge "
@@ -207,7 +206,7 @@ def run_campaign(params: dict, name: str, root: Path = HERE) -> dict:
     if R_world is not None:                          # the orientation and the tools, where measured
         out["pose"] = judge_poses(pred, probe, flange, frames, P, R_world, probe_offsets(p["robot"]["tcp"], cal.geometry),
                                   ~registered)
-        misread(out["pose"], name, frame_cfg["max_orientation_scatter_arcsec"])
+        misread(orientation_medians(probe, frames, R_world, ~registered), name, frame_cfg["max_orientation_scatter_arcsec"])
         for m, f in frames.items():
             if "probe_rotation" in f:
                 out["registration"][m]["probe_rotation_arcsec"] = float(

@@ -210,6 +210,18 @@ def judge(pred: dict, P_world: np.ndarray, mode: str, frame: dict, n_register: i
     return errors, reg, frames
 
 
+def orientation_medians(probe_R: dict, frames: dict, R_world: np.ndarray, judged: np.ndarray) -> dict:
+    """Each method's median orientation error (arcsec) on the judged points, in the frame it was registered in
+    (as judge_poses measures it): a statistic one glitched reading does not move."""
+    out = {}
+    for m, R_pred in probe_R.items():
+        f = frames[m]
+        R_m = (R_pred @ f.get("probe_rotation", np.eye(3)))[judged]
+        R_meas = np.einsum("ji,njk->nik", np.asarray(f["R"]), R_world)[judged]
+        out[m] = float(np.median(Rotation.from_matrix(np.einsum("nji,njk->nik", R_m, R_meas)).magnitude()) * 206264.806)
+    return out
+
+
 def judge_poses(pred: dict, probe_R: dict, flange_R: dict, frames: dict, P_world: np.ndarray,
                 R_world: np.ndarray, offsets: dict, judged: np.ndarray) -> dict:
     """Each method's orientation and TCP errors (lib/robot/tcp.py pose_errors) on the judged points, in the frame

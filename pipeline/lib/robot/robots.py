@@ -210,10 +210,11 @@ def modified_to_standard(d, a, alpha, offset) -> dict:
 def finite(v, shape: tuple) -> bool:
     """v is numbers (a list, tuple or array; no text, no booleans) of this shape, all finite."""
     try:
-        a = np.asarray(v)
+        cells = np.asarray(v, dtype=object)
     except (TypeError, ValueError):
         return False
-    return a.shape == shape and a.dtype.kind in "iuf" and bool(np.isfinite(a).all())
+    return cells.shape == shape and all(isinstance(x, (int, float, np.integer, np.floating))
+                                        and not isinstance(x, (bool, np.bool_)) and np.isfinite(x) for x in cells.ravel())
 
 
 def within_limits(given, own) -> list:

@@ -137,14 +137,17 @@ class Timing:
 def speed_profile(points_mm: np.ndarray, arc_mm: np.ndarray, t: Timing) -> np.ndarray:
     """(m,) mm/s: the TCP's speed at each sample, points (m, 3) along arc (m,): at rest at both ends, at most
     t.speed_mm_s, at a turn of φ between two steps at most sqrt(a δ c / (1 - c)), c = cos(φ/2) (the junction
-    deviation rule: a 90° corner at 1.2 m/s² and 0.01 mm, 5.4 mm/s), and changing by at most t.accel_mm_s2
-    along the path (a forward and a backward pass: v² ≤ v_prev² + 2 a Δs)."""
+    deviation rule: a 90° corner at 1.2 m/s² and 0.01 mm, 5.4 mm/s) and sqrt(a r), r = the shorter step over
+    2 sin(φ/2) (the centripetal limit of a sampled arc, whatever its spacing), and changing by at most
+    t.accel_mm_s2 along the path (a forward and a backward pass: v² ≤ v_prev² + 2 a Δs)."""
     ds = np.diff(arc_mm)                                                           # (m - 1,)
     d = np.diff(np.asarray(points_mm, float), axis=0)
     u = d / np.maximum(np.linalg.norm(d, axis=1), 1e-300)[:, None]                 # (m - 1, 3) each step's direction
     c = np.sqrt(np.clip(0.5 * (1 + np.einsum("ij,ij->i", u[:-1], u[1:])), 0.0, 1.0))   # cos(φ/2) at inner samples
-    with np.errstate(divide="ignore"):
-        corner = np.sqrt(t.accel_mm_s2 * t.corner_mm * c / (1 - c))                  # inf on a straight
+    radius = np.minimum(ds[:-1], ds[1:]) / (2 * np.sqrt(np.clip(1 - c ** 2, 0.0, 1.0)))   # the turn's, sin(φ/2)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        corner = np.minimum(np.sqrt(t.accel_mm_s2 * t.corner_mm * c / (1 - c)),          # inf on a straight
+                            np.sqrt(t.accel_mm_s2 * radius))                           # and on a sampled arc at most
     v = np.concatenate([[0.0], np.minimum(t.speed_mm_s, corner), [0.0]]) if len(ds) else np.zeros(len(arc_mm))
     for k in range(len(ds)):                                                       # forward: accelerate
         v[k + 1] = min(v[k + 1], np.sqrt(v[k] ** 2 + 2 * t.accel_mm_s2 * ds[k]))
@@ -160,7 +163,7 @@ def servo_times(points_mm: np.ndarray, arc_mm: np.ndarray, t: Timing) -> np.ndar
     cycles than the script's counter holds exactly (a speed far too low), or where the speed is beyond any
     tool speed (a slip of unit)."""
     if not t.speed_mm_s <= 1000 * TOOL_SPEED_MAX:
-        raise ValueError(f"speed {t.speed_mm_s:g} mm/s: beyond {1000 * TOOL_SPEED_MAX:g} mm/s, the highest tool speed "
+        raise ValueError(f"speed {float(t.speed_mm_s)!r} mm/s: beyond {1000 * TOOL_SPEED_MAX:g} mm/s, the highest tool speed "
                          "UR's safety configuration takes (mm/s: a speed in m/s?)")
     ds, v, a = np.diff(arc_mm), speed_profile(points_mm, arc_mm, t), t.accel_mm_s2
     va, vb = v[:-1], v[1:]
