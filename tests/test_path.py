@@ -180,6 +180,27 @@ def test_an_offline_program_is_where_the_nominal_kinematics_put_its_joints(tmp_p
         assert found.moves == ["", "movel"] and found.rotvec is None and len(found.segs) == 1
 
 
+def sample_steps(script: str, q_deg: np.ndarray) -> tuple[list, list]:
+    """A path script's servo_step lines read back against the samples' joints q (m, 6) deg: (each step's cycles
+    from sample to sample, summed over its one-cycle lines where it follows its trapezoid, (m - 1,); the
+    lines' cycles after the last sample: the hold). Fails unless the lines run continuously through every
+    sample in order."""
+    steps = re.findall(r"  servo_step\((\[[^\]]+\]), (\[[^\]]+\]), (\d+)\)", script)
+    vec = lambda s: np.array([float(v) for v in s.strip("[]").split(",")])
+    q = np.radians(q_deg)
+    np.testing.assert_allclose(vec(steps[0][0]), q[0], atol=1e-8)
+    per, k, n = [], 1, 0
+    for (a, b, c), before in zip(steps, [None] + steps[:-1]):
+        if before is not None:
+            np.testing.assert_array_equal(vec(a), vec(before[1]))                     # continuous
+        n += int(c)
+        if k < len(q) and np.abs(vec(b) - q[k]).max() < 1e-8:
+            per.append(n)
+            k, n = k + 1, 0
+    assert k == len(q), f"the lines reach {k} of {len(q)} samples"
+    return per, n
+
+
 def line(arc) -> np.ndarray:
     """Samples (m, 3) along the x axis at arc (m,) mm."""
     return np.c_[arc, np.zeros(len(arc)), np.zeros(len(arc))]
@@ -204,7 +225,8 @@ def test_a_path_starts_and_stops_at_rest_and_slows_round_a_corner():
     """A review (2026-12-06): every step ran at the path's speed, the first straight out of the movej's stop and
     the last into stopj (at --speed 800, ~1200 rad/s² at the joints), and a corner turned at full speed. Now a
     speed profile at path.accel_mm_s2: from rest, to rest, and at a turn of φ at most sqrt(a δ c / (1 - c)),
-    c = cos(φ/2) (δ: path.corner_mm). Hand-checked at 20 mm/s, 1200 mm/s², δ 0.01 mm, 2 ms cycles."""
+    c = cos(φ/2) (δ: path.corner_mm), followed cycle by cycle within a step (a second review: the steps' times
+    alone left the motion within each at one speed). Hand-checked at 20 mm/s, 1200 mm/s², δ 0.01 mm."""
     t = pathsolve.Timing(20.0, 1200.0, 0.01, 0.002)
     arc = np.arange(11.0)                                               # 10 mm straight, 1 mm steps
     np.testing.assert_allclose(pathsolve.speed_profile(line(arc), arc, t), [0.0] + [20.0] * 9 + [0.0])
@@ -219,6 +241,12 @@ def test_a_path_starts_and_stops_at_rest_and_slows_round_a_corner():
         arc_pts = np.c_[10 * np.cos(th), 10 * np.sin(th), 0 * th]       # 392 mm/s, junction deviation alone)
         mid = pathsolve.speed_profile(arc_pts, 10 * th, pathsolve.Timing(1000.0, 1200.0, 0.01, 0.002))[len(th) // 2]
         assert mid <= np.sqrt(1200 * 10) * (1 + 1e-3), (spacing, mid)
+    # within the step from rest (58.3 ms, stretched over 8 cycles: 64 ms): a τ²/2 up to 20 mm/s, then at speed
+    f = pathsolve.step_fractions(0.0, 20.0, 20.0, 1.0, 1200.0, 8)
+    T = 20 / 1200 + (1 - 400 / 2400) / 20
+    np.testing.assert_allclose(f[:2], [1200 * (T / 8) ** 2 / 2, 1200 * (2 * T / 8) ** 2 / 2], rtol=1e-12)
+    np.testing.assert_allclose(np.diff(f[3:]), 20 * T / 8, rtol=1e-12)         # at 20 mm/s from the third cycle on
+    assert f[-1] == 1.0 and (np.diff(f) > 0).all()
     back = np.array([[0.0, 0, 0], [1, 0, 0], [0, 0, 0]])              # a reversal stops
     assert pathsolve.speed_profile(back, np.array([0.0, 1, 2]), t)[1] == 0.0
     arc = np.arange(101.0)                                              # 100 mm at 100 mm/s: up over 100²/2400 =
@@ -250,8 +278,8 @@ def test_servoj_steps_at_the_robots_own_controller_cycle():
                           "orientation_residual_arcsec": np.nan})
     script = pathsolve.urscript(table, pathsolve.Timing(20.0, 1e15, 0.01, 0.008), 0.05, 300, 1.4, 1.05)
     assert "servoj([" in script and ", t=0.008, lookahead_time=0.050, gain=300)" in script
-    assert script.count(", 7)") == 3                         # each 1 mm step 56 ms (7 cycles), and the hold, 50 ms up
-    assert re.search(r"servo_step\((\[[^]]+\]), \1, 7\)", script)                           # to 7 cycles
+    per, hold = sample_steps(script, table[JCOMP_DEG].to_numpy())
+    assert per == [7, 7] and hold == 7                      # each 1 mm step 56 ms (7 cycles), and the hold, 50 ms up
 
 
 def test_a_path_faster_than_any_tool_or_its_joints_is_refused():
@@ -304,11 +332,12 @@ def test_a_compensated_seam_stays_on_the_path_on_the_twin(in_trained_project, tm
     unc = judge.uncompensated(segs, np.array(SEAM_START))[0]
     assert unc["mean_mm"] > 0.3 and unc["mean_mm"] > 5 * d.mean(), unc["mean_mm"]
     script = (tmp_path / "out" / "path.script").read_text()
-    steps = re.findall(r"  servo_step\((\[[^\]]+\]), (\[[^\]]+\]), (\d+)\)", script)
-    to = np.array([[float(v) for v in b.strip("[]").split(",")] for _, b, _ in steps])
-    np.testing.assert_allclose(to[:-1], np.radians(q[1:]), atol=1e-8)                 # then the end, held
-    assert [int(n) for *_, n in steps] == [8] + [7] * 98 + [8] + [7] and len(table) == 101   # as above; the end held
-                                                                                             # 0.05 s, 7 cycles up
+    per, hold = sample_steps(script, q)
+    assert per == [8] + [7] * 98 + [8] and hold == 7 and len(table) == 101      # as above; the end held 0.05 s up
+    first = re.findall(r"  servo_step\((\[[^\]]+\]), (\[[^\]]+\]), 1\)", script)[:8]     # the step from rest, cycle
+    moved = [np.abs(np.array(b.strip("[]").split(","), float) - np.array(a.strip("[]").split(","), float)).max()
+             for a, b in first]                                                # by cycle: each cycle further
+    assert len(first) == 8 and moved[0] < moved[1] < moved[2], moved
 
 
 def test_a_path_at_a_tcp_keeps_that_tcp_on_the_path_on_the_twin(in_trained_project, tmp_path):
@@ -341,12 +370,8 @@ def test_the_script_holds_only_numbers_and_fixed_text(in_trained_project, tmp_pa
     script = (tmp_path / "o" / "path.script").read_text()
     for line in script.splitlines():
         assert SCRIPT_LINE.fullmatch(line), line
-    steps = re.findall(r"  servo_step\((\[[^\]]+\]), (\[[^\]]+\]), (\d+)\)", script)
-    vec = lambda s: np.array([float(v) for v in s.strip("[]").split(",")])
-    for (a, _, _), (_, b, _) in zip(steps[1:], steps[:-1]):
-        np.testing.assert_array_equal(vec(a), vec(b))                               # continuous
-    cycles = np.array([int(n) for *_, n in steps[:-1]])
-    np.testing.assert_allclose(cycles * 0.008, np.diff(table.t_s), atol=1e-12)           # a UR5: a CB3's cycles
+    per, _ = sample_steps(script, table[JCOMP_DEG].to_numpy())                     # continuous, every sample
+    np.testing.assert_allclose(np.array(per) * 0.008, np.diff(table.t_s), atol=1e-12)   # a UR5: a CB3's cycles
     assert abs(table.arc_mm.iloc[-1] - (20 * np.pi + 10)) < 1e-6 and 0.19 <= np.diff(table.t_s).min()
 
 

@@ -144,8 +144,8 @@ def speed_profile(points_mm: np.ndarray, arc_mm: np.ndarray, t: Timing) -> np.nd
     d = np.diff(np.asarray(points_mm, float), axis=0)
     u = d / np.maximum(np.linalg.norm(d, axis=1), 1e-300)[:, None]                 # (m - 1, 3) each step's direction
     c = np.sqrt(np.clip(0.5 * (1 + np.einsum("ij,ij->i", u[:-1], u[1:])), 0.0, 1.0))   # cos(φ/2) at inner samples
-    radius = np.minimum(ds[:-1], ds[1:]) / (2 * np.sqrt(np.clip(1 - c ** 2, 0.0, 1.0)))   # the turn's, sin(φ/2)
     with np.errstate(divide="ignore", invalid="ignore"):
+        radius = np.minimum(ds[:-1], ds[1:]) / (2 * np.sqrt(np.clip(1 - c ** 2, 0.0, 1.0)))   # the turn's, sin(φ/2)
         corner = np.minimum(np.sqrt(t.accel_mm_s2 * t.corner_mm * c / (1 - c)),          # inf on a straight
                             np.sqrt(t.accel_mm_s2 * radius))                           # and on a sampled arc at most
     v = np.concatenate([[0.0], np.minimum(t.speed_mm_s, corner), [0.0]]) if len(ds) else np.zeros(len(arc_mm))
@@ -154,6 +154,31 @@ def speed_profile(points_mm: np.ndarray, arc_mm: np.ndarray, t: Timing) -> np.nd
     for k in range(len(ds) - 1, -1, -1):                                           # backward: decelerate
         v[k] = min(v[k], np.sqrt(v[k + 1] ** 2 + 2 * t.accel_mm_s2 * ds[k]))
     return v
+
+
+def trapezoids(points_mm: np.ndarray, arc_mm: np.ndarray, t: Timing) -> tuple:
+    """Each step's trapezoid on speed_profile: (Δs, its first sample's speed, its last's, its peak, its time),
+    (m - 1,) each: from the first speed up to at most t.speed_mm_s and down to the last at t.accel_mm_s2."""
+    ds, v, a = np.diff(arc_mm), speed_profile(points_mm, arc_mm, t), t.accel_mm_s2
+    va, vb = v[:-1], v[1:]
+    with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
+        top = np.minimum(t.speed_mm_s, np.sqrt((2 * a * ds + va ** 2 + vb ** 2) / 2))
+        step = np.where(ds > 0, (2 * top - va - vb) / a + (ds - (2 * top ** 2 - va ** 2 - vb ** 2) / (2 * a)) / top, 0.0)
+    return ds, va, vb, top, step
+
+
+def step_fractions(va: float, vb: float, top: float, ds: float, a: float, n: int) -> np.ndarray:
+    """(n,) the share of a step's length reached at the end of each of its n cycles, moving on its trapezoid
+    (from va up to top, at top, down to vb, at a) stretched evenly over the n cycles: the last is 1."""
+    t1, t2 = (top - va) / a, (top - vb) / a
+    d1, d2 = (top ** 2 - va ** 2) / (2 * a), (top ** 2 - vb ** 2) / (2 * a)
+    T = t1 + t2 + max(ds - d1 - d2, 0.0) / top
+    tau = T * np.arange(1, n + 1) / n
+    s = np.where(tau <= t1, va * tau + a * tau ** 2 / 2,
+                 np.where(tau <= T - t2, d1 + top * (tau - t1), ds - vb * (T - tau) - a * (T - tau) ** 2 / 2))
+    f = np.clip(s / ds, 0.0, 1.0)
+    f[-1] = 1.0
+    return f
 
 
 def servo_times(points_mm: np.ndarray, arc_mm: np.ndarray, t: Timing) -> np.ndarray:
@@ -165,11 +190,8 @@ def servo_times(points_mm: np.ndarray, arc_mm: np.ndarray, t: Timing) -> np.ndar
     if not t.speed_mm_s <= 1000 * TOOL_SPEED_MAX:
         raise ValueError(f"speed {float(t.speed_mm_s)!r} mm/s: beyond {1000 * TOOL_SPEED_MAX:g} mm/s, the highest tool speed "
                          "UR's safety configuration takes (mm/s: a speed in m/s?)")
-    ds, v, a = np.diff(arc_mm), speed_profile(points_mm, arc_mm, t), t.accel_mm_s2
-    va, vb = v[:-1], v[1:]
-    with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
-        top = np.minimum(t.speed_mm_s, np.sqrt((2 * a * ds + va ** 2 + vb ** 2) / 2))      # the step's peak speed
-        step = np.where(ds > 0, (2 * top - va - vb) / a + (ds - (2 * top ** 2 - va ** 2 - vb ** 2) / (2 * a)) / top, 0.0)
+    ds, _, _, _, step = trapezoids(points_mm, arc_mm, t)
+    with np.errstate(over="ignore", invalid="ignore"):
         cycles = np.maximum(1, np.ceil(np.round(step / t.cycle_s, 9)))
     slow = np.flatnonzero(~(cycles <= MAX_CYCLES))
     if len(slow):
@@ -283,12 +305,16 @@ def fmt(values) -> str:
 
 def urscript(table: pd.DataFrame, timing: Timing, lookahead_s: float, gain: int, acc: float, vel: float) -> str:
     """The compensated path: movej (acc rad/s², vel rad/s) to its first sample, then each step driven by
-    servoj every controller cycle (timing.cycle_s, cycle_s), the joints interpolated linearly from sample to sample over the
-    step's time (`servo_times`); the last sample held for the lookahead, then stopj. Only
-    numbers formatted here and this fixed text reach it."""
+    servoj every controller cycle (timing.cycle_s, cycle_s) over the step's time (`servo_times`), the joints on
+    the line from sample to sample: at one speed where the step's profile is (`servo_step(a, b, n)`), else cycle
+    by cycle along its trapezoid (`step_fractions`: one servo_step of one cycle each, from rest, to rest, round
+    a corner); the last sample held for the lookahead, then stopj. Only numbers formatted here and this fixed
+    text reach it."""
     cycle = timing.cycle_s
-    q = table[JCOMP_DEG].to_numpy()
-    cycles = np.round(servo_times(table[TARGET].to_numpy(), table.arc_mm.to_numpy(), timing) / cycle)
+    q, points, arc = table[JCOMP_DEG].to_numpy(), table[TARGET].to_numpy(), table.arc_mm.to_numpy()
+    cycles = np.round(servo_times(points, arc, timing) / cycle)
+    ds, va, vb, top, _ = trapezoids(points, arc, timing)
+    even = np.isclose(va, top, rtol=1e-9, atol=0) & np.isclose(vb, top, rtol=1e-9, atol=0) | (ds <= 0)
     hold = int(np.ceil(lookahead_s / cycle - 1e-9))
     outside = int((~table.in_workspace.to_numpy(bool)).sum())
     mix = ", ".join(f"a[{j}] + s * (b[{j}] - a[{j}])" for j in range(6))
@@ -315,6 +341,13 @@ def urscript(table: pd.DataFrame, timing: Timing, lookahead_s: float, gain: int,
         if not table.in_workspace.iloc[k]:
             lines.append(f"  # sample {k + 1}: outside the trained workspace (uncertainty "
                          f"{float(table.uncertainty_mm.iloc[k]):.3f} mm)")
-        lines.append(f"  servo_step({fmt(q[k - 1])}, {fmt(q[k])}, {int(cycles[k - 1])})")
+        n = int(cycles[k - 1])
+        if even[k - 1] or n == 1:
+            lines.append(f"  servo_step({fmt(q[k - 1])}, {fmt(q[k])}, {n})")
+            continue
+        f = step_fractions(va[k - 1], vb[k - 1], top[k - 1], ds[k - 1], timing.accel_mm_s2, n)
+        via = q[k - 1] + f[:, None] * (q[k] - q[k - 1])                              # (n, 6) deg: a cycle's end each
+        via[-1] = q[k]
+        lines += [f"  servo_step({fmt(a)}, {fmt(b)}, 1)" for a, b in zip(np.vstack([q[k - 1], via[:-1]]), via)]
     lines += [f"  servo_step({fmt(q[-1])}, {fmt(q[-1])}, {hold})", f"  stopj({float(acc):.6f})", "end", ""]
     return "\n".join(lines)
