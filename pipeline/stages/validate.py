@@ -138,8 +138,8 @@ def misread(median: dict, name: str, limit: float) -> None:
     best = min(median, key=median.get)
     if median[best] > limit:
         raise FrameFitError(f"validate.campaigns.{name}: its measured orientations are {median[best]:.0f} arcsec "
-                            f"(median) from every method's, the best ({best}) included, above frame.max_orientation_scatter_arcsec = "
-                            f"{limit:g}: its orientation columns are misread. Check validate.campaigns.{name}.ingest."
+                            f"(median) from every method's, the best ({best}) included, above "
+                            f"frame.max_orientation_scatter_arcsec = {limit:g}: its orientation columns are misread. Check validate.campaigns.{name}.ingest."
                             "orientation (the Euler sequence, intrinsic XYZ or extrinsic xyz, and angle_unit; a "
                             "quaternion's scalar_first), or set its ingest.columns.orientation to null to judge "
                             "positions alone")
@@ -206,7 +206,8 @@ def run_campaign(params: dict, name: str, root: Path = HERE) -> dict:
     if R_world is not None:                          # the orientation and the tools, where measured
         out["pose"] = judge_poses(pred, probe, flange, frames, P, R_world, probe_offsets(p["robot"]["tcp"], cal.geometry),
                                   ~registered)
-        misread(orientation_medians(probe, frames, R_world, ~registered), name, frame_cfg["max_orientation_scatter_arcsec"])
+        misread(orientation_medians(probe, frames, R_world, ~registered), name,
+                frame_cfg["max_orientation_scatter_arcsec"])
         for m, f in frames.items():
             if "probe_rotation" in f:
                 out["registration"][m]["probe_rotation_arcsec"] = float(

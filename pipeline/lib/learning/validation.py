@@ -42,7 +42,7 @@ from scipy.spatial.transform import Rotation
 
 from pipeline.lib.learning.metrics import stats
 from pipeline.lib.robot.frames import FrameFitError, check_fit, robust_kabsch, to_base
-from pipeline.lib.robot.identify import identifiability
+from pipeline.lib.robot.identify import identifiability, orientation_angles
 from pipeline.lib.robot.tcp import pose_errors
 
 METHODS = ("nominal", "calibrated", "calibrated_parts", "model")
@@ -210,15 +210,19 @@ def judge(pred: dict, P_world: np.ndarray, mode: str, frame: dict, n_register: i
     return errors, reg, frames
 
 
+def registered_rotations(R_pred: np.ndarray, frame: dict, R_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A method's probe orientations R_pred (n, 3, 3) with its re-mounted probe rotation, and the measured ones
+    R_world (n, 3, 3, tracker frame) in the base frame it was registered in (`frame`): the pair to compare."""
+    return R_pred @ frame.get("probe_rotation", np.eye(3)), np.einsum("ji,njk->nik", np.asarray(frame["R"]), R_world)
+
+
 def orientation_medians(probe_R: dict, frames: dict, R_world: np.ndarray, judged: np.ndarray) -> dict:
-    """Each method's median orientation error (arcsec) on the judged points, in the frame it was registered in
-    (as judge_poses measures it): a statistic one glitched reading does not move."""
+    """Each method's median orientation error (arcsec) on the judged points, as judge_poses measures it: a
+    statistic one glitched reading does not move."""
     out = {}
     for m, R_pred in probe_R.items():
-        f = frames[m]
-        R_m = (R_pred @ f.get("probe_rotation", np.eye(3)))[judged]
-        R_meas = np.einsum("ji,njk->nik", np.asarray(f["R"]), R_world)[judged]
-        out[m] = float(np.median(Rotation.from_matrix(np.einsum("nji,njk->nik", R_m, R_meas)).magnitude()) * 206264.806)
+        R_m, R_meas = registered_rotations(R_pred, frames[m], R_world)
+        out[m] = float(np.median(orientation_angles(R_m[judged], R_meas[judged])))
     return out
 
 
@@ -229,11 +233,9 @@ def judge_poses(pred: dict, probe_R: dict, flange_R: dict, frames: dict, P_world
     out = {}
     for m, p in pred.items():
         f = frames[m]
-        R = np.asarray(f["R"])
         p_m = p + np.einsum("mij,j->mi", flange_R[m], f["tool_offset_mm"])
-        R_m = probe_R[m] @ f.get("probe_rotation", np.eye(3))
-        out[m] = pose_errors(p_m[judged], R_m[judged], to_base(P_world, f)[judged],
-                             np.einsum("ji,njk->nik", R, R_world)[judged], offsets)
+        R_m, R_meas = registered_rotations(probe_R[m], f, R_world)
+        out[m] = pose_errors(p_m[judged], R_m[judged], to_base(P_world, f)[judged], R_meas[judged], offsets)
     return out
 
 

@@ -230,9 +230,14 @@ def errors_3d(p: np.ndarray, p_meas: np.ndarray) -> dict:
             "max_mm": float(e.max())}
 
 
+def orientation_angles(R: np.ndarray, R_meas: np.ndarray) -> np.ndarray:
+    """The angle (n,) arcsec between predicted and measured orientations (n, 3, 3) x2."""
+    return Rotation.from_matrix(np.einsum("nji,njk->nik", R, R_meas)).magnitude() / ARCSEC   # exact near 0 (arccos is not)
+
+
 def orientation_errors(R: np.ndarray, R_meas: np.ndarray) -> dict:
     """The angle between predicted and measured orientations (n, 3, 3) x2, arcsec: mean, rms, p95, max."""
-    e = Rotation.from_matrix(np.einsum("nji,njk->nik", R, R_meas)).magnitude() / ARCSEC   # exact near 0 (arccos is not)
+    e = orientation_angles(R, R_meas)
     return {"mean_arcsec": float(e.mean()), "rms_arcsec": float(np.sqrt((e ** 2).mean())),
             "p95_arcsec": float(np.percentile(e, 95)), "max_arcsec": float(e.max())}
 
