@@ -181,23 +181,28 @@ def step_fractions(va: float, vb: float, top: float, ds: float, a: float, n: int
     return f
 
 
-def servo_times(points_mm: np.ndarray, arc_mm: np.ndarray, t: Timing) -> np.ndarray:
-    """(m - 1,) s: each step's servoj time on speed_profile (within a step, from its first sample's speed up to at
-    most the path's and down to its last's at the acceleration: a trapezoid), a whole number of controller cycles
-    (at least one), rounded up: no step faster than the profile; a ValueError where a step would take more
-    cycles than the script's counter holds exactly (a speed far too low), or where the speed is beyond any
-    tool speed (a slip of unit)."""
+def step_cycles(points_mm: np.ndarray, arc_mm: np.ndarray, t: Timing) -> tuple:
+    """Each step's whole controller cycles (m - 1,) on its trapezoid (`trapezoids`: from its first sample's speed
+    up to at most the path's and down to its last's at the acceleration), at least one, rounded up: no step
+    faster than the profile; and the trapezoids. A ValueError where a step would take more cycles than the
+    script's counter holds exactly (a speed far too low), or where the speed is beyond any tool speed (a slip
+    of unit)."""
     if not t.speed_mm_s <= 1000 * TOOL_SPEED_MAX:
         raise ValueError(f"speed {float(t.speed_mm_s)!r} mm/s: beyond {1000 * TOOL_SPEED_MAX:g} mm/s, the highest tool speed "
                          "UR's safety configuration takes (mm/s: a speed in m/s?)")
-    ds, _, _, _, step = trapezoids(points_mm, arc_mm, t)
+    ds, va, vb, top, step = trapezoids(points_mm, arc_mm, t)
     with np.errstate(over="ignore", invalid="ignore"):
         cycles = np.maximum(1, np.ceil(np.round(step / t.cycle_s, 9)))
     slow = np.flatnonzero(~(cycles <= MAX_CYCLES))
     if len(slow):
         raise ValueError(f"speed {t.speed_mm_s:g} mm/s: a step of {ds[slow[0]]:.3f} mm would take more "
                          f"than {MAX_CYCLES} controller cycles (URScript's 32-bit float counts no further): a higher speed")
-    return cycles * t.cycle_s
+    return cycles, (ds, va, vb, top)
+
+
+def servo_times(points_mm: np.ndarray, arc_mm: np.ndarray, t: Timing) -> np.ndarray:
+    """(m - 1,) s: each step's servoj time, its whole cycles (step_cycles) times the controller's cycle."""
+    return step_cycles(points_mm, arc_mm, t)[0] * t.cycle_s
 
 
 def finish(table: pd.DataFrame, workspace, timing: Timing) -> pd.DataFrame:
@@ -312,8 +317,7 @@ def urscript(table: pd.DataFrame, timing: Timing, lookahead_s: float, gain: int,
     text reach it."""
     cycle = timing.cycle_s
     q, points, arc = table[JCOMP_DEG].to_numpy(), table[TARGET].to_numpy(), table.arc_mm.to_numpy()
-    cycles = np.round(servo_times(points, arc, timing) / cycle)
-    ds, va, vb, top, _ = trapezoids(points, arc, timing)
+    cycles, (ds, va, vb, top) = step_cycles(points, arc, timing)
     even = np.isclose(va, top, rtol=1e-9, atol=0) & np.isclose(vb, top, rtol=1e-9, atol=0) | (ds <= 0)
     hold = int(np.ceil(lookahead_s / cycle - 1e-9))
     outside = int((~table.in_workspace.to_numpy(bool)).sum())

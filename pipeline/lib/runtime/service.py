@@ -181,8 +181,7 @@ class Service:
                  unreachable_mm: float, max_iter: int, budget_ms: float, stall_iter: int, stall_ratio: float,
                  max_batch: int, batch_wait_ms: float, max_items: int, call_budget_ms: float, lm_per_call: int,
                  compile: bool, controller=None, max_path_samples: int = 1000, max_deviation_mm: float = 0.5,
-                 joint_speed_deg_s=None, frame_rot=None, tol_arcsec: float = 1.0,
-                 path_timing: tuple = (1200.0, 0.01, 0.008)):
+                 path_timing: tuple, joint_speed_deg_s=None, frame_rot=None, tol_arcsec: float = 1.0):
         self.model, self.workspace, self.reach = model, workspace, float(reach_mm)
         self.limits_deg = np.asarray(limits_deg, float)
         self.limits = torch.as_tensor(np.radians(self.limits_deg), dtype=DTYPE)
