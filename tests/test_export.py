@@ -377,7 +377,7 @@ def test_lm_step_on_the_controller_graph_is_lm_in_pytorch(in_trained_project):
 
 def test_controller_onnx_is_the_same_bytes_when_exported_again(in_trained_project, tmp_path):
     """DVC outputs: exported again (another process, another directory), the same file, with no source paths.
-    (controller_physics.onnx, written by the same function, is held to its bytes by the fresh copy's repro in
+    (controller_physics.onnx, written by the same function, is held to its bytes by the record of the repro in
     test_pipeline_e2e.py, as every output is; exporting it here too cost the suite ~17 s. Where the model is
     served without its network, it is the graph exported here.)"""
     export_controller(served_model(), tmp_path / "controller.onnx")

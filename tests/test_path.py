@@ -714,11 +714,11 @@ def test_a_refusal_at_the_first_or_last_sample_says_so():
     row = lambda arc, ok: [arc, 0.0, 0.0, 0.0, *[10.0] * 6, 0.0 if ok else 0.0001, 1, ok, 648000.0 if not ok else 0.1]
     limits, speeds = np.array([[-360.0, 360.0]] * 6), np.full(6, 180.0)
     first = pd.DataFrame([row(0.0, False)], columns=SOLVED).assign(in_workspace=True)
-    said = refusal(first, 3, limits, 0.001, np.zeros(0), 0.5, pathsolve.Timing(2.0, 1e15, 0.01, 0.008), speeds)
+    said = refusal(first, 3, limits, 0.001, np.zeros(0), 0.5, np.zeros(1), 2.0, speeds)
     assert said.startswith("sample 1 (arc 0.0 mm): not reached") and "solved from the start joints; the 2 samples" \
         in said and "sample 0" not in said, said
     last = pd.DataFrame([row(0.0, True), row(1.0, True), row(2.0, False)], columns=SOLVED).assign(in_workspace=True)
-    said = refusal(last, 3, limits, 0.001, np.zeros(2), 0.5, pathsolve.Timing(2.0, 1e15, 0.01, 0.008), speeds)
+    said = refusal(last, 3, limits, 0.001, np.zeros(2), 0.5, np.arange(3.0), 2.0, speeds)
     assert said.endswith("solved from sample 2's joints") and "0 samples" not in said, said
 
 

@@ -171,7 +171,7 @@ def run(argv=None) -> pd.DataFrame:
     table = finish(table, workspace, timing)
     dev = deviation(model_position(model), table[JCOMP_DEG].to_numpy(), found.segs)
     why = refusal(table, n, robot.limits_deg, p["compensate"]["tol_mm"], dev, cfg["max_deviation_mm"],
-                  timing, speeds, None if a.allow_outside_workspace else workspace)
+                  table.t_s.to_numpy(), timing.speed_mm_s, speeds, None if a.allow_outside_workspace else workspace)
     why = why or start_refusal(q0, table[JCOMP_DEG].to_numpy()[0], nominal_geometry(robot), found.offline,
                                orientation=rotations is not None)
     if why:

@@ -246,10 +246,12 @@ def beyond_reach(targets: np.ndarray, arc_mm: np.ndarray, reach_mm: float) -> st
 
 
 def refusal(table: pd.DataFrame, n_samples: int, limits_deg: np.ndarray, tol_mm: float, dev: np.ndarray,
-            max_deviation_mm: float, timing: Timing, speeds_deg_s: np.ndarray, workspace=None) -> str | None:
+            max_deviation_mm: float, t_s: np.ndarray, speed_mm_s: float, speeds_deg_s: np.ndarray,
+            workspace=None) -> str | None:
     """Why the path must stop, naming its first sample that must not be driven (numbered from 1), or None:
     not reached (solve_path stops at such a sample; refine's samples in between may be one too), beyond the
-    joint limits, a joint step faster than the joint's speed limit as timed (servo_times), or a joint-space step whose
+    joint limits, a joint step faster than the joint's speed limit as timed (t_s: each sample's time along the whole
+    path, servo_times', at speed_mm_s), or a joint-space step whose
     middle leaves the path by more than max_deviation_mm (dev: `deviation`: a branch flip), and, with a
     workspace, outside the trained workspace; the kinds found after the first are named with their first
     sample."""
@@ -273,7 +275,7 @@ def refusal(table: pd.DataFrame, n_samples: int, limits_deg: np.ndarray, tol_mm:
         k, j = map(int, beyond[0])
         found.append((k, "beyond the joint limits",
                       f"{name(k)}: joint {j + 1} at {q[k, j]:.1f}°, beyond its limits [{lo[j]:g}, {hi[j]:g}]°"))
-    dt = servo_times(table[TARGET].to_numpy()[:m], arc[:m], timing)
+    dt = np.diff(np.asarray(t_s, float)[:m])
     rate = np.abs(np.diff(q[:m], axis=0)) / dt[:, None]                  # deg/s
     fast = np.argwhere(rate > speeds_deg_s)
     if len(fast):
@@ -281,7 +283,7 @@ def refusal(table: pd.DataFrame, n_samples: int, limits_deg: np.ndarray, tol_mm:
         found.append((k + 1, "a joint too fast",
                       f"{name(k + 1)}: joint {j + 1} turns {abs(q[k + 1, j] - q[k, j]):.2f}° from sample {k + 1} in "
                       f"{dt[k]:.3f} s ({rate[k, j]:.0f}°/s, beyond its {speeds_deg_s[j]:.0f}°/s at "
-                      f"{timing.speed_mm_s:g} mm/s): a branch flip?"))
+                      f"{speed_mm_s:g} mm/s): a branch flip?"))
     off = np.flatnonzero(dev[:max(m - 1, 0)] > max_deviation_mm)
     if len(off):
         k = int(off[0])
