@@ -32,14 +32,14 @@ SEAM_START = [2.5, -60.4, 91.1, -182.3, -61.2, -100.7]          # a training pos
 SEAM = [[-650.0, -200.0, 250.0], [-650.0, -100.0, 250.0]]        # 100 mm of bench path's seam, inside the workspace
 CIRCLE_START = [-19.8, -63.6, 81.1, 88.5, 105.4, -155.0]
 SCRIPT_LINE = re.compile(                                        # every line the path's URScript may hold
-    r"# compensated path by `python -m pipeline\.commands\.path`: \d+ samples over [0-9.]+ mm at [0-9.]+ mm/s \([0-9.]+ mm/s\^2 from and to rest\), [0-9.]+ s; "
+    r"# compensated path by `python -m pipeline\.commands\.path`: \d+ samples over [0-9.]+ mm at up to [0-9.]+ mm/s \([0-9.]+ mm/s\^2 from and to rest\), [0-9.]+ s; "
     r"joints in rad|# residual max [0-9.]+ mm; \d+ samples outside the trained workspace|def compensated_path\(\):|"
     r"# the flange's orientation held along the path: residual max [0-9.]+ arcsec|"
-    r"  def servo_step\(a, b, n\):|    # from joints a to b in n controller cycles, joint-linear: one servoj a cycle|"
-    r"    i = 1\.0|    while i <= n:|      s = i / n|"
+    r"  def servo_line\(a, b, f0, df, n\):|    # n controller cycles on the line from joints a to b: one servoj a cycle, at the share f0 \+ i df|"
+    r"    i = 1\.0|    while i <= n:|      s = f0 \+ i \* df|"
     r"      servoj\(\[(a\[\d\] \+ s \* \(b\[\d\] - a\[\d\]\)(, )?){6}\], t=0\.00[28], lookahead_time=[0-9.]+, gain=\d+\)|"
     r"      i = i \+ 1\.0|    end|  end|end|"
-    r"  movej\(\[[-0-9., ]+\], a=[0-9.]+, v=[0-9.]+\)|  servo_step\(\[[-0-9., ]+\], \[[-0-9., ]+\], \d+\)|"
+    r"  movej\(\[[-0-9., ]+\], a=[0-9.]+, v=[0-9.]+\)|  servo_line\(\[[-0-9., ]+\], \[[-0-9., ]+\], -?[0-9.]+, -?[0-9.]+, \d+\)|"
     r"  # sample \d+: outside the trained workspace \(uncertainty [0-9.]+ mm\)|  stopj\([0-9.]+\)|")
 
 
@@ -180,25 +180,37 @@ def test_an_offline_program_is_where_the_nominal_kinematics_put_its_joints(tmp_p
         assert found.moves == ["", "movel"] and found.rotvec is None and len(found.segs) == 1
 
 
-def sample_steps(script: str, q_deg: np.ndarray) -> tuple[list, list]:
-    """A path script's servo_step lines read back against the samples' joints q (m, 6) deg: (each step's cycles
-    from sample to sample, summed over its one-cycle lines where it follows its trapezoid, (m - 1,); the
-    lines' cycles after the last sample: the hold). Fails unless the lines run continuously through every
-    sample in order."""
-    steps = re.findall(r"  servo_step\((\[[^\]]+\]), (\[[^\]]+\]), (\d+)\)", script)
-    vec = lambda s: np.array([float(v) for v in s.strip("[]").split(",")])
-    q = np.radians(q_deg)
-    np.testing.assert_allclose(vec(steps[0][0]), q[0], atol=1e-8)
-    per, k, n = [], 1, 0
-    for (a, b, c), before in zip(steps, [None] + steps[:-1]):
-        if before is not None:
-            np.testing.assert_array_equal(vec(a), vec(before[1]))                     # continuous
-        n += int(c)
-        if k < len(q) and np.abs(vec(b) - q[k]).max() < 1e-8:
-            per.append(n)
-            k, n = k + 1, 0
-    assert k == len(q), f"the lines reach {k} of {len(q)} samples"
-    return per, n
+TOL_DEG = np.degrees(1e-8)                                     # the script's radians to 9 places, path.csv's degrees
+
+
+def cycle_targets(script: str, q_deg: np.ndarray) -> tuple[np.ndarray, int]:
+    """A path script's servo_line calls run as the controller runs them: each cycle's servoj target (K, 6) deg,
+    and the cycles held at the last sample after them. Fails unless the lines go along the samples' chords
+    q (m, 6) deg in order, from the first sample, ending on the last."""
+    calls = re.findall(r"  servo_line\((\[[^\]]+\]), (\[[^\]]+\]), (-?[0-9.]+), (-?[0-9.]+), (\d+)\)", script)
+    vec = lambda t: np.degrees([float(v) for v in t.strip("[]").split(",")])
+    start = re.search(r"  movej\((\[[^\]]+\]),", script).group(1)
+    np.testing.assert_allclose(vec(start), q_deg[0], atol=TOL_DEG)
+    out, k = [], 1
+    for a, b, f0, df, n in calls[:-1]:
+        a, b = vec(a), vec(b)
+        while k < len(q_deg) and np.abs(a - q_deg[k - 1]).max() > TOL_DEG:          # a later chord: never back
+            k += 1
+        assert k < len(q_deg) and np.abs(b - q_deg[k]).max() < TOL_DEG, "a line off the samples' chords"
+        share = float(f0) + np.arange(1, int(n) + 1) * float(df)
+        assert (share >= -1e-9).all() and (share <= 1 + 1e-9).all(), share
+        out.append(a + share[:, None] * (b - a))
+    *_, hold = calls[-1]
+    q = np.vstack(out)
+    np.testing.assert_allclose(q[-1], q_deg[-1], atol=TOL_DEG)
+    return q, int(hold)
+
+
+def per_cycle(x: np.ndarray, cycle: float) -> tuple[np.ndarray, np.ndarray]:
+    """From rest at x[0] through each cycle's target x (K, d) and back to rest: each cycle's speed (K,) and
+    acceleration (K + 1,), |Δx| / cycle and |Δ²x| / cycle²."""
+    v = np.diff(x, axis=0) / cycle
+    return np.linalg.norm(v, axis=1), np.linalg.norm(np.diff(np.vstack([0 * v[:1], v, 0 * v[:1]]), axis=0), axis=1) / cycle
 
 
 def line(arc) -> np.ndarray:
@@ -206,56 +218,109 @@ def line(arc) -> np.ndarray:
     return np.c_[arc, np.zeros(len(arc)), np.zeros(len(arc))]
 
 
-def test_no_servo_step_is_faster_than_the_speed_asked():
+def schedule_of(points, speed, accel, cycle, corner=0.01):
+    points = np.asarray(points, float)
+    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(points, axis=0), axis=1))])
+    return arc, pathsolve.schedule(points, arc, pathsolve.Timing(speed, accel, corner, cycle))
+
+
+def test_no_cycle_is_faster_than_the_speed_asked():
     """The defect (a review): each step's cycles were rounded to the nearest, so 1 mm at 400 mm/s (1.25 cycles)
-    took one, driven at 500 mm/s. Rounded up now: 2 cycles, 250 mm/s; whole cycles stay exact. (An acceleration
-    too high to matter: the profile is the speed asked from the first sample to the last.)"""
-    arc = np.array([0.0, 1.0, 2.0, 2.5, 12.5])
-    timing = lambda speed, cycle: pathsolve.Timing(speed, 1e15, 0.01, cycle)
+    took one, driven at 500 mm/s. Now the path is timed as one motion, each cycle's target where it has reached
+    at that cycle's end, the whole slowed to end on a whole cycle: no cycle faster than the speed asked. (An acceleration too high to matter: the speed asked from the first sample to the
+    last.) Hand-checked: 12.5 mm at 20 mm/s is 0.625 s, 78.125 cycles of 8 ms: 79, 0.632 s."""
+    points = line(np.array([0.0, 1.0, 2.0, 2.5, 12.5]))
     for speed in (400.0, 20.0, 7.0, 5000.0):
         for cycle in (0.002, 0.008):
-            t = pathsolve.servo_times(line(arc), arc, timing(speed, cycle))
-            assert (np.diff(arc) / t <= speed * (1 + 1e-9)).all() and np.allclose(t / cycle, np.round(t / cycle))
-    np.testing.assert_allclose(pathsolve.servo_times(line(arc), arc, timing(400.0, 0.002)), [0.004, 0.004, 0.002, 0.026])
-    np.testing.assert_allclose(pathsolve.servo_times(line(arc), arc, timing(20.0, 0.002)), [0.05, 0.05, 0.026, 0.5])
-    np.testing.assert_allclose(pathsolve.servo_times(line(arc), arc, timing(20.0, 0.008)), [0.056, 0.056, 0.032, 0.504])
+            arc, timed = schedule_of(points, speed, 1e15, cycle)
+            v = np.diff(np.concatenate([[0.0], timed.cycle_arcs()])) / cycle
+            assert v.max() <= speed * (1 + 1e-9), (speed, cycle, v.max())
+            assert timed.n_cycles * cycle == pytest.approx(timed.t_s[-1], abs=1e-12) and timed.cycle_arcs()[-1] == 12.5
+    arc, timed = schedule_of(points, 20.0, 1e15, 0.008)
+    assert timed.n_cycles == 79 and timed.t_s[-1] == pytest.approx(0.632, abs=1e-12)
+    np.testing.assert_allclose(timed.t_s, np.array([0.0, 1.0, 2.0, 2.5, 12.5]) / 20 * 0.632 / 0.625, atol=1e-12)
 
 
 def test_a_path_starts_and_stops_at_rest_and_slows_round_a_corner():
     """A review (2026-12-06): every step ran at the path's speed, the first straight out of the movej's stop and
-    the last into stopj (at --speed 800, ~1200 rad/s² at the joints), and a corner turned at full speed. Now a
-    speed profile at path.accel_mm_s2: from rest, to rest, and at a turn of φ at most sqrt(a δ c / (1 - c)),
-    c = cos(φ/2) (δ: path.corner_mm), followed cycle by cycle within a step (a second review: the steps' times
-    alone left the motion within each at one speed). Hand-checked at 20 mm/s, 1200 mm/s², δ 0.01 mm."""
+    the last into stopj, and a corner turned at full speed. Now a speed profile at path.accel_mm_s2: from rest, to
+    rest, and at a turn of φ at most (a/2) cycle / (2 sin(φ/2)): servoj turns the whole angle within one cycle
+    (a second review), with half the acceleration along the steps either side. Hand-checked at 20 mm/s,
+    1200 mm/s², a 2 ms cycle."""
     t = pathsolve.Timing(20.0, 1200.0, 0.01, 0.002)
     arc = np.arange(11.0)                                               # 10 mm straight, 1 mm steps
     np.testing.assert_allclose(pathsolve.speed_profile(line(arc), arc, t), [0.0] + [20.0] * 9 + [0.0])
-    # the first step: 0 -> 20 mm/s in 20/1200 s over 1/6 mm, the rest at 20 mm/s: 1/60 + (5/6)/20 = 0.0583 s, 30 cycles
-    np.testing.assert_allclose(pathsolve.servo_times(line(arc), arc, t), [0.06] + [0.05] * 8 + [0.06])
-    corner = np.array([[0.0, 0, 0], [1, 0, 0], [1, 1, 0]])            # 90°: c = cos 45°, sqrt(12 c / (1 - c))
-    v = pathsolve.speed_profile(corner, np.array([0.0, 1, 2]), t)
-    np.testing.assert_allclose(v, [0.0, np.sqrt(12 * np.sqrt(0.5) / (1 - np.sqrt(0.5))), 0.0])
-    assert 5.38 < v[1] < 5.39
-    for spacing in (1.0, 0.5, 0.25):                                    # a 10 mm arc at 1 m/s: sqrt(a r) mid-way,
-        th = np.arange(0, np.pi, spacing / 10)                          # whatever the spacing (a review: 98, 196,
-        arc_pts = np.c_[10 * np.cos(th), 10 * np.sin(th), 0 * th]       # 392 mm/s, junction deviation alone)
+    # the first step: 0 -> 20 mm/s in 20/1200 s over 1/6 mm, the rest at 20 mm/s: 1/60 + (5/6)/20 = 0.0583 s, so
+    # 2 * 0.0583 + 8 * 0.05 = 0.5167 s in all: 258.3 cycles of 2 ms, 259: 0.518 s
+    timed = pathsolve.schedule(line(arc), arc, t)
+    assert timed.n_cycles == 259 and timed.t_s[-1] == pytest.approx(0.518, abs=1e-12)
+    s = timed.cycle_arcs()                                              # a τ²/2 from rest, then 20 mm/s
+    tau = np.arange(1, 4) * 0.002 * timed.stretch
+    np.testing.assert_allclose(s[:3], 1200 * tau ** 2 / 2, rtol=1e-9)
+    np.testing.assert_allclose(np.diff(s[20:200]), 20 * 0.002 * timed.stretch, rtol=1e-9)
+    corner = np.array([[0.0, 0, 0], [1, 0, 0], [1, 1, 0]])            # 90°: 600 * cycle / (2 sin 45°)
+    for cycle in (0.002, 0.008):
+        v = pathsolve.speed_profile(corner, np.array([0.0, 1, 2]), pathsolve.Timing(20.0, 1200.0, 0.01, cycle))
+        np.testing.assert_allclose(v, [0.0, 600 * cycle / (2 * np.sqrt(0.5)), 0.0])
+    v = pathsolve.speed_profile(corner, np.array([0.0, 1, 2]), pathsolve.Timing(20.0, 1200.0, 1e-4, 0.008))
+    np.testing.assert_allclose(v[1], np.sqrt(0.12 * np.sqrt(0.5) / (1 - np.sqrt(0.5))))   # path.corner_mm, tighter
+    for spacing in (1.0, 0.5, 0.25):                                    # a 10 mm arc at 1 m/s: sqrt(a r / 2) mid-way,
+        th = np.arange(0, np.pi, spacing / 10)                          # whatever the spacing
+        arc_pts = np.c_[10 * np.cos(th), 10 * np.sin(th), 0 * th]
         mid = pathsolve.speed_profile(arc_pts, 10 * th, pathsolve.Timing(1000.0, 1200.0, 0.01, 0.002))[len(th) // 2]
-        assert mid <= np.sqrt(1200 * 10) * (1 + 1e-3), (spacing, mid)
-    # within the step from rest (58.3 ms, stretched over 8 cycles: 64 ms): a τ²/2 up to 20 mm/s, then at speed
-    f = pathsolve.step_fractions(0.0, 20.0, 20.0, 1.0, 1200.0, 8)
-    T = 20 / 1200 + (1 - 400 / 2400) / 20
-    np.testing.assert_allclose(f[:2], [1200 * (T / 8) ** 2 / 2, 1200 * (2 * T / 8) ** 2 / 2], rtol=1e-12)
-    np.testing.assert_allclose(np.diff(f[3:]), 20 * T / 8, rtol=1e-12)         # at 20 mm/s from the third cycle on
-    assert f[-1] == 1.0 and (np.diff(f) > 0).all()
+        assert mid <= np.sqrt(600 * 10) * (1 + 1e-3), (spacing, mid)
     back = np.array([[0.0, 0, 0], [1, 0, 0], [0, 0, 0]])              # a reversal stops
     assert pathsolve.speed_profile(back, np.array([0.0, 1, 2]), t)[1] == 0.0
     arc = np.arange(101.0)                                              # 100 mm at 100 mm/s: up over 100²/2400 =
-    t = pathsolve.Timing(100.0, 1200.0, 0.01, 0.002)                    # 4.2 mm, down over as much, in between at
-    dt = pathsolve.servo_times(line(arc), arc, t)                       # speed; the cycles round each step up
-    speed = np.diff(arc) / dt
-    assert (np.diff(speed[:50]) >= 0).all() and (np.diff(speed[50:]) <= 0).all()
-    assert speed[0] < np.sqrt(2 * 1200 * 1) and speed[5:-5].min() == 100.0 and speed[:4].max() < 100.0
-    assert 100 / 100 + 100 / 1200 <= dt.sum() <= 100 / 100 + 100 / 1200 + 100 * 0.002     # the trapezoid's time
+    timed = pathsolve.schedule(line(arc), arc, pathsolve.Timing(100.0, 1200.0, 0.01, 0.002))   # 4.2 mm, down over
+    speed = np.diff(np.concatenate([[0.0], timed.cycle_arcs()])) / 0.002                    # as much, between at speed
+    top = int(speed.argmax())
+    assert (np.diff(speed[:top]) >= -1e-9).all() and (np.diff(speed[top:]) <= 1e-9).all() and speed.max() <= 100.0
+    assert 100 / 100 + 100 / 1200 <= timed.t_s[-1] <= 100 / 100 + 100 / 1200 + 0.002     # the trapezoid's time
+
+
+def test_no_cycle_of_the_script_asks_more_than_the_acceleration_or_a_joints_speed():
+    """A review (2026-12-06, evening), on the script as the controller runs it: each step rounded up to whole
+    cycles on its own made the speed jump where the count changed (a 0.01 mm step between two straights: 17.8,
+    1.2, 17.8 mm/s, 2068 mm/s² at the defaults; 15 410 at 125 mm/s; 7691 on a plain line at 200 mm/s), a corner
+    or a sampled arc turned the whole angle within one cycle (1723 mm/s² at a 90° corner, 4735 on a 10 mm arc
+    on an e-Series), and the joint speed check took each step's mean, where the script drives its peak (8.59°/s
+    past a limit of 6). Here every cycle of the script, read back, within path.accel_mm_s2 (joints made the
+    TCP's coordinates, so the joints' cycles are the TCP's), and refusal's joint speed its highest cycle's."""
+    def resampled(corners, h):
+        out = [np.asarray(corners[0], float)]
+        for p0, p1 in zip(np.asarray(corners[:-1], float), np.asarray(corners[1:], float)):
+            n = max(1, int(np.ceil(np.linalg.norm(p1 - p0) / h)))
+            out += list(p0 + (p1 - p0) * np.arange(1, n + 1)[:, None] / n)
+        return np.array(out)
+    th = np.arange(0, np.pi, 0.1)
+    paths = {"jog": resampled([[0, 0, 0], [50, 0, 0], [50.01, 0, 0], [100, 0, 0]], 1.0),
+             "line": resampled([[0, 0, 0], [100, 0, 0]], 1.0),
+             "corner": resampled([[0, 0, 0], [10, 0, 0], [10, 10, 0]], 1.0),
+             "arc": np.c_[10 * np.cos(th), 10 * np.sin(th), 0 * th]}
+    ratios = []
+    for name, points in paths.items():
+        for speed in (20.0, 125.0, 300.0):
+            for cycle in (0.008, 0.002):
+                arc, timed = schedule_of(points, speed, 1200.0, cycle)
+                table = pd.DataFrame({"arc_mm": arc, **dict(zip(TARGET, points.T)), "residual_mm": 0.0,
+                                      "in_workspace": True, "uncertainty_mm": 0.1, "t_s": timed.t_s,
+                                      "orientation_residual_arcsec": np.nan,
+                                      **dict(zip(JCOMP_DEG, np.c_[points, np.zeros((len(points), 3))].T))})
+                script = pathsolve.urscript(table, timed, 0.05, 300, 1.4, 1.05)
+                q, hold = cycle_targets(script, table[JCOMP_DEG].to_numpy())
+                assert len(q) == timed.n_cycles and hold == int(np.ceil(0.05 / cycle - 1e-9))
+                q = np.vstack([table[JCOMP_DEG].to_numpy()[:1], q])             # from the first sample
+                v, acc = per_cycle(q[:, :3], cycle)                             # deg as mm: the TCP's
+                assert acc.max() <= 1200.0 * (1 + 1e-6) and v.max() <= speed * (1 + 1e-9), (name, speed, cycle, acc.max())
+                joint = np.abs(np.diff(q, axis=0)).max(0) / cycle               # (6,) deg/s, its fastest cycle
+                limit = joint[0] * (1 - 1e-6)                                 # just under: refused; just over: not
+                said = pathsolve.refusal(table.assign(converged=True), len(table), np.array([[-1e4, 1e4]] * 6), 0.001,
+                                         np.zeros(len(table) - 1), 0.5, timed.peak_mm_s, np.full(6, limit))
+                assert said is not None and "joint 1 turns" in said, (name, said)
+                ratio = (np.abs(np.diff(table.j1_comp_deg)) / np.diff(arc) * timed.peak_mm_s).max() / joint[0]
+                ratios.append(ratio)                                          # what refusal takes, over the script's
+    assert 1 - 1e-6 <= min(ratios) and max(ratios) < 1.6, (min(ratios), max(ratios))             # a bound, not far above what is driven
 
 
 def test_servoj_steps_at_the_robots_own_controller_cycle():
@@ -276,10 +341,11 @@ def test_servoj_steps_at_the_robots_own_controller_cycle():
                           **{c: [0.0, 0.1, 0.2] for c in JCOMP_DEG},
                           "residual_mm": 0.0, "in_workspace": True, "uncertainty_mm": 0.1, "t_s": [0.0, 0.056, 0.112],
                           "orientation_residual_arcsec": np.nan})
-    script = pathsolve.urscript(table, pathsolve.Timing(20.0, 1e15, 0.01, 0.008), 0.05, 300, 1.4, 1.05)
+    timed = pathsolve.schedule(table[TARGET].to_numpy(), table.arc_mm.to_numpy(), pathsolve.Timing(20.0, 1e15, 0.01, 0.008))
+    script = pathsolve.urscript(table, timed, 0.05, 300, 1.4, 1.05)
     assert "servoj([" in script and ", t=0.008, lookahead_time=0.050, gain=300)" in script
-    per, hold = sample_steps(script, table[JCOMP_DEG].to_numpy())
-    assert per == [7, 7] and hold == 7                      # each 1 mm step 56 ms (7 cycles), and the hold, 50 ms up
+    q, hold = cycle_targets(script, table[JCOMP_DEG].to_numpy())
+    assert len(q) == 13 and hold == 7                       # 2 mm at 20 mm/s, 100 ms: 13 cycles; the hold, 50 ms up
 
 
 def test_a_path_faster_than_any_tool_or_its_joints_is_refused():
@@ -288,7 +354,7 @@ def test_a_path_faster_than_any_tool_or_its_joints_is_refused():
     arc = np.array([0.0, 1.0, 2.0])
     for speed in (5000.1, 1e5, 1e308, float("inf"), float("nan")):
         with pytest.raises(ValueError, match=r"beyond 5000 mm/s, the highest tool speed"):
-            pathsolve.servo_times(line(arc), arc, pathsolve.Timing(speed, 1200.0, 0.01, 0.008))
+            pathsolve.schedule(line(arc), arc, pathsolve.Timing(speed, 1200.0, 0.01, 0.008))
     ur5 = load_robot({"model": "ur5", "dh": None, "joint_limits_deg": None, "tcp": None, "tool_mm": [0, 0, 0]})
     with pytest.raises(ValueError, match=r"path.joint_speed_deg_s: joint 1 at 1e\+06 deg/s, beyond the ur5's own 180"):
         pathsolve.joint_speeds(ur5, 1e6)
@@ -318,10 +384,10 @@ def test_a_compensated_seam_stays_on_the_path_on_the_twin(in_trained_project, tm
     back = pd.read_csv(tmp_path / "out" / "path.csv")
     assert list(back.columns) == pathsolve.PATH_COLUMNS and len(back) == 101 and back.converged.all()
     np.testing.assert_allclose(back.arc_mm, np.arange(101.0), atol=1e-9)
-    # 1 mm steps at 20 mm/s: 50 ms, 7 of a UR5's (CB3) 8 ms cycles; the first from rest and the last to rest at
-    # 1200 mm/s² (20/1200 s over 1/6 mm, the rest of the mm at 20 mm/s: 58.3 ms), 8 cycles
+    # 1 mm steps at 20 mm/s: 50 ms; the first from rest and the last to rest at 1200 mm/s² (20/1200 s over 1/6 mm,
+    # the rest of the mm at 20 mm/s: 58.3 ms): 5.0167 s, 627.1 of a UR5's (CB3) 8 ms cycles: 628, 5.024 s
     assert in_trained_project["path"]["speed_mm_s"] == 20.0 and in_trained_project["path"]["accel_mm_s2"] == 1200.0
-    np.testing.assert_allclose(back.t_s.iloc[-1], 98 * 0.056 + 2 * 0.064, atol=1e-9)
+    np.testing.assert_allclose(back.t_s.iloc[-1], 628 * 0.008, atol=1e-9)
     np.testing.assert_allclose(back[TARGET].to_numpy(), np.linspace(*np.array(SEAM), 101), atol=1e-6)
     judge = Judge(in_trained_project, root=Path.cwd())
     segs = segments(np.array(SEAM), ["", "movel"])
@@ -332,12 +398,10 @@ def test_a_compensated_seam_stays_on_the_path_on_the_twin(in_trained_project, tm
     unc = judge.uncompensated(segs, np.array(SEAM_START))[0]
     assert unc["mean_mm"] > 0.3 and unc["mean_mm"] > 5 * d.mean(), unc["mean_mm"]
     script = (tmp_path / "out" / "path.script").read_text()
-    per, hold = sample_steps(script, q)
-    assert per == [8] + [7] * 98 + [8] and hold == 7 and len(table) == 101      # as above; the end held 0.05 s up
-    first = re.findall(r"  servo_step\((\[[^\]]+\]), (\[[^\]]+\]), 1\)", script)[:8]     # the step from rest, cycle
-    moved = [np.abs(np.array(b.strip("[]").split(","), float) - np.array(a.strip("[]").split(","), float)).max()
-             for a, b in first]                                                # by cycle: each cycle further
-    assert len(first) == 8 and moved[0] < moved[1] < moved[2], moved
+    cycles, hold = cycle_targets(script, q)
+    assert len(cycles) == 628 and hold == 7 and len(table) == 101                 # as above; the end held 0.05 s up
+    moved = np.abs(np.diff(np.vstack([q[:1], cycles]), axis=0)).max(1)           # from rest: each cycle further
+    assert moved[0] < moved[1] < moved[2] and moved[-1] < moved[-2] < moved[-3], moved
 
 
 def test_a_path_at_a_tcp_keeps_that_tcp_on_the_path_on_the_twin(in_trained_project, tmp_path):
@@ -362,7 +426,7 @@ def test_a_path_at_a_tcp_keeps_that_tcp_on_the_path_on_the_twin(in_trained_proje
 
 def test_the_script_holds_only_numbers_and_fixed_text(in_trained_project, tmp_path):
     """A program's path (a move column: an arc, then a line): the URScript's every line is one of ours, each
-    servo_step goes on from where the one before ended, its cycles the step's time at the speed."""
+    cycle's target on the samples' chords in order, as many cycles as the path's time."""
     p0 = nominal_position(in_trained_project, CIRCLE_START)
     pts = [p0, p0 + [-20, 20, 0], p0 + [-40, 0, 0], p0 + [-40, -10, 0]]
     src = write_path(tmp_path, pts, ["start", "via", "movec", "movel"], name="prog.csv")
@@ -370,8 +434,8 @@ def test_the_script_holds_only_numbers_and_fixed_text(in_trained_project, tmp_pa
     script = (tmp_path / "o" / "path.script").read_text()
     for line in script.splitlines():
         assert SCRIPT_LINE.fullmatch(line), line
-    per, _ = sample_steps(script, table[JCOMP_DEG].to_numpy())                     # continuous, every sample
-    np.testing.assert_allclose(np.array(per) * 0.008, np.diff(table.t_s), atol=1e-12)   # a UR5: a CB3's cycles
+    cycles, _ = cycle_targets(script, table[JCOMP_DEG].to_numpy())                # along the chords, in order
+    np.testing.assert_allclose(len(cycles) * 0.008, table.t_s.iloc[-1], atol=1e-12)     # a UR5: a CB3's cycles
     assert abs(table.arc_mm.iloc[-1] - (20 * np.pi + 10)) < 1e-6 and 0.19 <= np.diff(table.t_s).min()
 
 
@@ -401,9 +465,11 @@ def test_a_path_the_solver_cannot_follow_is_refused_naming_the_sample(in_trained
 
 @pytest.mark.parametrize("option, message", [
     (["--start-deg", "nan", "-60.4", "91.1", "-182.3", "-61.2", "-100.7"], r"--start-deg: joint 1 at nan° beyond its limits"),
-    (["--speed", "1e-300", "--start-deg", *map(str, SEAM_START)], r"speed 1e-300 mm/s: a step of 1\.000 mm would take "
+    (["--spacing", "1e-300", "--start-deg", *map(str, SEAM_START)], r": 1e\+302 samples at a spacing of 1e-300 mm "
+     r"over 100\.0 mm, more than path.max_samples"),            # a review: the count was said in 303 digits
+    (["--speed", "1e-300", "--start-deg", *map(str, SEAM_START)], r"speed 1e-300 mm/s: the path of 100\.000 mm would take "
      r"more than 16777215 controller cycles \(URScript's 32-bit float counts no further\): a higher speed"),
-    (["--speed", "1e-6", "--start-deg", *map(str, SEAM_START)], r"speed 1e-06 mm/s: a step of 1\.000 mm would take "
+    (["--speed", "1e-6", "--start-deg", *map(str, SEAM_START)], r"speed 1e-06 mm/s: the path of 100\.000 mm would take "
      r"more than 16777215 controller cycles"),   # 1.25e8 cycles of 8 ms: a float counter stuck at 2^24, no end
     (["--chord", "0.001", "--start-deg", *map(str, SEAM_START)], r"--chord: 0\.001 mm is not above "
      r"compensate\.tol_mm \(0\.001 mm\), to which each sample is solved"),  # was 4096 times the samples
@@ -437,8 +503,8 @@ def test_a_branch_flip_between_samples_is_refused(in_trained_project, tmp_path, 
     src = write_path(tmp_path, SEAM)
     argv = [str(src), "--out", str(tmp_path / "o"), "--start-deg", *map(str, SEAM_START), "--spacing", "2"]
     code, said = exit_code(path_command.main, argv, capsys)
-    assert code == 1 and re.search(r"sample 31 \(arc 60\.0 mm\): joint 4 turns 1(79|80)\.\d\d° from sample 30 in "
-                                   r"0\.104 s .*beyond its 180°/s", said), said
+    assert code == 1 and re.search(r"sample 31 \(arc 60\.0 mm\): joint 4 turns 1(79|80)\.\d\d° from sample 30 over "
+                                   r"2\.000 mm at up to 20\.0 mm/s .*beyond its 180°/s\): a branch flip", said), said
     calls.clear()
     code, said = exit_code(path_command.main, argv + ["--speed", "0.001"], capsys)
     m = re.search(r"samples 30-31 \(arc 58\.0-60\.0 mm\): the joint-space step between them leaves the path by "
@@ -463,7 +529,7 @@ def test_outside_the_trained_workspace_is_refused_unless_allowed(in_trained_proj
     code, said = exit_code(path_command.main, argv + ["--allow-outside-workspace"], capsys)
     script = (tmp_path / "o" / "path.script").read_text()
     assert code == 0 and "5 samples outside the trained workspace" in said, said
-    assert script.count("outside the trained workspace (uncertainty") == 4            # each servo_step's target
+    assert script.count("outside the trained workspace (uncertainty") == 4            # each sample's but the first
     assert not pd.read_csv(tmp_path / "o" / "path.csv").in_workspace.any()
 
 
@@ -627,8 +693,8 @@ def test_the_service_answers_a_whole_path(path_server, in_trained_project):
     tol = in_trained_project["compensate"]["tol_mm"]
     assert q.shape == (51, 6) and r["all_in_workspace"] and max(r["residual_mm"]) < tol
     np.testing.assert_allclose(r["arc_mm"], np.arange(0, 101, 2.0), atol=1e-9)
-    # 2 mm at 20 mm/s: 100 ms, 13 cycles of 8 ms; the first and the last 108.3 ms (from and to rest), 14
-    np.testing.assert_allclose(r["t_s"][-1], 48 * 0.104 + 2 * 0.112, atol=1e-9)
+    # 2 mm at 20 mm/s: 100 ms; the first and the last 108.3 ms (from and to rest): 5.0167 s, 628 cycles of 8 ms
+    np.testing.assert_allclose(r["t_s"][-1], 628 * 0.008, atol=1e-9)
     np.testing.assert_allclose(model_position(served_model())(q), target, atol=tol)
     assert np.abs(np.diff(q, axis=0)).max() < 2.0                                  # no jump between samples
     bad = {
@@ -644,7 +710,7 @@ def test_the_service_answers_a_whole_path(path_server, in_trained_project):
         "(serve.max_path_samples)": (q0, SEAM, [], 0.01, 20.0),
         "points_mm: sample ": (q0, [SEAM[0], [0.0, 0.0, 30.0]], [], 20.0, 20.0),
         "spacing_mm: a 100.0 mm path at 1e-307 mm is inf samples": (q0, SEAM, [], 1e-307, 20.0),   # was an
-        "speed_mm_s: speed 1e-300 mm/s: a step of 2.000 mm would take more than 16777215 controller cycles "
+        "speed_mm_s: speed 1e-300 mm/s: the path of 100.000 mm would take more than 16777215 controller cycles "
         "(URScript's 32-bit float counts no further)": (q0, SEAM, [], 2.0, 1e-300),   # OverflowError, or inf in t_s
     }
     for words, args in bad.items():

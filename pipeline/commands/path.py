@@ -50,7 +50,7 @@ from pipeline.lib.learning.workspace import Workspace
 from pipeline.lib.project.artifacts import (FRAME_JSON, MODEL_WEIGHTS, PARAMS_FILE, WORKSPACE_JSON, project_owned,
                                             require)
 from pipeline.lib.project.cli import Refused, add_project, one_line
-from pipeline.lib.project.columns import JCOMP_DEG
+from pipeline.lib.project.columns import JCOMP_DEG, TARGET
 from pipeline.lib.project.config import for_stage, load_params, logger, read_json
 from pipeline.lib.project.writing import check_outputs, csv_text, left_as_they_were, write_together
 from pipeline.lib.robot.geometry import theory_geometry
@@ -61,7 +61,7 @@ from pipeline.lib.robot.urdf import tcp_transforms
 from pipeline.lib.runtime.compensation import reach_mm
 from pipeline.lib.runtime.paths import n_samples, read_path, resample, rotations_at
 from pipeline.lib.runtime.pathsolve import (Timing, beyond_reach, cycle_s, deviation, finish, joint_speeds,
-                                            model_position, refine, refusal, servo_times, solve_path, urscript)
+                                            model_position, refine, refusal, schedule, solve_path, urscript)
 from pipeline.lib.runtime.waypoints import flange_targets, start_refusal
 
 log = logger(__name__)
@@ -159,7 +159,7 @@ def run(argv=None) -> pd.DataFrame:
                          f"than path.max_samples ({cfg['max_samples']}): a larger --spacing")
     targets, arc = resample(found.segs, cfg["spacing_mm"])
     timing = Timing(cfg["speed_mm_s"], cfg["accel_mm_s2"], cfg["corner_mm"], cycle_s(robot))
-    servo_times(targets, arc, timing)                # a ValueError where --speed is too low for URScript, or too high
+    schedule(targets, arc, timing)                   # a ValueError where --speed is too low for URScript, or too high
     far = beyond_reach(targets, arc, reach_mm(model.physics.geometry()))
     if far:
         raise Refused(f"{src}: {far}; nothing written{earlier}")
@@ -168,10 +168,11 @@ def run(argv=None) -> pd.DataFrame:
     if cfg["chord_mm"] is not None and table.converged.all():
         table = refine(model, table, found.segs, cfg["chord_mm"], p["compensate"], robot, rotations,
                        cfg["max_samples"])
-    table = finish(table, workspace, timing)
+    timed = schedule(table[TARGET].to_numpy(), table.arc_mm.to_numpy(), timing)
+    table = finish(table, workspace, timed)
     dev = deviation(model_position(model), table[JCOMP_DEG].to_numpy(), found.segs)
     why = refusal(table, n, robot.limits_deg, p["compensate"]["tol_mm"], dev, cfg["max_deviation_mm"],
-                  table.t_s.to_numpy(), timing.speed_mm_s, speeds, None if a.allow_outside_workspace else workspace)
+                  timed.peak_mm_s, speeds, None if a.allow_outside_workspace else workspace)
     why = why or start_refusal(q0, table[JCOMP_DEG].to_numpy()[0], nominal_geometry(robot), found.offline,
                                orientation=rotations is not None)
     if why:
@@ -179,7 +180,7 @@ def run(argv=None) -> pd.DataFrame:
     out.mkdir(parents=True, exist_ok=True)
     approach = p["program"]["movej"]
     write_together({out / "path.csv": csv_text(table),
-                    out / "path.script": urscript(table, timing, cfg["lookahead_s"], cfg["gain"],
+                    out / "path.script": urscript(table, timed, cfg["lookahead_s"], cfg["gain"],
                                                   approach["acc"], approach["vel"])}, [src])
     print(summary_text(table, dev, cfg["spacing_mm"], cfg["speed_mm_s"]))
     log.info("wrote %s and %s", out / "path.csv", out / "path.script")

@@ -143,11 +143,14 @@ def counts(segs: list, spacing_mm: float) -> np.ndarray:
 
 
 def n_samples(segs: list, spacing_mm: float) -> int | float:
-    """How many samples `resample` makes at spacing_mm (to check before making them); inf where a float
-    cannot count them (a spacing of 1e-320 mm)."""
+    """How many samples `resample` makes at spacing_mm (to check before making them): beyond 1e15, as a float
+    (said as 1e+302, not in 303 digits); inf where a float cannot count them (a spacing of 1e-320 mm)."""
     with np.errstate(over="ignore"):
         steps = np.array([s.length for s in segs]) / spacing_mm
-    return int(np.maximum(1, np.ceil(steps - 1e-9)).sum()) + 1 if np.isfinite(steps).all() else math.inf
+    if not np.isfinite(steps).all():
+        return math.inf
+    n = int(np.maximum(1, np.ceil(steps - 1e-9)).sum()) + 1
+    return n if n < 10 ** 15 else float(f"{n:.3g}")
 
 
 def resample(segs: list, spacing_mm: float) -> tuple[np.ndarray, np.ndarray]:

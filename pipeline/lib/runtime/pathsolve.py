@@ -9,11 +9,11 @@
                                                       path by more than a chordal tolerance
     deviation(position, q_deg, segs)                  how far each joint-linear step's middle leaves the path
     cycle_s(robot)                                    servoj's step on the robot's controller (8 or 2 ms)
-    servo_times(points, arc_mm, timing)               each step's servoj time (a speed profile from rest to
-                                                      rest, slower round corners), in whole controller cycles
+    schedule(points, arc_mm, timing)                  the path in time: a speed profile from rest to rest, slower
+                                                      round corners, ending on a whole controller cycle
     refusal(...)                                      the first sample that must stop the path, and why
-    urscript(table, ...)                              movej to the start, then servoj every controller cycle,
-                                                      joint-linear from sample to sample
+    urscript(table, ...)                              movej to the start, then servoj every controller cycle to
+                                                      where the schedule is then, joint-linear between samples
 
 The arm is driven joint-linearly between samples (servoj interpolates in joint space), so what lies
 between two samples is the model's joint-space chord: `deviation` measures it on the model.
@@ -134,84 +134,122 @@ class Timing:
     cycle_s: float
 
 
-def speed_profile(points_mm: np.ndarray, arc_mm: np.ndarray, t: Timing) -> np.ndarray:
-    """(m,) mm/s: the TCP's speed at each sample, points (m, 3) along arc (m,): at rest at both ends, at most
-    t.speed_mm_s, at a turn of φ between two steps at most sqrt(a δ c / (1 - c)), c = cos(φ/2) (the junction
-    deviation rule: a 90° corner at 1.2 m/s² and 0.01 mm, 5.4 mm/s) and sqrt(a r), r = the shorter step over
-    2 sin(φ/2) (the centripetal limit of a sampled arc, whatever its spacing), and changing by at most
-    t.accel_mm_s2 along the path (a forward and a backward pass: v² ≤ v_prev² + 2 a Δs)."""
-    ds = np.diff(arc_mm)                                                           # (m - 1,)
+def half_sines(points_mm: np.ndarray) -> np.ndarray:
+    """(m - 2,) sin(φ/2) of the turn φ at each inner sample of points (m, 3) (0 on a straight)."""
     d = np.diff(np.asarray(points_mm, float), axis=0)
     u = d / np.maximum(np.linalg.norm(d, axis=1), 1e-300)[:, None]                 # (m - 1, 3) each step's direction
-    c = np.sqrt(np.clip(0.5 * (1 + np.einsum("ij,ij->i", u[:-1], u[1:])), 0.0, 1.0))   # cos(φ/2) at inner samples
+    return np.sqrt(np.clip(0.5 * (1 - np.einsum("ij,ij->i", u[:-1], u[1:])), 0.0, 1.0))
+
+
+def step_accels(points_mm: np.ndarray, accel: float) -> np.ndarray:
+    """(m - 1,) mm/s²: each step's acceleration along the path: accel, or half of it where either end turns
+    (the other half is the turn's, which servoj makes within one cycle: the two together stay within accel)."""
+    turns = np.concatenate([[False], half_sines(points_mm) > 1e-12, [False]])
+    return np.where(turns[:-1] | turns[1:], accel / 2, accel)
+
+
+def speed_profile(points_mm: np.ndarray, arc_mm: np.ndarray, t: Timing) -> np.ndarray:
+    """(m,) mm/s: the TCP's speed at each sample, points (m, 3) along arc (m,): at rest at both ends, at most
+    t.speed_mm_s and at most one step a controller cycle (a cycle never passes a sample: no step of the script
+    leaves the joint-space chords the command checks), at a turn of φ between two steps at most
+    sqrt(a δ c / (1 - c)), c = cos(φ/2) (the junction deviation rule: a 90° corner at 1.2 m/s² and 0.01 mm,
+    5.4 mm/s), (a/2) cycle / (2 sin(φ/2)) (servoj turns the whole angle within one cycle: a velocity change of
+    at most half the acceleration's) and sqrt(a r / 2), r = the shorter step over 2 sin(φ/2) (the centripetal
+    limit of a sampled arc, whatever its spacing), and changing by at most each step's step_accels along the
+    path (a forward and a backward pass: v² ≤ v_prev² + 2 a Δs)."""
+    ds, a = np.diff(arc_mm), t.accel_mm_s2
+    sin = half_sines(points_mm)                                                    # (m - 2,)
+    c = np.sqrt(1 - sin ** 2)                                                      # cos(φ/2)
+    acc = step_accels(points_mm, a)                                                # (m - 1,)
     with np.errstate(divide="ignore", invalid="ignore"):
-        radius = np.minimum(ds[:-1], ds[1:]) / (2 * np.sqrt(np.clip(1 - c ** 2, 0.0, 1.0)))   # the turn's, sin(φ/2)
-        corner = np.minimum(np.sqrt(t.accel_mm_s2 * t.corner_mm * c / (1 - c)),          # inf on a straight
-                            np.sqrt(t.accel_mm_s2 * radius))                           # and on a sampled arc at most
+        radius = np.minimum(ds[:-1], ds[1:]) / (2 * sin)                           # the turn's
+        corner = np.minimum.reduce([np.sqrt(a * t.corner_mm * c / (1 - c)),       # inf on a straight
+                                    a / 2 * t.cycle_s / (2 * sin),
+                                    np.sqrt(a / 2 * radius),                       # and on a sampled arc at most
+                                    np.minimum(ds[:-1], ds[1:]) / t.cycle_s])
     v = np.concatenate([[0.0], np.minimum(t.speed_mm_s, corner), [0.0]]) if len(ds) else np.zeros(len(arc_mm))
     for k in range(len(ds)):                                                       # forward: accelerate
-        v[k + 1] = min(v[k + 1], np.sqrt(v[k] ** 2 + 2 * t.accel_mm_s2 * ds[k]))
+        v[k + 1] = min(v[k + 1], np.sqrt(v[k] ** 2 + 2 * acc[k] * ds[k]))
     for k in range(len(ds) - 1, -1, -1):                                           # backward: decelerate
-        v[k] = min(v[k], np.sqrt(v[k + 1] ** 2 + 2 * t.accel_mm_s2 * ds[k]))
+        v[k] = min(v[k], np.sqrt(v[k + 1] ** 2 + 2 * acc[k] * ds[k]))
     return v
 
 
-def trapezoids(points_mm: np.ndarray, arc_mm: np.ndarray, t: Timing) -> tuple:
-    """Each step's trapezoid on speed_profile: (Δs, its first sample's speed, its last's, its peak, its time),
-    (m - 1,) each: from the first speed up to at most t.speed_mm_s and down to the last at t.accel_mm_s2."""
-    ds, v, a = np.diff(arc_mm), speed_profile(points_mm, arc_mm, t), t.accel_mm_s2
-    va, vb = v[:-1], v[1:]
-    with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
-        top = np.minimum(t.speed_mm_s, np.sqrt((2 * a * ds + va ** 2 + vb ** 2) / 2))
-        step = np.where(ds > 0, (2 * top - va - vb) / a + (ds - (2 * top ** 2 - va ** 2 - vb ** 2) / (2 * a)) / top, 0.0)
-    return ds, va, vb, top, step
-
-
-def step_fractions(va: float, vb: float, top: float, ds: float, a: float, n: int) -> np.ndarray:
-    """(n,) the share of a step's length reached at the end of each of its n cycles, moving on its trapezoid
-    (from va up to top, at top, down to vb, at a) stretched evenly over the n cycles: the last is 1."""
+def along(va, vb, top, ds, a, step, tau):
+    """The arc (mm) a trapezoid has covered after tau s: from va up to top, at top, down to vb at a, over ds in
+    step s (arrays of one shape, or numbers)."""
     t1, t2 = (top - va) / a, (top - vb) / a
-    d1, d2 = (top ** 2 - va ** 2) / (2 * a), (top ** 2 - vb ** 2) / (2 * a)
-    T = t1 + t2 + max(ds - d1 - d2, 0.0) / top
-    tau = T * np.arange(1, n + 1) / n
+    d1 = (top ** 2 - va ** 2) / (2 * a)
     s = np.where(tau <= t1, va * tau + a * tau ** 2 / 2,
-                 np.where(tau <= T - t2, d1 + top * (tau - t1), ds - vb * (T - tau) - a * (T - tau) ** 2 / 2))
-    f = np.clip(s / ds, 0.0, 1.0)
-    f[-1] = 1.0
-    return f
+                 np.where(tau <= step - t2, d1 + top * (tau - t1), ds - vb * (step - tau) - a * (step - tau) ** 2 / 2))
+    return np.clip(s, 0.0, ds)
 
 
-def step_cycles(points_mm: np.ndarray, arc_mm: np.ndarray, t: Timing) -> tuple:
-    """Each step's whole controller cycles (m - 1,) on its trapezoid (`trapezoids`: from its first sample's speed
-    up to at most the path's and down to its last's at the acceleration), at least one, rounded up: no step
-    faster than the profile; and the trapezoids. A ValueError where a step would take more cycles than the
-    script's counter holds exactly (a speed far too low), or where the speed is beyond any tool speed (a slip
-    of unit)."""
+@dataclass(frozen=True)
+class Schedule:
+    """A path's motion in time: each step's trapezoid on speed_profile (ds, va, vb, top, step: its length, its
+    first and last sample's speed, its peak, its time, its acceleration accel; (m - 1,) each), the factor
+    stretch (≤ 1) by which the whole path is slowed to end on a whole controller cycle (n_cycles of them)."""
+    ds: np.ndarray
+    va: np.ndarray
+    vb: np.ndarray
+    top: np.ndarray
+    step: np.ndarray
+    stretch: float
+    n_cycles: int
+    cycle_s: float
+    accel: np.ndarray
+
+    @property
+    def t_s(self) -> np.ndarray:
+        """(m,) s: each sample's time along the path."""
+        return np.concatenate([[0.0], np.cumsum(self.step)]) / self.stretch
+
+    @property
+    def peak_mm_s(self) -> np.ndarray:
+        """(m - 1,) mm/s: the TCP's top speed within each step, as driven."""
+        return self.top * self.stretch
+
+    def cycle_arcs(self) -> np.ndarray:
+        """(n_cycles,) mm: the arc the path has reached at the end of each controller cycle (the last: its end)."""
+        start = np.concatenate([[0.0], np.cumsum(self.step)])                     # (m,) each step's start, unstretched
+        tau = np.arange(1, self.n_cycles + 1) * self.cycle_s * self.stretch
+        tau[-1] = start[-1]
+        k = np.clip(np.searchsorted(start, tau, side="right") - 1, 0, len(self.ds) - 1)
+        return np.concatenate([[0.0], np.cumsum(self.ds)])[k] + along(
+            self.va[k], self.vb[k], self.top[k], self.ds[k], self.accel[k], self.step[k], tau - start[k])
+
+
+def schedule(points_mm: np.ndarray, arc_mm: np.ndarray, t: Timing) -> Schedule:
+    """The path's Schedule: each step on its trapezoid (from its first sample's speed up to at most the path's,
+    and one step a cycle, down to its last's at the acceleration), the whole slowed to a whole number of
+    controller cycles. A ValueError where the path would take more cycles than the script's counter holds
+    exactly (a speed far too low), or where the speed is beyond any tool speed (a slip of unit)."""
     if not t.speed_mm_s <= 1000 * TOOL_SPEED_MAX:
         raise ValueError(f"speed {float(t.speed_mm_s)!r} mm/s: beyond {1000 * TOOL_SPEED_MAX:g} mm/s, the highest tool speed "
                          "UR's safety configuration takes (mm/s: a speed in m/s?)")
-    ds, va, vb, top, step = trapezoids(points_mm, arc_mm, t)
-    with np.errstate(over="ignore", invalid="ignore"):
-        cycles = np.maximum(1, np.ceil(np.round(step / t.cycle_s, 9)))
-    slow = np.flatnonzero(~(cycles <= MAX_CYCLES))
-    if len(slow):
-        raise ValueError(f"speed {t.speed_mm_s:g} mm/s: a step of {ds[slow[0]]:.3f} mm would take more "
+    points_mm, arc_mm = np.asarray(points_mm, float), np.asarray(arc_mm, float)
+    ds, v, a = np.diff(arc_mm), speed_profile(points_mm, arc_mm, t), step_accels(points_mm, t.accel_mm_s2)
+    va, vb = v[:-1], v[1:]
+    with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
+        top = np.minimum.reduce([np.full(len(ds), float(t.speed_mm_s)), ds / t.cycle_s,
+                                 np.sqrt((2 * a * ds + va ** 2 + vb ** 2) / 2)])
+        step = np.where(ds > 0, (2 * top - va - vb) / a + (ds - (2 * top ** 2 - va ** 2 - vb ** 2) / (2 * a)) / top, 0.0)
+        total = float(step.sum())
+        cycles = max(1.0, np.ceil(np.round(total / t.cycle_s, 9)))
+    if not cycles <= MAX_CYCLES:
+        raise ValueError(f"speed {t.speed_mm_s:g} mm/s: the path of {arc_mm[-1] - arc_mm[0]:.3f} mm would take more "
                          f"than {MAX_CYCLES} controller cycles (URScript's 32-bit float counts no further): a higher speed")
-    return cycles, (ds, va, vb, top)
+    return Schedule(ds, va, vb, top, step, total / (cycles * t.cycle_s) if total > 0 else 1.0, int(cycles),
+                    t.cycle_s, a)
 
 
-def servo_times(points_mm: np.ndarray, arc_mm: np.ndarray, t: Timing) -> np.ndarray:
-    """(m - 1,) s: each step's servoj time, its whole cycles (step_cycles) times the controller's cycle."""
-    return step_cycles(points_mm, arc_mm, t)[0] * t.cycle_s
-
-
-def finish(table: pd.DataFrame, workspace, timing: Timing) -> pd.DataFrame:
-    """path.csv's table (PATH_COLUMNS): samples numbered from 1, each one's time along the path (s: servo_times),
-    in_workspace and uncertainty_mm at its joints."""
+def finish(table: pd.DataFrame, workspace, timed: Schedule) -> pd.DataFrame:
+    """path.csv's table (PATH_COLUMNS): samples numbered from 1, each one's time along the path (s: the
+    table's Schedule), in_workspace and uncertainty_mm at its joints."""
     table = table.copy()
     table.insert(0, "sample", np.arange(1, len(table) + 1))
-    table.insert(2, "t_s", np.concatenate([[0.0], np.cumsum(servo_times(table[TARGET].to_numpy(),
-                                                                        table.arc_mm.to_numpy(), timing))]))
+    table.insert(2, "t_s", timed.t_s)
     table["uncertainty_mm"], table["in_workspace"] = workspace(table[JCOMP_DEG].to_numpy())
     table["converged"] = table.converged.astype(bool)
     return table[PATH_COLUMNS]
@@ -246,12 +284,11 @@ def beyond_reach(targets: np.ndarray, arc_mm: np.ndarray, reach_mm: float) -> st
 
 
 def refusal(table: pd.DataFrame, n_samples: int, limits_deg: np.ndarray, tol_mm: float, dev: np.ndarray,
-            max_deviation_mm: float, t_s: np.ndarray, speed_mm_s: float, speeds_deg_s: np.ndarray,
-            workspace=None) -> str | None:
+            max_deviation_mm: float, peak_mm_s: np.ndarray, speeds_deg_s: np.ndarray, workspace=None) -> str | None:
     """Why the path must stop, naming its first sample that must not be driven (numbered from 1), or None:
     not reached (solve_path stops at such a sample; refine's samples in between may be one too), beyond the
-    joint limits, a joint step faster than the joint's speed limit as timed (t_s: each sample's time along the whole
-    path, servo_times', at speed_mm_s), or a joint-space step whose
+    joint limits, a joint faster than its speed limit within a step (joint-linear from sample to sample at the
+    TCP's top speed in it, peak_mm_s: the whole path's Schedule's), or a joint-space step whose
     middle leaves the path by more than max_deviation_mm (dev: `deviation`: a branch flip), and, with a
     workspace, outside the trained workspace; the kinds found after the first are named with their first
     sample."""
@@ -275,15 +312,16 @@ def refusal(table: pd.DataFrame, n_samples: int, limits_deg: np.ndarray, tol_mm:
         k, j = map(int, beyond[0])
         found.append((k, "beyond the joint limits",
                       f"{name(k)}: joint {j + 1} at {q[k, j]:.1f}°, beyond its limits [{lo[j]:g}, {hi[j]:g}]°"))
-    dt = np.diff(np.asarray(t_s, float)[:m])
-    rate = np.abs(np.diff(q[:m], axis=0)) / dt[:, None]                  # deg/s
+    ds, peak = np.diff(arc[:m]), np.asarray(peak_mm_s, float)[:max(m - 1, 0)]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rate = np.abs(np.diff(q[:m], axis=0)) / ds[:, None] * peak[:, None]           # deg/s at the step's top speed
     fast = np.argwhere(rate > speeds_deg_s)
     if len(fast):
         k, j = map(int, fast[0])
         found.append((k + 1, "a joint too fast",
-                      f"{name(k + 1)}: joint {j + 1} turns {abs(q[k + 1, j] - q[k, j]):.2f}° from sample {k + 1} in "
-                      f"{dt[k]:.3f} s ({rate[k, j]:.0f}°/s, beyond its {speeds_deg_s[j]:.0f}°/s at "
-                      f"{speed_mm_s:g} mm/s): a branch flip?"))
+                      f"{name(k + 1)}: joint {j + 1} turns {abs(q[k + 1, j] - q[k, j]):.2f}° from sample {k + 1} over "
+                      f"{ds[k]:.3f} mm at up to {peak[k]:.1f} mm/s ({rate[k, j]:.0f}°/s, beyond its "
+                      f"{speeds_deg_s[j]:.0f}°/s): a branch flip, or a slower --speed"))
     off = np.flatnonzero(dev[:max(m - 1, 0)] > max_deviation_mm)
     if len(off):
         k = int(off[0])
@@ -310,50 +348,62 @@ def fmt(values) -> str:
     return "[" + ", ".join(f"{v:.9f}" for v in np.radians(np.asarray(values, float))) + "]"
 
 
-def urscript(table: pd.DataFrame, timing: Timing, lookahead_s: float, gain: int, acc: float, vel: float) -> str:
-    """The compensated path: movej (acc rad/s², vel rad/s) to its first sample, then each step driven by
-    servoj every controller cycle (timing.cycle_s, cycle_s) over the step's time (`servo_times`), the joints on
-    the line from sample to sample: at one speed where the step's profile is (`servo_step(a, b, n)`), else cycle
-    by cycle along its trapezoid (`step_fractions`: one servo_step of one cycle each, from rest, to rest, round
-    a corner); the last sample held for the lookahead, then stopj. Only numbers formatted here and this fixed
-    text reach it."""
-    cycle = timing.cycle_s
-    q, points, arc = table[JCOMP_DEG].to_numpy(), table[TARGET].to_numpy(), table.arc_mm.to_numpy()
-    cycles, (ds, va, vb, top) = step_cycles(points, arc, timing)
-    even = np.isclose(va, top, rtol=1e-9, atol=0) & np.isclose(vb, top, rtol=1e-9, atol=0) | (ds <= 0)
+def runs(chord: np.ndarray, f: np.ndarray) -> list[tuple]:
+    """The cycles' targets (chord (K,): the step k from sample k - 1 to k each is on; f (K,): its share of that
+    step) as runs the script loops over: (step, f0, df, n), n cycles at f0 + i df, i = 1..n, each on one step
+    with one df (a speed held: one run a step; speeding up or slowing down: one run each two cycles)."""
+    out, i, K = [], 0, len(f)
+    while i < K:
+        j, df = i + 1, f[i]
+        if j < K and chord[j] == chord[i]:
+            df = f[j] - f[i]
+            while j + 1 < K and chord[j + 1] == chord[i] and abs(f[j + 1] - f[j] - df) <= 1e-9:
+                j += 1
+            j += 1
+        out.append((int(chord[i]), f[i] - df, df, j - i))
+        i = j
+    return out
+
+
+def urscript(table: pd.DataFrame, timed: Schedule, lookahead_s: float, gain: int, acc: float, vel: float) -> str:
+    """The compensated path: movej (acc rad/s², vel rad/s) to its first sample, then servoj every controller
+    cycle (timed.cycle_s, cycle_s) to where the path's Schedule has reached at that cycle's end (cycle_arcs),
+    the joints on the line from sample to sample there: `servo_line(a, b, f0, df, n)`, n cycles at the shares
+    f0 + i df of the line from a to b (`runs`); the last sample held for the lookahead, then stopj. Only
+    numbers formatted here and this fixed text reach it."""
+    cycle = timed.cycle_s
+    q, arc = table[JCOMP_DEG].to_numpy(), table.arc_mm.to_numpy()
+    at = timed.cycle_arcs()                                                       # (K,) mm
+    chord = np.clip(np.searchsorted(arc, at, side="left"), 1, len(arc) - 1)       # (K,) from sample chord - 1 to chord
+    share = np.clip((at - arc[chord - 1]) / (arc[chord] - arc[chord - 1]), 0.0, 1.0)
     hold = int(np.ceil(lookahead_s / cycle - 1e-9))
     outside = int((~table.in_workspace.to_numpy(bool)).sum())
     mix = ", ".join(f"a[{j}] + s * (b[{j}] - a[{j}])" for j in range(6))
     lines = [f"# compensated path by `python -m pipeline.commands.path`: {len(table)} samples over "
-             f"{float(table.arc_mm.iloc[-1]):.3f} mm at {float(timing.speed_mm_s):.3f} mm/s "
-             f"({float(timing.accel_mm_s2):.1f} mm/s^2 from and to rest), "
+             f"{float(table.arc_mm.iloc[-1]):.3f} mm at up to {float(timed.peak_mm_s.max(initial=0.0)):.3f} mm/s "
+             f"({float(timed.accel.max(initial=0.0)):.1f} mm/s^2 from and to rest), "
              f"{float(table.t_s.iloc[-1]):.3f} s; joints in rad",
              f"# residual max {float(table.residual_mm.max()):.6f} mm; {outside} samples outside the trained workspace"]
     arcsec = table.orientation_residual_arcsec.to_numpy(float)
     if not np.isnan(arcsec).all():
         lines.append(f"# the flange's orientation held along the path: residual max {float(np.nanmax(arcsec)):.3f} arcsec")
     lines += ["def compensated_path():",
-             "  def servo_step(a, b, n):",
-             "    # from joints a to b in n controller cycles, joint-linear: one servoj a cycle",
-             "    i = 1.0",
-             "    while i <= n:",
-             "      s = i / n",
-             f"      servoj([{mix}], t={float(cycle):.3f}, lookahead_time={float(lookahead_s):.3f}, gain={int(gain)})",
-             "      i = i + 1.0",
-             "    end",
-             "  end",
-             f"  movej({fmt(q[0])}, a={float(acc):.6f}, v={float(vel):.6f})"]
-    for k in range(1, len(q)):
-        if not table.in_workspace.iloc[k]:
+              "  def servo_line(a, b, f0, df, n):",
+              "    # n controller cycles on the line from joints a to b: one servoj a cycle, at the share f0 + i df",
+              "    i = 1.0",
+              "    while i <= n:",
+              "      s = f0 + i * df",
+              f"      servoj([{mix}], t={float(cycle):.3f}, lookahead_time={float(lookahead_s):.3f}, gain={int(gain)})",
+              "      i = i + 1.0",
+              "    end",
+              "  end",
+              f"  movej({fmt(q[0])}, a={float(acc):.6f}, v={float(vel):.6f})"]
+    noted = set()
+    for k, f0, df, n in runs(chord, share):
+        if k not in noted and not table.in_workspace.iloc[k]:
             lines.append(f"  # sample {k + 1}: outside the trained workspace (uncertainty "
                          f"{float(table.uncertainty_mm.iloc[k]):.3f} mm)")
-        n = int(cycles[k - 1])
-        if even[k - 1] or n == 1:
-            lines.append(f"  servo_step({fmt(q[k - 1])}, {fmt(q[k])}, {n})")
-            continue
-        f = step_fractions(va[k - 1], vb[k - 1], top[k - 1], ds[k - 1], timing.accel_mm_s2, n)
-        via = q[k - 1] + f[:, None] * (q[k] - q[k - 1])                              # (n, 6) deg: a cycle's end each
-        via[-1] = q[k]
-        lines += [f"  servo_step({fmt(a)}, {fmt(b)}, 1)" for a, b in zip(np.vstack([q[k - 1], via[:-1]]), via)]
-    lines += [f"  servo_step({fmt(q[-1])}, {fmt(q[-1])}, {hold})", f"  stopj({float(acc):.6f})", "end", ""]
+        noted.add(k)
+        lines.append(f"  servo_line({fmt(q[k - 1])}, {fmt(q[k])}, {float(f0):.12f}, {float(df):.12f}, {n})")
+    lines += [f"  servo_line({fmt(q[-1])}, {fmt(q[-1])}, 0.0, 0.0, {hold})", f"  stopj({float(acc):.6f})", "end", ""]
     return "\n".join(lines)

@@ -51,7 +51,7 @@ from pipeline.lib.project.columns import JCOMP_DEG
 from pipeline.lib.robot.kinematics import DTYPE
 from pipeline.lib.runtime.paths import ROTVEC_MAX_RAD, n_samples, resample, rotations_at, segments
 from pipeline.lib.runtime.pathsolve import (SOLVED, beyond_reach, deviation, model_position, refusal,
-                                            Timing, servo_times)
+                                            Timing, schedule)
 from pipeline.lib.runtime.realtime import Realtime, answers
 from pipeline.lib.runtime.solvers import LAM0, lm_jacobian, lm_step, orientation_angle, pose_weight, residual
 from pipeline.lib.runtime.waypoints import another_configuration
@@ -371,7 +371,7 @@ class Service:
         targets, arc = resample(segs, spacing)
         try:
             timing = Timing(speed, *self.timing)
-            times = np.concatenate([[0.0], np.cumsum(servo_times(targets, arc, timing))])
+            timed = schedule(targets, arc, timing)
         except ValueError as e:
             raise RequestError(f"speed_mm_s: {e}") from None
         flange = rotations_at(segs, rots, arc) if len(rots) else [None] * len(arc)   # (m, 3, 3): per sample
@@ -393,11 +393,11 @@ class Service:
         table = pd.DataFrame(rows, columns=SOLVED + ["in_workspace"])       # the path command's, and in_workspace
         qd = table[JCOMP_DEG].to_numpy()
         why = refusal(table, n, self.limits_deg, self.tol, deviation(self.position, qd, segs), self.max_deviation,
-                      times, speed, self.joint_speeds)
+                      timed.peak_mm_s, self.joint_speeds)
         if why:
             raise RequestError(f"points_mm: {why}")
         return {"q_rad": np.radians(qd).tolist(), "target_mm": targets.tolist(), "arc_mm": arc.tolist(),
-                "t_s": times.tolist(),
+                "t_s": timed.t_s.tolist(),
                 "residual_mm": table.residual_mm.tolist(), "in_workspace": table.in_workspace.astype(bool).tolist(),
                 "all_in_workspace": bool(table.in_workspace.all()),
                 **({"orientation_residual_arcsec": table.orientation_residual_arcsec.tolist()} if len(rots) else {})}
