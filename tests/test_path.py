@@ -104,6 +104,8 @@ def test_an_arc_through_three_points_of_space():
      r"row 3, column 'move': move 'movel set_digital_ou' is not one of"),
     ([[0, 0, 400], [50, 50, 400], [100, 0, 400]], ["", "via", "movel"], r"row 3, column 'move': a movec needs one via"),
     ([[0, 0, 400], [50, 0, 400], [100, 0, 400]], ["", "via", "movec"], r"row 3, column 'move': the via point lies"),
+    ([[0, 0, 400], [50, 50, 400], [0, 0, 400]], ["", "via", "movec"],           # a review: said "the via point lies
+     r"row 3, column 'move': the arc ends where it starts: a whole circle"),    # on the line" (it does not)
     ([[0, 0, 400], [0, 0, 400]], ["", "movel"], r"row 3, column 'move': the same point as the one before"),
     ([[0, 0, 400], [100, 0, 400]], ["movel", "movel"], r"row 2, column 'move': the first point is the path's start"),
 ])

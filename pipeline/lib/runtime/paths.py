@@ -70,6 +70,9 @@ class Arc:
 
     def __post_init__(self):
         a, b, c = self.start, self.via, self.end
+        if np.linalg.norm(c - a) < 1e-9:
+            raise ValueError("the arc ends where it starts: a whole circle has no one plane through its three points "
+                             "(as URScript's movec: two movec, each through a via point)")
         n = np.cross(b - a, c - b)
         if np.linalg.norm(n) < 1e-9 * max(1.0, np.linalg.norm(b - a) * np.linalg.norm(c - b)):
             raise ValueError("the via point lies on the line through the arc's ends: no circle")
