@@ -111,6 +111,31 @@ def test_a_custom_robots_chain_files_are_both_written_and_read_back_with_its_tcp
     assert 3500 < tcp_links(text, tcp, poses(10), g)["torch"]["max_rotation_deviation_arcsec"] < 3700
 
 
+def test_a_tcp_name_a_yaml_1_2_reader_takes_for_a_number_is_written_quoted():
+    """A review (2026-12-06, evening): robot.tcp names 1e3, 0o17, -1e3 pass the name rule, and PyYAML (YAML 1.1)
+    wrote them unquoted in ur_calibration.yaml's tool_frames, where a YAML 1.2 reader (ROS 2's yaml-cpp,
+    ruamel.yaml) reads the numbers 1000.0, 15, -1000.0. Now both readers read the names; the default project's
+    file (tcp x150) is byte for byte what PyYAML wrote."""
+    from pipeline.stages.export import chain_files
+    readers = [yaml.safe_load]                                              # YAML 1.1
+    try:
+        from ruamel.yaml import YAML                                        # YAML 1.2 (DVC's, where installed)
+        readers.append(YAML(typ="safe", pure=True).load)
+    except ImportError:
+        pass
+    names = ["1e3", "0o17", "-1e3", "1e-3", "0x1F", "123", "true", "null", "x150", "e3", "a-1"]
+    files, _ = chain_files(calibrated_like(), UR5, {n: {"xyz_mm": [150.0, 0.0, 80.0]} for n in names}, poses(5),
+                           Path("out"))
+    text = files[Path("out/models/ur_calibration.yaml")]
+    for read in readers:
+        assert list(read(text)["tool_frames"]) == ["marker", *names]
+    assert "\n  '1e3':\n" in text and "\n  '0o17':\n" in text and "\n  x150:\n" in text and "\n  e3:\n" in text
+    tcp = PARAMS["robot"]["tcp"]
+    files, _ = chain_files(calibrated_like(), UR5, tcp, poses(5), Path("out"))
+    assert files[Path("out/models/ur_calibration.yaml")] == yaml.safe_dump(ur_kinematics(calibrated_like(), tcp),
+                                                                            sort_keys=False)
+
+
 def test_an_export_that_fails_leaves_every_file_of_the_run_before(in_trained_project, tmp_path, monkeypatch):
     """Review (2026-11-29): the URDF and the YAML were written before the graphs were made: a run that failed
     there (a disk full) left a new URDF beside the old run's graphs and export.json."""

@@ -151,6 +151,13 @@ NAN = float("nan")
     ("serve.lm_per_call", 0), ("serve.max_connections", 0),
     ("summary.instrument", 5),
     ("robot.tcp", {"marker": {"xyz_mm": [0, 0, 200]}}),          # the probe's frame in ur_calibration.yaml
+    # a review (2026-12-06, evening): an integer of 400 digits gave OverflowError (math.isfinite), a traceback;
+    # a TCP 1e300 mm or 150 m from the flange, or turned 1e300°, passed
+    ("program.movej.vel", 10 ** 400), ("plan.acc", 10 ** 400), ("robot.tcp", {"x150": {"xyz_mm": [10 ** 400, 0, 0]}}),
+    ("robot.tcp", {"x150": {"xyz_mm": [0, 0, 0], "rxyz_deg": [0, -10 ** 400, 0]}}),
+    ("robot.tcp", {"x150": {"xyz_mm": [1e300, 0, 0]}}), ("robot.tcp", {"x150": {"xyz_mm": [150000, 0, 0]}}),
+    ("robot.tcp", {"x150": {"xyz_mm": [0, 0, 0], "rxyz_deg": [1e300, 0, 0]}}),
+    ("robot.tcp", {"x150": {"xyz_mm": [0, 0, 0], "rxyz_deg": [0, 0, 360.5]}}),
     ("ingest.sep", "|"), ("ingest.skip_lines", -1), ("ingest.decimal", ";"), ("ingest.length_unit", "cm"),
 ])
 def test_a_bad_value_of_a_reviewed_key_stops_naming_it(key, value):
@@ -162,6 +169,21 @@ def test_a_bad_value_of_a_reviewed_key_stops_naming_it(key, value):
     cfg[last] = value
     with pytest.raises(ParamsError, match=rf"^params.yaml {re.escape(key)}: .+, got "):
         section(p, path[0])
+
+
+def test_a_tcp_out_of_bounds_is_named_and_one_within_them_passes():
+    """The robot.tcp error names the point and its key (a review, 2026-12-06, evening: no bounds at all);
+    2 m and a full turn are the limits."""
+    p = copy.deepcopy(PARAMS)
+    for tcp, said in (({"ok": {"xyz_mm": [150.0, 0, 0]}, "far": {"xyz_mm": [150000, 0, 0]}},
+                       r"point far: xyz_mm \[150000, 0, 0\] is not 3 finite numbers within ±2000 mm; robot.tcp is "),
+                      ({"turned": {"xyz_mm": [0, 0, 10], "rxyz_deg": [1e300, 0, 0]}},
+                       r"point turned: rxyz_deg \[1e\+300, 0, 0\] is not 3 finite angles within ±360°")):
+        p["robot"]["tcp"] = tcp
+        with pytest.raises(ParamsError, match=rf"^params.yaml robot.tcp: {said}.*, got "):
+            section(p, "robot")
+    p["robot"]["tcp"] = {"edge": {"xyz_mm": [2000, -2000.0, 0], "rxyz_deg": [360, -360.0, 0], "frame": "probe"}}
+    assert section(p, "robot")["tcp"] == p["robot"]["tcp"]
 
 
 def test_a_campaign_too_small_for_every_split_stops_the_split_stage_naming_it(tmp_path, monkeypatch):

@@ -136,6 +136,30 @@ def test_a_programs_orientation_columns_are_said_not_used(in_trained_project, tm
     assert "target_rx, target_ry, target_rz not used" in said and len(pd.read_csv(tmp_path / "o/poses.csv")) == 4
 
 
+def test_a_target_reached_only_in_another_configuration_is_refused_as_the_program_compensator_refuses_it(
+        in_trained_project, tmp_path, capsys):
+    """A review (2026-12-06, evening): the planner solved a program's targets to joints without the program
+    compensator's configuration rule, so it planned measurement poses (j3 ≈ 225°) around a shoulder and elbow
+    flip that `program` refuses. Now the plan is refused, naming the waypoint; nothing written."""
+    from pipeline.commands import program as program_cmd
+    robot = load_robot(in_trained_project["robot"])
+    q = np.array([[13.496139, -54.644684, 121.723304, 85.024776, 148.906262, 55.641267]] * 2)
+    src = tmp_path / "prog.csv"
+    df = pd.DataFrame(q, columns=JOINTS_DEG)
+    df.insert(0, "point_id", ["A", "B"])                        # A: its own joints' position; B: over the base
+    df[["target_x", "target_y", "target_z"]] = np.vstack([
+        fk_numpy(q[:1], robot, theory_geometry(robot, read_json(FRAME_JSON)["tool_mm"])), [[300.0, 100.0, 300.0]]])
+    df.to_csv(src, index=False)
+    code, said = exit_code(plan_cmd.main, [str(src), "--n", "3", "--out", str(tmp_path / "o")], capsys)
+    assert code == 1 and "1 target(s) the calibrated arm reaches only in another configuration" in said, said
+    assert re.search(r"B: another configuration than the given joints': the shoulder flipped, the elbow flipped "
+                     r"\(joint 3 turned \d+\.\d°", said) and "A: " not in said and "Traceback" not in said, said
+    assert not (tmp_path / "o").exists()
+    code, said = exit_code(program_cmd.main, [str(src), "--out", str(tmp_path / "c.csv"), "--urscript",
+                                              str(tmp_path / "c.script")], capsys)
+    assert code == 1 and "NOT REACHED B: " in said and "the shoulder flipped, the elbow flipped" in said, said
+
+
 def test_every_planned_pose_is_within_the_limits_and_acceptable(side_plan):
     out, _, rep, params = side_plan
     robot = load_robot(params["robot"])
@@ -224,6 +248,22 @@ def test_the_singularity_rules_judge_the_chains_own_angles_however_its_table_is_
     as_is, rezeroed = poses.checks(phys, geometry([0] * 6), rules), poses.checks(phys - shift, geometry(shift), rules)
     for c in (as_is, rezeroed):
         assert c["sin_elbow"].tolist() == c["sin_wrist"].tolist() == [False, True]
+
+
+def test_program_joints_says_which_targets_it_reaches_only_in_another_configuration():
+    """program_joints judges its answers by the program compensator's rule (waypoints.another_configuration,
+    position targets: the wrist free): a target near its joints' position is reached in their configuration,
+    one over the base from the same joints only by turning joint 3 some 90° through the shoulder's and the
+    elbow's singularities."""
+    from pipeline.lib.planner.candidates import program_joints
+    robot = load_robot({"model": "ur5", "dh": None, "joint_limits_deg": None, "tcp": None, "tool_mm": [0, 0, 109.0]})
+    g = nominal_geometry(robot)
+    q0 = np.array([[13.496139, -54.644684, 121.723304, 85.024776, 148.906262, 55.641267]] * 2)
+    target = np.vstack([fk_numpy(q0[:1] + [5.0, -3.0, 4.0, 0.0, 2.0, 0.0], robot, g), [[300.0, 100.0, 300.0]]])
+    q, miss, why = program_joints(q0, target, g, robot.limits_deg)
+    assert miss.max() < 1e-6 and np.abs(q[0] - q0[0]).max() < 5.0 and why[0] is None
+    assert 80.0 < q[1, 2] - q0[1, 2] < 100.0
+    assert why[1].startswith("another configuration than the given joints': the shoulder flipped, the elbow flipped")
 
 
 def test_the_twin_samples_by_the_library_rules():

@@ -1,8 +1,12 @@
 """The robot catalogue (UR family) at hand-checked poses, and modified-DH tables for a custom arm."""
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
 
+from pipeline.lib.project.config import load_params, section
+from pipeline.lib.reading.presets import PRESETS, merged_params
 from pipeline.lib.robot.kinematics import DTYPE, fk_numpy, fk_poses, nominal_geometry
 from pipeline.lib.robot.robots import TABLES, UR_JOINTS, load_robot, nominal_robot
 
@@ -150,3 +154,36 @@ def test_a_custom_robots_joint_limits_reach_its_urdf_and_the_path_command():
     for bad in ([100.0] * 5, [100.0] * 5 + [0.0], [100.0] * 5 + [float("nan")], "fast"):
         with pytest.raises(ValueError, match=r"params.yaml robot.dh.velocity_deg_s: 6 numbers > 0"):
             custom({**PUMA, "velocity_deg_s": bad})
+
+
+def test_a_bad_tool_a_table_beside_a_catalogue_arm_and_a_model_not_named_stop_naming_the_key():
+    """A review (2026-12-06, evening): robot.tool_mm was only length-checked (NaN, inf, 1e300, true passed; "1"
+    gave numpy's "could not convert"); robot.dh beside a catalogue model was ignored unseen, even "garbage";
+    robot.model [ur5] gave TypeError: unhashable list; an integer of 400 digits in a custom table, its speed
+    limits or robot.joint_limits_deg gave numpy's TypeError. Each is now a ValueError naming the key."""
+    base = {"model": "ur5", "dh": None, "joint_limits_deg": None, "tcp": None, "tool_mm": [0.0, 0.0, 109.0]}
+    huge = 10 ** 400
+    for tool in ([float("nan"), 0.0, 0.0], [0.0, float("inf"), 0.0], [1e300, 0.0, 0.0], [0.0, 0.0, 2000.5],
+                 [True, 0.0, 0.0], ["1", 0.0, 0.0], [huge, 0, 0], [0.0, 0.0], None):
+        with pytest.raises(ValueError, match=r"^params.yaml robot.tool_mm: \[x, y, z\], 3 finite numbers in mm .*"
+                                             r"within ±2000, got"):
+            load_robot({**base, "tool_mm": tool})
+    assert load_robot({**base, "tool_mm": [2000, -2000.0, 0]}).tool.tolist() == [2000.0, -2000.0, 0.0]
+    ur5 = {"d": list(UR["ur5"][0]), "a": [0.0] * 6, "alpha_deg": [90, 0, 0, 90, -90, 0], "offset_deg": [0] * 6}
+    for dh in ("garbage", ur5, {}):
+        with pytest.raises(ValueError, match=r"^params.yaml robot.dh: only with robot.model: custom \(a ur5 has"):
+            load_robot({**base, "dh": dh})
+    for model in (["ur5"], {"ur5": None}, 5, None):
+        with pytest.raises(ValueError, match=r"^params.yaml robot.model: one of \['ur10', .* or 'custom', got"):
+            load_robot({**base, "model": model})
+    for key, value in (("d", [huge] + [0.0] * 5), ("velocity_deg_s", [huge] * 6)):
+        with pytest.raises(ValueError, match=rf"^params.yaml robot.dh.{key}: 6 "):
+            custom({**PUMA, key: value})
+    with pytest.raises(ValueError, match=r"^params.yaml robot.joint_limits_deg: null or 6 pairs"):
+        load_robot({**base, "joint_limits_deg": [[-huge, 10]] * 6})
+    params = load_params(Path(__file__).resolve().parents[1] / "params.yaml")   # the project's own robots pass:
+    presets = sorted(p.stem for p in PRESETS.glob("*.yaml"))                  # a catalogue model, dh null
+    assert len(presets) >= 4
+    for p in [params] + [merged_params(n, params) for n in presets]:
+        robot = load_robot(section(p, "robot"))
+        assert robot.name in TABLES and p["robot"]["dh"] is None and np.abs(robot.tool).max() <= 2000

@@ -5,7 +5,8 @@
 
 PROGRAM.csv: the program compensator's waypoints (docs/robot-cell.md; read by the same rules,
 lib/runtime/waypoints.py): point_id (optional), j1_deg..j6_deg, and optionally target_x..z (then the joints
-are where to start from, and the waypoint is where the calibrated chain reaches the target).
+are where to start from, and the waypoint is where the calibrated chain reaches the target; a target it reaches
+only in another configuration than its joints', as the program compensator judges it, refuses the plan).
 Writes, in DIR (made if missing):
     poses.csv       pose_id, j1_deg..j6_deg: the N joint configurations to measure, in the order to visit
     measure.script  URScript: def measure_campaign(): one movej per pose (rad), then a wait for the tracker
@@ -30,8 +31,9 @@ candidate pose both its ends may move to, and a plan with a move that has none i
 --new-station       from a new tracker placement whose position is not known yet (no side rule)
 
 Needs a finished `dvc repro` (models/workspace.json, models/calibration.json, models/parts.json,
-reports/calibration.json, reports/frame.json). Exit codes: 0 written; 1 refused (no acceptable
-candidate: nothing written); 2 bad input (one line naming file, row and column; no traceback).
+reports/calibration.json, reports/frame.json). Exit codes: 0 written; 1 refused (a target not reached, or
+reached only in another configuration; no acceptable candidate: nothing written); 2 bad input (one line
+naming file, row and column; no traceback).
 """
 import argparse
 import math
@@ -161,13 +163,18 @@ def run(argv=None) -> dict:
     q_wp = df[JOINTS_DEG].to_numpy()
     unused = [c for c in ROTVEC if c in df]                          # said below and in plan.json, not dropped unseen
     if TARGET[0] in df:                                             # positions: where the calibrated arm goes
-        q_wp, miss = program_joints(q_wp, df[TARGET].to_numpy(), cal.geometry, robot.limits_deg)
+        q_wp, miss, flipped = program_joints(q_wp, df[TARGET].to_numpy(), cal.geometry, robot.limits_deg)
         far = miss > REACHED_MM
         if far.any():
             raise Refused(f"{src}: {int(far.sum())} target(s) the calibrated arm does not reach from their joints "
                           "within its limits; nothing written: " + "; ".join(
                               f"{p}: {m:.1f} mm short" for p, m in zip(df.point_id[far][:10], miss[far][:10]))
                           + earlier)
+        flips = [f"{p}: {why}" for p, why in zip(df.point_id, flipped) if why]
+        if flips:                                   # the program compensator refuses them: no poses around them
+            raise Refused(f"{src}: {len(flips)} target(s) the calibrated arm reaches only in another configuration "
+                          "than their joints' (the program compensator refuses them too); nothing written: "
+                          + "; ".join(flips[:10]) + earlier)
     tracker, station = tracker_position(frame, a.station, a.tracker_mm)
     station["new_station"] |= a.new_station
     a_cfg = p["parts"]["angle_map"]

@@ -50,7 +50,6 @@ from pathlib import Path
 import numpy as np
 import pinocchio as pin
 import torch
-import yaml
 from scipy.spatial.transform import Rotation
 
 from pipeline.lib.learning.checkpoint import load_model
@@ -71,7 +70,7 @@ from pipeline.lib.robot.kinematics import DTYPE, RIGID_KEYS, TOOL_ROT, fk, fk_fr
 from pipeline.lib.robot.robots import TABLES, load_robot
 from pipeline.lib.robot.tcp import AtTcp, in_flange, probe_offsets
 from pipeline.lib.robot.urdf import (UR_YAML_NAMES, base_transform, flange_residual, joint_origins, to_urdf,
-                                     ur_kinematics)
+                                     ur_kinematics, ur_yaml_text)
 from pipeline.lib.runtime.compensation import nominal_flange
 from pipeline.lib.runtime.realtime import DAMPING, Realtime, two_steps
 from pipeline.lib.runtime.solvers import pose_weight
@@ -171,7 +170,7 @@ def chain_files(g: dict, robot, tcp: dict | None, q: torch.Tensor, root: Path) -
         log.info("%s: Pinocchio's tcp links vs the exported chain's FK: %s", root / URDF_FILE, summary["urdf"]["tcp"])
 
     kin = ur_kinematics(g, tcp)                     # any robot's chain fits the layout; a UR's driver reads it
-    files[root / UR_YAML] = yaml.safe_dump(kin, sort_keys=False)
+    files[root / UR_YAML] = ur_yaml_text(kin)      # a tcp name a YAML 1.2 reader takes for a number: quoted
     truth = base_transform(g) @ flange6 @ np.linalg.inv(joint_origins(g)[1])   # joint 6's frame
     poses = ur_yaml_poses(kin, q.numpy())
     dev = np.linalg.norm(poses[:, :3, 3] - truth[:, :3, 3], axis=1)

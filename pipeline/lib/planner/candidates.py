@@ -1,6 +1,7 @@
 """The poses the planner may choose from: each waypoint's own joints and perturbations of them, poses in
 the program's joint box and, for a new tracker station, the training poses again; every one acceptable
-(docs/planning.md). And where a program given as positions will actually go (program_joints)."""
+(docs/planning.md). And where a program given as positions will actually go (program_joints), by the program
+compensator's configuration rule (waypoints.another_configuration)."""
 import numpy as np
 import torch
 
@@ -8,12 +9,15 @@ from pipeline.lib.planner.coverage import Coverage
 from pipeline.lib.robot.kinematics import DTYPE, fk_jacobian
 from pipeline.lib.robot.poses import acceptable, checks
 from pipeline.lib.runtime.solvers import min_norm_step
+from pipeline.lib.runtime.waypoints import another_configuration
 
 
 def program_joints(q0_deg, target, geometry: dict, limits_deg, iterations: int = 30) -> tuple:
     """Joints (n, 6) deg near q0 that put the chain `geometry` on the targets (n, 3) mm (damped
-    minimum-norm steps, joint limits kept): where a program given as positions will actually go; and
-    how far (n,) mm each stays from its target there (a target it cannot reach stays far)."""
+    minimum-norm steps, joint limits kept): where a program given as positions will actually go; how far
+    (n,) mm each stays from its target there (a target it cannot reach stays far); and, per waypoint, why
+    those joints are another configuration than q0's, or None (waypoints.another_configuration, position
+    targets: the wrist free), the rule by which the program compensator refuses such a waypoint."""
     q = torch.as_tensor(np.radians(np.asarray(q0_deg, float)), dtype=DTYPE)
     t = torch.tensor(np.asarray(target, float), dtype=DTYPE)              # a copy: a table's column may be read-only
     lim = torch.as_tensor(np.radians(np.asarray(limits_deg, float)), dtype=DTYPE)
@@ -22,7 +26,8 @@ def program_joints(q0_deg, target, geometry: dict, limits_deg, iterations: int =
             p, J = fk_jacobian(q, geometry)
             q = (q + min_norm_step(J, p - t, 1e-6)).clamp(lim[:, 0], lim[:, 1])
         miss = (fk_jacobian(q, geometry)[0] - t).norm(dim=1)
-    return np.degrees(q.numpy()), miss.numpy()
+    q_deg = np.degrees(q.numpy())
+    return q_deg, miss.numpy(), another_configuration(q0_deg, q_deg, geometry, orientation=False)
 
 
 def candidates(q_wp, rng: np.random.Generator, geometry: dict, rules: dict, limits_deg, cov: Coverage,

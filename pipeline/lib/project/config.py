@@ -74,9 +74,16 @@ def _int(lo, hi=None):
     return lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= lo and (hi is None or v <= hi)
 
 
+def _finite(v) -> bool:
+    """v a finite number (no bool); an integer too large for a float (400 digits) is not one."""
+    try:
+        return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+    except OverflowError:
+        return False
+
+
 def _num(lo, hi=None, open_lo=False):
-    return lambda v: (isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
-                      and (v > lo if open_lo else v >= lo) and (hi is None or v <= hi))
+    return lambda v: _finite(v) and (v > lo if open_lo else v >= lo) and (hi is None or v <= hi)
 
 
 def _scripted(hi: float, unit: str, what: str) -> tuple:
@@ -98,16 +105,30 @@ def _joints(v):
     return isinstance(v, list) and len(v) > 0 and all(_int(1, 6)(j) for j in v) and len(set(v)) == len(v)
 
 
-def _vec3(v):
-    return isinstance(v, list) and len(v) == 3 and all(_num(-math.inf)(x) for x in v)
+def _vec3(v, bound=math.inf):
+    """3 finite numbers, each within ±bound."""
+    return isinstance(v, list) and len(v) == 3 and all(_num(-bound, bound)(x) for x in v)
 
 
-def _tcps(v):
-    return (isinstance(v, dict) and len(v) > 0 and all(
-        isinstance(k, str) and re.fullmatch(r"[A-Za-z0-9_-]{1,40}", k) and k != "marker" and isinstance(t, dict)
-        and set(t) <= {"xyz_mm", "rxyz_deg", "frame"} and _vec3(t.get("xyz_mm")) and _vec3(t.get("rxyz_deg", [0, 0, 0]))
-        and t.get("frame", "flange") in ("flange", "probe")
-        for k, t in v.items()))
+def tcp_problem(v) -> str | None:
+    """What is wrong with `robot.tcp` (naming the point and its key), or None: null, or name: {xyz_mm (each
+    within ±TCP_MM_MAX), rxyz_deg (optional, each within ±360°), frame (optional, flange or probe)}."""
+    if v is None:
+        return None
+    if not isinstance(v, dict) or not v:
+        return "not a mapping of names"
+    for k, t in v.items():
+        if not (isinstance(k, str) and re.fullmatch(r"[A-Za-z0-9_-]{1,40}", k)) or k == "marker":
+            return f"the name {k!r} is not allowed"
+        if not isinstance(t, dict) or not set(t) <= {"xyz_mm", "rxyz_deg", "frame"}:
+            return f"point {k}: not a mapping of xyz_mm, rxyz_deg, frame"
+        if not _vec3(t.get("xyz_mm"), TCP_MM_MAX):
+            return f"point {k}: xyz_mm {t.get('xyz_mm')!r} is not 3 finite numbers within ±{TCP_MM_MAX:g} mm"
+        if not _vec3(t.get("rxyz_deg", [0, 0, 0]), 360.0):
+            return f"point {k}: rxyz_deg {t.get('rxyz_deg')!r} is not 3 finite angles within ±360°"
+        if t.get("frame", "flange") not in ("flange", "probe"):
+            return f"point {k}: frame {t.get('frame')!r} is neither flange nor probe"
+    return None
 
 
 def _bool(v):
@@ -161,12 +182,14 @@ TOOL_SPEED_MAX = 5.0            # m/s: the highest tool speed limit UR's safety 
 TOOL_ACC_MAX = 15.0             # m/s²
 SETTLE_MAX_S = 3600.0           # plan.settle_s: an hour a pose (URScript's 32-bit float holds it to the ms)
 MAX_DEVIATION_MM = 10.0         # path.max_deviation_mm: a branch flip between two samples is tens of mm
+TCP_MM_MAX = 2000.0             # robot.tcp's xyz_mm, each: a tool longer than 2 m from the flange is a slip of unit
 
 RULES = {
-    "robot.tcp": (lambda v: v is None or _tcps(v), "null, or name: {xyz_mm: [x, y, z], rxyz_deg: [rx, ry, rz], "
-                  "frame: flange or probe} (a tool centre point in the flange frame, or measured in the probe's; "
-                  "rxyz_deg and frame optional), names of letters, digits, _ or - (not marker: the probe's own, "
-                  "in ur_calibration.yaml's tool_frames)"),
+    "robot.tcp": (lambda v: tcp_problem(v) is None,
+                  lambda v: f"{tcp_problem(v)}; robot.tcp is null, or name: {{xyz_mm: [x, y, z] each within "
+                  f"±{TCP_MM_MAX:g} mm, rxyz_deg: [rx, ry, rz] each within ±360°, frame: flange or probe}} (a tool "
+                  "centre point in the flange frame, or measured in the probe's; rxyz_deg and frame optional), names "
+                  "of letters, digits, _ or - (not marker: the probe's own, in ur_calibration.yaml's tool_frames)"),
     "calibrate.pose_noise.mm": (_num(0, open_lo=True), "a position noise > 0 mm"),
     "calibrate.pose_noise.arcsec": (_num(0, open_lo=True), "an orientation noise > 0 arcsec"),
     "split.seed": (_int(0), "an integer >= 0"),
@@ -360,13 +383,16 @@ def check_keys(cfg, name: str, shown: str | None = None, partial: bool = False) 
 
 def check_values(cfg: dict, name: str, shown: str | None = None) -> None:
     """A ParamsError naming the key (as `shown`.key; default the section's own) for a value of the section
-    `name` that breaks its RULES; keys cfg does not hold are not checked."""
+    `name` that breaks its RULES (a rule's text may be a function of the value, to name what in it is wrong);
+    keys cfg does not hold are not checked."""
     for key, (ok, what) in RULES.items():
         path = key.split(".")
         if ".".join(path[:-1]) != name or path[-1] not in cfg:
             continue
-        if not ok(cfg[path[-1]]):
-            raise ParamsError(f"params.yaml {shown or name}.{path[-1]}: {what}, got {cfg[path[-1]]!r}")
+        v = cfg[path[-1]]
+        if not ok(v):
+            text = what(v) if callable(what) else what
+            raise ParamsError(f"params.yaml {shown or name}.{path[-1]}: {text}, got {v!r}")
 
 
 def check_given(cfg, name: str, shown: str) -> None:

@@ -207,14 +207,34 @@ def modified_to_standard(d, a, alpha, offset) -> dict:
     return dict(d=d, a=np.append(a[1:], 0.0), alpha=np.append(alpha[1:], 0.0), offset=offset)
 
 
-def finite(v, shape: tuple) -> bool:
-    """v is numbers (a list, tuple or array; no text, no booleans) of this shape, all finite."""
+def real(x) -> bool:
+    """x is a finite number (no text, no boolean; an integer too large for a float, 400 digits, is not one)."""
+    if isinstance(x, (bool, np.bool_)) or not isinstance(x, (int, float, np.integer, np.floating)):
+        return False
+    try:
+        return bool(np.isfinite(float(x)))
+    except OverflowError:
+        return False
+
+
+def finite(v, shape: tuple, bound: float = np.inf) -> bool:
+    """v is numbers (a list, tuple or array; no text, no booleans) of this shape, all finite, each within ±bound."""
     try:
         cells = np.asarray(v, dtype=object)
     except (TypeError, ValueError):
         return False
-    return cells.shape == shape and all(isinstance(x, (int, float, np.integer, np.floating))
-                                        and not isinstance(x, (bool, np.bool_)) and np.isfinite(x) for x in cells.ravel())
+    return cells.shape == shape and all(real(x) and abs(float(x)) <= bound for x in cells.ravel())
+
+
+TOOL_MM_MAX = 2000.0      # robot.tool_mm, each: a marker over 2 m from the flange is a slip of unit (m as mm)
+
+
+def check_tool(tool) -> np.ndarray:
+    """robot.tool_mm as (3,) mm: 3 finite numbers, each within ±TOOL_MM_MAX, else a ValueError naming the key."""
+    if not finite(tool, (3,), TOOL_MM_MAX):
+        raise ValueError(f"params.yaml robot.tool_mm: [x, y, z], 3 finite numbers in mm (the marker in the flange "
+                         f"frame), each within ±{TOOL_MM_MAX:g}, got {tool!r}")
+    return np.asarray(tool, dtype=float)
 
 
 def within_limits(given, own) -> list:
@@ -245,6 +265,11 @@ def load_robot(cfg: dict) -> Robot:
     """
     check_keys(cfg, "robot")
     name = cfg["model"]
+    if not isinstance(name, str):
+        raise ValueError(f"params.yaml robot.model: one of {sorted(TABLES)} or 'custom', got {name!r}")
+    if name != "custom" and cfg["dh"] is not None:
+        raise ValueError(f"params.yaml robot.dh: only with robot.model: custom (a {name} has its own table); "
+                         f"set it to null, got {cfg['dh']!r}")
     if name == "custom":
         dh = cfg["dh"] or {}
         missing = [k for k in DH_KEYS if k not in dh]
@@ -257,8 +282,7 @@ def load_robot(cfg: dict) -> Robot:
                              f"use {list(DH_KEYS)} and optionally convention, {', '.join(JOINT_LIMIT_KEYS)}")
         for key in JOINT_LIMIT_KEYS:
             v = dh.get(key)
-            if v is not None and not (isinstance(v, list) and len(v) == 6 and all(
-                    isinstance(x, (int, float)) and not isinstance(x, bool) and np.isfinite(x) and x > 0 for x in v)):
+            if v is not None and not (isinstance(v, list) and len(v) == 6 and all(real(x) and x > 0 for x in v)):
                 raise ValueError(f"params.yaml robot.dh.{key}: 6 numbers > 0 (each joint's), got {v!r}")
         for key in DH_KEYS:
             if not finite(dh[key], (6,)):
@@ -285,10 +309,7 @@ def load_robot(cfg: dict) -> Robot:
             raise ValueError(f"params.yaml robot: {k} must have 6 entries, got {arr[k].shape}")
     if arr["limits_deg"].shape != (6, 2):
         raise ValueError("params.yaml robot.joint_limits_deg must be 6 pairs [min, max]")
-    tool = np.asarray(cfg["tool_mm"], dtype=float)
-    if tool.shape != (3,):
-        raise ValueError("params.yaml robot.tool_mm must be [x, y, z] in mm")
-    return Robot(name=name, tool=tool, **arr)
+    return Robot(name=name, tool=check_tool(cfg["tool_mm"]), **arr)
 
 
 def nominal_robot(name: str) -> Robot:

@@ -15,10 +15,12 @@ at the deflected angles it gives the calibrated model's positions exactly.
 Lengths in metres, angles in rad (URDF, REP 103); `rpy` is fixed-axis X, Y, Z.
 """
 import hashlib
+import re
 import xml.etree.ElementTree as ET
 
 import numpy as np
 import torch
+import yaml
 from scipy.spatial.transform import Rotation
 
 from pipeline.lib.robot.kinematics import DTYPE, TOOL_ROT, rigid_xyz, rotation_xyz
@@ -133,6 +135,32 @@ def ur_kinematics(g: dict, tcp: dict | None = None) -> dict:
     digest = hashlib.sha256(repr(sorted(kinematics.items())).encode()).hexdigest()[:16]
     return {"kinematics": {**kinematics, "hash": f"spi_boter_{digest}"},
             "tool_frames": {n: {**pose_entry(T), "ur_pose": ur_pose(T)} for n, T in frames.items()}}
+
+
+# The plain scalars a YAML 1.2 core-schema reader (ROS 2's yaml-cpp, ruamel.yaml) takes as null, a bool, an
+# int or a float (YAML 1.2.2, 10.3.2): PyYAML resolves by YAML 1.1 and writes 1e3, 0o17, -1e3 unquoted.
+NOT_TEXT_1_2 = re.compile(r"null|Null|NULL|~|true|True|TRUE|false|False|FALSE"        # null, bool
+                          r"|[-+]?[0-9]+|0o[0-7]+|0x[0-9a-fA-F]+"                         # int
+                          r"|[-+]?(\.[0-9]+|[0-9]+(\.[0-9]*)?)([eE][-+]?[0-9]+)?"          # float
+                          r"|[-+]?(\.inf|\.Inf|\.INF)|\.nan|\.NaN|\.NAN")                    # .inf, .nan
+
+
+class _Yaml12Safe(yaml.SafeDumper):
+    """PyYAML's safe dumper, quoting every string a YAML 1.2 reader would read as something else."""
+
+    def represent_str(self, data):
+        if NOT_TEXT_1_2.fullmatch(data):
+            return self.represent_scalar("tag:yaml.org,2002:str", data, style="'")
+        return super().represent_str(data)
+
+
+_Yaml12Safe.add_representer(str, _Yaml12Safe.represent_str)
+
+
+def ur_yaml_text(kin: dict) -> str:
+    """ur_kinematics' dict as models/ur_calibration.yaml's text, read alike by YAML 1.1 and 1.2 readers: a
+    robot.tcp name such as 1e3 or 0o17 quoted (a 1.2 reader took it for a number); other keys as PyYAML writes them."""
+    return yaml.dump(kin, Dumper=_Yaml12Safe, sort_keys=False)
 
 
 def ur_pose(T: np.ndarray) -> list[float]:
