@@ -17,9 +17,9 @@ PATH.csv, one row per waypoint (`,` `;` or tab separated, decimal point or comma
                                        probe's frame (with --tcp, of the TCP's), slerped between waypoints
 Writes DIR/path.csv (per sample: sample, arc_mm, t_s, target_x..z, j1_comp_deg..j6_comp_deg,
 residual_mm, iterations, converged, in_workspace, uncertainty_mm, orientation_residual_arcsec) and
-DIR/path.script (URScript: movej to the first sample, then servoj per sample, t = its step's time at the
-speed, from rest to rest at path.accel_mm_s2 and slower round corners, in whole controller cycles: a CB3's
-8 ms, an e-Series' 2 ms, pathsolve.cycle_s).
+DIR/path.script (URScript: movej to the first sample, then a servoj every controller cycle, a CB3's 8 ms or
+an e-Series' 2 ms (pathsolve.cycle_s), to where the path has reached then: at the speed, from rest to rest at
+path.accel_mm_s2 and slower round corners, the whole path a whole number of cycles; pathsolve.schedule).
 
 With an orientation (target_rx..rz, or for an offline path of joints the nominal flange orientation of
 each waypoint's joints, as the program compensator's `compensate.orientation`), each sample is a pose:

@@ -37,7 +37,11 @@ CB3 = ("ur3", "ur5", "ur10")    # robots.py's arms on a CB3 controller (125 Hz);
 REFINE_ROUNDS = 12              # chord mode: halvings at most
 MIN_STEP_MM = 1e-3              # chord mode: a step this short is not halved further
 PROGRESS_EVERY = 1000          # a log line per this many samples solved (a path of 100 000: ~40 min)
-MAX_CYCLES = 2 ** 24 - 1        # a step's servoj cycles: the script counts them in a float (32 bits: 2^24 + 1 is 2^24)
+MAX_CYCLES = 2 ** 24 - 1        # a path's servoj cycles: the script counts them in a float (32 bits: 2^24 + 1 is 2^24)
+TURN_SIN = 1e-6                 # sin(φ/2) of a turn (2e-6 rad) below which a sample is straight: rounding on a line
+                                # not along an axis gives ~1e-8, which must not slow the steps beside it
+CHUNK_CYCLES = 1 << 20          # the script's cycles reckoned this many at a time (memory: ~50 MB a chunk)
+SHARE_TOL = 1e-9                # a run's quadratic, as written, meets each cycle's share of its step within this
 log = logger(__name__)
 SOLVED = ["arc_mm"] + TARGET + JCOMP_DEG + ["residual_mm", "iterations", "converged", "orientation_residual_arcsec"]
 PATH_COLUMNS = (["sample", "arc_mm", "t_s"] + TARGET + JCOMP_DEG
@@ -144,7 +148,7 @@ def half_sines(points_mm: np.ndarray) -> np.ndarray:
 def step_accels(points_mm: np.ndarray, accel: float) -> np.ndarray:
     """(m - 1,) mm/s²: each step's acceleration along the path: accel, or half of it where either end turns
     (the other half is the turn's, which servoj makes within one cycle: the two together stay within accel)."""
-    turns = np.concatenate([[False], half_sines(points_mm) > 1e-12, [False]])
+    turns = np.concatenate([[False], half_sines(points_mm) > TURN_SIN, [False]])
     return np.where(turns[:-1] | turns[1:], accel / 2, accel)
 
 
@@ -210,11 +214,14 @@ class Schedule:
         """(m - 1,) mm/s: the TCP's top speed within each step, as driven."""
         return self.top * self.stretch
 
-    def cycle_arcs(self) -> np.ndarray:
-        """(n_cycles,) mm: the arc the path has reached at the end of each controller cycle (the last: its end)."""
+    def cycle_arcs(self, lo: int = 0, hi: int | None = None) -> np.ndarray:
+        """(hi - lo,) mm: the arc the path has reached at the end of controller cycles lo + 1 .. hi (default: all
+        n_cycles; the last: its end)."""
+        hi = self.n_cycles if hi is None else hi
         start = np.concatenate([[0.0], np.cumsum(self.step)])                     # (m,) each step's start, unstretched
-        tau = np.arange(1, self.n_cycles + 1) * self.cycle_s * self.stretch
-        tau[-1] = start[-1]
+        tau = np.arange(lo + 1, hi + 1) * self.cycle_s * self.stretch
+        if hi == self.n_cycles:
+            tau[-1] = start[-1]
         k = np.clip(np.searchsorted(start, tau, side="right") - 1, 0, len(self.ds) - 1)
         return np.concatenate([[0.0], np.cumsum(self.ds)])[k] + along(
             self.va[k], self.vb[k], self.top[k], self.ds[k], self.accel[k], self.step[k], tau - start[k])
@@ -348,34 +355,55 @@ def fmt(values) -> str:
     return "[" + ", ".join(f"{v:.9f}" for v in np.radians(np.asarray(values, float))) + "]"
 
 
+def written(x: float) -> float:
+    """x as the script writes it (fmt_share) and reads it back."""
+    return float(fmt_share(x))
+
+
+def fmt_share(x: float) -> str:
+    """A share, or a share's change a cycle, as URScript's number: digits, a sign, a point (17 places)."""
+    return f"{float(x):.17f}"
+
+
 def runs(chord: np.ndarray, f: np.ndarray) -> list[tuple]:
     """The cycles' targets (chord (K,): the step k from sample k - 1 to k each is on; f (K,): its share of that
-    step) as runs the script loops over: (step, f0, df, n), n cycles at f0 + i df, i = 1..n, each on one step
-    with one df (a speed held: one run a step; speeding up or slowing down: one run each two cycles)."""
+    step) as runs the script loops over: (step, f0, df, d2, n), n cycles at the shares f0 + i df + i² d2,
+    i = 1..n, each on one step, the coefficients as written (fmt_share) meeting every cycle's share within
+    SHARE_TOL: a speed held or a constant acceleration is one run (a trapezoid's phase on one step)."""
     out, i, K = [], 0, len(f)
     while i < K:
-        j, df = i + 1, f[i]
-        if j < K and chord[j] == chord[i]:
-            df = f[j] - f[i]
-            while j + 1 < K and chord[j + 1] == chord[i] and abs(f[j + 1] - f[j] - df) <= 1e-9:
-                j += 1
-            j += 1
-        out.append((int(chord[i]), f[i] - df, df, j - i))
-        i = j
+        same = 1
+        while same < 3 and i + same < K and chord[i + same] == chord[i]:
+            same += 1
+        g = np.zeros(3)
+        g[:same] = f[i:i + same]
+        if same == 3:                                      # through three cycles' shares: k = 1, 2, 3
+            d2 = (g[2] - 2 * g[1] + g[0]) / 2
+            df = g[1] - g[0] - 3 * d2
+        elif same == 2:
+            d2, df = 0.0, g[1] - g[0]
+        else:
+            d2, df = 0.0, g[0]
+        f0, df, d2 = written(g[0] - df - d2), written(df), written(d2)
+        at = lambda k: f0 + k * df + k * k * d2
+        n = 0
+        while i + n < K and chord[i + n] == chord[i] and abs(at(n + 1) - f[i + n]) <= SHARE_TOL:
+            n += 1
+        if n == 0:                                         # the rounding of the coefficients: one cycle, exactly
+            f0, df, d2, n = 0.0, written(f[i]), 0.0, 1
+        out.append((int(chord[i]), f0, df, d2, n))
+        i += n
     return out
 
 
 def urscript(table: pd.DataFrame, timed: Schedule, lookahead_s: float, gain: int, acc: float, vel: float) -> str:
     """The compensated path: movej (acc rad/s², vel rad/s) to its first sample, then servoj every controller
     cycle (timed.cycle_s, cycle_s) to where the path's Schedule has reached at that cycle's end (cycle_arcs),
-    the joints on the line from sample to sample there: `servo_line(a, b, f0, df, n)`, n cycles at the shares
-    f0 + i df of the line from a to b (`runs`); the last sample held for the lookahead, then stopj. Only
+    the joints on the line from sample to sample there: `servo_line(a, b, f0, df, d2, n)`, n cycles at the shares
+    f0 + i df + i² d2 of the line from a to b (`runs`); the last sample held for the lookahead, then stopj. Only
     numbers formatted here and this fixed text reach it."""
     cycle = timed.cycle_s
     q, arc = table[JCOMP_DEG].to_numpy(), table.arc_mm.to_numpy()
-    at = timed.cycle_arcs()                                                       # (K,) mm
-    chord = np.clip(np.searchsorted(arc, at, side="left"), 1, len(arc) - 1)       # (K,) from sample chord - 1 to chord
-    share = np.clip((at - arc[chord - 1]) / (arc[chord] - arc[chord - 1]), 0.0, 1.0)
     hold = int(np.ceil(lookahead_s / cycle - 1e-9))
     outside = int((~table.in_workspace.to_numpy(bool)).sum())
     mix = ", ".join(f"a[{j}] + s * (b[{j}] - a[{j}])" for j in range(6))
@@ -388,22 +416,27 @@ def urscript(table: pd.DataFrame, timed: Schedule, lookahead_s: float, gain: int
     if not np.isnan(arcsec).all():
         lines.append(f"# the flange's orientation held along the path: residual max {float(np.nanmax(arcsec)):.3f} arcsec")
     lines += ["def compensated_path():",
-              "  def servo_line(a, b, f0, df, n):",
-              "    # n controller cycles on the line from joints a to b: one servoj a cycle, at the share f0 + i df",
+              "  def servo_line(a, b, f0, df, d2, n):",
+              "    # n controller cycles on the line from joints a to b: one servoj a cycle, at the share f0 + i df + i^2 d2",
               "    i = 1.0",
               "    while i <= n:",
-              "      s = f0 + i * df",
+              "      s = f0 + i * df + i * i * d2",
               f"      servoj([{mix}], t={float(cycle):.3f}, lookahead_time={float(lookahead_s):.3f}, gain={int(gain)})",
               "      i = i + 1.0",
               "    end",
               "  end",
               f"  movej({fmt(q[0])}, a={float(acc):.6f}, v={float(vel):.6f})"]
     noted = set()
-    for k, f0, df, n in runs(chord, share):
-        if k not in noted and not table.in_workspace.iloc[k]:
-            lines.append(f"  # sample {k + 1}: outside the trained workspace (uncertainty "
-                         f"{float(table.uncertainty_mm.iloc[k]):.3f} mm)")
-        noted.add(k)
-        lines.append(f"  servo_line({fmt(q[k - 1])}, {fmt(q[k])}, {float(f0):.12f}, {float(df):.12f}, {n})")
-    lines += [f"  servo_line({fmt(q[-1])}, {fmt(q[-1])}, 0.0, 0.0, {hold})", f"  stopj({float(acc):.6f})", "end", ""]
+    for lo in range(0, timed.n_cycles, CHUNK_CYCLES):                            # memory: a chunk's cycles at a time
+        at = timed.cycle_arcs(lo, min(lo + CHUNK_CYCLES, timed.n_cycles))       # (K,) mm
+        chord = np.clip(np.searchsorted(arc, at, side="left"), 1, len(arc) - 1)  # (K,) from sample chord - 1 to chord
+        share = np.clip((at - arc[chord - 1]) / (arc[chord] - arc[chord - 1]), 0.0, 1.0)
+        for k, f0, df, d2, n in runs(chord, share):
+            if k not in noted and not table.in_workspace.iloc[k]:
+                lines.append(f"  # sample {k + 1}: outside the trained workspace (uncertainty "
+                             f"{float(table.uncertainty_mm.iloc[k]):.3f} mm)")
+            noted.add(k)
+            lines.append(f"  servo_line({fmt(q[k - 1])}, {fmt(q[k])}, {fmt_share(f0)}, {fmt_share(df)}, "
+                         f"{fmt_share(d2)}, {n})")
+    lines += [f"  servo_line({fmt(q[-1])}, {fmt(q[-1])}, 0.0, 0.0, 0.0, {hold})", f"  stopj({float(acc):.6f})", "end", ""]
     return "\n".join(lines)
