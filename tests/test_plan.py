@@ -266,6 +266,20 @@ def test_program_joints_says_which_targets_it_reaches_only_in_another_configurat
     assert why[1].startswith("another configuration than the given joints': the shoulder flipped, the elbow flipped")
 
 
+def test_program_joints_from_urs_home_reach_their_targets_in_its_configuration():
+    """A review (2026-12-06, evening): from UR's home (q3 = q5 = 0, the elbow and the wrist at their
+    singularities) the undamped steps spun joints past 360° (joint 2 turned 362.8°, joint 4 428.6°) or fell 4.9 mm
+    short, so the planner refused targets 30-100 mm away that the program compensator reaches. Each step is now
+    at most MAX_STEP_RAD a joint: every target reached, each joint within 70° of home, no configuration said."""
+    from pipeline.lib.planner.candidates import program_joints
+    robot = load_robot({"model": "ur5", "dh": None, "joint_limits_deg": None, "tcp": None, "tool_mm": [0, 0, 109.0]})
+    g = nominal_geometry(robot)
+    home = np.array([[0.0, -90.0, 0.0, -90.0, 0.0, 0.0]] * 3)
+    target = fk_numpy(home[:1], robot, g) + np.array([[30.0, 0.0, 30.0], [80.0, 0.0, -20.0], [0.0, 50.0, 0.0]])
+    q, miss, why = program_joints(home, target, g, robot.limits_deg)
+    assert miss.max() < 1e-6 and np.abs(q - home).max() < 70.0 and why == [None] * 3, (miss, q, why)
+
+
 def test_the_twin_samples_by_the_library_rules():
     """twin.sample_poses keeps exactly the poses poses.acceptable accepts (RULES in the region's window)."""
     g = nominal_geometry(Twin().robot)

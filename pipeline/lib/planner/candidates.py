@@ -12,9 +12,14 @@ from pipeline.lib.runtime.solvers import min_norm_step
 from pipeline.lib.runtime.waypoints import another_configuration
 
 
-def program_joints(q0_deg, target, geometry: dict, limits_deg, iterations: int = 30) -> tuple:
+MAX_STEP_RAD = 0.1              # program_joints: a joint turns at most this far an iteration (from a singular start,
+                                # UR's home, an undamped step spun joints past 360°)
+
+
+def program_joints(q0_deg, target, geometry: dict, limits_deg, iterations: int = 100) -> tuple:
     """Joints (n, 6) deg near q0 that put the chain `geometry` on the targets (n, 3) mm (damped
-    minimum-norm steps, joint limits kept): where a program given as positions will actually go; how far
+    minimum-norm steps of at most MAX_STEP_RAD a joint, joint limits kept): where a program given as positions
+    will actually go; how far
     (n,) mm each stays from its target there (a target it cannot reach stays far); and, per waypoint, why
     those joints are another configuration than q0's, or None (waypoints.another_configuration, position
     targets: the wrist free), the rule by which the program compensator refuses such a waypoint."""
@@ -24,7 +29,9 @@ def program_joints(q0_deg, target, geometry: dict, limits_deg, iterations: int =
     with torch.no_grad():
         for _ in range(iterations):
             p, J = fk_jacobian(q, geometry)
-            q = (q + min_norm_step(J, p - t, 1e-6)).clamp(lim[:, 0], lim[:, 1])
+            step = min_norm_step(J, p - t, 1e-6)                               # (n, 6) rad
+            step = step * (MAX_STEP_RAD / step.abs().amax(1, keepdim=True).clamp(min=MAX_STEP_RAD))
+            q = (q + step).clamp(lim[:, 0], lim[:, 1])
         miss = (fk_jacobian(q, geometry)[0] - t).norm(dim=1)
     q_deg = np.degrees(q.numpy())
     return q_deg, miss.numpy(), another_configuration(q0_deg, q_deg, geometry, orientation=False)
