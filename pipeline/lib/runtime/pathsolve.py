@@ -154,8 +154,8 @@ def step_accels(points_mm: np.ndarray, accel: float) -> np.ndarray:
 
 def speed_profile(points_mm: np.ndarray, arc_mm: np.ndarray, t: Timing) -> np.ndarray:
     """(m,) mm/s: the TCP's speed at each sample, points (m, 3) along arc (m,): at rest at both ends, at most
-    t.speed_mm_s and at most one step a controller cycle (a cycle never passes a sample: no step of the script
-    leaves the joint-space chords the command checks), at a turn of φ between two steps at most
+    t.speed_mm_s and at most one step a controller cycle (so the cycles run along the joint-space chords the
+    command checks; one that spans a sample cuts its corner by at most a cycle²/8), at a turn of φ between two steps at most
     sqrt(a δ c / (1 - c)), c = cos(φ/2) (the junction deviation rule: a 90° corner at 1.2 m/s² and 0.01 mm,
     5.4 mm/s), (a/2) cycle / (2 sin(φ/2)) (servoj turns the whole angle within one cycle: a velocity change of
     at most half the acceleration's) and sqrt(a r / 2), r = the shorter step over 2 sin(φ/2) (the centripetal
