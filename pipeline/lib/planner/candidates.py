@@ -19,10 +19,10 @@ MAX_STEP_RAD = 0.1              # program_joints: a joint turns at most this far
 def program_joints(q0_deg, target, geometry: dict, limits_deg, iterations: int = 100) -> tuple:
     """Joints (n, 6) deg near q0 that put the chain `geometry` on the targets (n, 3) mm (damped
     minimum-norm steps of at most MAX_STEP_RAD a joint, joint limits kept): where a program given as positions
-    will actually go; how far
-    (n,) mm each stays from its target there (a target it cannot reach stays far); and, per waypoint, why
-    those joints are another configuration than q0's, or None (waypoints.another_configuration, position
-    targets: the wrist free), the rule by which the program compensator refuses such a waypoint."""
+    will actually go; how far (n,) mm each stays from its target there (a target it cannot reach stays far);
+    and, per waypoint, why those joints are another configuration than q0's, or None
+    (waypoints.another_configuration, position targets: the wrist free), the rule by which the program
+    compensator refuses such a waypoint."""
     q = torch.as_tensor(np.radians(np.asarray(q0_deg, float)), dtype=DTYPE)
     t = torch.tensor(np.asarray(target, float), dtype=DTYPE)              # a copy: a table's column may be read-only
     lim = torch.as_tensor(np.radians(np.asarray(limits_deg, float)), dtype=DTYPE)
