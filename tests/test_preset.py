@@ -38,6 +38,7 @@ def test_a_target_geometry_is_replaced_whole():
 @pytest.mark.parametrize("name", ["gtpn-ur5", "ipa-ur10"])
 def test_presets_only_set_known_keys(name):
     preset = yaml.safe_load((PRESETS / f"{name}.yaml").read_text())
+    assert preset.pop("extends") == "twin"                        # over the twin's settings (the next test)
     known = set(leaves(BASE))
     assert set(leaves(preset)) <= known, set(leaves(preset)) - known
     merged = merged_params(name, BASE)
@@ -128,3 +129,20 @@ def test_the_printed_changes_name_a_replaced_mapping_s_keys_that_are_gone(tmp_pa
     assert "twin_side" not in yaml.safe_load(path.read_text())["validate"]["campaigns"]
     assert any(line.startswith("validate.campaigns.twin_side: {") and line.endswith("} removed")
                for line in out.splitlines())
+
+
+def test_a_preset_gives_the_same_params_whichever_was_applied_before():
+    """A review (2026-12-06, evening): a preset merged over what params.yaml held, so one applied after another kept
+    the other's settings where it said nothing: ipa-ur10 after ipa-ur10-cb trained on Series_B too and validated
+    on it (series_b_same), gtpn-ur5 after twin-2stations kept station_b, after ipa-ur10 its three TCPs. Every preset
+    now states every key any preset sets (the others `extends: twin`, whose values are the committed params'), and
+    robot.tcp is replaced whole: any preset over any other is that preset over the committed params."""
+    base = yaml.safe_load((ROOT / "params.yaml").read_text())
+    names = sorted(p.stem for p in PRESETS.glob("*.yaml"))
+    assert {"twin", "gtpn-ur5", "ipa-ur10", "ipa-ur10-cb", "twin-2stations"} <= set(names)
+    assert changes(base, merged_params("twin", base)) == []                       # the committed params are the twin's
+    for a in names:
+        for b in names:
+            after = merged_params(b, merged_params(a, base))
+            assert changes(merged_params(b, base), after) == [], (a, b, changes(merged_params(b, base), after)[:5])
+    assert merged_params("ipa-ur10", merged_params("ipa-ur10-cb", base))["campaigns"]["more"] == {}

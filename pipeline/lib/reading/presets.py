@@ -43,8 +43,9 @@ def load_preset(name_or_path) -> dict:
 
 
 REMOVED = "(removed)"                  # changes(): the new value of a key the merge no longer holds
-REPLACED = {"campaigns", "target"}   # mappings replaced whole: a preset's own (validation or training)
-                                    # campaigns; a rigid target's geometry (ingest.target: a campaign's own)
+REPLACED = {"campaigns", "target", "tcp"}   # mappings replaced whole: a preset's own (validation or training)
+                                    # campaigns; a rigid target's geometry (ingest.target: a campaign's own);
+                                    # its robot's tool centre points (robot.tcp)
 
 
 def deep_merge(base: dict, over: dict) -> dict:
