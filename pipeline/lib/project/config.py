@@ -74,16 +74,18 @@ def _int(lo, hi=None):
     return lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= lo and (hi is None or v <= hi)
 
 
-def _finite(v) -> bool:
-    """v a finite number (no bool); an integer too large for a float (400 digits) is not one."""
+def real(x) -> bool:
+    """x is a finite number (no text, no boolean; an integer too large for a float, 400 digits, is not one)."""
+    if isinstance(x, (bool, np.bool_)) or not isinstance(x, (int, float, np.integer, np.floating)):
+        return False
     try:
-        return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+        return bool(np.isfinite(float(x)))
     except OverflowError:
         return False
 
 
 def _num(lo, hi=None, open_lo=False):
-    return lambda v: _finite(v) and (v > lo if open_lo else v >= lo) and (hi is None or v <= hi)
+    return lambda v: real(v) and (v > lo if open_lo else v >= lo) and (hi is None or v <= hi)
 
 
 def _scripted(hi: float, unit: str, what: str) -> tuple:
@@ -112,7 +114,7 @@ def _vec3(v, bound=math.inf):
 
 def tcp_problem(v) -> str | None:
     """What is wrong with `robot.tcp` (naming the point and its key), or None: null, or name: {xyz_mm (each
-    within ±TCP_MM_MAX), rxyz_deg (optional, each within ±360°), frame (optional, flange or probe)}."""
+    within ±OFFSET_MM_MAX), rxyz_deg (optional, each within ±360°), frame (optional, flange or probe)}."""
     if v is None:
         return None
     if not isinstance(v, dict) or not v:
@@ -122,8 +124,8 @@ def tcp_problem(v) -> str | None:
             return f"the name {k!r} is not allowed"
         if not isinstance(t, dict) or not set(t) <= {"xyz_mm", "rxyz_deg", "frame"}:
             return f"point {k}: not a mapping of xyz_mm, rxyz_deg, frame"
-        if not _vec3(t.get("xyz_mm"), TCP_MM_MAX):
-            return f"point {k}: xyz_mm {t.get('xyz_mm')!r} is not 3 finite numbers within ±{TCP_MM_MAX:g} mm"
+        if not _vec3(t.get("xyz_mm"), OFFSET_MM_MAX):
+            return f"point {k}: xyz_mm {t.get('xyz_mm')!r} is not 3 finite numbers within ±{OFFSET_MM_MAX:g} mm"
         if not _vec3(t.get("rxyz_deg", [0, 0, 0]), 360.0):
             return f"point {k}: rxyz_deg {t.get('rxyz_deg')!r} is not 3 finite angles within ±360°"
         if t.get("frame", "flange") not in ("flange", "probe"):
@@ -182,12 +184,12 @@ TOOL_SPEED_MAX = 5.0            # m/s: the highest tool speed limit UR's safety 
 TOOL_ACC_MAX = 15.0             # m/s²
 SETTLE_MAX_S = 3600.0           # plan.settle_s: an hour a pose (URScript's 32-bit float holds it to the ms)
 MAX_DEVIATION_MM = 10.0         # path.max_deviation_mm: a branch flip between two samples is tens of mm
-TCP_MM_MAX = 2000.0             # robot.tcp's xyz_mm, each: a tool longer than 2 m from the flange is a slip of unit
+OFFSET_MM_MAX = 2000.0          # robot.tool_mm's and robot.tcp's xyz_mm, each: over 2 m from the flange, a slip of unit
 
 RULES = {
     "robot.tcp": (lambda v: tcp_problem(v) is None,
                   lambda v: f"{tcp_problem(v)}; robot.tcp is null, or name: {{xyz_mm: [x, y, z] each within "
-                  f"±{TCP_MM_MAX:g} mm, rxyz_deg: [rx, ry, rz] each within ±360°, frame: flange or probe}} (a tool "
+                  f"±{OFFSET_MM_MAX:g} mm, rxyz_deg: [rx, ry, rz] each within ±360°, frame: flange or probe}} (a tool "
                   "centre point in the flange frame, or measured in the probe's; rxyz_deg and frame optional), names "
                   "of letters, digits, _ or - (not marker: the probe's own, in ur_calibration.yaml's tool_frames)"),
     "calibrate.pose_noise.mm": (_num(0, open_lo=True), "a position noise > 0 mm"),

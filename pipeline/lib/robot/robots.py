@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from pipeline.lib.project.config import check_keys
+from pipeline.lib.project.config import OFFSET_MM_MAX, check_keys, real
 
 PI2 = np.pi / 2
 
@@ -207,16 +207,6 @@ def modified_to_standard(d, a, alpha, offset) -> dict:
     return dict(d=d, a=np.append(a[1:], 0.0), alpha=np.append(alpha[1:], 0.0), offset=offset)
 
 
-def real(x) -> bool:
-    """x is a finite number (no text, no boolean; an integer too large for a float, 400 digits, is not one)."""
-    if isinstance(x, (bool, np.bool_)) or not isinstance(x, (int, float, np.integer, np.floating)):
-        return False
-    try:
-        return bool(np.isfinite(float(x)))
-    except OverflowError:
-        return False
-
-
 def finite(v, shape: tuple, bound: float = np.inf) -> bool:
     """v is numbers (a list, tuple or array; no text, no booleans) of this shape, all finite, each within ±bound."""
     try:
@@ -226,14 +216,11 @@ def finite(v, shape: tuple, bound: float = np.inf) -> bool:
     return cells.shape == shape and all(real(x) and abs(float(x)) <= bound for x in cells.ravel())
 
 
-TOOL_MM_MAX = 2000.0      # robot.tool_mm, each: a marker over 2 m from the flange is a slip of unit (m as mm)
-
-
 def check_tool(tool) -> np.ndarray:
-    """robot.tool_mm as (3,) mm: 3 finite numbers, each within ±TOOL_MM_MAX, else a ValueError naming the key."""
-    if not finite(tool, (3,), TOOL_MM_MAX):
+    """robot.tool_mm as (3,) mm: 3 finite numbers, each within ±OFFSET_MM_MAX, else a ValueError naming the key."""
+    if not finite(tool, (3,), OFFSET_MM_MAX):
         raise ValueError(f"params.yaml robot.tool_mm: [x, y, z], 3 finite numbers in mm (the marker in the flange "
-                         f"frame), each within ±{TOOL_MM_MAX:g}, got {tool!r}")
+                         f"frame), each within ±{OFFSET_MM_MAX:g}, got {tool!r}")
     return np.asarray(tool, dtype=float)
 
 
