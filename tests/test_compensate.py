@@ -420,3 +420,56 @@ def test_the_pose_controller_path_does_not_verify_a_flange_turned_half_round(mod
         said = np.array([r.converged or r.verified for r in res])
         assert not (said & (off > 1.0)).any(), (name, off, [(r.converged, r.verified, r.residual_mm) for r in res])
         assert said.all() == reachable, (name, off)
+
+
+STAGE_INPUTS = ["data/interim/points.parquet", "data/interim/split.parquet", "data/interim/ingest.parquet",
+                "reports/frame.json", "reports/ingest.json", "models/calibration.json", "models/parts.json",
+                "models/boter.pt", "models/workspace.json", "params.yaml", "dvc.lock"]
+STAGE_OUTPUTS = ["reports/compensation.csv", "reports/compensation.parquet", "reports/compensation_convergence.csv",
+                 "reports/drive_check.csv", "reports/compensation.json"]
+
+
+def test_a_compensate_run_that_fails_leaves_every_table_of_the_run_before(trained_project, tmp_path):
+    """The Δθ tables, the convergence curve, the drive check and compensation.json are written together or not
+    at all: a run stopped by its drive check (a twin file that is not there) rewrote the Δθ tables first,
+    beside the last run's compensation.json and drive check (a review found it)."""
+    import shutil
+    from pipeline.lib.project.config import load_params
+    from pipeline.stages import compensate as stage
+    for f in STAGE_INPUTS + STAGE_OUTPUTS:
+        (tmp_path / f).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy(trained_project / f, tmp_path / f)
+    params = load_params(tmp_path / "params.yaml")
+    params["compensate"].update(twin="data/raw/not_there.json", drive_check=True)
+    for f in STAGE_OUTPUTS:                               # the run before's, told apart from what this one makes
+        (tmp_path / f).write_text(f"the run before's {f}\n")
+    with pytest.raises(OSError, match="not_there.json"):
+        stage.run(params, tmp_path)
+    assert {f: (tmp_path / f).read_text() for f in STAGE_OUTPUTS} == {f: f"the run before's {f}\n" for f in STAGE_OUTPUTS}
+    assert not [p.name for p in (tmp_path / "reports").iterdir() if p.name.endswith(".tmp")]
+
+
+def test_own_targets_never_replace_a_file_of_the_stage(trained_project, tmp_path, capsys):
+    """`compensate --targets .../convergence.csv` wrote its Δθ table over the stage's
+    reports/compensation_convergence.csv (a DVC output: the plots and dvc.lock then wrong, unsaid). Now it is
+    refused, naming the file, and nothing is written; another name is written as before."""
+    import shutil
+    from conftest import exit_code
+    from pipeline.lib.project.cli import one_line
+    from pipeline.stages import compensate as stage
+    for f in STAGE_INPUTS + ["reports/compensation_convergence.csv"]:
+        (tmp_path / f).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy(trained_project / f, tmp_path / f)
+    curve = (tmp_path / "reports/compensation_convergence.csv").read_bytes()
+    targets = pd.read_csv(trained_project / "reports/compensation.csv").head(2)
+    cols = [f"j{i}_deg" for i in range(1, 7)] + ["target_x", "target_y", "target_z"]
+    (tmp_path / "t").mkdir()
+    targets[["point_id", *cols]].to_csv(tmp_path / "t/convergence.csv", index=False)
+    cli = lambda argv: one_line("pipeline.stages.compensate", lambda a: stage.main(a, tmp_path), argv)
+    code, said = exit_code(cli, ["--targets", str(tmp_path / "t/convergence.csv")], capsys)
+    assert code == 2 and "compensation_convergence.csv is the project's own" in said
+    assert "named after the targets file: rename" in said and "choose another output path" not in said
+    assert (tmp_path / "reports/compensation_convergence.csv").read_bytes() == curve
+    shutil.copy(tmp_path / "t/convergence.csv", tmp_path / "t/mine.csv")
+    assert exit_code(cli, ["--targets", str(tmp_path / "t/mine.csv")], capsys)[0] == 0
+    assert pd.read_csv(tmp_path / "reports/compensation_mine.csv").point_id.tolist() == targets.point_id.tolist()

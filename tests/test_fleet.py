@@ -19,8 +19,8 @@ def test_robot_params_merge_the_override_over_the_project(tmp_path):
     assert p["robot"]["model"] == "ur10" and p["ingest"]["joints"] == "campaign/j.csv"   # the copy's, relative
     assert p["validate"]["campaigns"] == {} and p["campaigns"]["more"] == {}
     assert p["model"] == load_params(ROOT / "params.yaml")["model"]          # the rest: the project's
-    job = fleet.robot_job(load_params(ROOT / "params.yaml"), d, 1)            # the folder travels as bytes
-    assert job["robot"] == "r1" and job["params"] == p and job["threads"] == 1
+    job = fleet.robot_job(load_params(ROOT / "params.yaml"), d)               # the folder travels as bytes
+    assert job["robot"] == "r1" and job["params"] == p
     assert job["files"] == {"j.csv": b"joints", "params.yaml": (d / "params.yaml").read_bytes()}
 
 
@@ -80,3 +80,28 @@ def test_the_committed_demo_fleet_is_what_the_demo_makes(tmp_path):
     for f in made:
         assert (tmp_path / f).read_bytes() == (ROOT / "data/fleet" / f).read_bytes(), f
     assert (ROOT / "data/fleet/ur5_01/tracker.csv").read_text().startswith("Name,X,Y,Z,QW,QX,QY,QZ\n")
+
+
+def test_a_stage_in_a_robots_job_leaves_no_logger_writing_to_its_log(tmp_path, monkeypatch, capsys):
+    """run_logged sends a stage's log lines and prints to that stage's log alone. A library that makes its own
+    handler on the stderr of the moment (dvclive does, on import in the train stage) kept writing to the
+    first robot's closed log: every later robot's messages from it were lost, a "Logging error" traceback in
+    their place (a review found it). Now such handlers go with the stage; the messages reach the stage's log."""
+    import logging
+    from pipeline import stages
+
+    def stage(name, argv=(), root=None):                   # a stage whose library logs as dvclive does
+        lib = logging.getLogger("a_library")
+        if not lib.handlers:
+            lib.addHandler(logging.StreamHandler())         # sys.stderr as it is now: the stage's log
+        lib.warning("from %s", root.name)
+        print("printed in", root.name)
+    monkeypatch.setattr(stages, "run", stage)
+    for robot in ("r1", "r2"):
+        (tmp_path / robot / "logs").mkdir(parents=True)
+        assert fleet.run_logged("train", tmp_path / robot) is None
+    for robot in ("r1", "r2"):
+        log = (tmp_path / robot / "logs/train.log").read_text()
+        assert f"from {robot}" in log and f"printed in {robot}" in log and "Logging error" not in log
+    assert "Logging error" not in capsys.readouterr().err
+    assert not logging.getLogger("a_library").handlers

@@ -150,15 +150,17 @@ def test_one_fk_pass_gives_the_position_orientation_and_both_jacobians_to_the_bi
 
 
 FK_HASH = """
-import hashlib, numpy as np, torch
-import pipeline
+import hashlib, os
+import pipeline                       # first, as a stage imports it: its pins before numpy and torch load
+import numpy as np, torch
 from pipeline.lib.robot import kinematics as K
 from pipeline.lib.robot.robots import nominal_robot
 q = torch.as_tensor(np.random.default_rng(0).uniform(-3, 3, (719, 6)), dtype=K.DTYPE)
 g = K.nominal_geometry(nominal_robot("ur5"))                   # not by way of sim.twin: 1 s less a process
 with torch.no_grad():
     out = [K.link_frames(q, g), K.fk(q, g), K.fk_jacobian(q, g)[1], K.gravity_torques(q, g)]
-print(hashlib.md5(b"".join(t.numpy().tobytes() for t in out)).hexdigest())
+print(hashlib.md5(b"".join(t.numpy().tobytes() for t in out)).hexdigest(), flush=True)
+os._exit(0)                           # the interpreter's own ending: ~0.5 s a process, nothing to it here
 """
 
 

@@ -69,3 +69,39 @@ def test_the_commands_read_the_project_they_are_named_from_anywhere(trained_proj
         server.shutdown()
         server.server_close()
         torch.set_num_threads(threads)
+
+
+STAGES_ELSEWHERE = {"ingest": ["data/interim/ingest.parquet", "reports/ingest.json"],
+                    "frame": ["reports/frame.json"],
+                    "theory": ["data/interim/points.parquet", "reports/theory.json"],
+                    "split": ["data/interim/split.parquet", "reports/split.json"]}
+
+
+def test_a_stage_run_on_a_project_elsewhere_writes_what_it_writes_in_place(trained_project, tmp_path, monkeypatch):
+    """pipeline.stages.run(name, root=DIR), as a fleet's robot (a scratch folder) and the benchmarks run the
+    stages: the bytes `dvc repro` wrote in place. Before, ingest.json named the files as this process opened
+    them, DIR's absolute path: a fleet robot's report named a scratch folder gone when it was read, and its
+    bytes changed from run to run (a review found it). A campaign with two bad rows, so the dropped rows'
+    `file` is checked too."""
+    import shutil
+    from pipeline import stages
+    copy = tmp_path / "elsewhere"
+    for f in [PARAMS_FILE, "data/raw/joints.csv", "data/raw/tracker.csv"]:
+        (copy / f).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy(trained_project / f, copy / f)
+    tracker = copy / "data/raw/tracker.csv"
+    lines = tracker.read_text().splitlines(keepends=True)
+    lines[3] = lines[3].replace(",", ",x", 1)                       # a word in a cell: non_numeric
+    tracker.write_text("".join(lines))
+    shutil.copytree(copy, tmp_path / "in_place")                    # the same campaign, run where it lies
+    for name, files in STAGES_ELSEWHERE.items():
+        stages.run(name, root=copy)
+    ingest = (copy / "reports/ingest.json").read_text()
+    assert str(copy) not in ingest and '"file": "data/raw/tracker.csv"' in ingest
+    assert '"path": "data/raw/joints.csv"' in ingest
+    monkeypatch.chdir(tmp_path / "in_place")                        # dvc repro's way: the stage in the project
+    for name in STAGES_ELSEWHERE:
+        stages.run(name)
+    for files in STAGES_ELSEWHERE.values():
+        for f in files:
+            assert (copy / f).read_bytes() == (tmp_path / "in_place" / f).read_bytes(), f

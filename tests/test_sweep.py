@@ -135,7 +135,8 @@ def test_sweep_and_fleet_on_a_two_node_cluster(trained_project, tmp_path, monkey
                         base=params | {"train": {**params["train"], "max_epochs": 6, "patience": 6}})
     assert f["n_robots"] == 2 and f["n_ok"] == 1 and list(f["failed"]) == ["ur5_01"]
     reason = f["failed"]["ur5_01"]
-    assert reason.startswith("ingest:") and "campaign/tracker.csv" in reason and "column(s) z" in reason
+    assert reason.startswith("ingest: pipeline.stages.ingest: error: campaign/tracker.csv, column 'z':")   # the
+    assert "column(s) z" in reason                                    # robot's folder's name, not the scratch one's
     assert "column(s) z" in (tmp_path / "out/ur5_01/logs/ingest.log").read_text()   # its folder came back too
     assert f["nodes"]["ur10_02"] in nodes
     ok = [r for r in f["robots"] if r["status"] == "ok"]
@@ -146,6 +147,9 @@ def test_sweep_and_fleet_on_a_two_node_cluster(trained_project, tmp_path, monkey
                  "models/calibrated.urdf", "reports/index.md", "logs/train.log"):
         assert (tmp_path / "out/ur10_02" / name).is_file(), name
     assert "joints: campaign/joints.csv" in (tmp_path / "out/ur10_02/params.yaml").read_text()
+    logs = {s: (tmp_path / "out/ur10_02/logs" / f"{s}.log").read_text() for s in ("ingest", "train")}
+    assert " ingest: wrote data/interim/ingest.parquet (150 rows" in logs["ingest"]      # each stage's own lines
+    assert " train: trained SPI-BoTER " in logs["train"] and " ingest: " not in logs["train"]
     assert json.loads((tmp_path / "reports/fleet.json").read_text())["n_ok"] == 1
     assert "failed in ingest" in (tmp_path / "reports/fleet.md").read_text()
 

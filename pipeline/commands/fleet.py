@@ -9,8 +9,8 @@ over the project's params.yaml, paths relative to the robot's folder. Each robot
 is one job (lib/learning/sweep.py: in order, or a Ray task on a local instance or a cluster),
 which carries the robot's folder as bytes and its merged params: on its node, in a
 scratch folder (the robot's files under `campaign/`), the pipeline's stages (ingest ..
-evaluate, export, report), each `python -m pipeline.stages.<stage>` as `dvc repro` runs
-them. The scratch folder comes back as bytes and is written here to `<out>/<robot>/`,
+evaluate, export, report), each in the job's process (`pipeline.stages.run`, the main that
+`dvc repro` runs), its log to `logs/<stage>.log`. The scratch folder comes back as bytes and is written here to `<out>/<robot>/`,
 which then holds that robot's params.yaml, campaign, artifacts (models/, data/interim/),
 report (reports/index.md) and logs: no filesystem is shared with the nodes. A robot
 that fails is reported with its stage and error message (its folder, logs included,
@@ -24,20 +24,22 @@ stage per robot would be run by `dvc repro` one at a time. Its deps are the whol
 change reruns the fleet.
 """
 import argparse
+import contextlib
+import logging
 import math
 import os
-import subprocess
-import sys
 import tempfile
 import time
+import traceback
 from pathlib import Path
 
 import numpy as np
 import yaml
 
+from pipeline import stages
 from pipeline.lib.learning import sweep
 from pipeline.lib.project.cli import one_line
-from pipeline.lib.project.config import load_params, logger, read_json, write_json
+from pipeline.lib.project.config import LOG_FORMAT, load_params, logger, read_json, write_json
 from pipeline.lib.reading.campaigns import write_pair
 from pipeline.lib.reading.presets import deep_merge
 from pipeline.lib.sim.twin import Twin
@@ -73,35 +75,28 @@ def robot_params(base: dict, robot_dir: Path) -> dict:
     return p
 
 
-def robot_job(base: dict, robot_dir: Path, threads: int) -> dict:
+def robot_job(base: dict, robot_dir: Path) -> dict:
     """One robot as a job that carries all it needs, so its node shares no filesystem with this one:
     its name, its params (robot_params) and its folder's files as bytes (lib/learning/sweep.py: pack)."""
-    return {"robot": robot_dir.name, "params": robot_params(base, robot_dir), "files": sweep.pack(robot_dir),
-            "threads": threads}
+    return {"robot": robot_dir.name, "params": robot_params(base, robot_dir), "files": sweep.pack(robot_dir)}
 
 
 def calibrate_robot(job: dict) -> dict:
     """One robot: its folder's files unpacked to `campaign/` of a scratch folder, every stage run there
-    (`python -m pipeline.stages.<stage>` with the code this process runs: on Ray, the package shipped with
-    the task; the job's torch threads), and the whole folder (params, campaign, models, tables,
-    reports, logs) returned as bytes under "files", for the driver to write where it wants it."""
-    name, params, threads = job["robot"], job["params"], job["threads"]
-    env = {**os.environ, "OMP_NUM_THREADS": str(threads),
-           "PYTHONPATH": os.pathsep.join([str(sweep.CODE_ROOT), os.environ.get("PYTHONPATH", "")])}
+    (run_logged: in this process, with the code it runs: on Ray, the package shipped with the task; the
+    job's torch threads), and the whole folder (params, campaign, models, tables, reports, logs) returned
+    as bytes under "files", for the driver to write where it wants it."""
+    name, params = job["robot"], job["params"]
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix=f"fleet-{name}-") as tmp:
         out = sweep.unpack(job["files"], Path(tmp) / CAMPAIGN).parent
         (out / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+        (out / "logs").mkdir()
         result = None
         for stage in STAGES:
-            r = subprocess.run([sys.executable, "-m", f"pipeline.stages.{stage}"], cwd=out, env=env, capture_output=True,
-                               text=True)
-            (out / "logs").mkdir(exist_ok=True)
-            (out / "logs" / f"{stage}.log").write_text(r.stdout + r.stderr)
-            if r.returncode:
-                lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
-                result = {"robot": name, "status": "failed", "stage": stage, "reason": lines[-1] if lines else
-                          f"exit code {r.returncode}"}
+            reason = run_logged(stage, out)
+            if reason is not None:
+                result = {"robot": name, "status": "failed", "stage": stage, "reason": reason}
                 break
         if result is None:
             m = read_json(out / "reports/metrics.json")
@@ -113,6 +108,47 @@ def calibrate_robot(job: dict) -> dict:
         result["seconds"] = time.perf_counter() - t0
         result["files"] = sweep.pack(out)
     return result
+
+
+class InFolder(logging.Formatter):
+    """A stage's log lines as `dvc repro` gives them in the project: paths under root (a robot's scratch
+    folder, gone when its log is read) named from root."""
+    def __init__(self, root: Path):
+        super().__init__(*LOG_FORMAT)
+        self.prefix = f"{root}{os.sep}"
+
+    def format(self, record) -> str:
+        return super().format(record).replace(self.prefix, "")
+
+
+def run_logged(stage: str, root: Path) -> str | None:
+    """Stage `stage` in this process on the project at root, what it logs (InFolder) and prints written to
+    root/logs/<stage>.log only. None, or why it failed in one line: bad input as the stage's command
+    says it (`pipeline.stages.<stage>: error: ...`, lib/project/cli.py; its paths relative to root, the
+    robot's folder), anything else as its exception's last line, the traceback in the log."""
+    top = logging.getLogger()
+    with open(root / "logs" / f"{stage}.log", "w") as f, \
+            contextlib.redirect_stdout(f), contextlib.redirect_stderr(f):
+        handler = logging.StreamHandler(f)
+        handler.setFormatter(InFolder(root))
+        kept, top.handlers, level = top.handlers, [handler], top.level
+        top.setLevel(logging.INFO)
+        try:
+            stages.run(stage, root=root)
+            return None
+        except (ValueError, OSError) as e:              # bad input: IngestError, ParamsError, a file
+            said = f"pipeline.stages.{stage}: error: {e}".replace(f"{root}{os.sep}", "")
+            print(said, file=f)
+            return said.splitlines()[-1]
+        except Exception as e:                          # a defect: its traceback for whoever reads the log
+            traceback.print_exc(file=f)
+            return traceback.format_exception_only(e)[-1].strip()
+        finally:
+            top.handlers = kept
+            top.setLevel(level)
+            for lg in logging.Logger.manager.loggerDict.values():   # a library's own handler made on the
+                if isinstance(lg, logging.Logger):                 # stderr of the moment (dvclive's, on
+                    lg.handlers = [h for h in lg.handlers if getattr(h, "stream", None) is not f]   # import)
 
 
 def md_cell(text: str) -> str:
@@ -145,7 +181,7 @@ def run_fleet(fleet_dir, out="fleet/robots", engine: str = "sequential", address
     jobs, refused = [], []
     for d in robots:
         try:
-            jobs.append(robot_job(base, d, threads))
+            jobs.append(robot_job(base, d))
         except ValueError as e:                 # its params.yaml: that robot fails, the others run
             refused.append({"robot": d.name, "status": "failed", "stage": "params", "reason": str(e), "seconds": 0.0})
 

@@ -5,8 +5,7 @@ writes its outputs. No stage imports another, nor a command. And the one way to 
                                     params.yaml, its artifacts); the stage's main(argv, root)
 
 dvc.yaml runs `python -m pipeline.stages.<name>`, which is main on the working directory; the
-benchmarks, ablations and tests call run(); a fleet's robot runs each stage as a process of its own
-(docs/decisions.md)."""
+benchmarks, ablations, fleets and tests call run() (docs/decisions.md)."""
 import importlib
 from pathlib import Path
 

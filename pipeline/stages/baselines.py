@@ -19,7 +19,7 @@ import pandas as pd
 from pipeline.lib.learning.model import predict
 from pipeline.lib.learning.training import train_boter, train_dnn
 from pipeline.lib.project.artifacts import BASELINES_JSON, BASELINES_TABLE, HERE, TIMINGS
-from pipeline.lib.project.cli import one_line, stage_main
+from pipeline.lib.project.cli import script, stage_main
 from pipeline.lib.project.columns import JOINTS_DEG
 from pipeline.lib.project.config import for_stage, logger, split_timings, write_json
 from pipeline.lib.reading.prepared import load_prepared
@@ -65,4 +65,4 @@ def run(params: dict, root: Path = HERE) -> dict:
 main = stage_main(__spec__.name, __doc__, run)         # main(argv=None, root=HERE)
 
 if __name__ == "__main__":
-    one_line(__spec__.name, main)
+    script(__spec__.name, main)

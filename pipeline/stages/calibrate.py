@@ -18,7 +18,7 @@ import torch
 
 from pipeline.lib.project.artifacts import (CALIBRATED_GEOMETRY, CALIBRATION_JSON, FRAME_JSON, HERE, TIMINGS,
                                             load_points)
-from pipeline.lib.project.cli import one_line, stage_main
+from pipeline.lib.project.cli import script, stage_main
 from pipeline.lib.project.columns import CAMPAIGN, JOINTS_DEG, MEAS, SPLITS, STATION
 from pipeline.lib.project.config import for_stage, logger, read_json, split_timings, write_json
 from pipeline.lib.robot.frames import measured_rotations
@@ -84,4 +84,4 @@ def run(params: dict, root: Path = HERE) -> dict:
 main = stage_main(__spec__.name, __doc__, run)         # main(argv=None, root=HERE)
 
 if __name__ == "__main__":
-    one_line(__spec__.name, main)
+    script(__spec__.name, main)

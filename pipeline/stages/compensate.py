@@ -33,10 +33,11 @@ from pipeline.lib.learning.model import served
 from pipeline.lib.learning.workspace import Workspace
 from pipeline.lib.project.artifacts import (COMPENSATION_CSV, COMPENSATION_JSON, COMPENSATION_PARQUET,
                                             CONVERGENCE_CSV, DRIVE_CSV, HERE, INGEST_JSON, MODEL_WEIGHTS,
-                                            PARAMS_FILE, REPORTS, TIMINGS, WORKSPACE_JSON, rooted)
-from pipeline.lib.project.cli import one_line
+                                            PARAMS_FILE, REPORTS, TIMINGS, WORKSPACE_JSON, project_owned, rooted)
+from pipeline.lib.project.cli import script
 from pipeline.lib.project.columns import JCOMP_DEG, JOINTS_DEG, TARGET, THEORY
-from pipeline.lib.project.config import for_stage, load_params, logger, read_json, split_timings, write_json
+from pipeline.lib.project.config import for_stage, json_text, load_params, logger, read_json, split_timings
+from pipeline.lib.project.writing import check_outputs, write_file, write_together
 from pipeline.lib.reading.campaigns import ingested_sha256, made_by_twin
 from pipeline.lib.reading.prepared import load_prepared
 from pipeline.lib.robot.geometry import theory_geometry
@@ -195,16 +196,17 @@ def run(params: dict, root: Path = HERE) -> dict:
     flange = nominal_flange(targets[JOINTS_DEG].to_numpy(), prep.nominal)   # (n, 3, 3): the same for every tool
     orientation = orientation_targets(model, cfg)
     table, summary, histories = solve_all(model, workspace, cfg, robot, targets, flange if orientation else None)
-    table.to_csv(root / COMPENSATION_CSV, index=False, float_format="%.6f")
-    table.to_parquet(root / COMPENSATION_PARQUET, index=False)
-    convergence_table(histories).to_csv(root / CONVERGENCE_CSV, index=False)
     made = twin_campaign(cfg["twin"], read_json(root / INGEST_JSON)["files"]) if cfg["drive_check"] else None
     checks, errors = twin_checks(model, cfg, robot, p["robot"]["tcp"], table, frame, made, flange, orientation)
     summary.update(checks)
-    errors.to_csv(root / DRIVE_CSV, index=False, float_format="%.6f")   # empty: no drive check
     summary, timings = split_timings(summary)
-    write_json(root / COMPENSATION_JSON, summary)
-    write_json(root / TIMINGS / "compensate.json", timings)
+    (root / TIMINGS).mkdir(parents=True, exist_ok=True)
+    write_together({root / COMPENSATION_CSV: table.to_csv(index=False, float_format="%.6f"),   # the Δθ table and
+                    root / COMPENSATION_PARQUET: table.to_parquet(index=False),              # what was checked of
+                    root / CONVERGENCE_CSV: convergence_table(histories).to_csv(index=False),  # it: all or none
+                    root / DRIVE_CSV: errors.to_csv(index=False, float_format="%.6f"),   # empty: no drive check
+                    root / COMPENSATION_JSON: json_text(summary),
+                    root / TIMINGS / "compensate.json": json_text(timings)})
     return summary
 
 
@@ -223,11 +225,16 @@ def main(argv=None, root: Path = HERE):
     rotvec = df[ROTVEC].to_numpy(float, copy=True) if ROTVEC[0] in df else None
     flange = None if rotvec is None else flange_targets(model, p["compensate"], df[JOINTS_DEG].to_numpy(), None,
                                                         False, rotvec)   # the probe frame's rotvec, as program's
-    table, summary, _ = solve_all(model, workspace, p["compensate"], robot, df, flange)
     out = root / REPORTS / f"compensation_{Path(a.targets).stem}.csv"
-    table.to_csv(out, index=False, float_format="%.6f")
+    try:                                                    # before solving: compensation_convergence.csv is
+        check_outputs([out], [a.targets], project_owned(root))   # the stage's
+    except ValueError as e:
+        raise ValueError(f"{e.args[0].split(': choose')[0]}; the table is named after the targets file: "
+                         f"rename {a.targets}") from None
+    table, summary, _ = solve_all(model, workspace, p["compensate"], robot, df, flange)
+    write_file(out, table.to_csv(index=False, float_format="%.6f"))
     log.info("wrote %s (%d targets)", out, len(table))
 
 
 if __name__ == "__main__":
-    one_line(__spec__.name, main)
+    script(__spec__.name, main)

@@ -35,7 +35,7 @@ from pipeline.lib.learning.model import predict
 from pipeline.lib.learning.workspace import Workspace
 from pipeline.lib.project.artifacts import (BASELINES_MD, BASELINES_TABLE, HEADLINE_JSON, HERE, METRICS_JSON,
                                             MODEL_WEIGHTS, PREDICTIONS_TABLE, WORKSPACE_JSON)
-from pipeline.lib.project.cli import one_line, stage_main
+from pipeline.lib.project.cli import script, stage_main
 from pipeline.lib.project.columns import CAMPAIGN, JOINTS_DEG, MEAS, PRED, SPLITS, STATION, THEORY
 from pipeline.lib.project.config import for_stage, logger, write_json
 from pipeline.lib.reading.prepared import load_prepared
@@ -196,4 +196,4 @@ def run(params: dict, root: Path = HERE) -> dict:
 main = stage_main(__spec__.name, __doc__, run)         # main(argv=None, root=HERE)
 
 if __name__ == "__main__":
-    one_line(__spec__.name, main)
+    script(__spec__.name, main)

@@ -60,7 +60,7 @@ from pipeline.lib.project.artifacts import (CALIBRATED_GEOMETRY, CONTROLLER_ONNX
                                             CONTROLLER_PHYSICS_TCP_ONNX, CONTROLLER_POSE_ONNX, CONTROLLER_TCP_ONNX,
                                             EXPORT_JSON, FRAME_JSON, HERE, MODEL_ONNX, MODEL_WEIGHTS, ONNX_FILES,
                                             PARTS_JSON, URDF_FILE, UR_YAML, WORKSPACE_JSON, load_points)
-from pipeline.lib.project.cli import one_line, stage_main
+from pipeline.lib.project.cli import script, stage_main
 from pipeline.lib.project.columns import JOINTS_DEG, THEORY
 from pipeline.lib.project.config import for_stage, json_text, logger, read_json
 from pipeline.lib.project.writing import write_together
@@ -135,6 +135,30 @@ def rigid_equivalent(g: dict, q: torch.Tensor, cfg: dict) -> tuple[dict, dict]:
     return rigid, {"mean_mm": float(e.mean()), "max_mm": float(e.max()), "left_out": left_out}
 
 
+def rigid_fit_at_tools(g: dict, rigid: dict, q: torch.Tensor, tcp: dict | None) -> dict:
+    """How far the rigid chain stays from g (the model's physics) where a tool is, not only at the marker
+    (rigid_equivalent's mean_mm, max_mm): at each `robot.tcp` point (else 150 mm along the flange's x), each
+    chain with the point in its own flange frame (tcp.in_flange), {"tcp": {name: {"mean_mm", "max_mm"}}};
+    where g has the probe's rotation, the orientation of its frame (tool0) too, {"orientation_arcsec": {"mean", "max"}}."""
+    out = {"tcp": {}}
+    for name, c in (tcp or {"x150": {"xyz_mm": [150.0, 0.0, 0.0]}}).items():
+        at = []
+        for chain in (g, rigid):
+            f = in_flange({name: c}, chain)[name]
+            tool = {"tool": torch.as_tensor(f["xyz_mm"], dtype=DTYPE),
+                    TOOL_ROT: torch.as_tensor(np.radians(f.get("rxyz_deg", [0.0, 0.0, 0.0])), dtype=DTYPE)}
+            with torch.no_grad():
+                at.append(fk_pose(q, {**chain, **tool})[0].numpy())
+        e = np.linalg.norm(at[0] - at[1], axis=1)
+        out["tcp"][name] = {"mean_mm": float(e.mean()), "max_mm": float(e.max())}
+    if TOOL_ROT in g:
+        with torch.no_grad():
+            R = [fk_pose(q, chain)[1].numpy() for chain in (g, rigid)]
+        a = Rotation.from_matrix(np.einsum("nji,njk->nik", *R)).magnitude() * 206264.806
+        out["orientation_arcsec"] = {"mean": float(a.mean()), "max": float(a.max())}
+    return out
+
+
 def run(params: dict, root: Path = HERE) -> dict:
     """Every file of the stage, made and checked in a temporary folder, then written together (writing.py):
     a run that fails leaves the files of the run before it, all of them, none replaced."""
@@ -194,9 +218,11 @@ def made_and_checked(params: dict, root: Path, tmp: Path) -> tuple[dict, dict]:
     q = torch.as_tensor(np.radians(pts[JOINTS_DEG].to_numpy()), dtype=DTYPE)
     calibrated = with_parts(Calibration.from_dict(read_json(root / CALIBRATED_GEOMETRY)).geometry, read_json(root / PARTS_JSON))
     g, fit = rigid_equivalent(calibrated, q, p["calibrate"])      # the model's physics branch, as a rigid chain
+    fit.update(rigid_fit_at_tools(calibrated, g, q, p["robot"]["tcp"]))
     summary = {"n_poses": len(pts), "rigid_fit": fit}
-    log.info("the calibrated model as a rigid chain: %.4f mm mean, %.4f mm max from it on %d poses",
-             fit["mean_mm"], fit["max_mm"], len(pts))
+    log.info("the calibrated model as a rigid chain: %.4f mm mean, %.4f mm max from it on %d poses; at its tools "
+             "%s; its frame's (tool0's) orientation %s", fit["mean_mm"], fit["max_mm"], len(pts), fit["tcp"],
+             fit.get("orientation_arcsec", "not measured"))
     files, checked = chain_files(g, robot, in_flange(p["robot"]["tcp"], g), q, root)
     summary.update(checked)
 
@@ -228,7 +254,7 @@ def made_and_checked(params: dict, root: Path, tmp: Path) -> tuple[dict, dict]:
         dev = deviation(Realtime(m, limits), OnnxRealtime(at[f], limits), q[test].numpy(),
                         pts.loc[test, THEORY].to_numpy())
         dev.update(max_q_rad=size(dev["max_q_rad"]), max_residual_mm=size(dev["max_residual_mm"]))
-        summary[key] = {"file": str(path), "checked_with": "onnxruntime", **dev}
+        summary[key] = {"file": str(f), "checked_with": "onnxruntime", **dev}
         log.info("%s: onnxruntime's answers vs the PyTorch controller path's on %d test poses (alone and in a "
                  "batch): max %.1e rad, residual %.1e mm; flags differ in %d", path, test.sum(),
                  dev["max_q_rad"], dev["max_residual_mm"], dev["flags_differ"])
@@ -237,7 +263,7 @@ def made_and_checked(params: dict, root: Path, tmp: Path) -> tuple[dict, dict]:
     for key, f, m in (("controller_tcp", CONTROLLER_TCP_ONNX, model),
                       ("controller_physics_tcp", CONTROLLER_PHYSICS_TCP_ONNX, PhysicsOnly(model))):
         path = root / f
-        summary[key] = {"file": str(path), "checked_with": "onnxruntime"}
+        summary[key] = {"file": str(f), "checked_with": "onnxruntime"}
         for name, xyz in tcps.items():
             o = probe_offsets({name: {"xyz_mm": xyz}}, m.physics.geometry())[name]
             target = fk_numpy(pts.loc[test, JOINTS_DEG].to_numpy(), robot, theory_geometry(robot, xyz))
@@ -298,4 +324,4 @@ main = stage_main(__spec__.name, __doc__, run)         # main(argv=None, root=HE
 
 
 if __name__ == "__main__":
-    one_line(__spec__.name, main)
+    script(__spec__.name, main)

@@ -17,7 +17,7 @@ import numpy as np
 import pandas as pd
 
 from pipeline.lib.project.artifacts import FRAME_JSON, HERE, INGEST_TABLE
-from pipeline.lib.project.cli import one_line, stage_main
+from pipeline.lib.project.cli import script, stage_main
 from pipeline.lib.project.columns import CAMPAIGN, JOINTS_DEG, MEAS, STATION
 from pipeline.lib.project.config import for_stage, logger, write_json
 from pipeline.lib.robot.frames import FrameFitError, fit_frames, flange_poses, measured_rotations, probe_rotation
@@ -111,4 +111,4 @@ def run(params: dict, root: Path = HERE) -> dict:
 main = stage_main(__spec__.name, __doc__, run)         # main(argv=None, root=HERE)
 
 if __name__ == "__main__":
-    one_line(__spec__.name, main)
+    script(__spec__.name, main)

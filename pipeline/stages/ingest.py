@@ -21,8 +21,8 @@ from pathlib import Path
 import pandas as pd
 
 from pipeline.lib.project.artifacts import (CAMPAIGNS_DIR, CAMPAIGNS_REPORTS, HERE, INGEST_JSON,
-                                            INGEST_TABLE, PARAMS_FILE, rooted_files)
-from pipeline.lib.project.cli import one_line
+                                            INGEST_TABLE, PARAMS_FILE, as_given, rooted_files)
+from pipeline.lib.project.cli import script
 from pipeline.lib.project.columns import CAMPAIGN, MEAS, MEAS_Q, STATION
 from pipeline.lib.project.config import for_stage, load_params, logger, read_json, write_json
 from pipeline.lib.project.writing import remove_stale
@@ -109,6 +109,7 @@ def run_campaign(params: dict, name: str, root: Path = HERE) -> dict:
     station = campaign_entry(p["campaigns"], name)["station"]
     cfg = campaign_ingest(p["ingest"], p["campaigns"], name)
     df, summary = ingest(rooted_files(cfg, root), load_robot(p["robot"]), f"campaigns.more.{name}.ingest")
+    summary = as_given(summary, cfg, root)
     summary["read_as"] = read_as(cfg, root)
     df["point_id"] = [point_id(name, p) for p in df["point_id"]]
     (root / CAMPAIGNS_DIR).mkdir(parents=True, exist_ok=True)
@@ -128,6 +129,7 @@ def run(params: dict, root: Path = HERE) -> dict:
     df, summary = ingest(rooted_files(p["ingest"], root), load_robot(p["robot"]))
     for info in summary["files"].values():             # the campaign's identity (the twin's drive check)
         info["sha256"] = file_sha256(info["path"])
+    summary = as_given(summary, p["ingest"], root)
     parts, reports = [labelled(df, first, stations[first])], {first: summary}
     summary["campaigns"] = {first: {"station": stations[first], "n_kept": len(df),
                                     "n_dropped": len(summary["dropped"])}}
@@ -180,4 +182,4 @@ def main(argv=None, root: Path = HERE):
 
 
 if __name__ == "__main__":
-    one_line(__spec__.name, main)
+    script(__spec__.name, main)

@@ -27,7 +27,7 @@ from pipeline.lib.project.artifacts import (BASELINES_MD, BASELINES_TABLE, CALIB
                                             INGEST_TABLE, LIVE, METRICS_JSON, MODEL_WEIGHTS, PARTS_REPORT,
                                             PREDICTIONS_TABLE, REPORTS, SPLIT_JSON, THEORY_JSON, TRAIN_JSON,
                                             VALIDATION_JSON, VALIDATION_TABLE)
-from pipeline.lib.project.cli import one_line, stage_main
+from pipeline.lib.project.cli import script, stage_main
 from pipeline.lib.project.columns import MEAS, PRED, THEORY
 from pipeline.lib.project.config import for_stage, logger, read_json
 from pipeline.lib.reporting import figures, page, summary
@@ -159,4 +159,4 @@ main = stage_main(__spec__.name, __doc__, run)         # main(argv=None, root=HE
 
 
 if __name__ == "__main__":
-    one_line(__spec__.name, main)
+    script(__spec__.name, main)

@@ -18,7 +18,7 @@ import pandas as pd
 
 from pipeline.lib.learning.splits import SAME_POSE_DEG, region, repeats, split_groups
 from pipeline.lib.project.artifacts import HERE, POINTS_TABLE, SPLIT_JSON, SPLIT_TABLE
-from pipeline.lib.project.cli import one_line, stage_main
+from pipeline.lib.project.cli import script, stage_main
 from pipeline.lib.project.columns import CAMPAIGN, JOINTS_DEG, SPLITS
 from pipeline.lib.project.config import for_stage, json_text, logger
 from pipeline.lib.project.writing import write_together
@@ -71,4 +71,4 @@ def run(params: dict, root: Path = HERE) -> dict:
 main = stage_main(__spec__.name, __doc__, run)         # main(argv=None, root=HERE)
 
 if __name__ == "__main__":
-    one_line(__spec__.name, main)
+    script(__spec__.name, main)

@@ -14,7 +14,7 @@ import numpy as np
 import pandas as pd
 
 from pipeline.lib.project.artifacts import FRAME_JSON, HERE, INGEST_TABLE, POINTS_TABLE, THEORY_JSON
-from pipeline.lib.project.cli import one_line, stage_main
+from pipeline.lib.project.cli import script, stage_main
 from pipeline.lib.project.columns import CAMPAIGN, ERR, JOINTS_DEG, MEAS, MEAS_Q, STATION, THEORY
 from pipeline.lib.project.config import for_stage, logger, read_json, write_json
 from pipeline.lib.robot.frames import measured_rotations, quaternions, to_base
@@ -66,4 +66,4 @@ def run(params: dict, root: Path = HERE) -> dict:
 main = stage_main(__spec__.name, __doc__, run)         # main(argv=None, root=HERE)
 
 if __name__ == "__main__":
-    one_line(__spec__.name, main)
+    script(__spec__.name, main)

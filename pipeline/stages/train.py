@@ -14,7 +14,7 @@ from pipeline.lib.learning.checkpoint import save_model
 from pipeline.lib.learning.model import check_config
 from pipeline.lib.learning.training import resolve_device, train_boter
 from pipeline.lib.project.artifacts import HERE, LIVE, MODEL_WEIGHTS, TIMINGS, TRAIN_JSON
-from pipeline.lib.project.cli import one_line, stage_main
+from pipeline.lib.project.cli import script, stage_main
 from pipeline.lib.project.config import for_stage, logger, split_timings, write_json
 from pipeline.lib.reading.prepared import load_prepared
 from pipeline.lib.robot.geometry import physics_geometry
@@ -50,4 +50,4 @@ def run(params: dict, root: Path = HERE) -> dict:
 main = stage_main(__spec__.name, __doc__, run)         # main(argv=None, root=HERE)
 
 if __name__ == "__main__":
-    one_line(__spec__.name, main)
+    script(__spec__.name, main)

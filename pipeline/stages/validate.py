@@ -29,8 +29,8 @@ from pipeline.lib.learning.workspace import Workspace
 from pipeline.lib.project.artifacts import (CALIBRATED_GEOMETRY, FRAME_JSON, HERE, INGEST_JSON,
                                             MODEL_WEIGHTS, PARAMS_FILE, PARTS_JSON, VALIDATION_DIR,
                                             VALIDATION_HEADLINE, VALIDATION_JSON, VALIDATION_TABLE,
-                                            WORKSPACE_JSON, rooted, rooted_files)
-from pipeline.lib.project.cli import one_line
+                                            WORKSPACE_JSON, as_given, rooted, rooted_files)
+from pipeline.lib.project.cli import script
 from pipeline.lib.project.columns import JOINTS_DEG, MEAS
 from pipeline.lib.project.config import check_keys, for_stage, load_params, logger, read_json, write_json
 from pipeline.lib.project.writing import remove_stale
@@ -162,6 +162,7 @@ def run_campaign(params: dict, name: str, root: Path = HERE) -> dict:
     if cfg_in["columns"]["marker"] is not None and cfg_in["target"] is None:
         cfg_in = training_target(cfg_in, read_json(root / INGEST_JSON), name)
     df, ingested = ingest(rooted_files(cfg_in, root), robot, f"validate.campaigns.{name}.ingest")
+    ingested = as_given(ingested, cfg_in, root)
     q = df[JOINTS_DEG].to_numpy()
     model = load_model(root / MODEL_WEIGHTS)
     thermal = thermal_change(df, parts)
@@ -277,4 +278,4 @@ def main(argv=None, root: Path = HERE):
 
 
 if __name__ == "__main__":
-    one_line(__spec__.name, main)
+    script(__spec__.name, main)

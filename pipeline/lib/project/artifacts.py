@@ -70,6 +70,24 @@ def rooted_files(ingest: dict, root: Path) -> dict:
     return {**ingest, "joints": rooted(root, ingest["joints"]), "tracker": rooted(root, ingest["tracker"])}
 
 
+def as_given(report, ingest: dict, root: Path):
+    """report (JSON-like) with the ingest section's files named as it gives them wherever this process
+    opened them under root (rooted_files): a stage's record the same bytes wherever the project lies (a
+    fleet's robot in a scratch folder, a benchmark's copy) as in place, where it is report itself."""
+    names = {rooted(root, ingest[k]): str(ingest[k]) for k in ("joints", "tracker")}
+    names = {opened: given for opened, given in names.items() if opened != given}
+
+    def named(v):
+        if isinstance(v, str):
+            for opened, given in names.items():
+                v = v.replace(opened, given)
+            return v
+        if isinstance(v, dict):
+            return {k: named(x) for k, x in v.items()}
+        return [named(x) for x in v] if isinstance(v, list) else v
+    return named(report) if names else report
+
+
 def project_owned(root: Path) -> list[Path]:
     """The files and folders at `root` a command's output may not replace: every output dvc.lock records, the
     settings and pipeline files, the committed campaigns and the benchmark records."""

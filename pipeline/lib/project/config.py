@@ -507,12 +507,14 @@ def read_json(path: Path | str):
     return json.loads(Path(path).read_text())
 
 
+LOG_FORMAT = ("%(asctime)s %(name)s: %(message)s", "%H:%M:%S")     # a log line: logging.Formatter(fmt, datefmt)
+
+
 def logger(name: str) -> logging.Logger:
     """A stage's logger, named after its module even when run as `python -m pipeline.stages.<stage>`."""
     if name == "__main__":
         spec = getattr(sys.modules["__main__"], "__spec__", None)
         name = spec.name if spec else name
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s",
-                        datefmt="%H:%M:%S")
+    logging.basicConfig(level=logging.INFO, format=LOG_FORMAT[0], datefmt=LOG_FORMAT[1])
     short = name.removeprefix("pipeline.").removeprefix("stages.").removeprefix("commands.")
     return logging.getLogger(short.split(".", 2)[2] if short.startswith("lib.") else short)   # lib.robot.x -> x
