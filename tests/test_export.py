@@ -670,8 +670,8 @@ def test_a_model_file_whose_writing_fails_leaves_the_one_before(tmp_path, monkey
     the temporary folder keeps the file's name, which torch.save writes into the archive."""
     import onnx
     from pipeline.lib.learning.checkpoint import save_model
-    cfg = load_params(Path(__file__).parents[1] / "params.yaml")["model"]
-    model = make_model(cfg, nominal_geometry(nominal_robot("ur5")))
+    cfg = {**PARAMS["model"], "d_model": 12, "n_head": 3, "n_layer": 1, "d_hidden": 16}   # small: written, not
+    model = make_model(cfg, nominal_geometry(nominal_robot("ur5")))                       # traced, is the point
     path = tmp_path / "boter.pt"
     save_model(model, path, cfg)
     before = path.read_bytes()

@@ -187,6 +187,21 @@ def test_a_value_thousands_of_lists_deep_is_a_fault_naming_its_field(server, cli
     assert same_answer(many[1], client.compensate(q0, target)) and many[1]["converged"]
 
 
+@pytest.mark.parametrize("scalar", ["<double>abc</double>", "<int>1.5</int>", "<boolean>2</boolean>",
+                                    "<bigdecimal>1,5</bigdecimal>"])
+def test_a_number_its_type_does_not_read_is_a_fault_naming_its_field(server, client, poses, scalar):
+    """A value its XML-RPC type does not read (`<double>abc</double>`): the parser's ValueError was an HTTP 400
+    naming nothing ("not an XML-RPC call"), though the call was one; a client could not tell which of its
+    values was wrong. Now its field is named, in one call and in a batch's item, and the server serves on."""
+    q0, target = poses[0][0].tolist(), poses[1][0].tolist()
+    swap = {"<value><string>BAD</string></value>": f"<value>{scalar}</value>"}
+    with pytest.raises(xmlrpc.client.Fault, match=r"q_rad\[2\]: expected a number, got a malformed value \(<"):
+        raw_call(server, "compensate", ([*q0[:2], "BAD", *q0[3:]], target), swap)
+    many = raw_call(server, "compensate_many", ([[q0, [target[0], "BAD", target[2]]], [q0, target]],), swap)
+    assert many[0]["error"].startswith("requests[0].target_mm[1]: expected a number, got a malformed value (<")
+    assert same_answer(many[1], client.compensate(q0, target)) and many[1]["converged"]
+
+
 @pytest.mark.parametrize("digits, sign", [(400, ""), (4301, ""), (5000, "-")])
 def test_a_400_digit_integer_is_a_fault_naming_its_field(server, poses, digits, sign):
     """xmlrpc.client sends no integer beyond 32 bits, but a request may hold one: float() of it overflowed,

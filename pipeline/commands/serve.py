@@ -87,7 +87,7 @@ from pipeline.lib.robot.urdf import tcp_transforms
 from pipeline.lib.runtime.compensation import reach_mm
 from pipeline.lib.runtime.pathsolve import cycle_s, joint_speeds
 from pipeline.lib.runtime.realtime import Realtime
-from pipeline.lib.runtime.service import RequestError, Service, describe
+from pipeline.lib.runtime.service import Malformed, RequestError, Service, describe
 
 log = logger(__name__)
 PATH = "/RPC2"
@@ -129,9 +129,17 @@ def refuse_declaration(*args):
 
 
 class Unmarshaller(xmlrpc.client.Unmarshaller):
-    """xmlrpc.client's, but an integer of more digits than any float holds is a signed inf (the field's check
-    then names it), not int()'s ValueError past 4300 digits (an HTTP 400 naming nothing)."""
+    """xmlrpc.client's, but an integer of more digits than any float holds is a signed inf, and a number or
+    boolean its type does not read (`<double>abc</double>`) a service.Malformed: the field's check then
+    names it, where int()'s ValueError past 4300 digits, or float()'s, was an HTTP 400 naming nothing."""
     dispatch = dict(xmlrpc.client.Unmarshaller.dispatch)
+
+    def scalar(self, data, read, tag):
+        try:
+            read(self, data)
+        except (ValueError, TypeError, ArithmeticError):   # int(), float(), Decimal, a boolean not 0/1
+            self.append(Malformed(tag, clip(data.strip(), 40)))
+            self._value = 0
 
     def end_int(self, data):
         text = data.strip()
@@ -139,9 +147,21 @@ class Unmarshaller(xmlrpc.client.Unmarshaller):
             self.append(-math.inf if text.startswith("-") else math.inf)
             self._value = 0
         else:
-            super().end_int(data)
+            self.scalar(data, xmlrpc.client.Unmarshaller.end_int, "int")
     for tag in ("i1", "i2", "i4", "i8", "int", "biginteger"):
         dispatch[tag] = end_int
+
+    def end_double(self, data):
+        self.scalar(data, xmlrpc.client.Unmarshaller.end_double, "double")
+    dispatch["double"] = dispatch["float"] = end_double
+
+    def end_bigdecimal(self, data):
+        self.scalar(data, xmlrpc.client.Unmarshaller.end_bigdecimal, "bigdecimal")
+    dispatch["bigdecimal"] = end_bigdecimal
+
+    def end_boolean(self, data):
+        self.scalar(data, xmlrpc.client.Unmarshaller.end_boolean, "boolean")
+    dispatch["boolean"] = end_boolean
 
 
 def parse_call(data: bytes, use_builtin_types: bool) -> tuple[tuple, str]:

@@ -75,10 +75,21 @@ def shown() -> reprlib.Repr:
 SHOWN = shown()
 
 
+@dataclass(frozen=True)
+class Malformed:
+    """A request's scalar its XML-RPC type does not read (`<double>abc</double>`): kept as this, so the
+    field it was sent as is named (commands/serve.py's Unmarshaller), not the whole call refused."""
+    tag: str
+    text: str
+
+    def __repr__(self) -> str:
+        return f"<{self.tag}>{self.text}</{self.tag}>"
+
+
 def describe(v) -> str:
     """A value's kind and its repr, cut to 40 characters (what a message may echo of it)."""
     kinds = {str: "a string", dict: "a struct", bool: "a boolean", list: "a list", tuple: "a list",
-             int: "a number", float: "a number", type(None): "nil"}
+             int: "a number", float: "a number", type(None): "nil", Malformed: "a malformed value"}
     kind = kinds.get(type(v), type(v).__name__)
     text = SHOWN.repr(v)
     return f"{kind} ({text if len(text) <= 40 else text[:37] + '...'})"
