@@ -129,15 +129,15 @@ def run_logged(stage: str, root: Path) -> str | None:
     top = logging.getLogger()
     with open(root / "logs" / f"{stage}.log", "w") as f, \
             contextlib.redirect_stdout(f), contextlib.redirect_stderr(f):
-        handler = logging.StreamHandler(f)
-        handler.setFormatter(InFolder(root))
+        handler, in_folder = logging.StreamHandler(f), InFolder(root)
+        handler.setFormatter(in_folder)
         kept, top.handlers, level = top.handlers, [handler], top.level
         top.setLevel(logging.INFO)
         try:
             stages.run(stage, root=root)
             return None
         except (ValueError, OSError) as e:              # bad input: IngestError, ParamsError, a file
-            said = f"pipeline.stages.{stage}: error: {e}".replace(f"{root}{os.sep}", "")
+            said = f"pipeline.stages.{stage}: error: {e}".replace(in_folder.prefix, "")
             print(said, file=f)
             return said.splitlines()[-1]
         except Exception as e:                          # a defect: its traceback for whoever reads the log

@@ -142,13 +142,8 @@ def rigid_fit_at_tools(g: dict, rigid: dict, q: torch.Tensor, tcp: dict | None) 
     where g has the probe's rotation, the orientation of its frame (tool0) too, {"orientation_arcsec": {"mean", "max"}}."""
     out = {"tcp": {}}
     for name, c in (tcp or {"x150": {"xyz_mm": [150.0, 0.0, 0.0]}}).items():
-        at = []
-        for chain in (g, rigid):
-            f = in_flange({name: c}, chain)[name]
-            tool = {"tool": torch.as_tensor(f["xyz_mm"], dtype=DTYPE),
-                    TOOL_ROT: torch.as_tensor(np.radians(f.get("rxyz_deg", [0.0, 0.0, 0.0])), dtype=DTYPE)}
-            with torch.no_grad():
-                at.append(fk_pose(q, {**chain, **tool})[0].numpy())
+        with torch.no_grad():
+            at = [fk_pose(q, with_tool(chain, in_flange({name: c}, chain)[name]))[0].numpy() for chain in (g, rigid)]
         e = np.linalg.norm(at[0] - at[1], axis=1)
         out["tcp"][name] = {"mean_mm": float(e.mean()), "max_mm": float(e.max())}
     if TOOL_ROT in g:
@@ -304,14 +299,18 @@ def tcp_links(urdf_text: str, tcp: dict, q: torch.Tensor, g: dict) -> dict:
     out = {}
     for name, c in tcp.items():
         p_urdf, R_urdf = urdf_poses(urdf_text, q.numpy(), f"tcp_{name}")
-        at_tcp = {**g, "tool": torch.as_tensor(c["xyz_mm"], dtype=DTYPE),
-                  TOOL_ROT: torch.as_tensor(np.radians(c.get("rxyz_deg", [0.0, 0.0, 0.0])), dtype=DTYPE)}
         with torch.no_grad():
-            p, R = (t.numpy() for t in fk_pose(q, at_tcp))
+            p, R = (t.numpy() for t in fk_pose(q, with_tool(g, c)))
         out[name] = {"max_deviation_mm": float(np.linalg.norm(p_urdf - p, axis=1).max()),
                      "max_rotation_deviation_arcsec": size(Rotation.from_matrix(np.einsum(
                          "nji,njk->nik", R_urdf, R)).magnitude().max() * 206264.806)}
     return out
+
+
+def with_tool(g: dict, c: dict) -> dict:
+    """Geometry g with its tool at the point c ({xyz_mm, rxyz_deg}, g's flange frame): FK gives that point's pose."""
+    return {**g, "tool": torch.as_tensor(c["xyz_mm"], dtype=DTYPE),
+            TOOL_ROT: torch.as_tensor(np.radians(c.get("rxyz_deg", [0.0, 0.0, 0.0])), dtype=DTYPE)}
 
 
 def size(x) -> float:
