@@ -288,6 +288,8 @@ def test_typo_cells_in_positions_drop_their_rows_not_the_campaign(tmp_path):
     assert outlier.startswith("column 'X' = -1.65913e+07 mm") and "median position" in outlier
     assert "'Y'" not in outlier and "'Z'" not in outlier                  # only the column that is off
     assert detail[(paths["tracker"], 11)].startswith("column 'Z': '1e999'")
+    # the joints file's row says where the column it names is (it named the tracker's X as its own)
+    assert detail[(paths["joints"], 2)] == f"its tracker row 2 in {paths['tracker']}: {outlier}"
     assert s["dropped_counts"] == {"position_outlier": 2, "non_finite": 1, "partner_dropped": 1}
     for role in ("joints", "tracker"):
         assert s["n_kept"] + len(by_file(s, paths[role])) == s["n_read"][role]
@@ -310,6 +312,7 @@ def test_typo_cells_in_joints_drop_their_rows(tmp_path):
                    (True, 8, "non_finite"), (False, 8, "partner_dropped")}
     detail = {(d["file"] == paths["joints"], d["row"]): d["detail"] for d in s["dropped"]}
     assert detail[(True, 4)] == "column 'j2_deg' = -6.30052e+07 deg outside [-360, 360]"
+    assert detail[(False, 4)] == f"its joints row 4 in {paths['joints']}: {detail[(True, 4)]}"   # the tracker's row
     assert detail[(True, 6)].startswith("column 'j5_deg': '-1e999'")
     assert detail[(True, 8)].startswith("column 'j1_deg': 'inf'")
     assert s["n_kept"] == len(df) == 724 - 3

@@ -660,10 +660,16 @@ class Points:
     def __len__(self):
         return len(self.ids)
 
-    def drop(self, mask: np.ndarray, reason: str, details: list) -> "Points":
-        """Points without `mask`, each dropped point's rows added to `dropped`."""
-        gone = tuple(e for k in np.flatnonzero(mask) for rows, idx in self.src.values()
-                     for e in entries(rows, idx[k], reason, details[k], self.ids[k]))
+    def drop(self, mask: np.ndarray, reason: str, details: list, named: str | None = None) -> "Points":
+        """Points without `mask`, each dropped point's rows added to `dropped`. named: the role whose cells
+        the details name; the point's row in another file says where they are."""
+        def detail(role: str, k: int) -> str:
+            if named not in self.src or role == named:
+                return details[k]
+            rows, idx = self.src[named]
+            return f"its {named} row {rows.lines[idx[k]]} in {rows.path}: {details[k]}"
+        gone = tuple(e for k in np.flatnonzero(mask) for role, (rows, idx) in self.src.items()
+                     for e in entries(rows, idx[k], reason, detail(role, k), self.ids[k]))
         keep = ~np.asarray(mask)
         return Points(self.ids[keep], self.q[keep], self.m[keep],
                       {role: (rows, idx[keep]) for role, (rows, idx) in self.src.items()},
@@ -767,7 +773,7 @@ def drop_joint_limits(pts: Points, robot, headers: list) -> Points:
         details[k] = "; ".join(f"column '{headers[i]}' = {pts.q[k, i]:.6g} deg outside "
                                f"[{robot.limits_deg[i, 0]:g}, {robot.limits_deg[i, 1]:g}]"
                                for i in np.flatnonzero(out[k]))
-    return pts.drop(bad, "joint_limit", details)
+    return pts.drop(bad, "joint_limit", details, "joints")
 
 
 def check_count(pts: Points, path: str) -> None:
@@ -787,7 +793,7 @@ def drop_position_outliers(pts: Points, robot, headers: list) -> Points:
     if 2 * bad.sum() > len(pts):
         return pts
     details = [position_detail(pts.m[k], dev[k], limit, headers) if b else "" for k, b in enumerate(bad)]
-    return pts.drop(bad, "position_outlier", details)
+    return pts.drop(bad, "position_outlier", details, "tracker")
 
 
 def position_detail(m: np.ndarray, dev: np.ndarray, limit: float, headers: list) -> str:
