@@ -81,8 +81,8 @@ def test_a_stage_run_on_a_project_elsewhere_writes_what_it_writes_in_place(train
     """pipeline.stages.run(name, root=DIR), as a fleet's robot (a scratch folder) and the benchmarks run the
     stages: the bytes `dvc repro` wrote in place. Before, ingest.json named the files as this process opened
     them, DIR's absolute path: a fleet robot's report named a scratch folder gone when it was read, and its
-    bytes changed from run to run (a review found it). A campaign with two bad rows, so the dropped rows'
-    `file` is checked too."""
+    bytes changed from run to run (a review found it). A campaign with a bad cell, so the dropped rows'
+    `file` and the partner row's detail, which names the other file, are checked too."""
     import shutil
     from pipeline import stages
     copy = tmp_path / "elsewhere"
