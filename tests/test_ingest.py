@@ -1,4 +1,5 @@
 """Ingest stage: formats, units, pairing, dropped rows, fatal errors, real datasets."""
+import codecs
 import hashlib
 import json
 import re
@@ -664,7 +665,76 @@ def test_skip_lines_cutting_a_file_without_a_preamble_says_it_cuts_every_file(tm
     j, t = write_pair(tmp_path, ids, q, m)
     Path(t).write_text("// Exported by SpatialAnalyzer 2024.1\n" + Path(t).read_text())
     raises(["joints.csv", "ingest.skip_lines = 1 leaves out the first 1 line(s) of every input file, so this "
-            "one's header was read from line 2"], run, params(skip_lines=1))
+            "one's header was looked for from line 2 on"], run, params(skip_lines=1))
+
+
+def test_a_digit_of_another_script_is_not_a_number(tmp_path, monkeypatch):
+    """A review (2026-12-06): a full-width digit (`２3.9`) passed the number check (\\d is any script's digit)
+    and Python's float read it as 23.9; a cell is read as a number only in ASCII digits."""
+    ids, q, m = campaign(20, seed=5)
+    monkeypatch.chdir(tmp_path)
+    j, t = write_pair(tmp_path, ids, q, m)
+    lines = Path(j).read_text().splitlines()
+    cells = lines[2].split(",")
+    cells[1] = "２" + cells[1].lstrip("-")[1:]
+    lines[2] = ",".join(cells)
+    Path(j).write_text("\n".join(lines) + "\n")
+    df, summary = ingest(params(joints=j, tracker=t))
+    assert [(d["row"], d["reason"]) for d in by_file(summary, j)] == [(3, "non_numeric")] and len(df) == 19
+
+
+def test_a_utf8_file_with_a_stray_byte_keeps_its_first_header(tmp_path, monkeypatch):
+    """A review (2026-12-06): a UTF-8 file with its byte-order mark and one Windows-1252 byte (a `°` in a note)
+    was read as Latin-1 with the mark as text, `ï»¿point_id`: the ids were not found, a one-table campaign
+    took row numbers for ids and its duplicate id went unseen."""
+    ids, q, m = campaign(20, seed=5)
+    monkeypatch.chdir(tmp_path)
+    j, t = write_pair(tmp_path, ids, q, m)
+    lines = Path(t).read_text().splitlines()
+    lines[0] += ",Note"
+    lines[1:] = [line + ",20 C" for line in lines[1:]]
+    lines[3] = lines[3].replace("20 C", "20 \xb0C")
+    Path(t).write_bytes(codecs.BOM_UTF8 + "\n".join(lines).encode("latin-1") + b"\n")
+    df, summary = ingest(params(joints=j, tracker=t))
+    assert summary["n_kept"] == 20 and list(df.point_id) == ids
+
+
+def test_a_separator_ending_the_header_line_alone_is_read_and_excels_sep_line_is_named(tmp_path, monkeypatch):
+    """A review (2026-12-06): a header line ending with a separator, its rows not, made every row
+    `field_count` and stopped the stage ("check ingest.sep / ingest.decimal"); the data is all there. And
+    Excel's `sep=,` line above the header was met with "headers found: 'sep=', ''" and no hint."""
+    ids, q, m = campaign(20, seed=5)
+    monkeypatch.chdir(tmp_path)
+    j, t = write_pair(tmp_path, ids, q, m)
+    text = Path(j).read_text()
+    head, rest = text.split("\n", 1)
+    Path(j).write_text(head + ",\n" + rest)
+    df, summary = ingest(params(joints=j, tracker=t))
+    assert summary["n_kept"] == 20 and summary["dropped"] == [] and list(df.point_id) == ids
+    lines = rest.splitlines()
+    Path(j).write_text("\n".join([head + ",", lines[0] + ",", *lines[1:]]) + "\n")   # one row with it too
+    assert ingest(params(joints=j, tracker=t))[1]["n_kept"] == 20
+    Path(j).write_text("sep=,\n" + text)
+    raises(["joints.csv", "headers found: 'sep=', ''", "preamble line above the header? set ingest.skip_lines"],
+           ingest, params(joints=j, tracker=t))
+
+
+def test_skip_lines_leaving_only_a_header_or_nothing_says_so(tmp_path, monkeypatch):
+    """A review (2026-12-06): a file of a header and one row, or of its header alone, read with skip_lines = 1
+    (meant for another file's preamble) was "the file is empty", or "no data rows below the header (P7, 10.1,
+    ...)" naming a data row as the header, and nothing said that skip_lines had cut it."""
+    ids, q, m = campaign(20, seed=5)
+    monkeypatch.chdir(tmp_path)
+    j, t = write_pair(tmp_path, ids, q, m)
+    Path(j).write_text("# controller log, robot 3\n" + Path(j).read_text())      # the preamble meant
+    lines = Path(t).read_text().splitlines()
+    hint = "ingest.skip_lines = 1 leaves out the first 1 line(s) of every input file"
+    Path(t).write_text(lines[0] + "\n")                                    # the header alone
+    raises(["tracker.csv", "nothing to read; " + hint], run, params(skip_lines=1))
+    Path(t).write_text("\n".join(lines[:2]) + "\n")                       # the header and one row
+    raises(["tracker.csv", f"no data rows below the header ({lines[1].split(',')[0]}", hint], run, params(skip_lines=1))
+    Path(t).write_text("")
+    raises(["tracker.csv", "the file is empty"], run, params(skip_lines=1))
 
 
 def test_utf16_is_read_and_a_quoted_line_break_is_said_as_such(tmp_path, monkeypatch):
@@ -783,6 +853,14 @@ def test_orientation_settings_are_checked_naming_the_key(tmp_path):
             ingest(params(**base, columns={"orientation": EULER}, orientation={key: value}))
     with pytest.raises(ParamsError, match=r"params.yaml ingest.columns.orientation: null, or 3"):
         ingest(params(**base, columns={"orientation": ["rx", "ry"]}))
+    for key, value in [("orientation", ["Rx", "rx ", "Rz"]), ("joints", ["a", "b", "c", "d", "e", " A"]),
+                       ("position", ["X", "Y", "y"]), ("point_id", ""), ("marker", " ")]:
+        # a review (2026-12-06): headers the reader matches as one (case and spaces ignored) passed, and
+        # the column was read twice (an Euler angle for another: rotations off by up to 179°)
+        with pytest.raises(ParamsError, match=rf"params.yaml ingest.columns.{key}: null"):
+            ingest(params(**base, columns={key: value}))
+    with pytest.raises(ParamsError, match=r"params.yaml ingest.joints: the path of the controller log"):
+        ingest(params(**{**base, "joints": None}))                     # before: "None: cannot read the file"
     with pytest.raises(ParamsError, match=r"params.yaml ingest.target: .* at least 3 markers"):
         ingest(params(**base, columns={"marker": "Name"}, target={"markers": {"a": [0, 0, 0], "b": [1, 0, 0]}}))
     with pytest.raises(ParamsError, match=r"params.yaml ingest.target_residual_mm: a distance > 0 mm"):
@@ -997,6 +1075,24 @@ def marker_campaign(n=30, noise=0.02, seed=8, unit=1.0, target=None):
     rows = [[ids[k], name, *map(num, (R[k] @ g + m[k] + rng.normal(0, noise, 3)) * unit), f"t{k}",
              num(rng.uniform())] for k in range(n) for name, g in (target or TARGET).items()]
     return ids, q, m, R, rows
+
+
+def test_a_target_pose_whose_every_row_failed_is_named_by_those_rows(tmp_path):
+    """A review (2026-12-06): the joints row of a pose whose four marker rows each had an empty cell said
+    "its row 42 in ... was dropped (too_few_markers)", where rows 42-45 were listed, each as `empty`."""
+    ids, q, m, R, rows = marker_campaign()
+    at = lambda pid, name: next(i for i, r in enumerate(rows) if r[:2] == [pid, name])   # noqa: E731
+    for name in TARGET:
+        rows[at("P0011", name)][2] = ""                                     # X empty in all four
+    joints, _ = write_pair(tmp_path, ids, q, m)
+    tracker = write(tmp_path / "targets.csv", ["Name", "Marker", "X", "Y", "Z", "Time", "Std"], rows)
+    df, s = ingest(params(joints=joints, tracker=tracker, columns={"marker": "marker"}, target={"markers": TARGET}))
+    lines = [at("P0011", name) + 2 for name in TARGET]
+    assert sorted((d["row"], d["reason"]) for d in by_file(s, tracker)) == [(r, "empty") for r in lines]
+    partner = [d for d in by_file(s, joints)]
+    assert [(d["point_id"], d["reason"]) for d in partner] == [("P0011", "partner_dropped")]
+    assert partner[0]["detail"] == f"its rows {', '.join(map(str, lines))} in {tracker} were dropped (empty)"
+    assert s["n_kept"] == len(df) == 29
 
 
 @pytest.mark.parametrize("given, unit", [(True, "mm"), (False, "mm"), (True, "m")])

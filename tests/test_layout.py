@@ -416,15 +416,26 @@ def git_dvc_repo(tmp: Path) -> dict:
     return {"run": run}
 
 
+@pytest.fixture(scope="module")
+def placeholder_repo(tmp_path_factory):
+    """git_dvc_repo, once for the edits below (each undone after its check): its folder and runner."""
+    tmp = tmp_path_factory.mktemp("placeholders")
+    return tmp, git_dvc_repo(tmp)
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("edited", ["pipeline/lib/robot/robots.py", "pipeline/lib/robot/kinematics.py",
                                     "pipeline/lib/learning/model.py"])
-def test_editing_library_code_makes_dvc_status_report_its_stages(tmp_path, edited):
-    repo = git_dvc_repo(tmp_path)
+def test_editing_library_code_makes_dvc_status_report_its_stages(placeholder_repo, edited):
+    tmp_path, repo = placeholder_repo
     assert "Data and pipelines are up to date" in repo["run"]("dvc", "status").stdout
-    with open(tmp_path / edited, "a") as f:
-        f.write("# an edit\n")
-    status = json.loads(repo["run"]("dvc", "status", "--json").stdout)
+    before = (tmp_path / edited).read_bytes()
+    try:
+        with open(tmp_path / edited, "a") as f:
+            f.write("# an edit\n")
+        status = json.loads(repo["run"]("dvc", "status", "--json").stdout)
+    finally:
+        (tmp_path / edited).write_bytes(before)            # the next edit starts from a current repo
     stale = {name for name, changes in status.items()
              if any(c.get("changed deps", {}).get(edited) == "modified" for c in changes if isinstance(c, dict))}
     users = {name for name, mod in STAGES.items() if not name.startswith("ablation/")

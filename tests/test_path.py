@@ -99,6 +99,27 @@ def test_an_arc_through_three_points_of_space():
         Arc(a, (a + c) / 2, c)
 
 
+def test_a_step_is_judged_against_the_part_of_the_path_it_spans():
+    """A review (2026-12-06): each joint-linear step's middle was measured against the whole path, so on a
+    path that comes back near itself (out along a line, back round a 20 mm semicircle) a step cutting the
+    arc short, straight back along the line, was 0.4 mm "off the path" where it is 20 mm off its arc: the
+    path command wrote it (exit 0). Here a robot whose joints 1-3 are its position (a joint-linear step is
+    a straight line): the step back is 20 mm from the arc it stands for."""
+    start = np.array([0.0, 0.0, 400.0])
+    pts = np.array([start, start + [40, 0, 0], start + [20, 20, 0], start])
+    segs = segments(pts, ["", "movel", "via", "movec"])
+    arc = np.array([0.0, 40.0, 40.0 + 20 * np.pi])
+    q = np.zeros((3, 6))
+    q[:, :3] = pts[[0, 1, 3]]
+    dev = deviation(lambda q_deg: np.asarray(q_deg)[:, :3], q, segs, arc)
+    np.testing.assert_allclose(dev, [0.0, 20.0], atol=1e-9)
+    dense = np.linspace(0.0, arc[-1], 200)                  # sampled every 0.52 mm: each step on its part
+    q = np.zeros((200, 6))
+    q[:, :3] = at(segs, dense)
+    dev = deviation(lambda q_deg: np.asarray(q_deg)[:, :3], q, segs, dense)
+    assert np.sort(dev)[-2] < 0.002 and dev.max() < 0.11      # the arc's sag 0.0017; the corner's chord 0.106
+
+
 @pytest.mark.parametrize("cells, moves, message", [
     ([[0, 0, 400], [100, 0, 400]], ["", "movej"], r"row 3, column 'move': move 'movej' is not one of .* no TCP path"),
     ([[0, 0, 400], [100, 0, 400]], ["", "movel set_digital_out(0, True)"],
@@ -149,11 +170,13 @@ def test_bad_cells_are_named_by_row_and_column(tmp_path):
         read_path(src, robot, lambda q: q[:, :3])
 
 
-@pytest.mark.parametrize("name", ["target_x_mm", "tx", "Target X"])
+@pytest.mark.parametrize("name", ["target_x_mm", "tx", "Target X", "target.x", "x_mm", "move_type"])
 def test_a_misnamed_target_column_beside_joints_is_refused_not_driven_past(tmp_path, caplog, name):
     """The defect (a review): `program` refused target_x_mm and tx, `path` did not read them and drove the path
     through the joints' nominal positions instead (57 mm above the intended one, 35 mm long for 100), exit 0
-    without a word. Now refused, naming the column; a column it does not use otherwise is logged."""
+    without a word. Now refused, naming the column; a column it does not use otherwise is logged. (A review,
+    2026-12-06: target.x and x_mm were logged, and a move column named move_type left every move a movel,
+    an arc driven as two lines.)"""
     robot = load_robot(UR5)
     q = np.array([[2.5, -60.4, 91.1, -182.3, -61.2, -100.7], [5.5, -60.4, 91.1, -182.3, -61.2, -100.7]])
     src = tmp_path / "p.csv"
@@ -647,9 +670,9 @@ def test_chord_mode_halves_the_steps_that_leave_the_path(in_trained_project, tmp
     position = model_position(served_model())
     coarse = pathsolve.solve_path(served_model(), *resample(segs, 50.0), SEAM_START, in_trained_project["compensate"],
                                   load_robot(in_trained_project["robot"]))
-    assert deviation(position, coarse[JCOMP_DEG].to_numpy(), segs).max() > 0.005
+    assert deviation(position, coarse[JCOMP_DEG].to_numpy(), segs, coarse.arc_mm.to_numpy()).max() > 0.005
     table = run(src, tmp_path / "o", "--spacing", "50", "--chord", "0.005")
-    dev = deviation(position, table[JCOMP_DEG].to_numpy(), segs)
+    dev = deviation(position, table[JCOMP_DEG].to_numpy(), segs, table.arc_mm.to_numpy())
     assert dev.max() <= 0.005 and 3 < len(table) < 40, (dev.max(), len(table))
     np.testing.assert_allclose(table[TARGET].to_numpy(), at(segs, table.arc_mm.to_numpy()), atol=1e-9)
 

@@ -170,7 +170,7 @@ def run(argv=None) -> pd.DataFrame:
                        cfg["max_samples"])
     timed = schedule(table[TARGET].to_numpy(), table.arc_mm.to_numpy(), timing)
     table = finish(table, workspace, timed)
-    dev = deviation(model_position(model), table[JCOMP_DEG].to_numpy(), found.segs)
+    dev = deviation(model_position(model), table[JCOMP_DEG].to_numpy(), found.segs, table.arc_mm.to_numpy())
     why = refusal(table, n, robot.limits_deg, p["compensate"]["tol_mm"], dev, cfg["max_deviation_mm"],
                   timed.peak_mm_s, speeds, None if a.allow_outside_workspace else workspace)
     why = why or start_refusal(q0, table[JCOMP_DEG].to_numpy()[0], nominal_geometry(robot), found.offline,

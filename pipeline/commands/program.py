@@ -49,7 +49,7 @@ from pipeline.lib.learning.workspace import Workspace
 from pipeline.lib.project.artifacts import (FRAME_JSON, MODEL_WEIGHTS, PARAMS_FILE, WORKSPACE_JSON, project_owned,
                                             require)
 from pipeline.lib.project.cli import Refused, add_project, one_line
-from pipeline.lib.project.columns import JCOMP_DEG, TARGET
+from pipeline.lib.project.columns import DJ_DEG, JCOMP_DEG, TARGET
 from pipeline.lib.project.config import for_stage, load_params, logger, read_json
 from pipeline.lib.project.writing import check_outputs, csv_text, left_as_they_were, write_together
 from pipeline.lib.robot.geometry import theory_geometry
@@ -109,6 +109,16 @@ def summary_text(table: pd.DataFrame, skipped: dict, workspace) -> str:
     return "\n".join(out)
 
 
+def as_written(table: pd.DataFrame, skipped: dict) -> pd.DataFrame:
+    """The compensated CSV's table: a waypoint not reached (a comment in the script, no move) has no angles to
+    command (j*_comp_deg and dj*_deg empty) and says why in `not_reached` (empty where it was reached)."""
+    out = table.copy()
+    gone = out.point_id.isin(list(skipped)).to_numpy()
+    out.loc[gone, DJ_DEG + JCOMP_DEG] = np.nan
+    out["not_reached"] = out.point_id.map(skipped).fillna("")
+    return out
+
+
 def run(argv=None) -> pd.DataFrame:
     ap = argparse.ArgumentParser(prog="python -m pipeline.commands.program", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -144,7 +154,10 @@ def run(argv=None) -> pd.DataFrame:
         at, nominal = at_tcp(model, p["robot"]["tcp"], a.tcp, nominal)     # refuses an unknown name
         frame_rot = tcp_transforms(in_flange(p["robot"]["tcp"], model.physics.geometry()))[a.tcp][:3, :3]
         model = at
-    table = compensate_program(df, model, workspace, robot, nominal, p["compensate"], frame_rot)
+    try:
+        table = compensate_program(df, model, workspace, robot, nominal, p["compensate"], frame_rot)
+    except Refused as e:                             # beyond the reach, orientation without a model for it
+        raise Refused(f"{src}: {e}; nothing written{left_as_they_were([out, script])}") from None
     skipped = unreached(table, robot, offline=TARGET[0] not in df)     # offline: Δθ a compensation, bounded
     text = summary_text(table, skipped, workspace)
     if skipped and not a.comment_out_unreached:
@@ -158,7 +171,7 @@ def run(argv=None) -> pd.DataFrame:
                       f"singularity on a straight line: {'; '.join(flips)}; nothing written (program.move: movej moves "
                       f"joint by joint; or teach the waypoint again in the configuration of the one before)"
                       f"{left_as_they_were([out, script])}")
-    write_together({out: csv_text(table),
+    write_together({out: csv_text(as_written(table, skipped)),
                     script: urscript(table, skipped, c["move"], **c[c["move"]])}, inputs)
     print(text)
     log.info("wrote %s and %s", out, script)

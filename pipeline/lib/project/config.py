@@ -107,6 +107,12 @@ def _joints(v):
     return isinstance(v, list) and len(v) > 0 and all(_int(1, 6)(j) for j in v) and len(set(v)) == len(v)
 
 
+def _headers(*counts):
+    """null, or a list of `counts` headers, distinct as the reader matches them (case and spaces ignored)."""
+    return lambda v: v is None or (isinstance(v, list) and len(v) in counts and all(map(_header, v))
+                                   and len({str(h).strip().lower() for h in v}) == len(v))
+
+
 def _vec3(v, bound=math.inf):
     """3 finite numbers, each within ±bound."""
     return isinstance(v, list) and len(v) == 3 and all(_num(-bound, bound)(x) for x in v)
@@ -161,6 +167,7 @@ def _interval(lo, hi):
 
 
 def _header(v):
+    """A column header as a setting names one: text or a number, not blank."""
     return isinstance(v, (str, int)) and not isinstance(v, bool) and str(v).strip() != ""
 
 
@@ -239,16 +246,21 @@ RULES = {
     "serve.timeout_s": (_num(0, open_lo=True), "a time > 0 s"),
     "serve.echo_chars": (_int(20), "an integer >= 20"),
     "serve.refusal_delay_ms": (_num(0, 1000), "a time in 0..1000 ms"),
+    "ingest.joints": (lambda v: isinstance(v, str) and v.strip() != "", "the path of the controller log"),
+    "ingest.tracker": (lambda v: isinstance(v, str) and v.strip() != "", "the path of the tracker export"),
     "ingest.skip_lines": (_int(0), "a whole number of lines >= 0"),
     "ingest.sep": (lambda v: v in ("auto", ",", ";", "\t", "tab", "\\t"), "auto, ',', ';' or tab"),
     "ingest.decimal": (lambda v: v in ("auto", ".", ","), "auto, '.' or ','"),
     "ingest.angle_unit": (lambda v: v in ("deg", "rad"), "deg or rad"),
     "ingest.length_unit": (lambda v: v in ("mm", "m"), "mm or m"),
-    "ingest.columns.orientation": (lambda v: v is None or (isinstance(v, list) and len(v) in (3, 4, 9) and all(
-        isinstance(h, (str, int)) and not isinstance(h, bool) for h in v) and len({str(h) for h in v}) == len(v)),
-        "null, or 3 (Euler angles), 4 (quaternion) or 9 (rotation matrix, row-major) distinct headers"),
-    "ingest.columns.marker": (lambda v: v is None or (isinstance(v, (str, int)) and not isinstance(v, bool)
-                                                      and str(v).strip() != ""), "null, or the header naming each row's marker"),
+    "ingest.columns.point_id": (lambda v: v is None or _header(v) or (isinstance(v, list) and len(v) == 2
+                                                                      and all(map(_header, v))),
+                                "null (auto), a header, or [joints file's header, tracker file's header]"),
+    "ingest.columns.joints": (_headers(6), "null (auto) or 6 headers, distinct ignoring case and spaces"),
+    "ingest.columns.position": (_headers(3), "null (auto) or 3 headers, distinct ignoring case and spaces"),
+    "ingest.columns.orientation": (_headers(3, 4, 9), "null, or 3 (Euler angles), 4 (quaternion) or 9 (rotation "
+                                   "matrix, row-major) headers, distinct ignoring case and spaces"),
+    "ingest.columns.marker": (_or_null(_header), "null, or the header naming each row's marker"),
     "ingest.orientation.kind": (lambda v: v in ("euler", "quaternion", "matrix"), "euler, quaternion or matrix"),
     "ingest.orientation.sequence": (lambda v: isinstance(v, str) and len(v) == 3 and (set(v) <= set("XYZ") or set(v) <= set("xyz"))
                                     and v[0] != v[1] and v[1] != v[2],

@@ -17,10 +17,10 @@ Rotation columns (`ingest.columns.orientation`, read as `ingest.orientation` say
 
 Rigid multi-marker targets (optical trackers export one row per marker): each pose's markers are fitted
 by Kabsch (frames.kabsch) to the target's geometry {name: (3,)} in its own frame. The pose is that frame:
-its origin (t) and its rotation (R). `fit_pose` removes the worst marker while its residual exceeds the
-limit and refits; fewer than MIN_MARKERS left, or markers within ACROSS x the limit of a line (a marker
-error within the limit could turn the pose about that line by more than 1/ACROSS rad), and the pose has no
-fit.
+its origin (t) and its rotation (R). While a residual exceeds the limit, `fit_pose` removes the marker
+whose leaving out fits the others best and refits; fewer than MIN_MARKERS left, or markers within ACROSS x
+the limit of a line (a marker error within the limit could turn the pose about that line by more than
+1/ACROSS rad), and the pose has no fit.
 `estimate_geometry`: the geometry when none is given: the first pose holding every marker, centred on
 its markers' centroid, then each marker's median position over all poses (of >= 3 markers) in that pose's
 frame fitted to the first, centred again: one refinement. Its axes are the tracker's at that first pose,
@@ -148,7 +148,8 @@ class PoseFit:
 
 def fit_pose(geometry: dict, points: dict, limit: float) -> PoseFit:
     """Fit a pose's markers {name: (3,)} to the geometry {name: (3,)} (every name in it): P = R G + t.
-    While the worst marker's residual exceeds `limit` it is removed and the pose refitted."""
+    While a residual exceeds `limit`, the marker whose leaving out fits the others best is removed (its
+    residual: its distance from their fit) and the pose refitted (`left_out`)."""
     names, removed = list(points), []
     while True:
         if len(names) < MIN_MARKERS:
@@ -165,10 +166,28 @@ def fit_pose(geometry: dict, points: dict, limit: float) -> PoseFit:
                            f"(need {ACROSS * limit:g} mm across it: {ACROSS:g} x target_residual_mm); the rotation "
                            "about it is not determined")
         res = np.linalg.norm(G @ R.T + t - P, axis=1)
-        worst = int(np.argmax(res))
-        if res[worst] <= limit:
+        if res.max() <= limit:
             return PoseFit(R, t, dict(zip(names, res.tolist())), removed)
-        removed.append((names.pop(worst), float(res[worst])))
+        k, off = left_out(G, P) if len(names) > MIN_MARKERS else (None, 0.0)
+        if k is None:                                 # three markers (or no other fit): the worst one goes
+            k, off = int(np.argmax(res)), float(res.max())
+        removed.append((names.pop(k), off))
+
+
+def left_out(G: np.ndarray, P: np.ndarray) -> tuple[int, float]:
+    """The marker (index into G, P (n, 3)) whose leaving out fits the others best (the least worst residual),
+    and its distance from their fit; (None, 0.0) where no such fit exists. The worst residual of the fit of
+    all is not it: a marker far off pulls that fit towards itself and pushes good ones out."""
+    best = (np.inf, None, 0.0)
+    for k in range(len(G)):
+        rest = np.arange(len(G)) != k
+        try:
+            R, t = kabsch(G[rest], P[rest])
+        except DegenerateFit:
+            continue
+        worst = np.linalg.norm(G[rest] @ R.T + t - P[rest], axis=1).max()
+        best = min(best, (worst, k, float(np.linalg.norm(G[k] @ R.T + t - P[k]))))
+    return best[1], best[2]
 
 
 def across(G: np.ndarray) -> float:

@@ -128,12 +128,12 @@ NAN_WORDS = {"nan", "-nan", "na", "n/a", "null", "none"}
 INF_WORDS = {"inf", "+inf", "-inf", "infinity", "+infinity", "-infinity"}
 POSITION_FAR = 5.0          # x (reach + |tool|): real points lie within (1 + sqrt 3) x that of their
                             # per-axis median; a lost decimal point puts a cell 10..10^4 x off
-NUMBER = re.compile(r"[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?")
-NUMBERS = re.compile(r"(?:[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?\n)*")    # NUMBER, one per line
-COMMA_DECIMAL = re.compile(r"[+-]?\d*,\d+([eE][+-]?\d+)?")
-THOUSANDS = re.compile(r"[+-]?\d{1,3}(,\d{3})+")          # "1,234": a grouping, not a decimal comma, in a ',' file
-POINT_START = re.compile(r"[+-]?(\d|\.\d|nan|inf)", re.I)  # a text cloud's line that begins as a point does
-DOT_DECIMAL = re.compile(r"[+-]?\d*\.\d+([eE][+-]?\d+)?")
+NUMBER = re.compile(r"[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?", re.ASCII)
+NUMBERS = re.compile(r"(?:[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?\n)*", re.ASCII)    # NUMBER, one per line
+COMMA_DECIMAL = re.compile(r"[+-]?\d*,\d+([eE][+-]?\d+)?", re.ASCII)
+THOUSANDS = re.compile(r"[+-]?\d{1,3}(,\d{3})+", re.ASCII)          # "1,234": a grouping, not a decimal comma, in a ',' file
+POINT_START = re.compile(r"[+-]?(\d|\.\d|nan|inf)", re.I | re.ASCII)  # a text cloud's line that begins as a point does
+DOT_DECIMAL = re.compile(r"[+-]?\d*\.\d+([eE][+-]?\d+)?", re.ASCII)
 REFERENCE_POINTS = 4096       # the gross-outlier check scores a point against at most this many others
 REFERENCE_SEED = 0            # which, when there are more points (reference_points)
 PROGRESS_POINTS = 50_000      # a log line per this many points scored (more than REFERENCE_POINTS only)
@@ -173,6 +173,7 @@ class Rows:
     markers: list | None = None                   # each row's marker name (a multi-marker target's file)
     members: list | None = None                   # one row per pose (a target): the file lines it stands for
     n_lines: int | None = None                    # ... and the file's data rows
+    failed: dict = field(default_factory=dict)    # a target's pose whose every row failed its own checks: its lines
 
     @property
     def n_read(self) -> int:
@@ -206,8 +207,8 @@ def read_text(path: str) -> str:
             raise IngestError(f"starts as UTF-16 but byte {e.start} is not ({e.reason})", file=path) from None
     try:
         return data.decode("utf-8-sig")
-    except UnicodeDecodeError:
-        return data.decode("latin-1")
+    except UnicodeDecodeError:                    # its mark (a UTF-8 file with one byte that is not) not text
+        return data.removeprefix(codecs.BOM_UTF8).decode("latin-1")
 
 
 def sniff_sep(header_line: str) -> str:
@@ -249,16 +250,23 @@ def split_records(text: str, sep: str, path: str):
     return records
 
 
+def skipped(skip_lines: int) -> str:
+    """What an error adds where ingest.skip_lines may have cut a file's header ("" where it is 0)."""
+    return (f"; ingest.skip_lines = {skip_lines} leaves out the first {skip_lines} line(s) of every input "
+            f"file, so this one's header was looked for from line {skip_lines + 1} on" if skip_lines else "")
+
+
 def read_table(path: str, sep: str, decimal: str, skip_lines: int = 0):
     """A delimited text table, its first `skip_lines` lines (a preamble) left out -> (header, cells per row,
     line numbers in the file, sep, decimal)."""
-    text = read_text(path)
+    text = whole = read_text(path)
     if skip_lines:                                   # blanked, not cut: line numbers stay the file's
         lines = re.split(r"\r\n|\r|\n", text)           # any line end (CR alone: a Mac export), as csv reads them
         text = "\n" * min(skip_lines, len(lines)) + "\n".join(lines[skip_lines:])
     header_line = next((ln for ln in text.splitlines() if ln.strip()), None)
     if header_line is None:
-        raise IngestError("the file is empty", file=path)
+        raise IngestError("the file is empty" if not whole.strip() else
+                          f"nothing to read{skipped(skip_lines)}", file=path)
     sep = sniff_sep(header_line) if sep == "auto" else sep
     records = split_records(text, sep, path)
     if not records:
@@ -267,7 +275,7 @@ def read_table(path: str, sep: str, decimal: str, skip_lines: int = 0):
     header = [h.strip() for h in records[0][1]]
     body = records[1:]
     if not body:
-        raise IngestError(f"no data rows below the header ({', '.join(header)})", file=path)
+        raise IngestError(f"no data rows below the header ({', '.join(header)}){skipped(skip_lines)}", file=path)
     cells = [rec for _, rec in body]
     decimal = sniff_decimal(cells, sep) if decimal == "auto" else decimal
     return header, cells, [line for line, _ in body], sep, decimal
@@ -312,7 +320,7 @@ def parse_finite(cell: str, decimal: str):
 
 
 def headers_found(header: list) -> str:
-    preamble = len(header) >= 1 and header[0].lstrip().startswith(("//", "#"))
+    preamble = len(header) >= 1 and header[0].lstrip().lower().startswith(("//", "#", "sep="))   # sep=: Excel's
     hint = (" (a comment or preamble line above the header? set ingest.skip_lines)" if preamble else
             " (a single column: is ingest.sep right?)" if len(header) == 1 else "")
     return "headers found: " + ", ".join(repr(h) for h in header) + hint
@@ -372,15 +380,19 @@ def row_ids(n: int) -> list:
     return [f"R{r + 1:0{width}d}" for r in range(n)]
 
 
-def shape_problems(cells: list, width: int) -> list:
-    """Per row: None, or why its cell count does not fit a header of `width` (the `field_count` rule of
-    every table read here: ingest's files and a program's waypoints). Empty cells after the last column
-    are a trailing separator when most rows have them (an export's style); on a few rows they mean a
-    cell split in two by a stray separator or a decimal comma."""
+def shape_problems(cells: list, header: list) -> list:
+    """Per row: None, or why its cell count does not fit the header (the `field_count` rule of every table
+    read here: ingest's files and a program's waypoints). Empty cells after the last column are a trailing
+    separator when most rows have them (an export's style); on a few rows they mean a cell split in two by
+    a stray separator or a decimal comma. Likewise a blank last header (a separator ending the header line
+    alone) with most rows one cell short."""
+    width = len(header)
     padded = [len(row) > width and not any(c.strip() for c in row[width:]) for row in cells]
     trailing_ok = 2 * sum(padded) > len(cells)
+    short_ok = not header[-1] and 2 * sum(len(row) == width - 1 for row in cells) > len(cells)
     return [f"{len(row)} cells but the header has {width} (a separator or decimal comma inside a cell?)"
-            if len(row) < width or (len(row) > width and not (trailing_ok and pad)) else None
+            if (len(row) < width and not (short_ok and len(row) == width - 1))
+            or (len(row) > width and not (trailing_ok and pad)) else None
             for row, pad in zip(cells, padded)]
 
 
@@ -412,9 +424,8 @@ def read_rows(path: str, role: str, cfg: dict, id_setting, groups: list, marker=
     except IngestError as e:                         # skip_lines cuts every file: was this one's header cut?
         if not cfg["skip_lines"]:
             raise
-        raise IngestError(f"{e.message}; ingest.skip_lines = {cfg['skip_lines']} leaves out the "
-                          f"first {cfg['skip_lines']} line(s) of every input file, so this one's header was read "
-                          f"from line {cfg['skip_lines'] + 1}", file=e.file, row=e.row, column=e.column) from None
+        raise IngestError(f"{e.message}{skipped(cfg['skip_lines'])}", file=e.file, row=e.row,
+                          column=e.column) from None
     cols = [c for idx in picked.values() for c in idx]
     keys = [(id_col, "id")] if id_col is not None else []
     if marker is not None:
@@ -422,7 +433,7 @@ def read_rows(path: str, role: str, cfg: dict, id_setting, groups: list, marker=
     width, n = len(header), len(cells)
     ids = row_ids(n) if id_col is None else [cell(row, id_col) for row in cells]
     values = np.full((n, len(cols)), np.nan)
-    shape = shape_problems(cells, width)
+    shape = shape_problems(cells, header)
     problem = [("field_count", shape[r], None) if shape[r] else
                parse_row(row, keys, cols, header, decimal, values[r]) for r, row in enumerate(cells)]
     used = set(cols) | {c for c, _ in keys}
@@ -618,10 +629,17 @@ def target_rows(rows: Rows, cfg: dict) -> tuple[Rows, dict, list]:
                      for (f, _), good in zip(fits, ok)]).reshape(-1, 4)
     problem = [None if good else ("too_few_markers", f.why + (f" ({len(f.removed)} off the fit)" if f.removed else ""),
                                   None) for (f, _), good in zip(fits, ok)]
+    failed = {}                                      # poses none of whose rows passed: their rows' own reasons
+    for i, (pid, idx) in enumerate(groups.items()):
+        if not idx:
+            own = [r for r, rid in enumerate(rows.ids) if rid == pid]
+            failed[i] = [rows.lines[r] for r in own]
+            problem[i] = (", ".join(dict.fromkeys(rows.problem[r][0] for r in own)), "no usable marker row", None)
     first = rows.first_rows()
     pose = Rows(rows.path, rows.role, [rows.lines[first[pid]] for pid in groups], list(groups), values, problem,
                 rows.headers, pose_extras(rows, list(groups.values())), rows.sep, rows.decimal,
-                groups=rows.groups, quat=quat, members=[lines for _, lines in fits], n_lines=rows.n_read)
+                groups=rows.groups, quat=quat, members=[lines for _, lines in fits], n_lines=rows.n_read,
+                failed=failed)
     residuals = [v for f, _ in fits for v in f.residual.values()]
     info = {"marker_column": rows.groups["marker"][0], "geometry": source,
             "origin": "ingest.target's origin" if source == "given" else "the markers' centroid",
@@ -723,7 +741,7 @@ def pair_by_id(J: Rows, T: Rows) -> tuple[list, list]:
             if o is None:
                 dropped += entries(A, r, "unpaired", f"id {pid!r} is not in {B.path}")
             elif B.problem[o]:
-                lines = B.lines_of(o) or [B.lines[o]]
+                lines = B.lines_of(o) or B.failed.get(o) or [B.lines[o]]
                 which = f"row {lines[0]}" if len(lines) == 1 else f"rows {', '.join(map(str, lines))}"
                 dropped += entries(A, r, "partner_dropped", f"its {which} in {B.path} "
                                    f"{'was' if len(lines) == 1 else 'were'} dropped ({B.problem[o][0]})")

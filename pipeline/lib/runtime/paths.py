@@ -18,6 +18,7 @@ orientation is not used, as in URScript's movec).
 """
 import math
 import re
+import unicodedata
 from dataclasses import dataclass
 
 import numpy as np
@@ -33,10 +34,15 @@ ROTVEC = ["target_rx", "target_ry", "target_rz"]           # a TCP orientation: 
 ROTVEC_MAX_RAD = np.pi + 1e-9                              # a rotation vector no longer than π (UR's)
 JOINT_NAMES = ([f"j{i}_deg" for i in range(1, 7)], [f"j{i}_rad" for i in range(1, 7)],
                [f"actual_q_{i}" for i in range(6)])
+READ_NAMES = {*TARGET, *ROTVEC, *(n for names in JOINT_NAMES for n in names), "point_id", "move"}   # what is read
 MIN_MOVE_MM = 1e-6                                         # a move shorter than this goes nowhere
 
 
-MISNAMED = re.compile(r"((target|tgt)[ _-]?r?[xyz]([ _(\[-]|$)|t[xyz]$)", re.I)   # target_x_mm, tx: not target_q_0
+MISNAMED = re.compile(r"""(                           # an unused column named like a target's: refused
+    (target|tgt|tcp|pos|position)[ _.-]?r?[xyz]([ _.(\[-]|$)     # target_x_mm, target.x, pos_x (not target_q_0)
+  | t[xyz]$                                                    # tx
+  | r?[xyz]([ _.(\[-]*(mm|m|rad|deg)[)\]]?)?$                   # x, x_mm, X (mm), z [mm], rx
+)""", re.I | re.X)
 log = logger(__name__)
 
 
@@ -54,9 +60,11 @@ class Line:
         """Points at arc lengths s (k,) from the start -> (k, 3)."""
         return self.start + (s / self.length)[:, None] * (self.end - self.start)
 
-    def distance(self, p: np.ndarray) -> np.ndarray:
+    def distance(self, p: np.ndarray, lo=0.0, hi=None) -> np.ndarray:
+        """Each point's (k, 3) distance to the line between arc lengths lo and hi (scalars or (k,))."""
         d = self.end - self.start
-        u = np.clip((p - self.start) @ d / (d @ d), 0.0, 1.0)
+        hi = self.length if hi is None else hi
+        u = np.clip((p - self.start) @ d / (d @ d), lo / self.length, hi / self.length)
         return np.linalg.norm(p - self.start - u[:, None] * d, axis=1)
 
 
@@ -97,14 +105,20 @@ class Arc:
         t = s / self.radius
         return self.centre + self.radius * (np.cos(t)[:, None] * self.e1 + np.sin(t)[:, None] * self.e2)
 
-    def distance(self, p: np.ndarray) -> np.ndarray:
-        """Within the arc's sweep, the distance to its circle; beyond, to the nearer end."""
+    def distance(self, p: np.ndarray, lo=0.0, hi=None) -> np.ndarray:
+        """Each point's (k, 3) distance to the arc between arc lengths lo and hi (scalars or (k,)): within
+        that sweep, to its circle; beyond, to the nearer end."""
         v = p - self.centre
         h = v @ self.normal
         r = np.linalg.norm(v - h[:, None] * self.normal, axis=1)
         on = np.hypot(h, r - self.radius)
-        ends = np.minimum(np.linalg.norm(p - self.start, axis=1), np.linalg.norm(p - self.end, axis=1))
-        return np.where(self._angle(p) <= self.sweep, on, ends)
+        if hi is None and np.all(lo == 0.0):
+            a, b, hi = self.start, self.end, self.length
+        else:
+            a, b = (self.at(np.broadcast_to(x, len(p)).astype(float)) for x in (lo, hi))
+        ends = np.minimum(np.linalg.norm(p - a, axis=-1), np.linalg.norm(p - b, axis=-1))
+        t = self._angle(p)
+        return np.where((t >= lo / self.radius) & (t <= hi / self.radius), on, ends)
 
 
 def segments(points: np.ndarray, moves: list, where=lambda i: f"point {i}") -> list:
@@ -204,6 +218,22 @@ def distance(points: np.ndarray, segs: list) -> np.ndarray:
     return np.min([s.distance(np.asarray(points, float)) for s in segs], axis=0)
 
 
+def step_distance(points: np.ndarray, segs: list, arc_mm: np.ndarray) -> np.ndarray:
+    """Each step's point (m - 1, 3) distance (mm) to the part of the path the step spans, arc_mm[k] to
+    arc_mm[k + 1] (m,): not to the whole path, which a path coming back near itself (out and back, a closed
+    contour) would find beside a step that cuts across."""
+    points, arc = np.asarray(points, float), np.asarray(arc_mm, float)
+    a, b = np.minimum(arc[:-1], arc[1:]), np.maximum(arc[:-1], arc[1:])
+    ends = np.concatenate([[0.0], np.cumsum([s.length for s in segs])])
+    out = np.full(len(points), np.inf)
+    for i, s in enumerate(segs):
+        sel = (a <= ends[i + 1]) & (b >= ends[i])
+        if sel.any():
+            lo, hi = (np.clip(x[sel] - ends[i], 0.0, s.length) for x in (a, b))
+            out[sel] = np.minimum(out[sel], s.distance(points[sel], lo, hi))
+    return out
+
+
 @dataclass
 class PathFile:
     """A path file's waypoints."""
@@ -233,16 +263,22 @@ def check_rotvecs(rotvec: np.ndarray, path, lines: list) -> None:
                           "radians (degrees given?)", file=path, row=lines[r], column=ROTVEC[0])
 
 
-def check_unused(header: list, used: set, path, known: str) -> None:
+def check_unused(header: list, used: set, path, known: str, also=None) -> None:
     """An IngestError naming a column the reader did not use whose name looks like a target's (a typo,
     `target_x_mm`, would leave the targets unread: waypoints solved as offline ones, a path driven through
-    the joints' nominal positions, without a word); the other unused columns are logged. known: the
-    reader's columns, for the message."""
+    the joints' nominal positions, without a word) or matches the pattern `also` (the reader's own, e.g. a
+    path's `move_type`), read as Unicode reads it (NFKC, invisible characters left out: `target_x` with a
+    zero-width space, a full-width `ｘ`), or is a column the readers read once so read; the other unused
+    columns are logged. known: the reader's columns, for the message."""
     unused = [h for c, h in enumerate(header) if c not in used and h.strip()]
     for h in unused:
-        if MISNAMED.match(h.strip()):
-            raise IngestError(f"a column this reader does not know: its columns are {known}: rename or remove it",
-                              file=path, column=h)
+        plain = "".join(ch for ch in unicodedata.normalize("NFKC", h) if unicodedata.category(ch) != "Cf").strip()
+        named = (MISNAMED.match(plain) or (also is not None and also.search(plain))
+                 or plain.lower() in READ_NAMES)             # target_x with a zero-width space: not target_x
+        odd = " (it holds a character read as another or as none: retype it)" if plain != h.strip() else ""
+        if named:
+            raise IngestError(f"a column this reader does not know{odd}: its columns are {known}: rename or "
+                              "remove it", file=path, column=h)
     if unused:
         log.warning("%s: column(s) not used: %s", path, ", ".join(unused)[:200])
 
@@ -254,7 +290,7 @@ def read_path(path, robot, nominal_fk=None) -> PathFile:
     path = str(path)
     header, cells, lines, _, decimal = read_table(path, "auto", "auto")
     lower = [h.lower() for h in header]
-    for r, problem in enumerate(shape_problems(cells, len(header))):
+    for r, problem in enumerate(shape_problems(cells, header)):
         if problem:
             raise IngestError(problem, file=path, row=lines[r])
     groups = {}
@@ -273,7 +309,7 @@ def read_path(path, robot, nominal_fk=None) -> PathFile:
     check_unused(header, {lower.index(n) for names in groups.values() for n in names}
                  | {c for c, h in enumerate(lower) if h == "move"}, path,
                  f"{', '.join(TARGET)}, {JOINTS_DEG[0]}..{JOINTS_DEG[-1]} (or *_rad, actual_q_*), move and "
-                 f"{', '.join(ROTVEC)}")
+                 f"{', '.join(ROTVEC)}", also=re.compile("move", re.I))
 
     def numbers(names):
         cols = [find_column(header, n, "path", path) for n in names]

@@ -7,7 +7,7 @@
                                                       sample not reached
     refine(...)                                       halve each step whose joint-space middle leaves the
                                                       path by more than a chordal tolerance
-    deviation(position, q_deg, segs)                  how far each joint-linear step's middle leaves the path
+    deviation(position, q_deg, segs, arc_mm)          how far each joint-linear step's middle leaves its part of the path
     cycle_s(robot)                                    servoj's step on the robot's controller (8 or 2 ms)
     schedule(points, arc_mm, timing)                  the path in time: a speed profile from rest to rest, slower
                                                       round corners, ending on a whole controller cycle
@@ -30,7 +30,7 @@ from pipeline.lib.project.config import TOOL_SPEED_MAX, logger
 from pipeline.lib.robot.kinematics import DTYPE
 from pipeline.lib.robot.robots import TABLES
 from pipeline.lib.runtime.compensation import solve
-from pipeline.lib.runtime.paths import at, distance
+from pipeline.lib.runtime.paths import at, step_distance
 from pipeline.lib.runtime.solvers import CHUNK, slices
 
 CB3 = ("ur3", "ur5", "ur10")    # robots.py's arms on a CB3 controller (125 Hz); the others' run at 500 Hz
@@ -85,13 +85,14 @@ def model_position(model):
     return position
 
 
-def deviation(position, q_deg: np.ndarray, segs: list) -> np.ndarray:
+def deviation(position, q_deg: np.ndarray, segs: list, arc_mm: np.ndarray) -> np.ndarray:
     """(m - 1,) mm: how far `position` puts the middle of each joint-linear step between samples q_deg
-    (m, 6) from the path. A branch flip between two samples is tens of millimetres there."""
+    (m, 6) at arc lengths arc_mm (m,) from the part of the path it spans (paths.step_distance). A branch
+    flip between two samples is tens of millimetres there; so is a step that cuts an arc short."""
     q = np.asarray(q_deg, float)
     if len(q) < 2:
         return np.zeros(0)
-    return distance(position((q[:-1] + q[1:]) / 2), segs)
+    return step_distance(position((q[:-1] + q[1:]) / 2), segs, arc_mm)
 
 
 def refine(model, table: pd.DataFrame, segs: list, chord_mm: float, cfg: dict, robot, rotations=None,
@@ -104,7 +105,7 @@ def refine(model, table: pd.DataFrame, segs: list, chord_mm: float, cfg: dict, r
     position = model_position(model)
     for k in range(REFINE_ROUNDS):
         q, arc = table[JCOMP_DEG].to_numpy(), table.arc_mm.to_numpy()
-        bad = np.flatnonzero((deviation(position, q, segs) > chord_mm) & (np.diff(arc) > MIN_STEP_MM))
+        bad = np.flatnonzero((deviation(position, q, segs, arc) > chord_mm) & (np.diff(arc) > MIN_STEP_MM))
         if not len(bad):
             break
         if max_samples is not None and len(table) + len(bad) > max_samples:

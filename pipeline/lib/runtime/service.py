@@ -403,7 +403,7 @@ class Service:
                 break
         table = pd.DataFrame(rows, columns=SOLVED + ["in_workspace"])       # the path command's, and in_workspace
         qd = table[JCOMP_DEG].to_numpy()
-        why = refusal(table, n, self.limits_deg, self.tol, deviation(self.position, qd, segs), self.max_deviation,
+        why = refusal(table, n, self.limits_deg, self.tol, deviation(self.position, qd, segs, table.arc_mm.to_numpy()), self.max_deviation,
                       timed.peak_mm_s, self.joint_speeds)
         if why:
             raise RequestError(f"points_mm: {why}")

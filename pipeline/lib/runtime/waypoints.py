@@ -135,7 +135,7 @@ def read_waypoints(path, robot) -> pd.DataFrame:
     check_unused(header, set(cols) | {c for c, h in enumerate(header) if h.strip().lower() == "point_id"}, path,
                  f"point_id, {JOINTS_DEG[0]}..{JOINTS_DEG[-1]} (or *_rad, actual_q_*), {', '.join(TARGET)} and "
                  f"{', '.join(ROTVEC)}")
-    for r, problem in enumerate(shape_problems(cells, len(header))):
+    for r, problem in enumerate(shape_problems(cells, header)):
         if problem:                                  # its cells would be read shifted: a wrong move
             raise IngestError(problem, file=path, row=lines[r])
     values = numbers(cells, cols, names, decimal, path, lines)
