@@ -268,15 +268,14 @@ def check_unused(header: list, used: set, path, known: str, also=None) -> None:
     `target_x_mm`, would leave the targets unread: waypoints solved as offline ones, a path driven through
     the joints' nominal positions, without a word) or matches the pattern `also` (the reader's own, e.g. a
     path's `move_type`), read as Unicode reads it (NFKC, invisible characters left out: `target_x` with a
-    zero-width space, a full-width `ｘ`), or is a column the readers read once so read; the other unused
+    zero-width space, a full-width `ｘ`), or is so read a column the readers read; the other unused
     columns are logged. known: the reader's columns, for the message."""
     unused = [h for c, h in enumerate(header) if c not in used and h.strip()]
     for h in unused:
         plain = "".join(ch for ch in unicodedata.normalize("NFKC", h) if unicodedata.category(ch) != "Cf").strip()
-        named = (MISNAMED.match(plain) or (also is not None and also.search(plain))
-                 or plain.lower() in READ_NAMES)             # target_x with a zero-width space: not target_x
         odd = " (it holds a character read as another or as none: retype it)" if plain != h.strip() else ""
-        if named:
+        if (MISNAMED.match(plain) or (also is not None and also.search(plain))
+                or (odd and plain.lower() in READ_NAMES)):      # target_x with a zero-width space: not target_x
             raise IngestError(f"a column this reader does not know{odd}: its columns are {known}: rename or "
                               "remove it", file=path, column=h)
     if unused:
