@@ -120,6 +120,18 @@ def test_a_step_is_judged_against_the_part_of_the_path_it_spans():
     assert np.sort(dev)[-2] < 0.002 and dev.max() < 0.11      # the arc's sag 0.0017; the corner's chord 0.106
 
 
+def test_a_path_command_step_that_cuts_an_arc_short_is_refused(in_trained_project, tmp_path, capsys):
+    """The review's path, through the command: out 40 mm along x, back round a 20 mm semicircle; at a spacing
+    of 100 mm its step back cut the arc (0.41 mm "off the path", written); now refused, 5 mm written."""
+    start = np.array(SEAM[0])
+    src = write_path(tmp_path, [start, start + [40, 0, 0], start + [20, 20, 0], start], ["", "movel", "via", "movec"])
+    argv = [str(src), "--out", str(tmp_path / "o"), "--start-deg", *map(str, SEAM_START)]
+    code, said = exit_code(path_command.main, [*argv, "--spacing", "100"], capsys)
+    assert code == 1 and "leaves the path by 19." in said and "a spacing too coarse for the curve" in said, said
+    assert not (tmp_path / "o").exists()
+    assert exit_code(path_command.main, [*argv, "--spacing", "5"], capsys)[0] == 0
+
+
 @pytest.mark.parametrize("cells, moves, message", [
     ([[0, 0, 400], [100, 0, 400]], ["", "movej"], r"row 3, column 'move': move 'movej' is not one of .* no TCP path"),
     ([[0, 0, 400], [100, 0, 400]], ["", "movel set_digital_out(0, True)"],

@@ -336,7 +336,7 @@ def refusal(table: pd.DataFrame, n_samples: int, limits_deg: np.ndarray, tol_mm:
         found.append((k + 1, "leaving the path",
                       f"samples {k + 1}-{k + 2} (arc {arc[k]:.1f}-{arc[k + 1]:.1f} mm): the joint-space step between "
                       f"them leaves the path by {dev[k]:.2f} mm at its middle (path.max_deviation_mm "
-                      f"{max_deviation_mm:g}): a branch flip?"))
+                      f"{max_deviation_mm:g}): a branch flip, or a spacing too coarse for the curve?"))
     outside = np.flatnonzero(~table.in_workspace.to_numpy(bool)[:m]) if workspace is not None else []
     if len(outside):
         k = int(outside[0])
