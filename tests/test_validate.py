@@ -226,7 +226,7 @@ def test_a_campaign_whose_orientation_columns_are_misread_stops_before_writing(p
     """A review (2026-12-06): a validation campaign's Euler angles read in the wrong sequence were judged, exit 0:
     orientation errors of 347 000 arcsec reported as accuracy, and with refit_tool its orientations pulled every
     position 7 mm off. No frame stage sees a validation campaign; the stage now makes the frame stage's check
-    (frame.max_orientation_scatter_arcsec, on the median). Read right, the same file is judged, one reading
+    (frame.max_orientation_scatter_arcsec, on the 90th percentile). Read right, the same file is judged, one reading
     turned 180° among them included (a review: on the mean, that one stopped it)."""
     from pipeline.lib.robot.kinematics import TOOL_ROT
     save_geometry("models/calibration.json", {**nominal_geometry(UR5), TOOL_ROT: torch.zeros(3, dtype=torch.float64)})
@@ -239,7 +239,7 @@ def test_a_campaign_whose_orientation_columns_are_misread_stops_before_writing(p
     c = project["validate"]["campaigns"]["moved"]
     c["frame"] = frame
     c["ingest"].update(columns={"orientation": ["RX", "RY", "RZ"]}, orientation={"kind": "euler", "sequence": "xyz"})
-    with pytest.raises(ValueError, match=r"validate.campaigns.moved: its measured orientations are \d+ arcsec \(median\) "
+    with pytest.raises(ValueError, match=r"validate.campaigns.moved: its measured orientations are \d+ arcsec \(90th percentile\) "
                                          r"from every method's.*above frame.max_orientation_scatter_arcsec = 7200: .*"
                                          r"Check validate.campaigns.moved.ingest.orientation"):
         validate.run_campaign(project, "moved")

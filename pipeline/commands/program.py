@@ -115,7 +115,7 @@ def as_written(table: pd.DataFrame, skipped: dict) -> pd.DataFrame:
     out = table.copy()
     gone = out.point_id.isin(list(skipped)).to_numpy()
     out.loc[gone, DJ_DEG + JCOMP_DEG] = np.nan
-    out["not_reached"] = out.point_id.map(skipped).fillna("")
+    out["not_reached"] = [skipped.get(pid, "") for pid in out.point_id]
     return out
 
 

@@ -20,7 +20,8 @@ from pipeline.lib.project.artifacts import FRAME_JSON, HERE, INGEST_TABLE
 from pipeline.lib.project.cli import script, stage_main
 from pipeline.lib.project.columns import CAMPAIGN, JOINTS_DEG, MEAS, STATION
 from pipeline.lib.project.config import for_stage, logger, write_json
-from pipeline.lib.robot.frames import FrameFitError, fit_frames, flange_poses, measured_rotations, probe_rotation
+from pipeline.lib.robot.frames import (MISREAD_PERCENTILE, FrameFitError, fit_frames, flange_poses, measured_rotations,
+                                       probe_rotation)
 from pipeline.lib.robot.kinematics import nominal_geometry
 from pipeline.lib.robot.robots import load_robot
 
@@ -44,18 +45,21 @@ def orientation_fit(Rf: np.ndarray, R_world: np.ndarray, R: np.ndarray, k: float
 
 
 def check_orientations(dev: np.ndarray, campaigns: np.ndarray, station: str, limit: float) -> None:
-    """Stop where a campaign's measured orientations scatter more than `limit` arcsec (median over its poses, dev
-    (n,) with each pose's campaign (n,)) about its station's fitted probe rotation: no arm's kinematic error turns
-    its flange that far (nominal DH: the IPA UR10 261 arcsec mean, the twin 1046), misread orientation columns
-    do (the IPA T-Mac's read in another Euler convention: 35000-100000), and a misread campaign beside a read
-    one, which the robust fit leaves out of the station's own scatter."""
-    median = {c: float(np.median(dev[campaigns == c])) for c in dict.fromkeys(campaigns)}
-    off = [c for c, v in median.items() if v > limit]
+    """Stop where a campaign's measured orientations scatter more than `limit` arcsec (the MISREAD_PERCENTILE of
+    its poses' dev (n,), each pose's campaign (n,)) about its station's fitted probe rotation: no arm's kinematic
+    error turns its flange that far (nominal DH: the IPA UR10 261 arcsec mean, the twin 1046), misread
+    orientation columns do (the IPA T-Mac's read in another Euler convention: 35000-100000 on most of a
+    campaign, on half of it where two of its angles are alike), and a misread campaign beside a read one,
+    which the robust fit leaves out of the station's own scatter."""
+    at = {c: float(np.percentile(dev[campaigns == c], MISREAD_PERCENTILE)) for c in dict.fromkeys(campaigns)}
+    off = [c for c, v in at.items() if v > limit]
     if off:
-        each = ", ".join(f"{c} {v:.0f}" for c, v in median.items())
+        which = f"{MISREAD_PERCENTILE}th percentile"
+        each = ", ".join(f"{c} {v:.0f}" for c, v in at.items())
         raise FrameFitError(f"campaign {off[0]} (station {station}): its measured orientations scatter "
-                            f"{median[off[0]]:.0f} arcsec (median) about the probe's fitted rotation in the flange, "
-                            f"above frame.max_orientation_scatter_arcsec = {limit:g} (each campaign's median: {each}): "
+                            f"{at[off[0]]:.0f} arcsec ({which}) about the probe's fitted rotation in the flange, "
+                            f"above frame.max_orientation_scatter_arcsec = {limit:g} (each campaign's {which}: "
+                            f"{each}): "
                             "orientation columns are misread, its own or, where the others are off too, theirs. "
                             "Check ingest.orientation (the Euler sequence, intrinsic XYZ or extrinsic xyz, and "
                             "angle_unit; a quaternion's scalar_first) and, for a multi-marker target, that every "

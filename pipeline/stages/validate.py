@@ -23,7 +23,7 @@ from scipy.spatial.transform import Rotation
 
 from pipeline.lib.learning.checkpoint import load_model
 from pipeline.lib.learning.model import predict
-from pipeline.lib.learning.validation import (METHODS, judge, judge_poses, orientation_medians, position_accuracy,
+from pipeline.lib.learning.validation import (METHODS, judge, judge_poses, orientation_percentiles, position_accuracy,
                                               summary)
 from pipeline.lib.learning.workspace import Workspace
 from pipeline.lib.project.artifacts import (CALIBRATED_GEOMETRY, FRAME_JSON, HERE, INGEST_JSON,
@@ -37,7 +37,7 @@ from pipeline.lib.project.writing import remove_stale
 from pipeline.lib.reading.campaigns import ingested_sha256, made_by_twin, named_campaign, pair_sha256, with_override
 from pipeline.lib.reading.readers import ingest
 from pipeline.lib.robot.errormaps import angle_covered
-from pipeline.lib.robot.frames import FrameFitError, measured_rotations
+from pipeline.lib.robot.frames import MISREAD_PERCENTILE, FrameFitError, measured_rotations
 from pipeline.lib.robot.geometry import Calibration, at_temperature, theory_geometry, with_parts
 from pipeline.lib.robot.identify import orientation_weight
 from pipeline.lib.robot.kinematics import DTYPE, TOOL_ROT, fk_numpy, fk_pose, flange_rotations
@@ -130,15 +130,16 @@ def training_target(cfg: dict, trained: dict, name: str) -> dict:
     return cfg
 
 
-def misread(median: dict, name: str, limit: float) -> None:
-    """Stop where even the best method's orientation error (median arcsec over the judged points:
-    validation.orientation_medians) is above `limit` (frame.max_orientation_scatter_arcsec): no arm's error turns
-    its flange that far, misread orientation columns do. The frame stage's check of a training campaign (a
-    median too), for a validation campaign, which no frame stage sees."""
-    best = min(median, key=median.get)
-    if median[best] > limit:
-        raise FrameFitError(f"validate.campaigns.{name}: its measured orientations are {median[best]:.0f} arcsec "
-                            f"(median) from every method's, the best ({best}) included, above "
+def misread(at: dict, name: str, limit: float) -> None:
+    """Stop where even the best method's orientation error (arcsec over the judged points, at the
+    MISREAD_PERCENTILE: validation.orientation_percentiles) is above `limit` (frame.max_orientation_scatter_arcsec):
+    no arm's error turns its flange that far, misread orientation columns do. The frame stage's check of a
+    training campaign, for a validation campaign, which no frame stage sees."""
+    best = min(at, key=at.get)
+    if at[best] > limit:
+        raise FrameFitError(f"validate.campaigns.{name}: its measured orientations are {at[best]:.0f} arcsec "
+                            f"({MISREAD_PERCENTILE}th percentile) from every method's, the best ({best}) included, "
+                            "above "
                             f"frame.max_orientation_scatter_arcsec = {limit:g}: its orientation columns are misread. Check validate.campaigns.{name}.ingest."
                             "orientation (the Euler sequence, intrinsic XYZ or extrinsic xyz, and angle_unit; a "
                             "quaternion's scalar_first), or set its ingest.columns.orientation to null to judge "
@@ -207,7 +208,7 @@ def run_campaign(params: dict, name: str, root: Path = HERE) -> dict:
     if R_world is not None:                          # the orientation and the tools, where measured
         out["pose"] = judge_poses(pred, probe, flange, frames, P, R_world, probe_offsets(p["robot"]["tcp"], cal.geometry),
                                   ~registered)
-        misread(orientation_medians(probe, frames, R_world, ~registered), name,
+        misread(orientation_percentiles(probe, frames, R_world, ~registered), name,
                 frame_cfg["max_orientation_scatter_arcsec"])
         for m, f in frames.items():
             if "probe_rotation" in f:

@@ -41,7 +41,7 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from pipeline.lib.learning.metrics import stats
-from pipeline.lib.robot.frames import FrameFitError, check_fit, robust_kabsch, to_base
+from pipeline.lib.robot.frames import MISREAD_PERCENTILE, FrameFitError, check_fit, robust_kabsch, to_base
 from pipeline.lib.robot.identify import identifiability, orientation_angles
 from pipeline.lib.robot.tcp import pose_errors
 
@@ -216,13 +216,13 @@ def registered_rotations(R_pred: np.ndarray, frame: dict, R_world: np.ndarray) -
     return R_pred @ frame.get("probe_rotation", np.eye(3)), np.einsum("ji,njk->nik", np.asarray(frame["R"]), R_world)
 
 
-def orientation_medians(probe_R: dict, frames: dict, R_world: np.ndarray, judged: np.ndarray) -> dict:
-    """Each method's median orientation error (arcsec) on the judged points, as judge_poses measures it: a
-    statistic one glitched reading does not move."""
+def orientation_percentiles(probe_R: dict, frames: dict, R_world: np.ndarray, judged: np.ndarray) -> dict:
+    """Each method's orientation error (arcsec) on the judged points, as judge_poses measures it, at
+    frames.MISREAD_PERCENTILE: a statistic a few glitched readings do not move, and half a campaign misread does."""
     out = {}
     for m, R_pred in probe_R.items():
         R_m, R_meas = registered_rotations(R_pred, frames[m], R_world)
-        out[m] = float(np.median(orientation_angles(R_m[judged], R_meas[judged])))
+        out[m] = float(np.percentile(orientation_angles(R_m[judged], R_meas[judged]), MISREAD_PERCENTILE))
     return out
 
 

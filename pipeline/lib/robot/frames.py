@@ -30,6 +30,9 @@ from pipeline.lib.project.columns import MEAS_Q
 from pipeline.lib.robot.kinematics import DTYPE, fk_poses, nominal_geometry
 
 MIRROR_RATIO = 3.0          # a reflection this many times better than the best rotation: mirrored axes
+MISREAD_PERCENTILE = 90     # orientation columns are judged misread on this percentile of a campaign's scatter: a
+                            # wrong Euler sequence can read half of it right (extrinsic zyx on the IPA Series_B and
+                            # Series_D, where rx ~ rz: median 397"/470", p90 41 392"/644 027"; read right 420"/617")
 CAUSES = ("Likely causes: swapped or mirrored tracker axes (ingest.columns.position, or the tracker's "
           "export), a wrong length unit (ingest.length_unit), a wrong robot model (robot.model) or "
           "tool (robot.tool_mm; a station measured with another marker: frame.tool_per_station)")
