@@ -74,3 +74,16 @@ def test_the_split_stage_holds_out_the_region(tmp_path, monkeypatch, twin_projec
     table = pd.read_parquet("data/interim/split.parquet")
     assert out["counts"]["holdout"] == (table.split == "holdout").sum() > 40
     assert out["counts"]["train"] + out["counts"]["val"] + out["counts"]["test"] + out["counts"]["holdout"] == len(table)
+
+
+def test_a_thermal_column_the_ingest_table_lacks_is_named_before_the_fit(twin_project):
+    """A review (2026-12-06): parts.thermal.column naming no column of the ingest table stopped the stage after
+    the whole map fit with pyarrow's words and the table's schema, naming no setting."""
+    d, _, _ = twin_project
+    p = json.loads(json.dumps(PARAMS))
+    p["parts"]["thermal"]["column"] = "temp_c"
+    before = (d / "reports/parts.json").read_bytes()
+    with pytest.raises(ValueError, match=r"params.yaml parts.thermal.column: 'temp_c' is not a column of "
+                                         r"data/interim/ingest.parquet \(it has .*j1_deg"):
+        parts.run(p, d)
+    assert (d / "reports/parts.json").read_bytes() == before

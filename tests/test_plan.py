@@ -226,7 +226,9 @@ def test_bad_arguments_are_refused(in_trained_project, tmp_path, capsys):
                           ([str(src), "--n", "3", "--out", str(tmp_path / "o"), "--seed", "-1"],   # was numpy's words
                            "--seed -1: an integer >= 0"),
                           ([str(src), "--n", "3", "--out", str(tmp_path / "o"), "--tracker-mm", "1e308", "1e308", "0"],
-                           "--tracker-mm: three numbers within 100000 mm of the base")):   # was Infinity in plan.json
+                           "--tracker-mm: three numbers within 100000 mm of the base"),   # was Infinity in plan.json
+                          ([str(src), "--n", "100000", "--out", str(tmp_path / "o")],   # a review: minutes without a
+                           "--n 100000: only ")):                                         # word, every candidate planned
         code, said = exit_code(plan_cmd.main, argv, capsys)
         assert code == 2 and message in said and "Traceback" not in said, said
     assert a_file.read_text() == "x" and not (tmp_path / "o").exists()

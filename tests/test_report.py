@@ -442,3 +442,6 @@ def test_the_summary_says_how_a_custom_robots_table_was_given_and_what_was_calib
     assert "classical geometric calibration (4 of 30" in sheet.method_text({}, rigid, None)
     elastic = {**rigid, "identified": rigid["identified"] + ["c2"]}
     assert "classical elasto-geometric calibration (5 of 30" in sheet.method_text({}, elastic, None)
+    off = {"model": "spi_boter_calibrated", "reported": {"method": "calibrated_parts", "network": False}}
+    assert "network on top" not in sheet.method_text(off, elastic, None)     # a review: it said so, network off
+    assert "is not served: the robot cell gets `calibrated_parts`" in sheet.method_text(off, elastic, None)

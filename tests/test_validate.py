@@ -9,6 +9,7 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from pipeline.lib.learning.checkpoint import make_model, save_model
+from pipeline.lib.learning.model import PhysicsOnly
 from pipeline.lib.learning.validation import (METHODS, judge, position_accuracy, refit_tool, registration_subset,
                                               summary)
 from pipeline.lib.learning.workspace import Workspace
@@ -301,6 +302,34 @@ def test_a_bad_setting_of_a_campaigns_ingest_is_named_there(project):
                                          r"or rad, got 'grad'"):
         validate.run_campaign(project, "moved")
     assert not Path("reports/validation/moved.json").exists()
+
+
+@pytest.mark.parametrize("edit, key", [({"planned_tool_mm": None}, "planned_tool_mm"), ({"unit": "cm"}, "unit"),
+                                       ({"rz_deg": None}, "rz_deg"), ({"euler": "xyzz"}, "euler"),
+                                       ({"columns": ["cmd_x", "cmd_y"]}, "columns")])
+def test_a_bad_commanded_setting_is_named_before_the_campaign_is_judged(project, edit, key):
+    """A review (2026-12-06): `commanded.planned_tool_mm: null` wrote NaN for every position accuracy (exit 0);
+    `unit: cm` and `rz_deg: null` were tracebacks, `euler: xyzz` and two columns scipy's and numpy's words,
+    each after the whole campaign was judged. Now refused first, naming the key."""
+    spec = {"columns": ["cmd_x", "cmd_y", "cmd_z"], "unit": "m", "rz_deg": 180, "orientation": ["cmd_rx", "cmd_ry", "cmd_rz"],
+            "euler": "xyz", "planned_tool_mm": [0.0, 0.0, 0.0]}
+    project["validate"]["campaigns"]["moved"]["commanded"] = {**spec, **edit}
+    with pytest.raises(ValueError, match=rf"params.yaml validate.campaigns.moved.commanded.{key}: "):
+        validate.run_campaign(project, "moved")
+    assert not Path("reports/validation/moved.json").exists()
+
+
+@pytest.mark.parametrize("network", [True, False])
+def test_the_model_judged_is_the_one_served(project, monkeypatch, network):
+    """A review (2026-12-06): where evaluate switched the network off (workspace.json network: false) and the
+    robot cell gets the physics alone, validate judged the whole model: its "model" error was the network's,
+    its uncertainty coverage the network's error against the physics' uncertainty."""
+    ws = json.loads(Path("models/workspace.json").read_text())
+    Path("models/workspace.json").write_text(json.dumps({**ws, "network": network}))
+    judged, predict = [], validate.predict
+    monkeypatch.setattr(validate, "predict", lambda model, df: judged.append(model) or predict(model, df))
+    validate.run_campaign(project, "moved")
+    assert len(judged) == 1 and isinstance(judged[0], PhysicsOnly) != network
 
 
 def test_position_accuracy_worked_example():

@@ -195,6 +195,10 @@ def run(argv=None) -> dict:
         raise Refused(f"{src}: no acceptable candidate pose near the program (rules failed: "
                       f"{ {k: v for k, v in cand['rejected_by'].items() if v} }); nothing written. "
                       "Check params.yaml plan.rules and the tracker's position" + earlier)
+    if a.n > len(cand["q"]):                         # said now, not after planning every candidate (minutes)
+        raise ValueError(f"--n {a.n}: only {len(cand['q'])} candidate poses near the program pass the rules "
+                         "(plan.per_waypoint, plan.region, plan.rules): ask for at most that many; nothing written"
+                         + earlier)
     result = plan(q_wp, a.n, cov, ident, cand, cfg["cover_k"], not a.identifiability_only,
                   train_fraction=p["split"]["fractions"][0], maps=maps,
                   move_ok=lambda q0, q1: bool(moves_clear(q0, q1, nominal, cfg["rules"])[0]))

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+import pyarrow.parquet as pq
 import torch
 
 from pipeline.lib.project.artifacts import (CALIBRATED_GEOMETRY, CALIBRATION_JSON, FRAME_JSON, HERE, INGEST_TABLE,
@@ -48,6 +49,10 @@ def thermal_reference(train: pd.DataFrame, cfg: dict, root: Path) -> dict | None
     table's `parts.thermal.column`), with its expansion coefficient; None without a column."""
     if cfg["column"] is None:
         return None
+    have = pq.read_schema(root / INGEST_TABLE).names
+    if cfg["column"] not in have:
+        raise ValueError(f"params.yaml parts.thermal.column: {cfg['column']!r} is not a column of {INGEST_TABLE} "
+                         f"(it has {', '.join(h for h in have if h != 'point_id')})")
     T = pd.read_parquet(root / INGEST_TABLE, columns=["point_id", cfg["column"]]).set_index("point_id")[cfg["column"]]
     T = T.reindex(train["point_id"]).astype(float)
     if T.isna().any():
@@ -108,6 +113,7 @@ def run(params: dict, root: Path = HERE) -> dict:
     cal = Calibration.from_dict(cal_json)
     nominal = theory_geometry(load_robot(p["robot"]), read_json(root / FRAME_JSON)["tool_mm"])
     df = aligned(load_points(root), cal, nominal)
+    thermal = thermal_reference(df[df.split == "train"], p["parts"]["thermal"], root)    # before the fit: its errors
     g, maps, report, deltas = fit_parts(df, cal.geometry, cal_json["identified"], p["parts"], p["calibrate"])
     q_deg = df[JOINTS_DEG].to_numpy()
     q = torch.as_tensor(np.radians(q_deg), dtype=DTYPE)
@@ -133,7 +139,7 @@ def run(params: dict, root: Path = HERE) -> dict:
     report["calibration_corrections"] = {k: {"delta": v, "calibration_se": se.get(k)} for k, v in deltas.items()}
     report["in_range_share"] = {s: {k: float(v.mean()) for k, v in errormaps.in_range(q_deg[m], tau[m], maps).items()}
                                 for s, m in split.items() if m.any()}
-    report["thermal"] = thermal_reference(df[split["train"]], p["parts"]["thermal"], root)
+    report["thermal"] = thermal
     save_geometry(root / PARTS_JSON, g if report["enabled"] else cal.geometry,
                   {"enabled": report["enabled"], "thermal": report["thermal"],
                    "maps_units": "amap_coef, lmap_coef rad; amap_cover 0..1 per degree; lmap_lo, lmap_step N·m"})

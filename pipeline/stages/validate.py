@@ -22,7 +22,7 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from pipeline.lib.learning.checkpoint import load_model
-from pipeline.lib.learning.model import predict
+from pipeline.lib.learning.model import predict, served
 from pipeline.lib.learning.validation import (METHODS, judge, judge_poses, orientation_percentiles, position_accuracy,
                                               summary)
 from pipeline.lib.learning.workspace import Workspace
@@ -32,7 +32,8 @@ from pipeline.lib.project.artifacts import (CALIBRATED_GEOMETRY, FRAME_JSON, HER
                                             WORKSPACE_JSON, as_given, rooted, rooted_files)
 from pipeline.lib.project.cli import script
 from pipeline.lib.project.columns import JOINTS_DEG, MEAS
-from pipeline.lib.project.config import check_keys, for_stage, load_params, logger, read_json, write_json
+from pipeline.lib.project.config import (check_keys, check_values, for_stage, load_params, logger, read_json,
+                                         write_json)
 from pipeline.lib.project.writing import remove_stale
 from pipeline.lib.reading.campaigns import ingested_sha256, made_by_twin, named_campaign, pair_sha256, with_override
 from pipeline.lib.reading.readers import ingest
@@ -58,7 +59,6 @@ def commanded_positions(df: pd.DataFrame, spec: dict, tool_mm, name: str) -> np.
     c + R (tool - planned_tool). The controller's base frame is the DH base turned by `rz_deg`
     about z (180 on a UR).
     """
-    check_keys(spec, "validate.commanded")
     cols = spec["columns"] + (spec["orientation"] or [])
     missing = [c for c in cols if c not in df.columns]
     if missing:
@@ -150,6 +150,9 @@ def run_campaign(params: dict, name: str, root: Path = HERE) -> dict:
     p = for_stage(params, PARAMS["campaign"])
     frame_cfg, cfg = p["frame"], p["validate"]
     c = named_campaign(cfg["campaigns"], name, "validate.campaigns", "validate.campaign")
+    if c["commanded"] is not None:                   # before the campaign is read and judged
+        check_values(check_keys(c["commanded"], "validate.commanded", f"validate.campaigns.{name}.commanded"),
+                     "validate.commanded", f"validate.campaigns.{name}.commanded")
     skipped = twin_only(name, c, p["compensate"]["twin"], root)
     if skipped:                                      # before reading it: it may not fit the user's ingest settings
         (root / VALIDATION_DIR).mkdir(parents=True, exist_ok=True)
@@ -174,7 +177,8 @@ def run_campaign(params: dict, name: str, root: Path = HERE) -> dict:
                       for m, g in geometries.items()}
         model.physics.load_state_dict(geometries["model"])
     pred = {m: fk_numpy(q, robot, g) for m, g in geometries.items() if m != "model"}
-    pred["model"] = predict(model, df)
+    ws = Workspace.from_dict(read_json(root / WORKSPACE_JSON))
+    pred["model"] = predict(served(model, ws.network), df)     # what the robot cell gets (evaluate's verdict)
     qt = torch.as_tensor(np.radians(q), dtype=DTYPE)
     with torch.no_grad():
         flange = {m: flange_rotations(qt, g).numpy() for m, g in geometries.items()}
@@ -192,7 +196,6 @@ def run_campaign(params: dict, name: str, root: Path = HERE) -> dict:
                          f"{c['frame']} registration (validate.register_points = {cfg['register_points']}): none "
                          "is left to judge; measure more poses, lower validate.register_points, or use frame: same "
                          "if the tracker did not move")
-    ws = Workspace.from_dict(read_json(root / WORKSPACE_JSON))
     u, inside = ws(q)
     u = np.sqrt(u ** 2 + frames["model"].get("registration_rms_mm", 0.0) ** 2)     # validation.py: the campaign's own
     table = pd.DataFrame({"point_id": df.point_id, "campaign": name, "registered": registered,

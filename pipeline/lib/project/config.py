@@ -166,6 +166,13 @@ def _interval(lo, hi):
     return lambda v: isinstance(v, list) and len(v) == 2 and all(_num(lo, hi)(x) for x in v) and v[0] < v[1]
 
 
+def _sequence(v) -> bool:
+    """Three Euler axes as scipy's Rotation.from_euler reads them: all upper (intrinsic) or all lower (extrinsic)
+    case, no axis twice in a row."""
+    return (isinstance(v, str) and len(v) == 3 and (set(v) <= set("XYZ") or set(v) <= set("xyz"))
+            and v[0] != v[1] and v[1] != v[2])
+
+
 def _header(v):
     """A column header as a setting names one: text or a number, not blank."""
     return isinstance(v, (str, int)) and not isinstance(v, bool) and str(v).strip() != ""
@@ -262,8 +269,7 @@ RULES = {
                                    "matrix, row-major) headers, distinct ignoring case and spaces"),
     "ingest.columns.marker": (_or_null(_header), "null, or the header naming each row's marker"),
     "ingest.orientation.kind": (lambda v: v in ("euler", "quaternion", "matrix"), "euler, quaternion or matrix"),
-    "ingest.orientation.sequence": (lambda v: isinstance(v, str) and len(v) == 3 and (set(v) <= set("XYZ") or set(v) <= set("xyz"))
-                                    and v[0] != v[1] and v[1] != v[2],
+    "ingest.orientation.sequence": (lambda v: _sequence(v),
                                     "three axes as scipy's Rotation.from_euler: XYZ, ZYX, ZXZ, ... upper case intrinsic "
                                     "(about the turning probe's axes), lower case extrinsic (about the tracker's); "
                                     "no axis twice in a row, no mixed case"),
@@ -353,6 +359,14 @@ RULES = {
     "baselines.other_physics": (_bool, "true or false"),
     "workspace.radius_quantile": (_num(0, 1, open_lo=True), "a quantile in (0, 1]"),
     "workspace.coverage": (_num(0, 1, open_lo=True), "a quantile in (0, 1]"),
+    "validate.commanded.columns": (lambda v: v is not None and _headers(3)(v), "3 headers of the commanded TCP "
+                                   "position, distinct ignoring case and spaces"),
+    "validate.commanded.unit": (lambda v: v in ("mm", "m"), "mm or m"),
+    "validate.commanded.rz_deg": (_num(-360, 360), "an angle -360..360 deg (a UR's: 180)"),
+    "validate.commanded.orientation": (_headers(3), "null, or 3 headers of the commanded orientation (rad)"),
+    "validate.commanded.euler": (_sequence, "three axes as scipy's Rotation.from_euler: xyz (extrinsic), XYZ "
+                                 "(intrinsic), ..."),
+    "validate.commanded.planned_tool_mm": (_vec3, "[x, y, z] mm: the TCP the command was planned for"),
     "validate.register_points": (_int(3), "an integer >= 3"),
     "validate.tool_rank_tol": (_open(0, 1), "a relative pivot in (0, 1)"),
     "validate.tool_significance": (_num(0), "a number of standard errors >= 0 (0: keep every determined component)"),

@@ -451,6 +451,12 @@ def write_index(ctx, figs: dict, ply: dict) -> str:
     if "test" in m:
         t, p = m["test"]["3d"], PAPER_TEST["3d"]
         nom = (m.get("baselines") or {}).get("nominal_dh", {}).get("test", {}).get("3d")
+        reported = m.get("reported") or {}
+        if not reported.get("network", True):            # evaluate's verdict: the physics alone is served
+            served = (m.get("baselines") or {}).get(reported.get("method"), {}).get("test", {}).get("3d")
+            head += [f"**Served:** `{reported.get('method')}` (the network did not lower the validation error)"
+                     + (f", test 3D MAE **{served['mae']:.4f} mm**" if served else "")
+                     + "; the network's numbers follow.", ""]
         head += [f"**Summary:** model `{m.get('model', '?')}`, test 3D MAE **{t['mae']:.4f} mm**, "
                  f"RMSE {t['rmse']:.4f} mm, R² {fmt(t['r2'])} "
                  f"(paper: {p['mae']:.4f} / {p['rmse']:.4f} / {p['r2']:.4f})"

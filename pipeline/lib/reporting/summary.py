@@ -175,8 +175,12 @@ def method_text(metrics: dict, calibration: dict | None, parts: dict | None) -> 
     maps = ("" if parts is None else
             ", per-joint error maps (" + ("on" if parts.get("enabled") else
                                           "off: they did not lower the validation error") + ")")
-    return (f"**Calibration:** {cal}{maps}, and the SPI-BoTER network on top "
-            f"(`{metrics.get('model', 'model')}`).")
+    reported = metrics.get("reported") or {}
+    if reported.get("network", True):
+        return (f"**Calibration:** {cal}{maps}, and the SPI-BoTER network on top "
+                f"(`{metrics.get('model', 'model')}`).")
+    return (f"**Calibration:** {cal}{maps}; the SPI-BoTER network (`{metrics.get('model', 'model')}`) did not "
+            f"lower the validation error and is not served: the robot cell gets `{reported.get('method')}`.")
 
 
 def campaign_rows(trained: list, counts: dict, ingest: dict | None, cond: dict, validation: dict) -> list:
