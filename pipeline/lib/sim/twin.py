@@ -109,9 +109,11 @@ REGIONS = {"front": ((-60.0, 60.0), (-60.0, 60.0)), "side": ((70.0, 150.0), (-15
 # from this seed's streams), half the poses in the front (inside the default campaign's
 # coverage), half at the side (outside it). No misreads: a validation campaign is cleaned.
 VALIDATION = {"seed": 725, "n": {"front": 150, "side": 150}, "dir": "validation", "prefix": "V"}
-# A second training campaign from a second tracker station (the twin-2stations preset): the
-# tracker placed to see the side, so this campaign covers joint space the default one never
-# visits, as Series_B does on the real UR10. Cleaned, like the validation campaign.
+# A second training campaign from a second tracker station (the twin-2stations preset): its poses
+# at the side, so this campaign covers joint space the default one never visits, as Series_B does
+# on the real UR10. Cleaned, like the validation campaign. The tracker's pose is drawn at random
+# (sample_tracker_pose), not placed to see those poses: the twin has no line of sight, and by
+# plan.rules.tracker_side_deg the station would not see them (docs/planning.md).
 STATION_B = {"seed": 726, "n": {"side": 300}, "dir": "station_b", "prefix": "B"}
 
 # The fine angular structure of each joint (issue 22: the IPA UR10 carries per-joint errors with
