@@ -86,6 +86,24 @@ def test_frame_with_tool_estimation_recovers_tool():
     assert fit["residual_mm"].mean() < 0.05
 
 
+def test_misreads_are_found_again_at_the_estimated_tool():
+    """A review (2026-12-06): the outliers were judged once, at the nominal tool; with the real tool 4 cm off it
+    (as the IPA T-Mac's 109 mm start against its 92.8), the scatter hid an 8 mm and a 6 mm misread, kept as
+    training data after the tool was fitted. Now judged again at the fitted tool."""
+    robot = load_robot({"model": "ur5", "tool_mm": [0.0, 0.0, 0.0], "dh": None, "joint_limits_deg": None, "tcp": None})
+    rng = np.random.default_rng(3)
+    q = rng.uniform([-60, -120, -120, -180, 30, -180], [60, -30, 120, 0, 150, 180], (200, 6))
+    true = load_robot({"model": "ur5", "tool_mm": [3.0, -2.0, 40.0], "dh": None, "joint_limits_deg": None, "tcp": None})
+    P = world(fk_numpy(q, true), rng, noise=0.03)
+    P[5] += [0.0, 8.0, 0.0]
+    P[17] += [0.0, 0.0, -6.0]
+    cfg = {"outlier_k": 5.0, "outlier_min_mm": 3.0, "estimate_tool": True, "tool_per_station": False,
+           "robust_loss": "soft_l1", "robust_scale_mm": 0.5, "max_rms_mm": 50.0}
+    fit = fit_frame(q, P, robot, cfg)
+    assert list(np.flatnonzero(~fit["inliers"])) == [5, 17]
+    np.testing.assert_allclose(fit["tool_mm"], [3.0, -2.0, 40.0], atol=0.02)
+
+
 # ---------------------------------------------------------------- fits no real campaign gives
 
 def twin():
@@ -231,3 +249,12 @@ def test_refit_registration_of_a_mirrored_validation_campaign_stops():
     P = (p @ R_TRUE.T + T_TRUE + rng.normal(0, 0.5, p.shape)) * [1, 1, -1]    # Z mirrored
     with pytest.raises(FrameFitError, match=r"refit registration \(nominal\): the tracker axes look mirrored"):
         judge({"nominal": p}, P, "refit", {}, 30, PARAMS["frame"])
+
+
+def test_a_station_too_small_to_fit_is_named():
+    """A review (2026-12-06): a station of two points (or on a line) stopped the frame stage with "need at least
+    3 points for a rigid fit", naming no station."""
+    rng = np.random.default_rng(0)
+    q, P = rng.uniform(-90, 90, (12, 6)), rng.normal(size=(12, 3)) * 100
+    with pytest.raises(FrameFitError, match=r"station 'c': need at least 3 points for a rigid fit, got 2"):
+        fit_frames(q, P, np.array(["a"] * 10 + ["c"] * 2), nominal_robot("ur5"), PARAMS["frame"] | {"max_rms_mm": 1e9})

@@ -38,7 +38,7 @@ from pipeline.lib.project.writing import remove_stale
 from pipeline.lib.reading.campaigns import ingested_sha256, made_by_twin, named_campaign, pair_sha256, with_override
 from pipeline.lib.reading.readers import ingest
 from pipeline.lib.robot.errormaps import angle_covered
-from pipeline.lib.robot.frames import MISREAD_PERCENTILE, FrameFitError, measured_rotations
+from pipeline.lib.robot.frames import MISREAD_PERCENTILE, DegenerateFit, FrameFitError, measured_rotations
 from pipeline.lib.robot.geometry import Calibration, at_temperature, theory_geometry, with_parts
 from pipeline.lib.robot.identify import orientation_weight
 from pipeline.lib.robot.kinematics import DTYPE, TOOL_ROT, fk_numpy, fk_pose, flange_rotations
@@ -189,7 +189,7 @@ def run_campaign(params: dict, name: str, root: Path = HERE) -> dict:
         errors, registered, frames = judge(pred, P, c["frame"], frame, cfg["register_points"], frame_cfg, flange,
                                            cfg["tool_rank_tol"], probe, R_world,
                                            orientation_weight(p["calibrate"]["pose_noise"]), cfg["tool_significance"])
-    except FrameFitError as e:
+    except (FrameFitError, DegenerateFit) as e:      # DegenerateFit: the registration points collinear
         raise FrameFitError(f"validate.campaigns.{name}: {e}") from None
     if registered.all():                             # refit: every point registers the frame, none is judged
         raise ValueError(f"validate.campaigns.{name}: all {len(df)} points of the campaign go to the "

@@ -41,7 +41,8 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from pipeline.lib.learning.metrics import stats
-from pipeline.lib.robot.frames import MISREAD_PERCENTILE, FrameFitError, check_fit, robust_kabsch, to_base
+from pipeline.lib.robot.frames import (MISREAD_PERCENTILE, REFIT_ROUNDS, FrameFitError, check_fit, kabsch,
+                                       robust_kabsch, to_base)
 from pipeline.lib.robot.identify import identifiability, orientation_angles
 from pipeline.lib.robot.tcp import pose_errors
 
@@ -194,11 +195,21 @@ def judge(pred: dict, P_world: np.ndarray, mode: str, frame: dict, n_register: i
             check_fit(p[reg][inl], P_world[reg][inl], R, t, "the refit registration (nominal)", frame_cfg)
         frames[m] = {"R": R, "t": t, "tool_offset_mm": np.zeros(3)}
         if mode == "refit_tool":
-            k = np.flatnonzero(reg)[inl]
-            poses = R_world is not None
-            R, t, dt, dR, held, why = refit_tool(p[k], flange_R[m][k], P_world[k], R, t, tool_rank_tol,
-                                                 probe_R[m][k] if poses else None, R_world[k] if poses else None,
-                                                 weight, tool_significance)
+            poses, at = R_world is not None, np.flatnonzero(reg)
+            for _ in range(REFIT_ROUNDS):            # the misreads judged again with the offset: a re-mounted
+                k = at[inl]                          # probe's mm of offset widen the first fit's scatter past them
+                R, t, dt, dR, held, why = refit_tool(p[k], flange_R[m][k], P_world[k], R, t, tool_rank_tol,
+                                                     probe_R[m][k] if poses else None,
+                                                     R_world[k] if poses else None, weight, tool_significance)
+                r = np.linalg.norm((p[at] + np.einsum("mij,j->mi", flange_R[m][at], dt)) @ R.T + t - P_world[at],
+                                   axis=1)
+                med = np.median(r[inl])
+                again = r <= max(med + frame_cfg["outlier_k"] * 1.4826 * np.median(np.abs(r[inl] - med)),
+                                 frame_cfg["outlier_min_mm"])
+                if (again == inl).all():
+                    break
+                inl = again
+                R, t = kabsch(p[at[inl]], P_world[at[inl]])
             p = p + np.einsum("mij,j->mi", flange_R[m], dt)
             frames[m] = {"R": R, "t": t, "tool_offset_mm": dt, "tool_held": held, "tool_held_why": why,
                          **({"probe_rotation": dR} if poses else {})}

@@ -29,6 +29,8 @@ from scipy.spatial.transform import Rotation
 from pipeline.lib.project.columns import MEAS_Q
 from pipeline.lib.robot.kinematics import DTYPE, fk_poses, nominal_geometry
 
+REFIT_ROUNDS = 5             # at most this many refits with the outliers judged again at the fitted tool (frame.
+                            # estimate_tool) or probe offset (validate's refit_tool)
 MIRROR_RATIO = 3.0          # a reflection this many times better than the best rotation: mirrored axes
 MISREAD_PERCENTILE = 90     # orientation columns are judged misread on this percentile of a campaign's scatter: a
                             # wrong Euler sequence can read half of it right (extrinsic zyx on the IPA Series_B and
@@ -175,7 +177,10 @@ def fit_frames(q_deg: np.ndarray, P: np.ndarray, station: np.ndarray, robot, cfg
     frames, inl, conds = [], np.zeros(len(P), bool), []
     for k in range(len(names)):
         m = idx == k
-        R, t, inl_k, _ = robust_kabsch(Q[m], P[m], cfg["outlier_k"], cfg["outlier_min_mm"])
+        try:
+            R, t, inl_k, _ = robust_kabsch(Q[m], P[m], cfg["outlier_k"], cfg["outlier_min_mm"])
+        except DegenerateFit as e:                   # too few points, or on a line: which station's
+            raise FrameFitError(f"station '{names[k]}': {e}") from None
         frames.append((R, t))
         inl[np.flatnonzero(m)[inl_k]] = True
         sv = np.linalg.svd(Q[m][inl_k] - Q[m][inl_k].mean(0), compute_uv=False)
@@ -186,11 +191,23 @@ def fit_frames(q_deg: np.ndarray, P: np.ndarray, station: np.ndarray, robot, cfg
     if per_station and not cfg["estimate_tool"]:
         raise ValueError("params.yaml frame.tool_per_station: true needs frame.estimate_tool: true")
     if cfg["estimate_tool"]:
-        frames, tools, diag = refine_with_tool(Rf[inl], pf[inl], P[inl], frames, tool, idx[inl],
-                                               cfg["robust_loss"], cfg["robust_scale_mm"], per_station)
+        for _ in range(REFIT_ROUNDS):                 # the outliers judged again at the fitted tool, until they hold:
+            frames, tools, diag = refine_with_tool(Rf[inl], pf[inl], P[inl], frames, tools[0], idx[inl],   # a tool
+                                                   cfg["robust_loss"], cfg["robust_scale_mm"], per_station)  # cm off
+            Q = tool_points(Rf, pf, tools[idx])                  # hides misreads in the nominal fit's scatter
+            Rs, ts = np.stack([R for R, _ in frames]), np.stack([t for _, t in frames])
+            r = np.linalg.norm(np.einsum("nij,nj->ni", Rs[idx], Q) + ts[idx] - P, axis=1)
+            again = np.zeros(len(P), bool)
+            for k in range(len(names)):
+                m = idx == k
+                med = np.median(r[m & inl])
+                mad = 1.4826 * np.median(np.abs(r[m & inl] - med))
+                again[m] = r[m] <= max(med + cfg["outlier_k"] * mad, cfg["outlier_min_mm"])
+            if (again == inl).all():
+                break
+            inl = again
         diag["method"] = ("kabsch + least-squares base frame" + ("s" if len(names) > 1 else "")
                           + (" and a tool per station" if per_station else " and tool"))
-        Q = tool_points(Rf, pf, tools[idx])
     Rs, ts = np.stack([R for R, _ in frames]), np.stack([t for _, t in frames])
     r = np.linalg.norm(np.einsum("nij,nj->ni", Rs[idx], Q) + ts[idx] - P, axis=1)
     for k, s in enumerate(names):
