@@ -117,7 +117,24 @@ def test_a_step_is_judged_against_the_part_of_the_path_it_spans():
     q = np.zeros((200, 6))
     q[:, :3] = at(segs, dense)
     dev = deviation(lambda q_deg: np.asarray(q_deg)[:, :3], q, segs, dense)
-    assert np.sort(dev)[-2] < 0.002 and dev.max() < 0.11      # the arc's sag 0.0017; the corner's chord 0.106
+    assert np.sort(dev)[-2] < 0.002 and dev.max() < 0.12      # the arc's sag 0.0017; the corner's chord 0.115
+
+
+def test_a_step_that_meets_its_arc_at_its_middle_only_is_judged_along_it():
+    """A review (2026-12-06): the service accepted a coarse arc whose one joint-space step crossed the arc at its
+    middle, the only point judged, and ran 15.8 mm off it a fifth of the way along. Here a chain whose step
+    from q = 0 to 1 runs through the arc's middle and 10 mm out of its plane at a quarter and three quarters."""
+    a, v, c = np.array([0.0, 0, 400]), np.array([50.0, 50, 400]), np.array([100.0, 0, 400])   # v: the arc's middle
+    segs = segments(np.array([a, v, c]), ["", "via", "movec"])
+    w = np.array([0.0, 0.0, 10.0])
+
+    def position(q_deg):
+        t = np.asarray(q_deg)[:, :1]
+        return a + t * (c - a) + 4 * t * (1 - t) * (v - (a + c) / 2) + np.sin(2 * np.pi * t) * w
+    q, arc = np.zeros((2, 6)), np.array([0.0, segs[0].length])
+    q[1, 0] = 1.0
+    assert deviation(position, q, segs, arc, parts=2)[0] < 1e-9                 # its middle: on the arc
+    assert deviation(position, q, segs, arc)[0] > 9.0                           # a quarter of the way: 10 mm off
 
 
 def test_a_path_command_step_that_cuts_an_arc_short_is_refused(in_trained_project, tmp_path, capsys):

@@ -27,10 +27,10 @@ six equations, position and the flange's orientation (a model calibrated with th
 target_rx..rz for one without are refused). --ignore-orientation compensates the position alone.
 
 The path is resampled at most `path.spacing_mm` apart (--spacing), each step then halved while the model
-puts its joint-space middle farther than `path.chord_mm` from the path (--chord); each sample is solved
+puts its joint-space chord farther than `path.chord_mm` from the path (--chord); each sample is solved
 from the previous sample's solution (lib/runtime/pathsolve.py). Safe by construction: only numbers formatted
 here reach the script; a sample not reached, beyond the joint limits, a joint step faster than the joint's
-speed limit at the path's speed, or a step whose joint-space middle leaves the path by more than
+speed limit at the path's speed, or a step whose joint-space chord leaves the path by more than
 `path.max_deviation_mm` (a branch flip), sample 1 in another configuration than the start joints' (a
 shoulder, elbow or wrist flipped, or a joint turned over 180°; for an offline path, any joint turned over
 5°: waypoints.start_refusal), and a sample outside the trained workspace (unless
@@ -90,7 +90,7 @@ def summary_text(table: pd.DataFrame, dev: np.ndarray, spacing: float, speed: fl
     orientation = f", the flange's orientation {table.orientation_residual_arcsec.max():.1e} arcsec" if held else ""
     return (f"{len(table)} samples over {table.arc_mm.iloc[-1]:.1f} mm (steps {steps.min():.3f}-{steps.max():.3f} "
             f"mm, spacing {spacing:g} mm): residual max {table.residual_mm.max():.1e} mm{orientation}; the joint-space steps "
-            f"within {dev.max() if len(dev) else 0.0:.4f} mm of the path at their middle (the model); "
+            f"within {dev.max() if len(dev) else 0.0:.4f} mm of the path (the model, 7 points a step); "
             f"{int((~table.in_workspace).sum())} samples outside the trained workspace; "
             f"{table.t_s.iloc[-1]:.2f} s at {speed:g} mm/s")
 

@@ -164,7 +164,7 @@ class Judge:
         inside = self.workspace(q)[1]
         out = self.along(segs, *joint_motion(a, q))
         return {**out, "samples": len(q), "at_samples": stats(at_samples), "in_workspace_share": float(inside.mean()),
-                "model_step_middle_max_mm": float(deviation(model_position(self.model), q, segs, a).max()),
+                "model_step_middle_max_mm": float(deviation(model_position(self.model), q, segs, a, parts=2).max()),
                 "solve_seconds": seconds}
 
 

@@ -5,9 +5,9 @@
     solve_path(model, targets, arc_mm, q_start, ...)  every sample from the previous sample's solution:
                                                       continuity, no branch flips; it stops at the first
                                                       sample not reached
-    refine(...)                                       halve each step whose joint-space middle leaves the
-                                                      path by more than a chordal tolerance
-    deviation(position, q_deg, segs, arc_mm)          how far each joint-linear step's middle leaves its part of the path
+    refine(...)                                       halve each step the model puts off the path by more
+                                                      than a chordal tolerance (`deviation`)
+    deviation(position, q_deg, segs, arc_mm)          how far each joint-linear step leaves its part of the path
     cycle_s(robot)                                    servoj's step on the robot's controller (8 or 2 ms)
     schedule(points, arc_mm, timing)                  the path in time: a speed profile from rest to rest, slower
                                                       round corners, ending on a whole controller cycle
@@ -76,6 +76,10 @@ def solve_path(model, targets: np.ndarray, arc_mm: np.ndarray, q_start_deg, cfg:
     return pd.DataFrame(rows, columns=SOLVED)
 
 
+STEP_PARTS = 8        # deviation: a step judged at 7 points along it (a review: at its middle alone, a coarse step
+                      # that crossed an arc there passed 15.8 mm off it at a fifth of the way)
+
+
 def model_position(model):
     """q_deg (k, 6) -> the model's TCP (k, 3) mm, solvers.CHUNK poses at a time."""
     def position(q_deg):
@@ -85,19 +89,23 @@ def model_position(model):
     return position
 
 
-def deviation(position, q_deg: np.ndarray, segs: list, arc_mm: np.ndarray) -> np.ndarray:
-    """(m - 1,) mm: how far `position` puts the middle of each joint-linear step between samples q_deg
-    (m, 6) at arc lengths arc_mm (m,) from the part of the path it spans (paths.step_distance). A branch
-    flip between two samples is tens of millimetres there; so is a step that cuts an arc short."""
+def deviation(position, q_deg: np.ndarray, segs: list, arc_mm: np.ndarray, parts: int = STEP_PARTS) -> np.ndarray:
+    """(m - 1,) mm: how far `position` puts each joint-linear step between samples q_deg (m, 6) at arc lengths
+    arc_mm (m,) from the part of the path it spans (paths.step_distance): the worst of its points at 1/parts,
+    2/parts, ... of the way (parts=2: its middle). A branch flip between two samples is tens of millimetres
+    there; so is a step that cuts an arc short, or one that crosses the arc at its middle only."""
     q = np.asarray(q_deg, float)
     if len(q) < 2:
         return np.zeros(0)
-    return step_distance(position((q[:-1] + q[1:]) / 2), segs, arc_mm)
+    t = np.arange(1, parts) / parts
+    inner = q[:-1, None] + t[None, :, None] * (q[1:] - q[:-1])[:, None]          # (m - 1, parts - 1, 6)
+    p = np.asarray(position(inner.reshape(-1, 6))).reshape(len(q) - 1, parts - 1, 3)
+    return np.max([step_distance(p[:, j], segs, arc_mm) for j in range(parts - 1)], axis=0)
 
 
 def refine(model, table: pd.DataFrame, segs: list, chord_mm: float, cfg: dict, robot, rotations=None,
            max_samples: int | None = None) -> pd.DataFrame:
-    """Chord mode: each step whose middle the model puts farther than chord_mm from the path gets a sample
+    """Chord mode: each step the model puts farther than chord_mm from the path (`deviation`) gets a sample
     at its arc middle, solved from the middle of its ends' joints (continuity); until none does, a step is
     MIN_STEP_MM short, or REFINE_ROUNDS rounds (then `refusal` judges what is left). rotations: arc_mm (k,)
     -> the flange's orientations there (k, 3, 3), for a path with orientation. A ValueError, before a round's
@@ -297,7 +305,7 @@ def refusal(table: pd.DataFrame, n_samples: int, limits_deg: np.ndarray, tol_mm:
     not reached (solve_path stops at such a sample; refine's samples in between may be one too), beyond the
     joint limits, a joint faster than its speed limit within a step (joint-linear from sample to sample at the
     TCP's top speed in it, peak_mm_s: the whole path's Schedule's), or a joint-space step whose
-    middle leaves the path by more than max_deviation_mm (dev: `deviation`: a branch flip), and, with a
+    chord leaves the path by more than max_deviation_mm (dev: `deviation`: a branch flip), and, with a
     workspace, outside the trained workspace; the kinds found after the first are named with their first
     sample."""
     found = []                                           # (sample index, kind, message)
@@ -335,7 +343,7 @@ def refusal(table: pd.DataFrame, n_samples: int, limits_deg: np.ndarray, tol_mm:
         k = int(off[0])
         found.append((k + 1, "leaving the path",
                       f"samples {k + 1}-{k + 2} (arc {arc[k]:.1f}-{arc[k + 1]:.1f} mm): the joint-space step between "
-                      f"them leaves the path by {dev[k]:.2f} mm at its middle (path.max_deviation_mm "
+                      f"them leaves the path by {dev[k]:.2f} mm (path.max_deviation_mm "
                       f"{max_deviation_mm:g}): a branch flip, or a spacing too coarse for the curve?"))
     outside = np.flatnonzero(~table.in_workspace.to_numpy(bool)[:m]) if workspace is not None else []
     if len(outside):
