@@ -41,7 +41,7 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from pipeline.lib.learning.metrics import stats
-from pipeline.lib.robot.frames import (MISREAD_PERCENTILE, REFIT_ROUNDS, FrameFitError, check_fit, kabsch,
+from pipeline.lib.robot.frames import (MISREAD_PERCENTILE, REFIT_ROUNDS, FrameFitError, check_fit, kabsch, kept,
                                        robust_kabsch, to_base)
 from pipeline.lib.robot.identify import identifiability, orientation_angles
 from pipeline.lib.robot.tcp import pose_errors
@@ -203,9 +203,7 @@ def judge(pred: dict, P_world: np.ndarray, mode: str, frame: dict, n_register: i
                                                      R_world[k] if poses else None, weight, tool_significance)
                 r = np.linalg.norm((p[at] + np.einsum("mij,j->mi", flange_R[m][at], dt)) @ R.T + t - P_world[at],
                                    axis=1)
-                med = np.median(r[inl])
-                again = r <= max(med + frame_cfg["outlier_k"] * 1.4826 * np.median(np.abs(r[inl] - med)),
-                                 frame_cfg["outlier_min_mm"])
+                again = kept(r, inl, frame_cfg["outlier_k"], frame_cfg["outlier_min_mm"])
                 if (again == inl).all():
                     break
                 inl = again

@@ -81,13 +81,19 @@ def robust_kabsch(Q, P, k: float = 5.0, min_mm: float = 3.0, max_iter: int = 20)
     for _ in range(max_iter):
         R, t = kabsch(Q[inl], P[inl])
         r = np.linalg.norm(Q @ R.T + t - P, axis=1)
-        med = np.median(r[inl])
-        mad = 1.4826 * np.median(np.abs(r[inl] - med))
-        new = r <= max(med + k * mad, min_mm)
+        new = kept(r, inl, k, min_mm)
         if (new == inl).all():
             break
         inl = new
     return R, t, inl, r
+
+
+def kept(r: np.ndarray, inl: np.ndarray, k: float, min_mm: float) -> np.ndarray:
+    """The points (n,) bool whose residual r (n,) exceeds neither median + k * 1.4826 * MAD of the inliers'
+    (inl (n,) bool) residuals nor min_mm: the outlier rule of every frame fit here."""
+    med = np.median(r[inl])
+    mad = 1.4826 * np.median(np.abs(r[inl] - med))
+    return r <= max(med + k * mad, min_mm)
 
 
 def rms(Q, P, R, t) -> float:
@@ -200,9 +206,7 @@ def fit_frames(q_deg: np.ndarray, P: np.ndarray, station: np.ndarray, robot, cfg
             again = np.zeros(len(P), bool)
             for k in range(len(names)):
                 m = idx == k
-                med = np.median(r[m & inl])
-                mad = 1.4826 * np.median(np.abs(r[m & inl] - med))
-                again[m] = r[m] <= max(med + cfg["outlier_k"] * mad, cfg["outlier_min_mm"])
+                again[m] = kept(r[m], inl[m], cfg["outlier_k"], cfg["outlier_min_mm"])
             if (again == inl).all():
                 break
             inl = again
