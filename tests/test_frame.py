@@ -11,9 +11,9 @@ from scipy.spatial.transform import Rotation
 from pipeline.lib.learning.validation import judge
 from pipeline.lib.project.columns import JOINTS_DEG
 from pipeline.lib.project.config import load_params, read_json
-from pipeline.lib.robot.frames import (DegenerateFit, FrameFitError, fit_frame, fit_frames, kabsch,
+from pipeline.lib.robot.frames import (DegenerateFit, FrameFitError, fit_frame, fit_frames, flange_poses, kabsch,
                                        robust_kabsch)
-from pipeline.lib.robot.kinematics import fk_numpy
+from pipeline.lib.robot.kinematics import fk_numpy, nominal_geometry
 from pipeline.lib.robot.robots import load_robot, nominal_robot
 from pipeline.stages import frame as frame_stage
 from pipeline.stages import ingest as ingest_stage
@@ -102,6 +102,37 @@ def test_misreads_are_found_again_at_the_estimated_tool():
     fit = fit_frame(q, P, robot, cfg)
     assert list(np.flatnonzero(~fit["inliers"])) == [5, 17]
     np.testing.assert_allclose(fit["tool_mm"], [3.0, -2.0, 40.0], atol=0.02)
+
+
+@pytest.mark.parametrize("per_station", [False, True])
+def test_a_tool_component_the_poses_cannot_see_is_held_at_its_start(per_station):
+    """A review (2026-12-06): a station whose flange z never turns (joint 1, joint 5 and the sum of joints 2-4
+    fixed: the flange only spins about its z) cannot tell the tool's z from the frame's translation; the fit
+    left the tool's z 11 mm from both its start (109) and the truth (92.8), the frame 11 mm off with it, an
+    rms of 0.03 mm and a condition number of 1e10 the only sign. Now that component is held at robot.tool_mm,
+    said in tool_held, and the frame takes the rest; what the poses do see (x, y) is still fitted."""
+    robot = load_robot({"model": "ur10", "tool_mm": [0.0, 0.0, 109.0], "dh": None, "joint_limits_deg": None,
+                        "tcp": None})
+    rng = np.random.default_rng(0)
+    q = np.zeros((200, 6))
+    q[:, 0], q[:, 4] = 30.0, 60.0
+    q[:, 1], q[:, 2], q[:, 5] = rng.uniform(-120, -40, 200), rng.uniform(40, 120, 200), rng.uniform(-180, 180, 200)
+    q[:, 3] = -90.0 - q[:, 1] - q[:, 2]
+    true = load_robot({"model": "ur10", "tool_mm": [1.5, -2.0, 92.8], "dh": None, "joint_limits_deg": None,
+                       "tcp": None})
+    station = np.repeat(["a", "b"], 100)
+    P = world(fk_numpy(q, true), rng, noise=0.02)
+    P[100:] += [500.0, -300.0, 80.0]                      # station b: another placement of the tracker
+    cfg = {"outlier_k": 5.0, "outlier_min_mm": 3.0, "estimate_tool": True, "tool_per_station": per_station,
+           "robust_loss": "soft_l1", "robust_scale_mm": 0.5, "max_rms_mm": 50.0}
+    fit = fit_frames(q, P, station, robot, cfg)
+    held = ["tool_z (station a)", "tool_z (station b)"] if per_station else ["tool_z"]
+    assert list(fit["tool_held"]) == held and "held at robot.tool_mm" in fit["tool_held"][held[0]]
+    for s in ("a", "b"):
+        np.testing.assert_allclose(fit["stations"][s]["tool_mm"], [1.5, -2.0, 109.0], atol=0.02)
+    z = R_TRUE @ flange_poses(q[:1], nominal_geometry(robot))[0][0, :, 2]   # the flange's fixed z, tracker frame
+    np.testing.assert_allclose(fit["stations"]["a"]["t"], T_TRUE - 16.2 * z, atol=0.05)   # the frame takes 16.2 mm
+    assert fit["residual_mm"].mean() < 0.05
 
 
 # ---------------------------------------------------------------- fits no real campaign gives

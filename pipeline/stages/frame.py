@@ -7,7 +7,8 @@ shared by every station, or one per station (`frame.tool_per_station`).
 Writes reports/frame.json (docs/data-format.md): R, t, rms_mm, n_used of the first
 station (the base frame the later stages work in), outliers of every station,
 tool_mm (the first station's tool offset: the one the model predicts), fit
-diagnostics, and under "stations" every station's frame, tool and fit. Where the campaign
+diagnostics (with estimate_tool, tool_held: the tool components the poses cannot determine, held at
+robot.tool_mm), and under "stations" every station's frame, tool and fit. Where the campaign
 measures orientation: tool_rot, the probe's rotation in the flange (lib/robot/frames.py probe_rotation,
 per station), and the scatter of the measured orientations about it.
 """
@@ -94,6 +95,7 @@ def run(params: dict, root: Path = HERE) -> dict:
         "outlier_residual_mm": {p: round(float(v), 4) for p, v in zip(outliers, r[~inl])},
         **{k: first[k] for k in ("mean_mm", "max_mm")},
         "tool_mm": fit["tool_mm"], "method": fit["method"], "condition": fit["condition"],
+        **({"tool_held": fit["tool_held"]} if "tool_held" in fit else {}),
         "det_R": float(np.linalg.det(first["R"])),
         **({"tool_rot": first["tool_rot"]} if R_world is not None else {}),
         "stations": stations,
@@ -105,6 +107,8 @@ def run(params: dict, root: Path = HERE) -> dict:
                  f["rms_mm"], f["mean_mm"], len(f["outliers"]), f["outliers"])
     for s, f in stations.items():
         log.info("tool of station %s: %s mm", s, np.round(f["tool_mm"], 3).tolist())
+    for c, why in fit.get("tool_held", {}).items():
+        log.warning("tool component %s %s", c, why)
         if "tool_rot" in f:
             log.info("probe rotation in the flange, station %s: %s deg (xyz); orientation scatter about it "
                      "%.0f arcsec mean on %d poses", s, np.round(np.degrees(f["tool_rot"]), 4).tolist(),

@@ -41,9 +41,9 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from pipeline.lib.learning.metrics import stats
-from pipeline.lib.robot.frames import (MISREAD_PERCENTILE, REFIT_ROUNDS, FrameFitError, check_fit, kabsch, kept,
+from pipeline.lib.robot.frames import (FRAME_TOOL, MISREAD_PERCENTILE, REFIT_ROUNDS, FrameFitError, check_fit, kabsch, kept,
                                        robust_kabsch, to_base)
-from pipeline.lib.robot.identify import identifiability, orientation_angles
+from pipeline.lib.robot.identify import determined_beyond, orientation_angles
 from pipeline.lib.robot.tcp import pose_errors
 
 METHODS = ("nominal", "calibrated", "calibrated_parts", "model")
@@ -65,7 +65,6 @@ def registration_subset(P: np.ndarray, n: int) -> np.ndarray:
 MODES = ("same", "refit", "refit_tool")
 
 
-FRAME_TOOL = ["rx", "ry", "rz", "tx", "ty", "tz", "tool_x", "tool_y", "tool_z"]
 PROBE_ROT = ["tool_rx", "tool_ry", "tool_rz"]
 
 
@@ -80,7 +79,7 @@ def refit_tool(p: np.ndarray, Rf: np.ndarray, P: np.ndarray, R0: np.ndarray, t0:
                significance: float = 0.0):
     """Frame and tool offset jointly, P ≈ R (p + Rf dt) + t, from the start (R0, t0): p (k, 3) predicted
     markers, Rf (k, 3, 3) the flange rotations (base frame). Only the offset components the poses'
-    orientations determine are fitted (identify.identifiability at rank_tol: an offset along an axis
+    orientations determine are fitted (identify.determined_beyond at rank_tol: an offset along an axis
     the flange never turns away from is a translation of the frame); the others stay 0. With measured
     orientations R_world (k, 3, 3, tracker frame) and the predicted ones R_probe, also R R_probe dR ≈ R_world,
     weight mm/rad, and the probe's re-mounted rotation dR. Then, one at a time, the least significant offset
@@ -117,8 +116,7 @@ def refit_tool(p: np.ndarray, Rf: np.ndarray, P: np.ndarray, R0: np.ndarray, t0:
     if poses:                                             # dR starts at the points' mean R_probeᵀ R0ᵀ R_world (from
         d = np.swapaxes(R_probe, -1, -2) @ R0.T @ R_world   # the identity, a probe turned 150° ends at its mirror)
         x0[9:12] = Rotation.from_matrix(d).mean().as_rotvec()
-    keep = identifiability(jacobian(x0)[1], names, rank_tol)["keep"]
-    keep[:6] = True                                       # the frame is always fitted
+    keep = determined_beyond(jacobian(x0)[1], 6, rank_tol)       # the frame is always fitted
     why = {n: f"not determined by the poses' orientations (pivot below validate.tool_rank_tol = {rank_tol:g})"
            for n, k in zip(names, keep) if not k}
     x = solve(keep)

@@ -27,14 +27,18 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from pipeline.lib.project.columns import MEAS_Q
+from pipeline.lib.robot.identify import determined_beyond
 from pipeline.lib.robot.kinematics import DTYPE, fk_poses, nominal_geometry
 
 REFIT_ROUNDS = 5             # at most this many refits with the outliers judged again at the fitted tool (frame.
                             # estimate_tool) or probe offset (validate's refit_tool)
+TOOL_RANK_TOL = 0.01        # refine_with_tool: a tool component whose pivot falls below this share of the largest is
+                            # held (validate.tool_rank_tol's rule and value for the registration)
 MIRROR_RATIO = 3.0          # a reflection this many times better than the best rotation: mirrored axes
 MISREAD_PERCENTILE = 90     # orientation columns are judged misread on this percentile of a campaign's scatter: a
                             # wrong Euler sequence can read half of it right (extrinsic zyx on the IPA Series_B and
                             # Series_D, where rx ~ rz: median 397"/470", p90 41 392"/644 027"; read right 420"/617")
+FRAME_TOOL = ["rx", "ry", "rz", "tx", "ty", "tz", "tool_x", "tool_y", "tool_z"]   # a frame's and a tool's parameters
 CAUSES = ("Likely causes: swapped or mirrored tracker axes (ingest.columns.position, or the tracker's "
           "export), a wrong length unit (ingest.length_unit), a wrong robot model (robot.model) or "
           "tool (robot.tool_mm; a station measured with another marker: frame.tool_per_station)")
@@ -133,17 +137,22 @@ def tool_points(Rf, pf, tool) -> np.ndarray:
     return np.einsum("nij,nj->ni", Rf, np.broadcast_to(tool, pf.shape)) + pf
 
 
-def refine_with_tool(Rf, pf, P, frames, tool0, station=None, loss="soft_l1", f_scale=0.5,
-                     per_station=False):
+def refine_with_tool(Rf, pf, P, frames, tools0, station=None, loss="soft_l1", f_scale=0.5,
+                     per_station=False, rank_tol=TOOL_RANK_TOL, labels=None):
     """Jointly fit one base frame per station (rotation vector, t) and the tool offset (shared, or
     with per_station one per station) by robust least squares.
 
     Model: P_i = R_s (Rf_i tool_s + pf_i) + t_s, s = station[i] (index into frames; None: all 0).
-    frames: [(R0, t0)] starts. Returns [(R, t)], tools (S, 3), diagnostics.
-    """
+    frames: [(R0, t0)] and tools0 (S, 3) mm starts; labels: the stations' names (for "tool_held"). A tool component the poses' flange orientations do not determine (its pivot
+    in the column-pivoted QR of the scaled Jacobian below rank_tol of the largest: along an axis the flange
+    never turns away from, it is a translation of the frame) is held at its start, not left to drift with
+    the frame. Returns [(R, t)], tools (S, 3), diagnostics (with "tool_held": {component: why})."""
     S = len(frames)
     station = np.zeros(len(P), int) if station is None else np.asarray(station)
     n_tools = S if per_station else 1
+    labels = [str(k) for k in range(S)] if labels is None else labels
+    names = [f"{a}{'' if S == 1 else f' (station {labels[k]})'}" for k in range(S) for a in FRAME_TOOL[:6]] + [
+        f"{a}{'' if n_tools == 1 else f' (station {labels[k]})'}" for k in range(n_tools) for a in FRAME_TOOL[6:]]
 
     def unpack(x):
         Rs = Rotation.from_rotvec(x[:6 * S].reshape(S, 6)[:, :3]).as_matrix()      # (S, 3, 3)
@@ -156,12 +165,26 @@ def refine_with_tool(Rf, pf, P, frames, tool0, station=None, loss="soft_l1", f_s
         return (np.einsum("nij,nj->ni", Rs[station], Q) + ts[station] - P).ravel()
 
     x0 = np.concatenate([np.concatenate([Rotation.from_matrix(R).as_rotvec(), t]) for R, t in frames]
-                        + [tool0] * n_tools)
-    sol = least_squares(residuals, x0, loss=loss, f_scale=f_scale, x_scale="jac")
-    Rs, ts, tools = unpack(sol.x)
+                        + list(np.asarray(tools0, float).reshape(S, 3)[:n_tools]))
+    r0 = residuals(x0)                                    # (3n,); forward differences, linear in t and the tool
+    J = np.stack([(residuals(x0 + h * e) - r0) / h for e, h in zip(np.eye(len(x0)), ([1e-6] * 3 + [1e-3] * 3) * S
+                                                                         + [1e-3] * 3 * n_tools)], 1)
+    keep = determined_beyond(J, 6 * S, rank_tol)         # the frames are always fitted
+    held = {n: f"not determined by the poses' flange orientations (pivot below {rank_tol:g}: along an axis the "
+               "flange never turns away from, the tool is a translation of the frame): held at robot.tool_mm"
+            for n, k in zip(names, keep) if not k}
+
+    def sub(xk):
+        x = x0.copy()
+        x[keep] = xk
+        return residuals(x)
+    sol = least_squares(sub, x0[keep], loss=loss, f_scale=f_scale, x_scale="jac")
+    x = x0.copy()
+    x[keep] = sol.x
+    Rs, ts, tools = unpack(x)
     s = np.linalg.svd(sol.jac, compute_uv=False)
     return list(zip(Rs, ts)), tools.copy(), {"condition": float(s[0] / s[-1]), "nfev": int(sol.nfev),
-                                             "status": sol.message}
+                                             "status": sol.message, "tool_held": held}
 
 
 def fit_frames(q_deg: np.ndarray, P: np.ndarray, station: np.ndarray, robot, cfg: dict) -> dict:
@@ -172,7 +195,8 @@ def fit_frames(q_deg: np.ndarray, P: np.ndarray, station: np.ndarray, robot, cfg
     cfg["estimate_tool"], all frames and one tool (cfg["tool_per_station"]: one per station) are
     then refined jointly on the inliers. Every station's fit is then checked (check_fit).
     Returns {"stations": {name: {"R", "t", "tool_mm", "points": (n,) bool, its points}},
-    "inliers" (n,) bool, "residual_mm" (n,), "tool_mm" (the first station's), "method", "condition"}.
+    "inliers" (n,) bool, "residual_mm" (n,), "tool_mm" (the first station's), "method", "condition",
+    with estimate_tool "tool_held" {component: why} (refine_with_tool)}.
     """
     station = np.asarray(station)
     names = list(dict.fromkeys(station))
@@ -198,8 +222,9 @@ def fit_frames(q_deg: np.ndarray, P: np.ndarray, station: np.ndarray, robot, cfg
         raise ValueError("params.yaml frame.tool_per_station: true needs frame.estimate_tool: true")
     if cfg["estimate_tool"]:
         for _ in range(REFIT_ROUNDS):                 # the outliers judged again at the fitted tool, until they hold:
-            frames, tools, diag = refine_with_tool(Rf[inl], pf[inl], P[inl], frames, tools[0], idx[inl],   # a tool
-                                                   cfg["robust_loss"], cfg["robust_scale_mm"], per_station)  # cm off
+            frames, tools, diag = refine_with_tool(Rf[inl], pf[inl], P[inl], frames, tools, idx[inl],   # a tool
+                                                   cfg["robust_loss"], cfg["robust_scale_mm"], per_station,  # cm off
+                                                   labels=names)
             Q = tool_points(Rf, pf, tools[idx])                  # hides misreads in the nominal fit's scatter
             Rs, ts = np.stack([R for R, _ in frames]), np.stack([t for _, t in frames])
             r = np.linalg.norm(np.einsum("nij,nj->ni", Rs[idx], Q) + ts[idx] - P, axis=1)
