@@ -284,6 +284,22 @@ def test_adam_s_answers_above_the_tolerance_are_not_converged(model):
     assert not s.converged[res > CFG["tol_mm"]].any() and s.converged[res <= CFG["tol_mm"]].all()
 
 
+def test_adam_keeps_every_joint_within_its_limits(model):
+    """A review (2026-12-06): adam never clamped, so a start 0.01° inside joint 1's limit with its target 1° on
+    (about the base) ended past the limit, and at a looser tol_mm "converged": a Δθ row to command beyond
+    the joint's range. Each step now ends at the limit, as lm's does; and `converged` needs the limits."""
+    from pipeline.lib.runtime.compensation import solve
+    q0, _ = targets(model, n=4, seed=2)
+    q0[:, 0] = 359.99                                                  # UR5: ±360°
+    q_true = q0 + [1.0, 0, 0, 0, 0, 0]
+    with torch.no_grad():
+        tgt = model(torch.as_tensor(np.radians(q_true)))[0].numpy()
+    for cfg in (CFG, {**CFG, "lr": 1e-3, "tol_mm": 0.5}):
+        s = solve(model, q0, tgt, cfg, ROBOT, "adam")
+        assert not ROBOT.check_joints(s.q_deg).any(), s.q_deg[:, 0]
+    assert s.converged.any()                                           # the other joints still reach some
+
+
 def test_lm_damping_stays_finite_however_long_no_step_helps(model):
     """λ·10 on each failed step reached inf after ~310 failures (a stalled point near the reach: the program
     command then crashed on NaN joints in the error maps); it stops at LAM_MAX, where the step is still a
@@ -376,9 +392,12 @@ def test_own_targets_hold_their_orientation_and_bad_cells_name_row_and_column(in
         table = pd.read_csv(out)
     finally:
         out.unlink(missing_ok=True)
-    qc = torch.as_tensor(np.radians(table[[f"j{i}_comp_deg" for i in range(1, 7)]].to_numpy()), dtype=DTYPE)
-    off = np.degrees(Rotation.from_matrix(flange_rotations(qc, g).numpy() @ flange.transpose(0, 2, 1)).magnitude())
-    assert not (table.converged & (off * 3600 > in_trained_project["compensate"]["tol_arcsec"])).any(), (table, off)
+    given = table.j1_comp_deg.notna().to_numpy()          # a target not reached has no angles (not_reached)
+    qc = torch.as_tensor(np.radians(table[[f"j{i}_comp_deg" for i in range(1, 7)]].to_numpy()[given]), dtype=DTYPE)
+    off = np.degrees(Rotation.from_matrix(flange_rotations(qc, g).numpy()
+                                          @ flange[given].transpose(0, 2, 1)).magnitude())
+    assert not (off * 3600 > in_trained_project["compensate"]["tol_arcsec"]).any(), (table, off)
+    assert (table.converged == given).all()
     assert table.orientation_residual_arcsec.notna().all() and not table.converged.iloc[2]
     df = df.astype(object)
     df.loc[1, "j4_deg"] = "abc"
@@ -388,6 +407,44 @@ def test_own_targets_hold_their_orientation_and_bad_cells_name_row_and_column(in
         code, said = exit_code(cli, ["--targets", str(src)], capsys)
         assert code == 2 and said.strip().count("\n") == 0, said
         assert f"row {row}" in said and f"column '{column}'" in said, said
+
+
+def test_own_targets_not_reached_have_no_angles_and_beyond_the_reach_nothing_is_written(in_trained_project,
+                                                                                          tmp_path, capsys):
+    """A review (2026-12-06): `compensate --targets` wrote every row's solver answer as angles to command: a
+    target in metres (residual 26 mm, Δθ of 160°), one 5 m away (4060 mm, exit 0), a wrist flipped (converged
+    True). Now its targets are judged as the program command's waypoints: one beyond the reach is refused,
+    nothing written; one not reached (not converged, past a limit, another configuration) has empty
+    j*_comp_deg and dj*_deg and says why in `not_reached`, a target near the base that it looks like metres."""
+    from conftest import exit_code, served_model
+    from pipeline.lib.project.cli import one_line
+    from pipeline.stages import compensate as stage
+    cli = lambda argv: one_line("pipeline.stages.compensate", stage.main, argv)
+    q0 = pd.read_csv("reports/compensation.csv")[[f"j{i}_deg" for i in range(1, 7)]].to_numpy()[:2]
+    with torch.no_grad():
+        at = served_model()(torch.as_tensor(np.radians(q0)))[0].numpy()
+    df = pd.DataFrame({"point_id": ["A", "B"]})
+    df[[f"j{i}_deg" for i in range(1, 7)]] = q0
+    df[["target_x", "target_y", "target_z"]] = at + [0.3, -0.2, 0.1]
+    df.loc[1, ["target_x", "target_y", "target_z"]] = at[1] / 1000            # B's target in metres
+    src, out = tmp_path / "mine.csv", Path("reports/compensation_mine.csv")
+    df.to_csv(src, index=False)
+    try:
+        assert exit_code(cli, ["--targets", str(src)], capsys)[0] == 0
+        table = pd.read_csv(out, keep_default_na=False, na_values=[""])
+        a, b = table.iloc[0], table.iloc[1]
+        assert a.converged and pd.isna(a.not_reached)
+        assert np.isfinite(a[[f"j{i}_comp_deg" for i in range(1, 7)]].to_numpy(float)).all()
+        assert not b.converged and table.loc[1, [f"j{i}_comp_deg" for i in range(1, 7)]].isna().all()
+        assert table.loc[1, [f"dj{i}_deg" for i in range(1, 7)]].isna().all() and "looks like metres" in b.not_reached
+        df.loc[1, ["target_x", "target_y", "target_z"]] = [5000.0, 0.0, 0.0]
+        df.to_csv(src, index=False)
+        out.unlink()
+        code, said = exit_code(cli, ["--targets", str(src)], capsys)
+        assert code == 1 and "mine.csv" in said and "beyond the arm's reach" in said and "nothing written" in said
+        assert not out.exists()
+    finally:
+        out.unlink(missing_ok=True)
 
 
 def test_the_pose_controller_path_does_not_verify_a_flange_turned_half_round(model):

@@ -49,14 +49,15 @@ from pipeline.lib.learning.workspace import Workspace
 from pipeline.lib.project.artifacts import (FRAME_JSON, MODEL_WEIGHTS, PARAMS_FILE, WORKSPACE_JSON, project_owned,
                                             require)
 from pipeline.lib.project.cli import Refused, add_project, one_line
-from pipeline.lib.project.columns import DJ_DEG, JCOMP_DEG, TARGET
+from pipeline.lib.project.columns import JCOMP_DEG, TARGET
 from pipeline.lib.project.config import for_stage, load_params, logger, read_json
 from pipeline.lib.project.writing import check_outputs, csv_text, left_as_they_were, write_together
 from pipeline.lib.robot.geometry import theory_geometry
 from pipeline.lib.robot.robots import load_robot
 from pipeline.lib.robot.tcp import at_tcp, in_flange
 from pipeline.lib.robot.urdf import tcp_transforms
-from pipeline.lib.runtime.waypoints import ID_PATTERN, compensate_program, linear_flips, read_waypoints, unreached
+from pipeline.lib.runtime.waypoints import (ID_PATTERN, as_written, compensate_program, linear_flips, read_waypoints,
+                                           unreached)
 
 log = logger(__name__)
 PARAMS = ("robot", "compensate", "program")
@@ -107,16 +108,6 @@ def summary_text(table: pd.DataFrame, skipped: dict, workspace) -> str:
         out += [f"  {p}: {x:.1f} workspace radii from the nearest training pose, uncertainty {u:.3f} mm"
                 for p, x, u in zip(outside.point_id, d, outside.uncertainty_mm)]
     return "\n".join(out)
-
-
-def as_written(table: pd.DataFrame, skipped: dict) -> pd.DataFrame:
-    """The compensated CSV's table: a waypoint not reached (a comment in the script, no move) has no angles to
-    command (j*_comp_deg and dj*_deg empty) and says why in `not_reached` (empty where it was reached)."""
-    out = table.copy()
-    gone = out.point_id.isin(list(skipped)).to_numpy()
-    out.loc[gone, DJ_DEG + JCOMP_DEG] = np.nan
-    out["not_reached"] = [skipped.get(pid, "") for pid in out.point_id]
-    return out
 
 
 def run(argv=None) -> pd.DataFrame:

@@ -34,7 +34,7 @@ from pipeline.lib.learning.workspace import Workspace
 from pipeline.lib.project.artifacts import (COMPENSATION_CSV, COMPENSATION_JSON, COMPENSATION_PARQUET,
                                             CONVERGENCE_CSV, DRIVE_CSV, HERE, INGEST_JSON, MODEL_WEIGHTS,
                                             PARAMS_FILE, REPORTS, TIMINGS, WORKSPACE_JSON, project_owned, rooted)
-from pipeline.lib.project.cli import script
+from pipeline.lib.project.cli import Refused, script
 from pipeline.lib.project.columns import JCOMP_DEG, JOINTS_DEG, TARGET, THEORY
 from pipeline.lib.project.config import for_stage, json_text, load_params, logger, read_json, split_timings
 from pipeline.lib.project.writing import check_outputs, write_file, write_together
@@ -45,10 +45,9 @@ from pipeline.lib.robot.kinematics import fk_numpy, tool_rotation
 from pipeline.lib.robot.robots import load_robot
 from pipeline.lib.robot.tcp import AtTcp, in_flange, probe_offsets
 from pipeline.lib.runtime.compensation import delta_table, nominal_flange, orientation_targets, solve
-from pipeline.lib.runtime.paths import ROTVEC
 from pipeline.lib.runtime.realtime import Realtime, check
 from pipeline.lib.runtime.solvers import SOLVERS
-from pipeline.lib.runtime.waypoints import flange_targets, read_waypoints
+from pipeline.lib.runtime.waypoints import as_written, compensate_program, read_waypoints, unreached
 from pipeline.lib.sim.drive import drive_check, tcp_drive_check
 from pipeline.lib.sim.twin import Twin
 
@@ -222,18 +221,22 @@ def main(argv=None, root: Path = HERE):
     model, workspace = served_model(root)
     robot = load_robot(p["robot"])
     df = read_targets(a.targets, robot)
-    rotvec = df[ROTVEC].to_numpy(float, copy=True) if ROTVEC[0] in df else None
-    flange = None if rotvec is None else flange_targets(model, p["compensate"], df[JOINTS_DEG].to_numpy(), None,
-                                                        False, rotvec)   # the probe frame's rotvec, as program's
     out = root / REPORTS / f"compensation_{Path(a.targets).stem}.csv"
     try:                                                    # before solving: compensation_convergence.csv is
         check_outputs([out], [a.targets], project_owned(root))   # the stage's
     except ValueError as e:
         raise ValueError(f"{e.args[0].split(': choose')[0]}; the table is named after the targets file: "
                          f"rename {a.targets}") from None
-    table, summary, _ = solve_all(model, workspace, p["compensate"], robot, df, flange)
-    write_file(out, table.to_csv(index=False, float_format="%.6f"))
-    log.info("wrote %s (%d targets)", out, len(table))
+    try:                                                    # as the program command's waypoints: beyond the
+        table = compensate_program(df, model, workspace, robot, None, p["compensate"])      # reach refused
+    except Refused as e:
+        raise Refused(f"{a.targets}: {e}; nothing written") from None
+    skipped = unreached(table, robot)                       # not converged, past a limit, another configuration
+    write_file(out, as_written(table, skipped).to_csv(index=False, float_format="%.6f"))
+    log.info("wrote %s (%d targets, %d not reached: no angles to command, `not_reached` says why)", out,
+             len(table), len(skipped))
+    for pid, why in skipped.items():
+        log.warning("%s not reached: %s", pid, why)
 
 
 if __name__ == "__main__":

@@ -28,7 +28,8 @@ def solve(model, q0_deg: np.ndarray, target: np.ndarray, cfg: dict, robot, solve
     """Compensate every (q0, target) with `solver` (default cfg["solver"]) within the robot's limits (the
     model evaluated solvers.CHUNK points at a time: one batch's numbers, bounded memory); with flange_rot
     (n, 3, 3), the flange's orientation is a target too (six equations, lib/runtime/solvers.py). `converged`:
-    reached, within cfg tol_mm (and tol_arcsec of the whole angle), whatever the solver's own stop rule."""
+    reached, within cfg tol_mm (and tol_arcsec of the whole angle) and the joint limits, whatever the solver's
+    own stop rule."""
     if flange_rot is None:
         s = Solved(*compensate(model, q0_deg, target, cfg, robot, solver, history=history))
     else:
@@ -39,7 +40,9 @@ def solve(model, q0_deg: np.ndarray, target: np.ndarray, cfg: dict, robot, solve
         s.orientation_arcsec = np.degrees(angle.numpy()) * 3600   # the whole angle: 648000 for a flange turned half round
         s.converged &= s.orientation_arcsec <= cfg["tol_arcsec"]  # the solvers' |e| is sin θ: small again near 180°
     s.converged &= np.linalg.norm(s.pred - target, axis=1) <= cfg["tol_mm"]    # reached, whatever the solver's stop
-    return s                                                                   # (adam's: the paper's MSE)
+    if robot is not None:                                                      # (adam's: the paper's MSE)
+        s.converged &= ~robot.check_joints(s.q_deg).any(1)
+    return s
 
 
 def nominal_flange(q0_deg: np.ndarray, nominal: dict) -> np.ndarray:

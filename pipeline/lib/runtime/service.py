@@ -54,10 +54,7 @@ from pipeline.lib.runtime.pathsolve import (SOLVED, beyond_reach, deviation, mod
                                             Timing, schedule)
 from pipeline.lib.runtime.realtime import Realtime, answers
 from pipeline.lib.runtime.solvers import LAM0, lm_jacobian, lm_step, orientation_angle, pose_weight, residual
-from pipeline.lib.runtime.waypoints import another_configuration
-
-
-METRES_MM = 5.0              # an unreachable target nearer the base origin than this was likely sent in metres
+from pipeline.lib.runtime.waypoints import METRES_MM, another_configuration
 
 
 class RequestError(ValueError):

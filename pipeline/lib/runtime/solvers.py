@@ -183,8 +183,9 @@ def progress(solver: str, it: int, left: int, n: int, t0: float) -> None:
 
 def solve_adam(model, q0, target, cfg: dict, limits=None, chunk: int | None = None, history: bool = True):
     """The paper's procedure (sec. 2.3): cfg lr, max_iter, tol_mse (the `compensate:` section), the model
-    evaluated `chunk` points at a time (`slices`; None: all at once). Returns q, prediction, iterations,
-    converged, history (None when not asked for). (Joint limits are not enforced.)"""
+    evaluated `chunk` points at a time (`slices`; None: all at once), each step projected onto the joint
+    limits (6, 2) rad (None: none). Returns q, prediction, iterations, converged, history (None when not asked
+    for)."""
     lr, max_iter, tol_mse = cfg["lr"], cfg["max_iter"], cfg["tol_mse"]
     w = pose_weight(cfg) if target.shape[1] > 3 else None
     n = len(q0)
@@ -214,6 +215,9 @@ def solve_adam(model, q0, target, cfg: dict, limits=None, chunk: int | None = No
         if done.all() or it == max_iter:
             break
         opt.step()
+        if limits is not None:
+            with torch.no_grad():
+                q.clamp_(limits[:, 0], limits[:, 1])        # a step past a limit ends at it, as lm's
         if len(parts) > 1 and it % 50 == 0:
             progress("adam", it, int((~done).sum()), n, t0)
     q_final[~done] = q.detach()[~done]

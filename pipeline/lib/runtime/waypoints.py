@@ -20,7 +20,7 @@ import pandas as pd
 from scipy.spatial.transform import Rotation
 
 from pipeline.lib.project.cli import Refused
-from pipeline.lib.project.columns import JCOMP_DEG, JOINTS_DEG, TARGET
+from pipeline.lib.project.columns import DJ_DEG, JCOMP_DEG, JOINTS_DEG, TARGET
 from pipeline.lib.project.config import logger
 from pipeline.lib.reading.readers import (AUTO_JOINTS, IngestError, find_column, headers_found,
                                           looks_like_radians, parse_number, parse_column, read_table,
@@ -32,6 +32,7 @@ from pipeline.lib.runtime.compensation import (delta_table, nominal_flange, orie
 from pipeline.lib.runtime.paths import ROTVEC, check_rotvecs, check_unused
 
 log = logger(__name__)
+METRES_MM = 5.0                 # a target not reached nearer the base origin than this was likely given in metres
 ID_PATTERN = re.compile(r"[A-Za-z0-9_.:-]{1,64}")          # what a point id may be, to reach a URScript comment
 MAX_COMPENSATION_DEG = 5.0      # an offline waypoint's Δθ on any joint: the twin's campaign-like poses need ≤ 1.5°;
                                 # beyond, the answer is another configuration (near a singularity: joint 5 near 0°
@@ -240,4 +241,17 @@ def unreached(table: pd.DataFrame, robot, offline: bool = False) -> dict:
                             if np.isfinite(r.orientation_residual_arcsec) else "")
                          + (", not converged" if not r.converged else "")
                          + (", beyond the joint limits" if b else "") + (f", {f}" if f else ""))
+            + (", a target this close to the base looks like metres: target_x..z are in millimetres"
+               if np.linalg.norm([r.target_x, r.target_y, r.target_z]) < METRES_MM and not r.converged else "")
             for r, b, f in zip(table.itertuples(), beyond, far) if not r.converged or b or f}
+
+
+def as_written(table: pd.DataFrame, skipped: dict) -> pd.DataFrame:
+    """A Δθ table as written for a robot cell (the program command's compensated CSV, `compensate --targets`): a
+    target not reached (`unreached`) has no angles to command (j*_comp_deg and dj*_deg empty) and says why in
+    `not_reached` (empty where it was reached)."""
+    out = table.copy()
+    gone = out.point_id.isin(list(skipped)).to_numpy()
+    out.loc[gone, DJ_DEG + JCOMP_DEG] = np.nan
+    out["not_reached"] = [skipped.get(pid, "") for pid in out.point_id]
+    return out
