@@ -109,6 +109,10 @@ def test_a_custom_robots_chain_files_are_both_written_and_read_back_with_its_tcp
     text = to_urdf(g, custom, tcp=bent)
     from pipeline.stages.export import tcp_links
     assert 3500 < tcp_links(text, tcp, poses(10), g)["torch"]["max_rotation_deviation_arcsec"] < 3700
+    # a review (2026-12-06): its joints' speeds and torques, not given, went into the URDF as 0 unsaid
+    assert "written as 0" in checked["urdf"]["speed_and_torque_limits"]
+    assert 'velocity="0.0"' in files[Path("out/models/calibrated.urdf")]
+    assert "speed_and_torque_limits" not in chain_files(g, UR5, tcp, poses(5), Path("out"))[1]["urdf"]
 
 
 def test_a_tcp_name_a_yaml_1_2_reader_takes_for_a_number_is_written_quoted():

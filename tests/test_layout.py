@@ -464,3 +464,16 @@ def test_the_project_stands_on_its_own():
              and not f.startswith(STANDS_ALONE_EXCEPT)
              and any(s in (ROOT / f).read_text(errors="ignore") for s in ("../shared", "DATA_FORMAT.md", "SPEC.md"))]
     assert not named, f"these refer to documents or data outside the repository: {named}"
+
+
+def test_every_committed_campaign_file_is_checked_out_as_committed():
+    """A review (2026-12-06): with git's core.autocrlf (Git for Windows' default) a clone converted data/raw's
+    CSV and JSON files to CRLF: their SHA-256 (reports/ingest.json) no longer the twin's, so the compensate
+    stage skipped its drive check ("not the twin's campaign") and `dvc status` called the clone stale. Every
+    file under data/ is now binary to git's line-ending conversion (.gitattributes)."""
+    files = subprocess.run(["git", "ls-files", "data"], cwd=ROOT, capture_output=True, text=True,
+                           check=True).stdout.split()
+    out = subprocess.run(["git", "check-attr", "text", "--", *files], cwd=ROOT, capture_output=True, text=True,
+                         check=True).stdout.splitlines()
+    assert files and len(out) == len(files)
+    assert [line for line in out if not line.endswith(": text: unset")] == []

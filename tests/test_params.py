@@ -86,6 +86,26 @@ def test_a_key_given_twice_or_an_empty_file_is_refused(tmp_path):
         load_params(empty)
 
 
+def test_params_are_read_as_dvc_reads_them(tmp_path):
+    """A review (2026-12-06): params.yaml was read as YAML 1.1 (PyYAML) where DVC reads YAML 1.2 (ruamel): a
+    hand-written `lr: 1e-4` was refused as the string '1e-4', a point-id column named `No` was the boolean
+    False, `on` True, while dvc.lock and `dvc exp show` recorded 0.0001, 'No' and 'on'. Now the values are
+    DVC's own reading's; a file that is not YAML names its line."""
+    from dvc.utils.serialize import parse_yaml
+    text = (ROOT / "params.yaml").read_text()
+    text = text.replace("  lr: 1.0e-4 ", "  lr: 1e-4   ", 1).replace("    point_id: null", "    point_id: No", 1)
+    text = text.replace("  instrument: null", "  instrument: on", 1)
+    f = tmp_path / "params.yaml"
+    f.write_text(text)
+    got = load_params(f)
+    assert got == parse_yaml(text, str(f))                             # DVC's reading, to the value
+    assert (got["train"]["lr"], got["ingest"]["columns"]["point_id"], got["summary"]["instrument"]) == (1e-4, "No", "on")
+    assert section(got, "train")["lr"] == 1e-4 and section(got, "ingest")["columns"]["point_id"] == "No"
+    f.write_text("split:\n  seed: 7\n  fractions: [0.8, 0.1\n")
+    with pytest.raises(ParamsError, match=r"params.yaml line \d: not YAML"):
+        load_params(f)
+
+
 def test_split_writes_both_files_or_neither(tmp_path, monkeypatch):
     """Minor: with reports/ unwritable, split wrote its parquet and then failed on its JSON."""
     monkeypatch.chdir(tmp_path)

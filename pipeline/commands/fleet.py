@@ -39,7 +39,7 @@ import yaml
 from pipeline import stages
 from pipeline.lib.learning import sweep
 from pipeline.lib.project.cli import one_line
-from pipeline.lib.project.config import LOG_FORMAT, load_params, logger, read_json, write_json
+from pipeline.lib.project.config import LOG_FORMAT, load_params, logger, read_json, write_json, yaml_values
 from pipeline.lib.reading.campaigns import write_pair
 from pipeline.lib.reading.presets import deep_merge
 from pipeline.lib.sim.twin import Twin
@@ -58,10 +58,7 @@ def robot_params(base: dict, robot_dir: Path) -> dict:
     further campaigns, no validation campaigns, no twin drive check unless it says so. A ValueError
     naming the file where its params.yaml is no mapping, or a campaign path leaves the robot's folder."""
     path = robot_dir / "params.yaml"
-    try:
-        over = yaml.safe_load(path.read_text()) if path.exists() else {}
-    except yaml.YAMLError as e:
-        raise ValueError(f"{path}: not YAML ({str(e).splitlines()[0]})") from None
+    over = yaml_values(path.read_text(), str(path)) if path.exists() else {}     # a ParamsError naming file, line
     if not isinstance(over, dict | None) or not isinstance((over or {}).get("ingest", {}), dict):
         raise ValueError(f"{path}: expected a mapping of params.yaml sections (ingest: a mapping too)")
     p = deep_merge({**base, "campaigns": {**base["campaigns"], "more": {}},

@@ -184,6 +184,11 @@ def chain_files(g: dict, robot, tcp: dict | None, q: torch.Tensor, root: Path) -
             Rotation.from_matrix(np.einsum("nji,njk->nik", R_urdf, R_rigid)).magnitude().max() * 206264.806)
     log.info("%s: Pinocchio's tool0 vs the exported chain's FK on %d poses: max %.2e mm", root / URDF_FILE, len(q),
              dev.max())
+    if not ((robot.velocity_rad_s > 0).all() and (robot.effort_nm > 0).all()):     # a custom robot's, not given
+        summary["urdf"]["speed_and_torque_limits"] = (
+            "unknown (robot.dh.velocity_deg_s, effort_nm not given): written as 0, which a planner reads as a joint "
+            "that cannot move")
+        log.warning("%s: %s", root / URDF_FILE, summary["urdf"]["speed_and_torque_limits"])
     if tcp:                                         # each tcp_<name> link too, against the chain at that point
         summary["urdf"]["tcp"] = tcp_links(text, tcp, q, g)
         log.info("%s: Pinocchio's tcp links vs the exported chain's FK: %s", root / URDF_FILE, summary["urdf"]["tcp"])

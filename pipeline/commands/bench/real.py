@@ -37,7 +37,7 @@ from pipeline.lib.learning import sweep
 from pipeline.lib.project.artifacts import (INGEST_JSON, INGEST_TABLE, METRICS_JSON, PARAMS_FILE, PREDICTIONS_TABLE,
                                             VALIDATION_DIR)
 from pipeline.lib.project.columns import JOINTS_DEG, MEAS, PRED
-from pipeline.lib.project.config import load_params, logger, read_json, write_json
+from pipeline.lib.project.config import load_params, logger, read_json, write_json, yaml_values
 from pipeline.lib.reading.prepared import load_prepared
 from pipeline.lib.reading.presets import merged_params
 from pipeline.lib.robot.kinematics import fk_numpy
@@ -114,7 +114,7 @@ def overridden(params: dict, overrides: list[str]) -> dict:
             node = node.get(k) if isinstance(node, dict) else None
         if not sep or not isinstance(node, dict) or last not in node:
             raise ValueError(f"bench -S {o!r}: not KEY=VALUE with KEY an existing params.yaml key")
-        node[last] = yaml.safe_load(value)
+        node[last] = yaml_values(value, f"bench -S {o!r}")
     return p
 
 

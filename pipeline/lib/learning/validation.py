@@ -41,9 +41,9 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from pipeline.lib.learning.metrics import stats
-from pipeline.lib.robot.frames import (FRAME_TOOL, MISREAD_PERCENTILE, REFIT_ROUNDS, FrameFitError, check_fit, kabsch, kept,
-                                       robust_kabsch, to_base)
-from pipeline.lib.robot.identify import determined_beyond, orientation_angles
+from pipeline.lib.robot.frames import (FRAME_TOOL, MISREAD_PERCENTILE, REFIT_ROUNDS, FrameFitError, check_fit,
+                                       determined_beyond, kabsch, kept, robust_kabsch, to_base)
+from pipeline.lib.robot.identify import orientation_angles
 from pipeline.lib.robot.tcp import pose_errors
 
 METHODS = ("nominal", "calibrated", "calibrated_parts", "model")
@@ -79,7 +79,7 @@ def refit_tool(p: np.ndarray, Rf: np.ndarray, P: np.ndarray, R0: np.ndarray, t0:
                significance: float = 0.0):
     """Frame and tool offset jointly, P ≈ R (p + Rf dt) + t, from the start (R0, t0): p (k, 3) predicted
     markers, Rf (k, 3, 3) the flange rotations (base frame). Only the offset components the poses'
-    orientations determine are fitted (identify.determined_beyond at rank_tol: an offset along an axis
+    orientations determine are fitted (frames.determined_beyond at rank_tol: an offset along an axis
     the flange never turns away from is a translation of the frame); the others stay 0. With measured
     orientations R_world (k, 3, 3, tracker frame) and the predicted ones R_probe, also R R_probe dR ≈ R_world,
     weight mm/rad, and the probe's re-mounted rotation dR. Then, one at a time, the least significant offset

@@ -12,7 +12,6 @@ import sys
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 from pipeline.lib.project.artifacts import PARAMS_FILE
 from pipeline.lib.project.writing import write_file
@@ -461,25 +460,27 @@ def for_stage(params: dict, names) -> dict:
     return {n: section(params, n) for n in names}
 
 
-class _UniqueKeys(yaml.SafeLoader):
-    """YAML's safe loader, refusing a key given twice in one mapping (YAML would keep the last)."""
-
-    def construct_mapping(self, node, deep=False):
-        seen = set()
-        for key_node, _ in node.value:
-            key = self.construct_object(key_node, deep=deep)
-            if key in seen:
-                raise ParamsError(f"params.yaml line {key_node.start_mark.line + 1}: the key {key!r} is given "
-                                  "twice in one section (one would silently win)")
-            seen.add(key)
-        return super().construct_mapping(node, deep)
-
+def yaml_values(text: str, where: str):
+    """YAML text read as DVC reads params.yaml (ruamel.yaml's safe loader, YAML 1.2: `1e-4` a number, `No` and
+    `on` strings), so that a stage sees the values dvc.lock and `dvc exp show` record; a key given twice in one
+    mapping (YAML would keep the last) or text that is not YAML a ParamsError naming `where` and the line."""
+    from ruamel.yaml import YAML
+    from ruamel.yaml.constructor import DuplicateKeyError
+    from ruamel.yaml.error import MarkedYAMLError, YAMLError
+    try:
+        return YAML(typ="safe").load(text)
+    except DuplicateKeyError as e:
+        raise ParamsError(f"{where} line {e.problem_mark.line + 1}: the key {e.problem.split(chr(34))[1]!r} is "
+                          "given twice in one section (one would silently win)") from None
+    except YAMLError as e:
+        line = f" line {e.problem_mark.line + 1}" if isinstance(e, MarkedYAMLError) and e.problem_mark else ""
+        raise ParamsError(f"{where}{line}: not YAML: {getattr(e, 'problem', None) or e}") from None
 
 
 def load_params(path: Path | str = PARAMS_FILE) -> dict:
-    """params.yaml as a dict of sections (each section's keys and values are checked by `section`)."""
-    with open(path) as f:
-        params = yaml.load(f, Loader=_UniqueKeys)
+    """params.yaml as a dict of sections (each section's keys and values are checked by `section`), read as DVC
+    reads it (`yaml_values`)."""
+    params = yaml_values(Path(path).read_text(), str(path))
     if not isinstance(params, dict):
         raise ParamsError(f"{path}: expected a mapping of sections ({', '.join(s for s in SECTIONS if '.' not in s)}), "
                           f"got {'an empty file' if params is None else repr(params)[:80]}")

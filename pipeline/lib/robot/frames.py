@@ -22,12 +22,12 @@ the hand-eye problem AX = YB, with the frame's rotation from the positions), as 
 R_flangeᵀ R_frameᵀ R_meas over the poses (poses beyond median + k·MAD of the scatter left out).
 """
 import numpy as np
+import scipy.linalg
 import torch
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from pipeline.lib.project.columns import MEAS_Q
-from pipeline.lib.robot.identify import determined_beyond
 from pipeline.lib.robot.kinematics import DTYPE, fk_poses, nominal_geometry
 
 REFIT_ROUNDS = 5             # at most this many refits with the outliers judged again at the fitted tool (frame.
@@ -135,6 +135,23 @@ def flange_poses(q_deg: np.ndarray, geometry: dict) -> tuple[np.ndarray, np.ndar
 def tool_points(Rf, pf, tool) -> np.ndarray:
     """Marker positions (n, 3) in the base frame: Rf_i tool_i + pf_i; tool (3,) or one per pose (n, 3)."""
     return np.einsum("nij,nj->ni", Rf, np.broadcast_to(tool, pf.shape)) + pf
+
+
+def determined_beyond(J: np.ndarray, n_first: int, rank_tol: float) -> np.ndarray:
+    """Which of J's columns after the first n_first (always fitted: a frame) the data determines: (p,) bool,
+    True for the first n_first. Columns scaled to unit norm; the rest, with what the first n_first explain
+    removed, by column-pivoted QR: a column whose pivot falls below rank_tol is not determined (a tool offset
+    along an axis the flange never turns away from is a translation of the frame)."""
+    norms = np.linalg.norm(J, axis=0)
+    Js = J / np.where(norms > 0, norms, 1.0)
+    Qf = np.linalg.qr(Js[:, :n_first])[0]                              # (N, n_first)
+    T = Js[:, n_first:] - Qf @ (Qf.T @ Js[:, n_first:])               # (N, p - n_first)
+    keep = np.ones(J.shape[1], bool)
+    if T.shape[1]:
+        _, Rq, piv = scipy.linalg.qr(T, mode="economic", pivoting=True)
+        keep[n_first:] = False
+        keep[n_first + piv[np.abs(np.diag(Rq)) > rank_tol]] = True
+    return keep
 
 
 def refine_with_tool(Rf, pf, P, frames, tools0, station=None, loss="soft_l1", f_scale=0.5,

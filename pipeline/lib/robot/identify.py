@@ -222,23 +222,6 @@ def identifiability(J: np.ndarray, names: list[str], rank_tol: float) -> dict:
             "condition": float(s[0] / s[-1]), "pivots": diag.tolist()}
 
 
-def determined_beyond(J: np.ndarray, n_first: int, rank_tol: float) -> np.ndarray:
-    """Which of J's columns after the first n_first (always fitted: a frame) the data determines: (p,) bool,
-    True for the first n_first. Columns scaled to unit norm; the rest, with what the first n_first explain
-    removed, by column-pivoted QR: a column whose pivot falls below rank_tol is not determined (a tool offset
-    along an axis the flange never turns away from is a translation of the frame)."""
-    norms = np.linalg.norm(J, axis=0)
-    Js = J / np.where(norms > 0, norms, 1.0)
-    Qf = np.linalg.qr(Js[:, :n_first])[0]                              # (N, n_first)
-    T = Js[:, n_first:] - Qf @ (Qf.T @ Js[:, n_first:])               # (N, p - n_first)
-    keep = np.ones(J.shape[1], bool)
-    if T.shape[1]:
-        _, Rq, piv = scipy.linalg.qr(T, mode="economic", pivoting=True)
-        keep[n_first:] = False
-        keep[n_first + piv[np.abs(np.diag(Rq)) > rank_tol]] = True
-    return keep
-
-
 # ----------------------------------------------------------------------------- identification
 
 def errors_3d(p: np.ndarray, p_meas: np.ndarray) -> dict:
