@@ -404,7 +404,8 @@ def test_summary_shows_dates_temperatures_and_iso_9283_where_recorded():
            "angle_map": {"in_range_share": 0.9}, "ingest": {"n_kept": 40, "dropped": []},
            "thermal": {"temperature_c": 20.75, "dT_k": -1.25},
            "position_accuracy": {mm: {"positions": 12, "positions_repeated": 0, "ap_measured_mm": 0.8123,
-                                      "rp_measured_mm": None, "bar_error_mm": 0.1 * k}
+                                      "rp_measured_mm": None, "rp_iso_measured_mm": None, "bar_error_mm": 0.1 * k,
+                                      "ap_after_registration": True}
                                  for k, mm in enumerate(sheet.METHODS)}}
     metrics = {"model": "spi_boter_calibrated", "uncertainty": {"test": {"in_workspace_share": 0.9}}}
     s = {"validation": {"campaigns": {"cubes": val}}, "split": {"per_campaign": {"c": {"train": 8, "test": 2}}},
@@ -412,7 +413,8 @@ def test_summary_shows_dates_temperatures_and_iso_9283_where_recorded():
     test = {"c": {"n": 2, **{mm: stats for mm in sheet.METHODS}}}
     md = sheet.markdown(sheet.blocks(params, metrics, s, test, cond, ["measurement_rx", "measurement_ry"]))
     head, rows = md_table(md, "ISO 9283")
-    assert rows["`cubes`"][1:4] == ["12 (0 repeated)", "0.812", "–"]              # Series_D's cubes: no RP
+    assert rows["`cubes`"][1:4] == ["12 (0 repeated)", "0.812 *", "–"]            # Series_D's cubes: no RP; AP_P
+    assert "* AP_P after a registration to the model's own prediction" in md      # after its refit_tool registration
     assert rows["`cubes`"][4:] == ["0.000", "0.100", "0.200", "0.300"]
     _, rows = md_table(md, "Campaigns")
     assert rows["`c`"][2:] == ["10 / 2 (1 at ingest, 1 frame outliers)", "2020-11", "21.7–22.2 °C"]

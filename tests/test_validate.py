@@ -363,5 +363,11 @@ def test_position_accuracy_worked_example():
     assert pa["positions"] == 2
     assert pa["ap_measured_mm"] == pytest.approx((1 + 0) / 2)
     assert pa["rp_measured_mm"] == pytest.approx((0.5 + 0 + 0.5) / 3 / 2)
+    # ISO 9283's RP (a review, 2026-12-06: only the mean distance l̄ was given): l̄ + 3 S_l, S_l with n - 1;
+    # at the first position l = 0.5, 0, 0.5: l̄ = 1/3, S_l = sqrt(1/12); at the second 0
+    assert pa["rp_iso_measured_mm"] == pytest.approx((1 / 3 + 3 * np.sqrt(1 / 12) + 0) / 2)
+    assert pa["rp_iso_measured_max_mm"] == pytest.approx(1 / 3 + 3 * np.sqrt(1 / 12))
+    assert pa["ap_after_registration"] is False
+    assert position_accuracy(c, group, {"m": x}, {"m": x}, np.ones(6, bool), True)["m"]["ap_after_registration"]
     assert pa["bar_error_mm"] == pytest.approx(0.2)
     assert pa["ap_predicted_mm"] == pytest.approx((np.hypot(1, 0.2) + 0.2) / 2)

@@ -196,12 +196,16 @@ def run_campaign(params: dict, name: str, root: Path = HERE) -> dict:
                          f"{c['frame']} registration (validate.register_points = {cfg['register_points']}): none "
                          "is left to judge; measure more poses, lower validate.register_points, or use frame: same "
                          "if the tracker did not move")
-    u, inside = ws(q)
-    u = np.sqrt(u ** 2 + frames["model"].get("registration_rms_mm", 0.0) ** 2)     # validation.py: the campaign's own
+    u0, inside = ws(q)
+    u = np.sqrt(u0 ** 2 + frames["model"].get("registration_rms_mm", 0.0) ** 2)    # validation.py: the campaign's own
     table = pd.DataFrame({"point_id": df.point_id, "campaign": name, "registered": registered,
                           **{f"error_{m}_mm": errors[m] for m in METHODS},
                           "uncertainty_mm": u, "in_workspace": inside, "in_range_angle_map": ws.parts(q)["angle_map"]})
     out = summary(table, c["frame"])
+    judged = ~registered                             # the training uncertainty alone: no part of it from this campaign
+    out["uncertainty_coverage_training"] = {w: float((errors["model"][k] <= u0[k]).mean()) if k.any() else None
+                                            for w, k in (("all", judged), ("in", judged & inside),
+                                                         ("out", judged & ~inside))}
     out["angle_map"]["per_joint"] = per_joint_coverage(ws, q, table)
     out["ingest"] = {k: ingested[k] for k in ("n_read", "n_kept", "dropped", "dropped_counts")}
     out["registration"] = {m: {"tool_offset_mm": f["tool_offset_mm"], "tool_held": f.get("tool_held"),
@@ -227,7 +231,7 @@ def run_campaign(params: dict, name: str, root: Path = HERE) -> dict:
                     for m in METHODS}
         commanded = commanded_positions(df, c["commanded"], frame["tool_mm"], name)
         out["position_accuracy"] = position_accuracy(commanded, df[c["commanded"]["columns"]].to_numpy(float),
-                                                     measured, pred, ~registered)
+                                                     measured, pred, ~registered, c["frame"] != "same")
     (root / VALIDATION_DIR).mkdir(parents=True, exist_ok=True)
     table.to_parquet(root / VALIDATION_DIR / f"{name}.parquet", index=False)
     write_json(root / VALIDATION_DIR / f"{name}.json", out)

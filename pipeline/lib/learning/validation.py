@@ -30,10 +30,11 @@ ISO 9283 position accuracy where the campaign commands one position several
 times (a `commanded` column group): per commanded position, with the
 deviations d_i = x_i - c_i of the attained marker positions from where the
 command put the marker (its orientation may differ between visits),
-AP_P = |mean d_i| and the spread RP = mean |d_i - mean d|, both from the
-measurements and from each method's predictions, and bar_error =
-|predicted mean - measured mean|: how well the method knows where the robot
-really goes for that command.
+AP_P = |mean d_i|, the spread mean |d_i - mean d| and ISO's RP = that spread + 3 times its
+sample standard deviation, both from the measurements and from each method's predictions, and
+bar_error = |predicted mean - measured mean|: how well the method knows where the robot
+really goes for that command. Registered in a frame fitted to each method (refit), AP_P measured
+is the accuracy after that registration (a constant offset of the robot absorbed).
 """
 import numpy as np
 import pandas as pd
@@ -269,23 +270,28 @@ def summary(table: pd.DataFrame, mode: str) -> dict:
 
 
 def position_accuracy(commanded: np.ndarray, group: np.ndarray, measured: dict, pred: dict,
-                      judged: np.ndarray) -> dict:
+                      judged: np.ndarray, registered: bool = False) -> dict:
     """ISO 9283 AP_P and RP per method, measured and predicted, averaged over commanded positions.
 
     commanded (m, 3): each point's commanded marker position (base frame, mm); group (m, k): what
     was commanded (points with equal rows reached the same commanded position, maybe in another
     joint configuration and orientation); measured {method: (m, 3) in that method's base frame};
-    pred {method: (m, 3)}. Per position, with deviations d_i = x_i - c_i: AP_P = |mean d_i|,
-    bar_error = |mean(pred) - mean(measured)| over every judged position; RP = mean |d_i - mean d|
-    over the positions reached at least twice (a campaign that visits each position once, as
-    Series_D's cubes, has an AP per position and no RP).
+    pred {method: (m, 3)}; registered: that base frame was fitted to the method's own predictions
+    (refit, refit_tool), so a constant offset of the robot is absorbed in it: AP_P measured is then
+    the accuracy after that registration, not the standard's. Per position, with deviations
+    d_i = x_i - c_i and l_i = |d_i - mean d|: AP_P = |mean d_i|, bar_error = |mean(pred) - mean(measured)|
+    over every judged position; over the positions reached at least twice (a campaign that visits
+    each position once, as Series_D's cubes, has an AP per position and no RP) the spread mean l_i
+    (`rp_*`) and ISO 9283's RP = mean l_i + 3 S_l, S_l the sample standard deviation (n - 1)
+    (`rp_iso_*`).
     """
     _, g = np.unique(np.round(group[judged], 6), axis=0, return_inverse=True)
     g = g.ravel()
     c = commanded[judged]
     out = {}
     for m in pred:
-        rows = {"ap_measured": [], "ap_predicted": [], "rp_measured": [], "rp_predicted": [], "bar_error": []}
+        rows = {"ap_measured": [], "ap_predicted": [], "rp_measured": [], "rp_predicted": [], "bar_error": [],
+                "rp_iso_measured": [], "rp_iso_predicted": []}
         for k in np.unique(g):
             idx = np.flatnonzero(g == k)
             bars = {}
@@ -294,9 +300,13 @@ def position_accuracy(commanded: np.ndarray, group: np.ndarray, measured: dict, 
                 bars[kind] = d.mean(0)
                 rows[f"ap_{kind}"].append(np.linalg.norm(bars[kind]))
                 if len(idx) > 1:
-                    rows[f"rp_{kind}"].append(np.linalg.norm(d - bars[kind], axis=1).mean())
+                    l = np.linalg.norm(d - bars[kind], axis=1)          # (n,) each visit from the visits' mean
+                    rows[f"rp_{kind}"].append(l.mean())
+                    rows[f"rp_iso_{kind}"].append(l.mean() + 3 * l.std(ddof=1))
             rows["bar_error"].append(np.linalg.norm(bars["predicted"] - bars["measured"]))
         out[m] = {"positions": len(rows["ap_measured"]), "positions_repeated": len(rows["rp_measured"]),
                   **{f"{k}_mm": (float(np.mean(v)) if v else None) for k, v in rows.items()},   # means over positions
-                  "ap_measured_max_mm": float(np.max(rows["ap_measured"])) if rows["ap_measured"] else None}
+                  "ap_measured_max_mm": float(np.max(rows["ap_measured"])) if rows["ap_measured"] else None,
+                  "rp_iso_measured_max_mm": float(np.max(rows["rp_iso_measured"])) if rows["rp_iso_measured"] else None,
+                  "ap_after_registration": registered}
     return out

@@ -222,8 +222,8 @@ def accuracy_rows(test: dict, validation: dict) -> list:
 
 
 def iso_rows(validation: dict) -> list:
-    """Per commanded campaign: positions, AP_P and RP measured (in the model's frame), and per method
-    |predicted − measured| mean attained position."""
+    """Per commanded campaign: positions, AP_P (starred where measured after a registration to the model) and
+    ISO 9283 RP measured (in the model's frame), and per method |predicted − measured| mean attained position."""
     rows = []
     for c, v in validation.items():
         pa = v.get("position_accuracy")
@@ -231,7 +231,8 @@ def iso_rows(validation: dict) -> list:
             continue
         ref = pa.get("model") or next(iter(pa.values()))
         rows.append([f"`{c}`", f"{ref['positions']} ({ref.get('positions_repeated', 0)} repeated)",
-                     mm(ref["ap_measured_mm"]), mm(ref["rp_measured_mm"])]
+                     mm(ref["ap_measured_mm"]) + (" *" if ref.get("ap_after_registration") else ""),
+                     mm(ref.get("rp_iso_measured_mm"))]
                     + [mm((pa.get(m) or {}).get("bar_error_mm")) for m in METHODS])
     return rows
 
@@ -319,10 +320,12 @@ def blocks(params: dict, metrics: dict, s: dict, test: dict, cond: dict, orienta
     if iso:
         out += [("h2", "ISO 9283 position accuracy (commanded positions, mm)"),
                 ("table", ["campaign", "positions", "AP_P", "RP"] + list(METHODS.values()), iso),
-                ("p", "AP_P and RP as measured (means over the commanded positions; RP where a position was "
-                      "reached more than once). Under each method: how far its predicted mean attained position "
-                      "is from the measured one (mean over the positions), about the AP_P left where that method "
-                      "compensates the commands.")]
+                ("p", "AP_P and RP as measured (means over the commanded positions; RP, ISO 9283's: the visits' "
+                      "mean distance from their mean plus three sample standard deviations, where a position was "
+                      "reached more than once; * AP_P after a registration to the model's own prediction, "
+                      "`frame: refit`: a constant offset of the robot is absorbed there). Under each method: how "
+                      "far its predicted mean attained position is from the measured one (mean over the "
+                      "positions), about the AP_P left where that method compensates the commands.")]
     else:
         out += [("p", "**ISO 9283 AP_P / RP:** " + ("not computed" if commanded else
                                                    "no campaign was commanded (`validate.campaigns.*.commanded`)")
