@@ -167,6 +167,14 @@ def test_registration_points_spread_over_the_campaign():
     assert np.ptp(sel, axis=0).min() > 800                         # corners reached, not a clump
 
 
+def test_a_campaign_measuring_each_place_again_still_registers_as_many_points_as_asked():
+    """A review (2026-12-06): once every place was taken (12 places, each measured 10 times), farthest-point
+    sampling picked the first point again and again: 12 of the 30 registration points asked for."""
+    P = np.repeat(np.random.default_rng(2).uniform(-500, 500, (12, 3)), 10, axis=0)
+    reg = registration_subset(P, 30)
+    assert reg.sum() == 30 and len(np.unique(P[reg], axis=0)) == 12       # every place, then its repeats
+
+
 def test_workspace_flags_poses_outside_the_training_coverage():
     """Side poses lie outside a front training set's coverage: flagged, and their uncertainty is the
     model's scale (0.1 mm) within the radius, rising linearly through the fade to the calibration's

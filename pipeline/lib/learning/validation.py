@@ -51,13 +51,16 @@ METHODS = ("nominal", "calibrated", "calibrated_parts", "model")
 
 
 def registration_subset(P: np.ndarray, n: int) -> np.ndarray:
-    """Bool mask of n points of P (m, 3) spread by farthest-point sampling (deterministic)."""
+    """Bool mask of n points of P (m, 3) spread by farthest-point sampling (deterministic): n distinct points, a
+    point measured again (at distance 0 from one chosen) only once every other place is taken."""
     n = min(n, len(P))
     chosen = [int(np.argmin(np.linalg.norm(P - P.mean(0), axis=1)))]
     d = np.linalg.norm(P - P[chosen[0]], axis=1)
+    d[chosen[0]] = -1.0                                   # chosen: never again (a repeat's 0 is still above it)
     for _ in range(n - 1):
         chosen.append(int(np.argmax(d)))
         d = np.minimum(d, np.linalg.norm(P - P[chosen[-1]], axis=1))
+        d[chosen] = -1.0
     mask = np.zeros(len(P), bool)
     mask[chosen] = True
     return mask
