@@ -377,5 +377,8 @@ def test_position_accuracy_worked_example():
     assert pa["rp_iso_measured_max_mm"] == pytest.approx(1 / 3 + 3 * np.sqrt(1 / 12))
     assert pa["ap_after_registration"] is False
     assert position_accuracy(c, group, {"m": x}, {"m": x}, np.ones(6, bool), True)["m"]["ap_after_registration"]
+    # a command read back 0.4 µm off (a controller's export in mm): the same position, as in metres (a review)
+    nudged = group + np.array([[0.0004, 0, 0]] + [[0, 0, 0]] * 5)
+    assert position_accuracy(c, nudged, {"m": x}, {"m": x}, np.ones(6, bool))["m"]["positions"] == 2
     assert pa["bar_error_mm"] == pytest.approx(0.2)
     assert pa["ap_predicted_mm"] == pytest.approx((np.hypot(1, 0.2) + 0.2) / 2)

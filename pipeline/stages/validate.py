@@ -46,6 +46,7 @@ from pipeline.lib.robot.robots import load_robot
 from pipeline.lib.robot.tcp import probe_offsets
 
 log = logger(__name__)
+TO_MM = {"mm": 1.0, "m": 1000.0}          # validate.campaigns.*.commanded.unit
 PARAMS = {"campaign": ("robot", "ingest", "frame", "calibrate", "validate", "compensate"),      # validate@NAME
           "summary": ("validate",)}                                # validation
 
@@ -64,7 +65,7 @@ def commanded_positions(df: pd.DataFrame, spec: dict, tool_mm, name: str) -> np.
     if missing:
         raise ValueError(f"params.yaml validate.campaigns.{name}.commanded: column(s) {missing} not in the "
                          f"campaign; it has {list(df.columns)}")
-    c = df[spec["columns"]].to_numpy(float) * {"mm": 1.0, "m": 1000.0}[spec["unit"]]
+    c = df[spec["columns"]].to_numpy(float) * TO_MM[spec["unit"]]
     if spec["orientation"]:
         R = Rotation.from_euler(spec["euler"], df[spec["orientation"]].to_numpy(float)).as_matrix()
         c = c + np.einsum("nij,j->ni", R, np.asarray(tool_mm, float) - np.asarray(spec["planned_tool_mm"], float))
@@ -230,8 +231,8 @@ def run_campaign(params: dict, name: str, root: Path = HERE) -> dict:
                                                                           frames[m]["tool_offset_mm"])
                     for m in METHODS}
         commanded = commanded_positions(df, c["commanded"], frame["tool_mm"], name)
-        out["position_accuracy"] = position_accuracy(commanded, df[c["commanded"]["columns"]].to_numpy(float),
-                                                     measured, pred, ~registered, c["frame"] != "same")
+        group = df[c["commanded"]["columns"]].to_numpy(float) * TO_MM[c["commanded"]["unit"]]   # the command, mm
+        out["position_accuracy"] = position_accuracy(commanded, group, measured, pred, ~registered, c["frame"] != "same")
     (root / VALIDATION_DIR).mkdir(parents=True, exist_ok=True)
     table.to_parquet(root / VALIDATION_DIR / f"{name}.parquet", index=False)
     write_json(root / VALIDATION_DIR / f"{name}.json", out)

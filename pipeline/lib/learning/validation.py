@@ -277,7 +277,7 @@ def position_accuracy(commanded: np.ndarray, group: np.ndarray, measured: dict, 
     """ISO 9283 AP_P and RP per method, measured and predicted, averaged over commanded positions.
 
     commanded (m, 3): each point's commanded marker position (base frame, mm); group (m, k): what
-    was commanded (points with equal rows reached the same commanded position, maybe in another
+    was commanded, mm (points whose rows agree to 1 µm reached the same commanded position, maybe in another
     joint configuration and orientation); measured {method: (m, 3) in that method's base frame};
     pred {method: (m, 3)}; registered: that base frame was fitted to the method's own predictions
     (refit, refit_tool), so a constant offset of the robot is absorbed in it: AP_P measured is then
@@ -288,7 +288,7 @@ def position_accuracy(commanded: np.ndarray, group: np.ndarray, measured: dict, 
     (`rp_*`) and ISO 9283's RP = mean l_i + 3 S_l, S_l the sample standard deviation (n - 1)
     (`rp_iso_*`).
     """
-    _, g = np.unique(np.round(group[judged], 6), axis=0, return_inverse=True)
+    _, g = np.unique(np.round(group[judged], 3), axis=0, return_inverse=True)        # 1 µm, whatever the unit
     g = g.ravel()
     c = commanded[judged]
     out = {}
