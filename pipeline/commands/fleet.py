@@ -12,10 +12,13 @@ scratch folder (the robot's files under `campaign/`), the pipeline's stages (ing
 evaluate, export, report), each in the job's process (`pipeline.stages.run`, the main that
 `dvc repro` runs), its log to `logs/<stage>.log`. The scratch folder comes back as bytes and is written here to `<out>/<robot>/`,
 which then holds that robot's params.yaml, campaign, artifacts (models/, data/interim/),
-report (reports/index.md) and logs: no filesystem is shared with the nodes. A robot
-that fails is reported with its stage and error message (its folder, logs included,
-still comes back), and the others finish. reports/fleet.json and reports/fleet.md: per
-robot the test 3D MAE of nominal DH, the classical calibration and the model.
+report (reports/index.md) and logs: no filesystem is shared with the nodes; `<out>/<robot>/`
+is cleared first, and `--out` may not be the fleet folder or inside it. A robot's params.yaml
+is checked before any stage runs (robot_params). A robot that fails is reported with its step
+(`params`, a stage, `job`, `write`) and error message (its folder, logs included, still comes
+back after a stage's failure), and the others finish. reports/fleet.json and reports/fleet.md:
+per robot the test 3D MAE of nominal DH, the classical calibration and the model, written
+whatever failed; then the command exits 1 if a robot failed.
 
 DVC: `fleet/dvc.yaml` (opt-in, like ablation/) is one stage whose output is the
 per-robot folders: Ray runs the robots in parallel inside it, where a `foreach`
@@ -28,6 +31,8 @@ import contextlib
 import logging
 import math
 import os
+import re
+import shutil
 import tempfile
 import time
 import traceback
@@ -38,8 +43,9 @@ import yaml
 
 from pipeline import stages
 from pipeline.lib.learning import sweep
-from pipeline.lib.project.cli import one_line
-from pipeline.lib.project.config import LOG_FORMAT, load_params, logger, read_json, write_json, yaml_values
+from pipeline.lib.project.cli import Refused, one_line
+from pipeline.lib.project.config import (LOG_FORMAT, SECTIONS, ParamsError, load_params, logger, read_json, section,
+                                           write_json, yaml_values)
 from pipeline.lib.reading.campaigns import write_pair
 from pipeline.lib.reading.presets import deep_merge
 from pipeline.lib.sim.twin import Twin
@@ -50,20 +56,55 @@ STAGES = ["ingest", "frame", "theory", "split", "calibrate", "parts", "train", "
 FLEET_JSON, FLEET_MD = Path("reports/fleet.json"), Path("reports/fleet.md")
 BENCH_JSON = Path("reports/bench/fleet.json")
 DEMO_SEED = 2000
+TOP_SECTIONS = [s for s in SECTIONS if "." not in s]       # what a robot's params.yaml may name
+UNSUPPORTED = [("campaigns", "more", "one campaign per robot: its ingest section's"),   # (section, key, why):
+               ("validate", "campaigns", "no validate stage"),                          # given (not empty or
+               ("compensate", "drive_check", "no compensate stage")]                    # false), refused
+
+
+def check_sections(over: dict, path: Path) -> None:
+    """A ParamsError naming the robot's params.yaml (path) and the key where `over` names a section the
+    project has not (a misspelt one was merged and ignored) or gives a setting the fleet does not run
+    (UNSUPPORTED: its paths were never checked either)."""
+    unknown = [k for k in over if k not in TOP_SECTIONS]
+    if unknown:
+        raise ParamsError(f"{path}: unknown section(s) {unknown}: a misspelt one would be ignored. "
+                          f"Sections: {', '.join(TOP_SECTIONS)}")
+    for name, key, why in UNSUPPORTED:
+        given = over.get(name)
+        if isinstance(given, dict) and given.get(key):
+            raise ParamsError(f"{path}: {name}.{key}: {given[key]!r}: the fleet does not run it ({why})")
+
+
+def check_merged(p: dict, path: Path) -> None:
+    """Every section of the merged params p checked as its stage will (config.section: keys and values),
+    before any stage runs; a ParamsError naming the robot's params.yaml (path) and the key."""
+    try:
+        for name in TOP_SECTIONS:
+            if name in p:
+                section(p, name)
+    except ParamsError as e:
+        raise ParamsError(f"{path} (merged over the project's params.yaml): {str(e).removeprefix('params.yaml ')}") \
+            from None
 
 
 def robot_params(base: dict, robot_dir: Path) -> dict:
     """The project's params with the robot's params.yaml merged over it; its campaign paths made
     relative to the robot's working folder, where its folder's files are copied to `campaign/`; no
-    further campaigns, no validation campaigns, no twin drive check unless it says so. A ValueError
-    naming the file where its params.yaml is no mapping, or a campaign path leaves the robot's folder."""
+    further campaigns, no validation campaigns, no twin drive check (the fleet runs no stage that would
+    read them). A ValueError naming the file and the key where its params.yaml is no mapping, names a
+    section the project has not or a setting the fleet does not run (UNSUPPORTED), a campaign path leaves
+    the robot's folder, or the merged params break a section's rules (config.section)."""
     path = robot_dir / "params.yaml"
     over = yaml_values(path.read_text(), str(path)) if path.exists() else {}     # a ParamsError naming file, line
     if not isinstance(over, dict | None) or not isinstance((over or {}).get("ingest", {}), dict):
         raise ValueError(f"{path}: expected a mapping of params.yaml sections (ingest: a mapping too)")
+    over = over or {}
+    check_sections(over, path)
     p = deep_merge({**base, "campaigns": {**base["campaigns"], "more": {}},
                     "validate": {**base["validate"], "campaigns": {}},
-                    "compensate": {**base["compensate"], "drive_check": False}}, over or {})
+                    "compensate": {**base["compensate"], "drive_check": False}}, over)
+    check_merged(p, path)
     for k in ("joints", "tracker"):
         v = p["ingest"][k]
         if not isinstance(v, str) or Path(v).is_absolute() or ".." in Path(v).parts:
@@ -78,6 +119,12 @@ def robot_job(base: dict, robot_dir: Path) -> dict:
     return {"robot": robot_dir.name, "params": robot_params(base, robot_dir), "files": sweep.pack(robot_dir)}
 
 
+def scratch_prefix(name: str) -> str:
+    """The prefix of a robot's scratch folder: its name's first 40 characters, those a file name may not
+    hold (or a shell would quote) as `_`: any folder name fits (a 250-character one did not: OSError)."""
+    return "fleet-" + re.sub(r"[^A-Za-z0-9_.-]", "_", name[:40]) + "-"
+
+
 def calibrate_robot(job: dict) -> dict:
     """One robot: its folder's files unpacked to `campaign/` of a scratch folder, every stage run there
     (run_logged: in this process, with the code it runs: on Ray, the package shipped with the task; the
@@ -85,7 +132,7 @@ def calibrate_robot(job: dict) -> dict:
     as bytes under "files", for the driver to write where it wants it."""
     name, params = job["robot"], job["params"]
     t0 = time.perf_counter()
-    with tempfile.TemporaryDirectory(prefix=f"fleet-{name}-") as tmp:
+    with tempfile.TemporaryDirectory(prefix=scratch_prefix(name)) as tmp:
         out = sweep.unpack(job["files"], Path(tmp) / CAMPAIGN).parent
         (out / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
         (out / "logs").mkdir()
@@ -166,27 +213,94 @@ def fleet_estimate(summary: dict, threads: int, robots: int = 100, nodes=(1, 4, 
             "assumes": "nodes like this one (cores, speed); each robot's campaign like the demo's"}
 
 
+def check_out(out: Path, fleet_dir: Path, robots: list[Path]) -> None:
+    """A ValueError naming both where `out` is the fleet folder or inside it (each run would add its
+    outputs to the robots' folders, and a robot's params.yaml be overwritten by its merged one), or
+    where a robot's output folder would hold the fleet folder (clearing it would delete the fleet)."""
+    o, f = out.resolve(), fleet_dir.resolve()
+    if o == f or f in o.parents:
+        raise ValueError(f"--out {out} is the fleet folder {fleet_dir} or inside it: give a folder of its own")
+    for d in robots:
+        if o / d.name == f or o / d.name in f.parents:
+            raise ValueError(f"--out {out}: robot {d.name}'s output folder {out / d.name} would hold the fleet "
+                             f"folder {fleet_dir}: give a folder of its own")
+
+
+def clear(folder: Path) -> None:
+    """folder gone (a file or link of its name too), so what a robot's run writes there is all it holds."""
+    if folder.is_dir() and not folder.is_symlink():
+        shutil.rmtree(folder)
+    elif folder.exists() or folder.is_symlink():
+        folder.unlink()
+
+
+def write_robot(r: dict, out: Path) -> None:
+    """A robot's folder, come back in its result, written to out/<robot> (cleared first); a failure to
+    write it makes the robot failed (stage `write`), its earlier failure, if any, kept in the reason."""
+    files, target = r.pop("files"), out / r["robot"]
+    try:
+        clear(target)
+        sweep.unpack(files, target)
+    except (OSError, ValueError) as e:
+        before = f"; before that: {r['stage']}: {r['reason']}" if r["status"] != "ok" else ""
+        r.update(status="failed", stage="write", reason=f"{target}: {e}{before}")
+
+
+def run_jobs(jobs: list, out: Path, engine: str, address: str | None, threads: int) -> tuple[list, dict]:
+    """Every robot's job (calibrate_robot) on the engine, each folder written to out as it comes back:
+    the robots' results and the timing. A job that raised outside its stages (its scratch folder, its
+    files) is that robot's failed row, stage `job`, its error in one line; the others' results stand."""
+    if not jobs:
+        return [], {"seconds": 0.0, "job_nodes": []}
+    try:
+        return sweep.run(calibrate_robot, jobs, engine, address, threads, desc="fleet",
+                         on_result=lambda i, r: write_robot(r, out))
+    except sweep.SweepFailed as e:
+        results = list(e.results)
+        for i, job, said in e.failures:
+            results[i] = {"robot": job["robot"], "status": "failed", "stage": "job", "reason": said,
+                          "seconds": e.timing["job_seconds"][i] or 0.0}
+        return results, e.timing
+
+
+def fleet_table(results: list) -> list[str]:
+    """The rows of reports/fleet.md: per robot its status (or where and why it failed), the test 3D MAE
+    of nominal DH, the classical calibration and the model, and its seconds."""
+    rows = ["| robot | status | nominal mm | calibrated mm | model mm | seconds |", "|---|---|---|---|---|---|"]
+    for r in results:
+        e = r.get("test_3d_mae_mm") if r["status"] == "ok" else None
+        said = r["status"] if e else f"failed in {r['stage']}: {r['reason']}"
+        rows.append(f"| {md_cell(r['robot'])} | {md_cell(said)} | "
+                    + (" | ".join(f"{e[k]:.4f}" for k in ("nominal", "calibrated", "model")) if e else "– | – | –")
+                    + f" | {r['seconds']:.0f} |")
+    return rows
+
+
 def run_fleet(fleet_dir, out="fleet/robots", engine: str = "sequential", address: str | None = None,
               threads: int | None = None, base: dict | None = None, bench: bool = False) -> dict:
-    fleet_dir = Path(fleet_dir)
+    """Every robot of the fleet folder calibrated (module doc), each robot's folder written to out/<robot>
+    (cleared first, that of a robot that fails too), reports/fleet.json and fleet.md written whatever
+    failed: the summary (fleet.json's). A robot that fails is a row of it (`failed`: its stage and reason);
+    the caller decides what that means (the command exits 1)."""
+    fleet_dir, out = Path(fleet_dir), Path(out)
     robots = sorted(d for d in fleet_dir.iterdir() if d.is_dir() and not d.name.startswith(".")) \
         if fleet_dir.is_dir() else []
     if not robots:
         raise FileNotFoundError(f"{fleet_dir}: no robot folders (one per robot: its campaign and params.yaml)")
+    if threads is not None and threads < 1:
+        raise ValueError(f"threads: {threads}: torch threads per robot must be >= 1")
+    check_out(out, fleet_dir, robots)
     base = base or load_params()
     threads = sweep.threads_per_job(engine, threads)
     jobs, refused = [], []
     for d in robots:
+        clear(out / d.name)                     # no earlier run's models or reports under a robot that fails
         try:
             jobs.append(robot_job(base, d))
         except ValueError as e:                 # its params.yaml: that robot fails, the others run
             refused.append({"robot": d.name, "status": "failed", "stage": "params", "reason": str(e), "seconds": 0.0})
-
-    def arrived(i, r):                          # the robot's folder, written here as it comes back
-        sweep.unpack(r.pop("files"), Path(out) / r["robot"])
-    results, timing = (sweep.run(calibrate_robot, jobs, engine, address, threads, desc="fleet", on_result=arrived)
-                       if jobs else ([], {"seconds": 0.0, "job_nodes": []}))
-    nodes = {r["robot"]: n for r, n in zip(results, timing["job_nodes"])}
+    results, timing = run_jobs(jobs, out, engine, address, threads)
+    nodes = {j["robot"]: n for j, n in zip(jobs, timing["job_nodes"])}
     results = sorted(results + refused, key=lambda r: r["robot"])
     ok = [r for r in results if r["status"] == "ok"]
     summary = {"fleet": str(fleet_dir), "out": str(out), "engine": engine, "n_robots": len(results),
@@ -197,13 +311,7 @@ def run_fleet(fleet_dir, out="fleet/robots", engine: str = "sequential", address
     write_json(FLEET_JSON, summary)
     if bench and ok:
         write_json(BENCH_JSON, fleet_estimate(summary, threads))
-    rows = ["| robot | status | nominal mm | calibrated mm | model mm | seconds |", "|---|---|---|---|---|---|"]
-    for r in results:
-        e = r.get("test_3d_mae_mm")
-        said = r["status"] if e else f"failed in {r['stage']}: {r['reason']}"
-        rows.append(f"| {md_cell(r['robot'])} | {md_cell(said)} | "
-                    + (" | ".join(f"{e[k]:.4f}" for k in ("nominal", "calibrated", "model")) if e else "– | – | –")
-                    + f" | {r['seconds']:.0f} |")
+    rows = fleet_table(results)
     FLEET_MD.write_text("# Fleet calibration (test 3D MAE)\n\n" + "\n".join(rows) + "\n")
     log.info("fleet of %d robots on %s in %.0f s: %d calibrated, %d failed %s\n%s", len(results), engine,
              timing["seconds"], len(ok), len(results) - len(ok), summary["failed"], "\n".join(rows))
@@ -228,6 +336,14 @@ def demo(fleet_dir="data/fleet", robots: int = 4, n: int = 300, models=("ur5", "
     return out
 
 
+def at_least_one(text: str) -> int:
+    """--threads: an integer >= 1, said by argparse where it is not (torch refused -1 in every robot's job)."""
+    n = int(text)
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"{text}: torch threads per robot must be >= 1")
+    return n
+
+
 def main(argv=None):
     return one_line("pipeline.commands.fleet", run, argv)
 
@@ -240,7 +356,7 @@ def run(argv=None):
     ap.add_argument("--out", default="fleet/robots", help="where each robot's folder is written (run)")
     ap.add_argument("--engine", choices=sweep.ENGINES, default="ray")
     ap.add_argument("--address", default=None, help="a Ray cluster (default: RAY_ADDRESS, else local)")
-    ap.add_argument("--threads", type=int, default=None, help="torch threads per robot (default: 1 on Ray)")
+    ap.add_argument("--threads", type=at_least_one, default=None, help="torch threads per robot (default: 1 on Ray)")
     ap.add_argument("--robots", type=int, default=4, help="demo: how many twins")
     ap.add_argument("--bench", action="store_true", help="also write reports/bench/fleet.json: the measured "
                                                          "per-robot time and a 100-robot estimate")
@@ -248,8 +364,11 @@ def run(argv=None):
     if a.what == "demo":
         demo(a.fleet, a.robots)
     else:
-        run_fleet(a.fleet, a.out, a.engine, a.address, a.threads, bench=a.bench)
-
+        summary = run_fleet(a.fleet, a.out, a.engine, a.address, a.threads, bench=a.bench)
+        failed = [f"{r['robot']} in {r['stage']}" for r in summary["robots"] if r["status"] != "ok"]
+        if failed:                              # the reports are written; the run (and a dvc repro) is no success
+            raise Refused(f"{len(failed)} of {summary['n_robots']} robot(s) failed ({', '.join(failed)}), "
+                          f"{summary['n_ok']} calibrated: the reasons in {FLEET_JSON} and {FLEET_MD}")
 
 if __name__ == "__main__":
     main()
