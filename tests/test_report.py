@@ -227,6 +227,32 @@ def test_ablation_summary_writes_table_with_paper_epochs_and_figure(tmp_path, mo
     assert json.loads((tmp_path / "reports/ablation.json").read_text()) == summary
 
 
+def test_the_ablation_summary_says_how_many_seeds_each_mean_holds_and_which_groups_failed(tmp_path, monkeypatch):
+    """A review (2026-12-06): a group's failed seeds were dropped from its mean unsaid (3 of 5 beside another's 5),
+    and a group whose every seed failed vanished from ablation.json and .md: a loser unreported. One seed's
+    spread was ± 0.0000."""
+    from pipeline.commands import ablation
+    monkeypatch.chdir(tmp_path)
+    run = lambda s, mae: {"seed": s, "test": {"3d": {"mae": mae, "rmse": 0.3, "r2": 0.9}}, "epochs_to_best": 10,
+                          "n_params": 5}
+    records = {"baseline": ([run(1, 0.25), run(2, 0.27)], []),
+               "no_mask": ([run(1, 0.24)], [{"seed": 2, "error": "RuntimeError: NaN loss"}]),
+               "paper_weights": ([], [{"seed": 1, "error": "MemoryError"}, {"seed": 2, "error": "MemoryError"}])}
+    for g, (runs, failed) in records.items():
+        write_json(tmp_path / "reports/ablation" / f"{g}.json",
+                   {"group": g, "changes": ablation.GROUPS[g], "runs": runs, "failed": failed})
+    summary = ablation.summarise()
+    assert summary["groups"]["baseline"]["n"] == 2 and summary["groups"]["baseline"]["test_3d_mae_std"] == pytest.approx(0.01)
+    assert summary["groups"]["no_mask"]["n"] == 1 and summary["groups"]["no_mask"]["test_3d_mae_std"] is None
+    assert list(summary["all_seeds_failed"]) == ["paper_weights"]
+    md = (tmp_path / "reports/ablation.md").read_text().splitlines()
+    rows = {r.split("|")[1].strip(): [c.strip() for c in r.split("|")[1:-1]] for r in md[2:]}
+    seeds = md[0].split("|")[1:-1].index(" seeds ")
+    assert rows["baseline"][seeds] == "2" and rows["no_mask"][seeds] == "1 (1 failed)"
+    assert rows["no_mask"][seeds + 1] == "0.2400 ± –"
+    assert rows["paper_weights"][seeds] == "0 (2 failed)" and rows["paper_weights"][seeds + 1] == "every seed failed"
+
+
 def test_the_ablation_summary_leaves_out_groups_run_on_other_settings(tmp_path, monkeypatch):
     """`ablation sweep GROUP` re-runs some groups: the summary put them beside groups trained on other settings
     or inputs, in one table. Now it holds the groups run on those of the group run last, and lists the others."""

@@ -213,3 +213,27 @@ def test_an_ablation_with_a_failed_run_writes_the_others_and_names_it(tmp_path, 
     rec = json.loads((tmp_path / "ablation" / "baseline.json").read_text())
     assert [r["seed"] for r in rec["runs"]] == [3, 5]
     assert rec["failed"] == [{"seed": 4, "error": "ValueError: diverged"}]
+
+
+def test_a_method_measured_on_one_seed_has_no_spread():
+    """A review (2026-12-06): bench real trains the other physics branch on the first seed only, and wrote it as
+    mean ± 0.0 beside the others' spread over every seed. One seed now has no std (null), as the records say."""
+    from pipeline.commands.bench.real import seed_stats, seed_summary
+    s = seed_summary({"spi_boter_calibrated": [0.30, 0.32, 0.31], "spi_boter_nominal": [0.35]}, 0.8, "calibrated")
+    assert s["test_3d_mae_std"]["spi_boter"] == pytest.approx(0.0081650, abs=1e-6)      # population std, 3 seeds
+    assert s["test_3d_mae_std"]["spi_boter_nominal"] is None and s["test_3d_mae_runs"]["spi_boter_nominal"] == [0.35]
+    assert seed_stats([{"a": 1.0}])["a"]["std"] is None
+
+
+def test_seeds_whose_runs_would_share_members_are_refused():
+    """A review (2026-12-06): with train.members 2, ablation seeds 139 and 140 trained members (139, 140) and
+    (140, 141): one model, bit for bit, in both runs, so their spread understated the seeds'. Refused now,
+    naming the setting, before any data is read."""
+    from pipeline.lib.learning.training import independent_seeds
+    params = load_params(Path(__file__).resolve().parents[1] / "params.yaml")
+    params["train"]["members"], params["ablation"]["seeds"] = 2, [139, 140]
+    with pytest.raises(ValueError, match=r"params.yaml ablation.seeds: seeds \[139, 140\] with train.members = 2 "
+                                         r"share members"):
+        ablation.jobs_for(params, ["baseline"])
+    independent_seeds([139, 141, 143], 2, "x")                        # two apart: none shared
+    independent_seeds([139, 140], 1, "x")

@@ -25,6 +25,8 @@ import numpy as np
 
 from pipeline.lib.learning import sweep
 from pipeline.lib.learning.ablations import GROUPS, Data, Job, train_one
+from pipeline.lib.learning.metrics import seed_std
+from pipeline.lib.learning.training import independent_seeds
 from pipeline.lib.project.artifacts import (CALIBRATED_GEOMETRY, FRAME_JSON, PARTS_JSON, POINTS_TABLE, REPORTS,
                                             SPLIT_TABLE, TIMINGS)
 from pipeline.lib.project.config import for_stage, load_params, logger, read_json, split_timings, write_json
@@ -56,6 +58,7 @@ def jobs_for(params: dict, groups: list[str]) -> tuple[list[Job], Data]:
     if unknown:
         raise ValueError(f"unknown ablation group(s) {unknown}; use {list(GROUPS)}")
     p = for_stage(params, PARAMS["group"])
+    independent_seeds(p["ablation"]["seeds"], p["train"]["members"], "params.yaml ablation.seeds")
     prep = load_prepared(p["robot"])
     return [Job(p, g, s) for g in groups for s in p["ablation"]["seeds"]], Data(prep.points, prep.geometries())
 
@@ -102,14 +105,17 @@ def summarise() -> dict:
     records = {p.stem: read_json(p) for p in found}
     last = records[found[-1].stem].get("settings_sha256") if found else None
     stale = sorted(g for g, r in records.items() if r.get("settings_sha256") != last)
-    groups = {}
+    groups, all_failed = {}, {}
     for g in GROUPS:
         r = records.get(g)
-        if r is None or g in stale or not r["runs"]:     # no runs: every seed failed (r["failed"] says why)
+        if r is None or g in stale:
+            continue
+        if not r["runs"]:                                 # every seed failed: said, as a loser would be
+            all_failed[g] = {"changes": r["changes"], "failed": r.get("failed", [])}
             continue
         mae = [run["test"]["3d"]["mae"] for run in r["runs"]]
-        groups[g] = {"seeds": [run["seed"] for run in r["runs"]], "runs": mae,
-                     "test_3d_mae_mean": float(np.mean(mae)), "test_3d_mae_std": float(np.std(mae)),
+        groups[g] = {"seeds": [run["seed"] for run in r["runs"]], "n": len(mae), "runs": mae,
+                     "test_3d_mae_mean": float(np.mean(mae)), "test_3d_mae_std": seed_std(mae),
                      "test_3d_rmse_mean": float(np.mean([run["test"]["3d"]["rmse"] for run in r["runs"]])),
                      "test_3d_r2_mean": (None if any(run["test"]["3d"]["r2"] is None for run in r["runs"]) else  # 1 point
                                          float(np.mean([run["test"]["3d"]["r2"] for run in r["runs"]]))),
@@ -117,19 +123,24 @@ def summarise() -> dict:
                      "params": r["runs"][0]["n_params"], "changes": r["changes"],
                      **({"failed": r["failed"]} if r.get("failed") else {}),
                      "paper_test_3d_mae": PAPER_ABLATION.get(g)}
-    summary = {"groups": groups, **({"stale": stale} if stale else {})}
+    summary = {"groups": groups, **({"all_seeds_failed": all_failed} if all_failed else {}),
+               **({"stale": stale} if stale else {})}
     if stale:
         log.warning("left out, run on other settings or inputs than %s: %s (rerun them: python -m "
                     "pipeline.commands.ablation sweep %s)", found[-1].stem, ", ".join(stale), " ".join(stale))
     write_json(REPORTS / "ablation.json", summary)
-    rows = ["| group | changes | test 3D MAE mm (mean ± std) | paper | epochs to best | paper epochs "
-            "| parameters |", "|---|---|---|---|---|---|---|"]
+    rows = ["| group | changes | seeds | test 3D MAE mm (mean ± std) | paper | epochs to best | paper epochs "
+            "| parameters |", "|---|---|---|---|---|---|---|---|"]
     for g, s in groups.items():
         paper = "–" if s["paper_test_3d_mae"] is None else f"{s['paper_test_3d_mae']:.4f}"
-        rows.append(f"| {g} | `{json.dumps(s['changes'])}` | {s['test_3d_mae_mean']:.4f} ± "
-                    f"{s['test_3d_mae_std']:.4f} | {paper} | "
-                    f"{int(np.mean(s['epochs_to_best']))} | {PAPER_ABLATION_EPOCHS.get(g, '–')} | "
+        std = "–" if s["test_3d_mae_std"] is None else f"{s['test_3d_mae_std']:.4f}"
+        n = f"{s['n']}" + (f" ({len(s['failed'])} failed)" if s.get("failed") else "")
+        rows.append(f"| {g} | `{json.dumps(s['changes'])}` | {n} | {s['test_3d_mae_mean']:.4f} ± {std} | {paper} | "
+                    f"{round(np.mean(s['epochs_to_best']))} | {PAPER_ABLATION_EPOCHS.get(g, '–')} | "
                     f"{s['params']:,} |")
+    for g, f in all_failed.items():
+        rows.append(f"| {g} | `{json.dumps(f['changes'])}` | 0 ({len(f['failed'])} failed) | every seed failed | "
+                    f"{'–' if PAPER_ABLATION.get(g) is None else f'{PAPER_ABLATION[g]:.4f}'} | – | – | – |")
     if stale:
         rows += ["", f"Left out, run on other settings or inputs than `{found[-1].stem}` (the group run last): "
                  + ", ".join(f"`{g}`" for g in stale) + "."]

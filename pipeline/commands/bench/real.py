@@ -34,6 +34,8 @@ import yaml
 from pipeline import stages
 from pipeline.commands.bench.common import BENCH, DATASETS, ROOT
 from pipeline.lib.learning import sweep
+from pipeline.lib.learning.metrics import seed_std
+from pipeline.lib.learning.training import independent_seeds
 from pipeline.lib.project.artifacts import (INGEST_JSON, INGEST_TABLE, METRICS_JSON, PARAMS_FILE, PREDICTIONS_TABLE,
                                             VALIDATION_DIR)
 from pipeline.lib.project.columns import JOINTS_DEG, MEAS, PRED
@@ -196,6 +198,7 @@ def run_set(name: str, seeds: list[int], epochs: int | None, other_physics: bool
             nominal = float(np.linalg.norm(e, axis=1).mean())
         local = localized(params, root)
         prepared_files = sweep.pack(root)                # the prepared directory, a value: no shared filesystem
+        independent_seeds(seeds, local["train"]["members"], "bench real --seeds")
         jobs = []
         for i, seed in enumerate(seeds):
             p = copy.deepcopy(local)
@@ -235,7 +238,7 @@ def seed_stats(runs: list):
     """Each number of nested dicts of one shape (one per seed) as {mean, std, runs}."""
     if isinstance(runs[0], dict):
         return {k: seed_stats([r[k] for r in runs]) for k in runs[0]}
-    return {"mean": float(np.mean(runs)), "std": float(np.std(runs)), "runs": runs}
+    return {"mean": float(np.mean(runs)), "std": seed_std(runs), "runs": runs}
 
 
 def set_summary(runs: list[dict], valid: list[dict], per_campaign: list[dict], ensemble: float, seeds: list[int],
@@ -253,14 +256,14 @@ def set_summary(runs: list[dict], valid: list[dict], per_campaign: list[dict], e
         for key in ("mean_3d_mm", "mean_3d_mm_in", "mean_3d_mm_out", "mean_3d_mm_map_in", "mean_3d_mm_map_out"):
             runs_ = {m: [v[c][key][m] for v in valid] for m in valid[0][c][key]}
             validation[c][key] = {m: stat(np.mean, r) for m, r in runs_.items()}
-            validation[c][key + "_std"] = {m: stat(np.std, r) for m, r in runs_.items()}
+            validation[c][key + "_std"] = {m: None if None in r else seed_std(r) for m, r in runs_.items()}
             validation[c][key + "_runs"] = runs_
         if "pose" in valid[0][c]:             # orientation and TCP errors, where the campaign measures them
             validation[c]["pose"] = seed_stats([v[c]["pose"] for v in valid])
     campaigns = {}                          # per training campaign and method: mean, std, every seed
     for c, methods in per_campaign[0].items():
         runs_ = {m: [p[c][m] for p in per_campaign] for m in methods}
-        campaigns[c] = {m: {"mean": float(np.mean(r)), "std": float(np.std(r)), "runs": r} for m, r in runs_.items()}
+        campaigns[c] = {m: {"mean": float(np.mean(r)), "std": seed_std(r), "runs": r} for m, r in runs_.items()}
     return {**out, **seed_summary(per, nominal, params["model"]["physics"]),
             "test_3d_mae_ensemble": {"spi_boter": ensemble, "models": len(runs)}, "validation": validation,
             "test_3d_mae_per_campaign": campaigns, **({"test_pose": seed_stats(poses)} if poses and poses[0] else {})}
@@ -276,7 +279,7 @@ def seed_summary(per: dict, nominal: float | None, physics: str) -> dict:
              "spi_boter_calibrated": "spi_boter_calibrated"}
     mae = {"nominal": nominal, **{k: float(np.mean(per[v])) for k, v in names.items() if per.get(v)}}
     return {"test_3d_mae": mae,
-            "test_3d_mae_std": {k: float(np.std(per[v])) for k, v in names.items() if per.get(v)},
+            "test_3d_mae_std": {k: seed_std(per[v]) for k, v in names.items() if per.get(v)},   # None: one seed
             "test_3d_mae_runs": {k: per[v] for k, v in names.items() if per.get(v)}}
 
 

@@ -10,6 +10,12 @@ def r2(ss_res: float, ss_tot: float) -> float | None:
     return float(1 - ss_res / ss_tot) if ss_tot > 0 else None
 
 
+def seed_std(values) -> float | None:
+    """The spread the project quotes as "mean ± std" over training seeds: the population standard deviation
+    (ddof 0, docs/results.md); None for fewer than two seeds (one run has no spread to tell)."""
+    return float(np.std(values)) if len(values) > 1 else None
+
+
 def regression_metrics(pred: np.ndarray, real: np.ndarray, theory: np.ndarray) -> dict:
     """pred, real, theory: (n, 3) mm -> {"x"|"y"|"z"|"3d": {"mae", "mse", "rmse", "r2"}}.
 

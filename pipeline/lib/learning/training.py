@@ -232,6 +232,15 @@ def fit(model, loss_fn, train, val, cfg: dict, live=None, desc="train", progress
     return out
 
 
+def independent_seeds(seeds, members: int, where: str) -> None:
+    """Runs at `seeds` train members seed, seed + 1, .., seed + members - 1 (train_boter): a ValueError naming
+    `where` where two runs would share a member (their spread would then understate the seeds')."""
+    taken = [s + k for s in seeds for k in range(members)]
+    if len(set(taken)) < len(taken):
+        raise ValueError(f"{where}: seeds {list(seeds)} with train.members = {members} share members (a run at seed s "
+                         f"trains s .. s + {members - 1}): space the seeds at least {members} apart")
+
+
 def train_boter(df: pd.DataFrame, geometry: dict, model_cfg: dict, loss_cfg: dict, train_cfg: dict,
                 radius_quantile: float, live=None, progress=True):
     """Build and train BoTER (or `train.members` of them, an Ensemble) with the SPI loss on df's

@@ -172,6 +172,11 @@ def _sequence(v) -> bool:
             and v[0] != v[1] and v[1] != v[2])
 
 
+def _text(v) -> bool:
+    """Some text: a path, a host."""
+    return isinstance(v, str) and v.strip() != ""
+
+
 def _header(v):
     """A column header as a setting names one: text or a number, not blank."""
     return isinstance(v, (str, int)) and not isinstance(v, bool) and str(v).strip() != ""
@@ -252,8 +257,8 @@ RULES = {
     "serve.timeout_s": (_num(0, open_lo=True), "a time > 0 s"),
     "serve.echo_chars": (_int(20), "an integer >= 20"),
     "serve.refusal_delay_ms": (_num(0, 1000), "a time in 0..1000 ms"),
-    "ingest.joints": (lambda v: isinstance(v, str) and v.strip() != "", "the path of the controller log"),
-    "ingest.tracker": (lambda v: isinstance(v, str) and v.strip() != "", "the path of the tracker export"),
+    "ingest.joints": (_text, "the path of the controller log"),
+    "ingest.tracker": (_text, "the path of the tracker export"),
     "ingest.skip_lines": (_int(0), "a whole number of lines >= 0"),
     "ingest.sep": (lambda v: v in ("auto", ",", ";", "\t", "tab", "\\t"), "auto, ',', ';' or tab"),
     "ingest.decimal": (lambda v: v in ("auto", ".", ","), "auto, '.' or ','"),
@@ -268,7 +273,7 @@ RULES = {
                                    "matrix, row-major) headers, distinct ignoring case and spaces"),
     "ingest.columns.marker": (_or_null(_header), "null, or the header naming each row's marker"),
     "ingest.orientation.kind": (lambda v: v in ("euler", "quaternion", "matrix"), "euler, quaternion or matrix"),
-    "ingest.orientation.sequence": (lambda v: _sequence(v),
+    "ingest.orientation.sequence": (_sequence,
                                     "three axes as scipy's Rotation.from_euler: XYZ, ZYX, ZXZ, ... upper case intrinsic "
                                     "(about the turning probe's axes), lower case extrinsic (about the tracker's); "
                                     "no axis twice in a row, no mixed case"),
@@ -373,13 +378,13 @@ RULES = {
     "compensate.lr": (POS, "a learning rate > 0"),
     "compensate.tol_mse": (POS, "a tolerance > 0 mm²"),
     "compensate.drive_check": (_bool, "true or false"),
-    "compensate.twin": (lambda v: isinstance(v, str) and v.strip() != "", "a file path"),
+    "compensate.twin": (_text, "a file path"),
     "compensate.drive_seed": (_int(0), "an integer >= 0"),
     "ablation.seeds": (lambda v: isinstance(v, list) and len(v) > 0 and all(_int(0)(s) for s in v)
                        and len(set(v)) == len(v), "a non-empty list of distinct integers >= 0"),
     "ablation.max_epochs": (_or_null(_int(1)), "null (train.max_epochs) or an integer >= 1"),
     "summary.instrument": (_or_null(lambda v: isinstance(v, str)), "null or a text"),
-    "serve.host": (lambda v: isinstance(v, str) and v.strip() != "", "a host name or address (127.0.0.1, 0.0.0.0)"),
+    "serve.host": (_text, "a host name or address (127.0.0.1, 0.0.0.0)"),
     "serve.onnx": (_bool, "true or false"),
     "serve.compile": (_bool, "true or false"),
     "serve.call_budget_ms": (POS, "a time > 0 ms"),
