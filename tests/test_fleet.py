@@ -206,6 +206,9 @@ def test_threads_below_one_are_refused_when_the_command_is_parsed(tmp_path, monk
     with pytest.raises(ValueError, match="threads: 0: torch threads per robot must be >= 1"):
         fleet.run_fleet(root, "out", "sequential", threads=0)
     assert not (tmp_path / "out").exists() and not (tmp_path / "reports").exists()
+    with pytest.raises(SystemExit) as e:                  # a review: `demo --robots 0` wrote nothing, exit 0
+        fleet.main(["demo", str(tmp_path / "demo"), "--robots", "0"])
+    assert e.value.code == 2 and "--robots: 0: a demo fleet's robots must be >= 1" in capsys.readouterr().err
 
 
 def test_the_command_exits_1_when_a_robot_failed_its_reports_written(tmp_path, monkeypatch, capsys):

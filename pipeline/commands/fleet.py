@@ -336,12 +336,15 @@ def demo(fleet_dir="data/fleet", robots: int = 4, n: int = 300, models=("ur5", "
     return out
 
 
-def at_least_one(text: str) -> int:
-    """--threads: an integer >= 1, said by argparse where it is not (torch refused -1 in every robot's job)."""
-    n = int(text)
-    if n < 1:
-        raise argparse.ArgumentTypeError(f"{text}: torch threads per robot must be >= 1")
-    return n
+def at_least_one(what: str):
+    """An argparse type: an integer >= 1, said where it is not (`--threads -1`: torch refused it in every robot's
+    job; `demo --robots 0` wrote nothing, silently)."""
+    def parse(text: str) -> int:
+        n = int(text)
+        if n < 1:
+            raise argparse.ArgumentTypeError(f"{text}: {what} must be >= 1")
+        return n
+    return parse
 
 
 def main(argv=None):
@@ -356,8 +359,9 @@ def run(argv=None):
     ap.add_argument("--out", default="fleet/robots", help="where each robot's folder is written (run)")
     ap.add_argument("--engine", choices=sweep.ENGINES, default="ray")
     ap.add_argument("--address", default=None, help="a Ray cluster (default: RAY_ADDRESS, else local)")
-    ap.add_argument("--threads", type=at_least_one, default=None, help="torch threads per robot (default: 1 on Ray)")
-    ap.add_argument("--robots", type=int, default=4, help="demo: how many twins")
+    ap.add_argument("--threads", type=at_least_one("torch threads per robot"), default=None,
+                    help="torch threads per robot (default: 1 on Ray)")
+    ap.add_argument("--robots", type=at_least_one("a demo fleet's robots"), default=4, help="demo: how many twins")
     ap.add_argument("--bench", action="store_true", help="also write reports/bench/fleet.json: the measured "
                                                          "per-robot time and a 100-robot estimate")
     a = ap.parse_args(argv)

@@ -160,10 +160,10 @@ def refine_with_tool(Rf, pf, P, frames, tools0, station=None, loss="soft_l1", f_
     with per_station one per station) by robust least squares.
 
     Model: P_i = R_s (Rf_i tool_s + pf_i) + t_s, s = station[i] (index into frames; None: all 0).
-    frames: [(R0, t0)] and tools0 (S, 3) mm starts; labels: the stations' names (for "tool_held"). A tool component the poses' flange orientations do not determine (its pivot
-    in the column-pivoted QR of the scaled Jacobian below rank_tol of the largest: along an axis the flange
-    never turns away from, it is a translation of the frame) is held at its start, not left to drift with
-    the frame. Returns [(R, t)], tools (S, 3), diagnostics (with "tool_held": {component: why})."""
+    frames: [(R0, t0)] and tools0 (S, 3) mm starts; labels: the stations' names (for "tool_held"). A tool
+    component the poses' flange orientations do not determine (determined_beyond at rank_tol: along an axis
+    the flange never turns away from, it is a translation of the frame) is held at its start, not left to
+    drift with the frame. Returns [(R, t)], tools (S, 3), diagnostics (with "tool_held": {component: why})."""
     S = len(frames)
     station = np.zeros(len(P), int) if station is None else np.asarray(station)
     n_tools = S if per_station else 1
