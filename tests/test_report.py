@@ -251,6 +251,11 @@ def test_the_ablation_summary_says_how_many_seeds_each_mean_holds_and_which_grou
     assert rows["baseline"][seeds] == "2" and rows["no_mask"][seeds] == "1 (1 failed)"
     assert rows["no_mask"][seeds + 1] == "0.2400 ± –"
     assert rows["paper_weights"][seeds] == "0 (2 failed)" and rows["paper_weights"][seeds + 1] == "every seed failed"
+    assert_png(tmp_path / "reports/ablation.png")                       # one seed's group drawn without a bar
+    for g in ("baseline", "no_mask"):                                   # no group left: still its figure, which
+        (tmp_path / "reports/ablation" / f"{g}.json").unlink()          # ablation/dvc.yaml declares
+    (tmp_path / "reports/ablation.png").unlink()
+    assert ablation.summarise()["groups"] == {} and (tmp_path / "reports/ablation.png").exists()
 
 
 def test_the_ablation_summary_leaves_out_groups_run_on_other_settings(tmp_path, monkeypatch):

@@ -145,8 +145,7 @@ def summarise() -> dict:
         rows += ["", f"Left out, run on other settings or inputs than `{found[-1].stem}` (the group run last): "
                  + ", ".join(f"`{g}`" for g in stale) + "."]
     (REPORTS / "ablation.md").write_text("\n".join(rows) + "\n")
-    if groups:
-        save(fig_ablation(summary), REPORTS / "ablation.png")
+    save(fig_ablation(summary), REPORTS / "ablation.png")      # ablation/dvc.yaml's output, groups or none
     log.info("ablation summary over %d groups\n%s", len(groups), "\n".join(rows))
     return summary
 

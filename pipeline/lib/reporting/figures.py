@@ -367,7 +367,7 @@ def fig_ablation(summary: dict):
     names = list(groups)
     x = np.arange(len(names))
     mean = np.array([groups[n]["test_3d_mae_mean"] for n in names], float)
-    std = np.array([groups[n]["test_3d_mae_std"] for n in names], float)
+    std = np.array([groups[n]["test_3d_mae_std"] or 0.0 for n in names], float)     # one seed: no spread, no bar
     fig, ax = plt.subplots(figsize=(max(7, 1.3 * len(names) + 2), 4.8), constrained_layout=True)
     ax.bar(x, mean, yerr=std, capsize=5, color="tab:blue", alpha=0.6, label="this run: mean ± std over seeds")
     for i, n in enumerate(names):
@@ -382,6 +382,10 @@ def fig_ablation(summary: dict):
         ax.plot(x, paper, "D", color="tab:red", ms=8, label="paper (UR5, one run)")
     ax.set_xticks(x, names, rotation=15)
     ax.set(ylabel="test 3D MAE (mm)", title="Ablation: test 3D MAE per variant (mm)")
+    if not names:                                   # every group's seeds failed: said, on the declared figure
+        ax.text(0.5, 0.5, "no group finished a seed (reports/ablation.json: all_seeds_failed)", ha="center",
+                transform=ax.transAxes)
+        return fig
     top = np.nanmax(np.concatenate([mean + std, paper, *[groups[n]["runs"] for n in names]]))
     ax.set_ylim(0, 1.3 * top)
     ax.grid(alpha=0.3, axis="y")
