@@ -234,14 +234,35 @@ def test_each_robots_output_folder_holds_this_run_only(tmp_path, monkeypatch):
     none)."""
     root = a_fleet(tmp_path, monkeypatch, ("a", "b"))
     (root / "a/params.yaml").write_text("- a list\n")
-    for old in ("out/a/models/boter.pt", "out/b/models/boter.pt", "out/b/reports/index.md"):
+    for old in ("out/a/models/boter.pt", "out/b/models/boter.pt", "out/b/reports/index.md",
+                f"out/a/{fleet.MARKER}", f"out/b/{fleet.MARKER}"):         # a previous fleet run's folders
         (tmp_path / old).parent.mkdir(parents=True, exist_ok=True)
         (tmp_path / old).write_text("the previous run's")
     f = fleet.run_fleet(root, tmp_path / "out", "sequential", base=load_params())
     assert f["failed"]["a"].startswith("params: ") and f["failed"]["b"].startswith("ingest: ")
     assert not (tmp_path / "out/a").exists()
     assert sorted(p.relative_to(tmp_path / "out/b").parts[0] for p in (tmp_path / "out/b").rglob("*")
-                  if p.is_file()) == ["campaign", "logs", "params.yaml"]
+                  if p.is_file()) == [fleet.MARKER, "campaign", "logs", "params.yaml"]
+
+
+def test_a_folder_no_fleet_run_wrote_is_never_cleared(tmp_path, monkeypatch):
+    """A review (2026-12-06): `fleet run myfleet --out .` with a robot folder named `data` deleted the project's
+    data/ (its campaigns) to make room for the robot's output; a robot folder linked into --out lost its own
+    campaign. Only a folder a fleet run wrote (its marker) is cleared; anything else is refused before any robot
+    runs, named, nothing deleted."""
+    root = a_fleet(tmp_path, monkeypatch, ("a", "data"))
+    precious = tmp_path / "data/precious/measurements.csv"
+    precious.parent.mkdir(parents=True)
+    precious.write_text("x,y,z\n")
+    with pytest.raises(ValueError, match=r"data not a fleet's output folder \(no \.fleet-output\): nothing cleared"):
+        fleet.run_fleet(root, ".", "sequential", base=load_params())
+    assert precious.read_text() == "x,y,z\n" and not (tmp_path / "a").exists()
+    (tmp_path / "out").mkdir()
+    (root / "data").rename(tmp_path / "out/data")                     # a robot folder that is a link into --out
+    (root / "data").symlink_to(tmp_path / "out/data")
+    with pytest.raises(ValueError, match=r"robot data's output folder .* robot data's own files"):
+        fleet.run_fleet(root, "out", "sequential", base=load_params())
+    assert (tmp_path / "out/data/params.yaml").exists()
 
 
 @pytest.mark.parametrize("out, fleet_dir", [("fleet", "fleet"), ("fleet/robots", "fleet"), (".", "fleet")])

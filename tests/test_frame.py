@@ -12,7 +12,7 @@ from pipeline.lib.learning.validation import judge
 from pipeline.lib.project.columns import JOINTS_DEG
 from pipeline.lib.project.config import load_params, read_json
 from pipeline.lib.robot.frames import (DegenerateFit, FrameFitError, fit_frame, fit_frames, flange_poses, kabsch,
-                                       robust_kabsch)
+                                       refine_with_tool, robust_kabsch)
 from pipeline.lib.robot.kinematics import fk_numpy, nominal_geometry
 from pipeline.lib.robot.robots import load_robot, nominal_robot
 from pipeline.stages import frame as frame_stage
@@ -133,6 +133,12 @@ def test_a_tool_component_the_poses_cannot_see_is_held_at_its_start(per_station)
     z = R_TRUE @ flange_poses(q[:1], nominal_geometry(robot))[0][0, :, 2]   # the flange's fixed z, tracker frame
     np.testing.assert_allclose(fit["stations"]["a"]["t"], T_TRUE - 16.2 * z, atol=0.05)   # the frame takes 16.2 mm
     assert fit["residual_mm"].mean() < 0.05
+    if not per_station:            # a later round starts from the last one's tool: held at robot.tool_mm all the same
+        Rf, pf = flange_poses(q, nominal_geometry(robot))
+        frames = [(R_TRUE, T_TRUE), (R_TRUE, T_TRUE + [500.0, -300.0, 80.0])]
+        _, tools, diag = refine_with_tool(Rf, pf, P, frames, np.tile([1.5, -2.0, 95.0], (2, 1)),
+                                          (station == "b").astype(int), held_at=robot.tool)
+        assert list(diag["tool_held"]) == ["tool_z"] and tools[0][2] == 109.0
 
 
 # ---------------------------------------------------------------- fits no real campaign gives
@@ -160,10 +166,13 @@ def run_stages(tmp_path, monkeypatch, header="Name,X,Y,Z", scale=1.0, **ingest_c
     return summary
 
 
-def test_the_twin_campaign_passes_the_fit_checks(tmp_path, monkeypatch):
-    run_stages(tmp_path, monkeypatch)
+def test_the_twin_campaign_passes_the_fit_checks(tmp_path, monkeypatch, caplog):
+    with caplog.at_level("INFO", logger="frame"):
+        run_stages(tmp_path, monkeypatch)
     f = read_json(tmp_path / "reports" / "frame.json")
     assert 1.0 < f["rms_mm"] < 1.4 and f["det_R"] == pytest.approx(1.0)      # 1.19 mm, nominal DH
+    # the probe's rotation said per station (a review, 2026-12-06: an edit had nested it under the held tool's loop)
+    assert "probe rotation in the flange, station main:" in caplog.text
 
 
 def test_swapped_tracker_axes_stop_the_frame_stage(tmp_path, monkeypatch):

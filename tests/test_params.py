@@ -106,6 +106,26 @@ def test_params_are_read_as_dvc_reads_them(tmp_path):
         load_params(f)
 
 
+def test_what_the_project_writes_as_yaml_it_reads_back_the_same_and_presets_read_as_params(tmp_path):
+    """A review (2026-12-06): with params read as YAML 1.2, the fleet, bench and preset writers still wrote with
+    PyYAML, which leaves '1e3' or '0o17' bare (a string to YAML 1.1, a number to 1.2): a robot's point-id column
+    '1e3' came back 1000.0; a preset's `lr: 2e-4` was written '2e-4' and `point_id: No` false."""
+    from pipeline.lib.project.config import yaml_text, yaml_values
+    from pipeline.lib.reading.presets import apply_preset
+    tricky = {"ingest": {"columns": {"point_id": "1e3"}}, "summary": {"instrument": "0o17"},
+              "x": ["No", "on", "1_000", "+1e3", "1.5e3", None, True, 1e-4, 10], "z_first": 1, "a_then": 2}
+    text = yaml_text(tricky)
+    assert yaml_values(text, "t") == tricky and list(yaml_values(text, "t")) == list(tricky)   # values, order
+    f = tmp_path / "params.yaml"
+    f.write_text((ROOT / "params.yaml").read_text())
+    preset = tmp_path / "mine.yaml"
+    preset.write_text("train: {lr: 2e-4}\ningest: {columns: {point_id: No}}\n")
+    apply_preset(preset, f)
+    got = load_params(f)
+    assert got["train"]["lr"] == 2e-4 and got["ingest"]["columns"]["point_id"] == "No"
+    assert section(got, "train")["lr"] == 2e-4
+
+
 def test_split_writes_both_files_or_neither(tmp_path, monkeypatch):
     """Minor: with reports/ unwritable, split wrote its parquet and then failed on its JSON."""
     monkeypatch.chdir(tmp_path)

@@ -39,13 +39,12 @@ import traceback
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 from pipeline import stages
 from pipeline.lib.learning import sweep
 from pipeline.lib.project.cli import Refused, one_line
 from pipeline.lib.project.config import (LOG_FORMAT, SECTIONS, ParamsError, load_params, logger, read_json, section,
-                                           write_json, yaml_values)
+                                           write_json, yaml_text, yaml_values)
 from pipeline.lib.reading.campaigns import write_pair
 from pipeline.lib.reading.presets import deep_merge
 from pipeline.lib.sim.twin import Twin
@@ -56,6 +55,7 @@ STAGES = ["ingest", "frame", "theory", "split", "calibrate", "parts", "train", "
 FLEET_JSON, FLEET_MD = Path("reports/fleet.json"), Path("reports/fleet.md")
 BENCH_JSON = Path("reports/bench/fleet.json")
 DEMO_SEED = 2000
+MARKER = ".fleet-output"        # in each robot's output folder: a fleet run wrote it, the next may clear it
 TOP_SECTIONS = [s for s in SECTIONS if "." not in s]       # what a robot's params.yaml may name
 UNSUPPORTED = [("campaigns", "more", "one campaign per robot: its ingest section's"),   # (section, key, why):
                ("validate", "campaigns", "no validate stage"),                          # given (not empty or
@@ -134,7 +134,7 @@ def calibrate_robot(job: dict) -> dict:
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix=scratch_prefix(name)) as tmp:
         out = sweep.unpack(job["files"], Path(tmp) / CAMPAIGN).parent
-        (out / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+        (out / "params.yaml").write_text(yaml_text(params))
         (out / "logs").mkdir()
         result = None
         for stage in STAGES:
@@ -221,17 +221,27 @@ def check_out(out: Path, fleet_dir: Path, robots: list[Path]) -> None:
     if o == f or f in o.parents:
         raise ValueError(f"--out {out} is the fleet folder {fleet_dir} or inside it: give a folder of its own")
     for d in robots:
-        if o / d.name == f or o / d.name in f.parents:
+        mine, src = o / d.name, d.resolve()
+        if mine == f or mine in f.parents or mine == src or mine in src.parents or src in mine.parents:
             raise ValueError(f"--out {out}: robot {d.name}'s output folder {out / d.name} would hold the fleet "
-                             f"folder {fleet_dir}: give a folder of its own")
+                             f"folder {fleet_dir} or robot {d.name}'s own files: give a folder of its own")
+
+
+def ours(folder: Path) -> bool:
+    """folder is absent, or a fleet run wrote it (its MARKER): one that may be cleared."""
+    return not (folder.exists() or folder.is_symlink()) or (
+        folder.is_dir() and not folder.is_symlink() and (folder / MARKER).is_file())
 
 
 def clear(folder: Path) -> None:
-    """folder gone (a file or link of its name too), so what a robot's run writes there is all it holds."""
-    if folder.is_dir() and not folder.is_symlink():
+    """A robot's output folder gone, so what its run writes there is all it holds; only one a fleet run wrote
+    (`ours`): anything else a ValueError naming it, nothing deleted (a review: `--out .` with a robot named
+    `data` deleted the project's data/)."""
+    if not ours(folder):
+        raise ValueError(f"{folder}: not a fleet's output folder (no {MARKER}): nothing cleared or written; "
+                         "move it, or give --out a folder of its own")
+    if folder.exists():
         shutil.rmtree(folder)
-    elif folder.exists() or folder.is_symlink():
-        folder.unlink()
 
 
 def write_robot(r: dict, out: Path) -> None:
@@ -241,6 +251,8 @@ def write_robot(r: dict, out: Path) -> None:
     try:
         clear(target)
         sweep.unpack(files, target)
+        target.mkdir(parents=True, exist_ok=True)           # (a job that came back with no files)
+        (target / MARKER).write_text("written by python -m pipeline.commands.fleet run: cleared by its next run\n")
     except (OSError, ValueError) as e:
         before = f"; before that: {r['stage']}: {r['reason']}" if r["status"] != "ok" else ""
         r.update(status="failed", stage="write", reason=f"{target}: {e}{before}")
@@ -290,6 +302,10 @@ def run_fleet(fleet_dir, out="fleet/robots", engine: str = "sequential", address
     if threads is not None and threads < 1:
         raise ValueError(f"threads: {threads}: torch threads per robot must be >= 1")
     check_out(out, fleet_dir, robots)
+    theirs = [str(out / d.name) for d in robots if not ours(out / d.name)]
+    if theirs:                                  # said before any robot runs or any folder is cleared
+        raise ValueError(f"--out {out}: {', '.join(theirs)} not a fleet's output folder (no {MARKER}): nothing "
+                         "cleared or written; move it, or give --out a folder of its own")
     base = base or load_params()
     threads = sweep.threads_per_job(engine, threads)
     jobs, refused = [], []

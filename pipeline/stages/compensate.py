@@ -37,7 +37,7 @@ from pipeline.lib.project.artifacts import (COMPENSATION_CSV, COMPENSATION_JSON,
 from pipeline.lib.project.cli import Refused, script
 from pipeline.lib.project.columns import JCOMP_DEG, JOINTS_DEG, TARGET, THEORY
 from pipeline.lib.project.config import for_stage, json_text, load_params, logger, read_json, split_timings
-from pipeline.lib.project.writing import check_outputs, write_file, write_together
+from pipeline.lib.project.writing import check_outputs, left_as_they_were, write_file, write_together
 from pipeline.lib.reading.campaigns import ingested_sha256, made_by_twin
 from pipeline.lib.reading.prepared import load_prepared
 from pipeline.lib.robot.geometry import theory_geometry
@@ -229,8 +229,8 @@ def main(argv=None, root: Path = HERE):
                          f"rename {a.targets}") from None
     try:                                                    # as the program command's waypoints: beyond the
         table = compensate_program(df, model, workspace, robot, None, p["compensate"])      # reach refused
-    except Refused as e:
-        raise Refused(f"{a.targets}: {e}; nothing written") from None
+    except Refused as e:                                    # an earlier run's table there: said
+        raise Refused(f"{a.targets}: {e}; nothing written{left_as_they_were([out])}") from None
     skipped = unreached(table, robot)                       # not converged, past a limit, another configuration
     write_file(out, as_written(table, skipped).to_csv(index=False, float_format="%.6f"))
     log.info("wrote %s (%d targets, %d not reached: no angles to command, `not_reached` says why)", out,

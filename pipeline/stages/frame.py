@@ -107,12 +107,12 @@ def run(params: dict, root: Path = HERE) -> dict:
                  f["rms_mm"], f["mean_mm"], len(f["outliers"]), f["outliers"])
     for s, f in stations.items():
         log.info("tool of station %s: %s mm", s, np.round(f["tool_mm"], 3).tolist())
-    for c, why in fit.get("tool_held", {}).items():
-        log.warning("tool component %s %s", c, why)
         if "tool_rot" in f:
             log.info("probe rotation in the flange, station %s: %s deg (xyz); orientation scatter about it "
                      "%.0f arcsec mean on %d poses", s, np.round(np.degrees(f["tool_rot"]), 4).tolist(),
                      f["orientation_scatter_arcsec"]["mean"], f["orientation_n_used"])
+    for c, why in fit.get("tool_held", {}).items():
+        log.warning("tool component %s %s", c, why)
     return summary
 
 

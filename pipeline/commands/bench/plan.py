@@ -50,13 +50,13 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import torch
-import yaml
 from scipy.spatial.transform import Rotation
 
 from pipeline import stages
 from pipeline.commands.bench.common import BENCH, ROOT, machine
 from pipeline.commands.bench.real import absolute_paths, overridden
 from pipeline.lib.learning.checkpoint import load_model
+from pipeline.lib.learning.metrics import seed_std
 from pipeline.lib.learning.workspace import Workspace, workspace_radius
 from pipeline.lib.planner.design import Identification
 from pipeline.lib.planner.candidates import candidates
@@ -66,7 +66,7 @@ from pipeline.lib.project.artifacts import (CALIBRATED_GEOMETRY, CALIBRATION_JSO
                                             FRAME_JSON, METRICS_JSON, MODEL_WEIGHTS, PARAMS_FILE, VALIDATION_DIR,
                                             WORKSPACE_JSON)
 from pipeline.lib.project.columns import JCOMP_DEG, JOINTS_DEG
-from pipeline.lib.project.config import load_params, logger, read_json, write_json
+from pipeline.lib.project.config import load_params, logger, read_json, write_json, yaml_text
 from pipeline.lib.reading.campaigns import write_pair
 from pipeline.lib.robot.frames import to_base
 from pipeline.lib.robot.geometry import Calibration, theory_geometry
@@ -112,7 +112,7 @@ def run_pipeline(folder: Path, params: dict, compensate: bool = True) -> dict:
     """The pipeline's stages in `folder` (made), on params written to its params.yaml, in this process;
     returns what the benchmark reads back."""
     folder.mkdir(parents=True, exist_ok=True)
-    (folder / PARAMS_FILE).write_text(yaml.safe_dump(params, sort_keys=False))
+    (folder / PARAMS_FILE).write_text(yaml_text(params))
     for name in params["campaigns"]["more"] or {}:
         stages.run("ingest", ["campaign", name], folder)
     for name in STAGES:
@@ -287,7 +287,7 @@ def closed_loop_seed(seed: int, n: int, n_wp: int, variants, overrides, epochs, 
 
 def stats(values) -> dict:
     v = [x for x in values if x is not None]
-    return {"mean": float(np.mean(v)), "std": float(np.std(v)), "runs": v} if v else {"mean": None}
+    return {"mean": float(np.mean(v)), "std": seed_std(v), "runs": v} if v else {"mean": None}
 
 
 def closed_loop_summary(runs: dict, variants) -> dict:

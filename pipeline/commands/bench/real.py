@@ -29,7 +29,6 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
-import yaml
 
 from pipeline import stages
 from pipeline.commands.bench.common import BENCH, DATASETS, ROOT
@@ -39,7 +38,7 @@ from pipeline.lib.learning.training import independent_seeds
 from pipeline.lib.project.artifacts import (INGEST_JSON, INGEST_TABLE, METRICS_JSON, PARAMS_FILE, PREDICTIONS_TABLE,
                                             VALIDATION_DIR)
 from pipeline.lib.project.columns import JOINTS_DEG, MEAS, PRED
-from pipeline.lib.project.config import load_params, logger, read_json, write_json, yaml_values
+from pipeline.lib.project.config import load_params, logger, read_json, write_json, yaml_text, yaml_values
 from pipeline.lib.reading.prepared import load_prepared
 from pipeline.lib.reading.presets import merged_params
 from pipeline.lib.robot.kinematics import fk_numpy
@@ -75,7 +74,7 @@ def absolute_paths(params: dict) -> dict:
 def stage(name: str, params: dict, root: Path, *args: str) -> None:
     """One stage in this process on the project at `root`, on `params` written to its params.yaml, as
     dvc repro would run it there."""
-    (root / PARAMS_FILE).write_text(yaml.safe_dump(params, sort_keys=False))
+    (root / PARAMS_FILE).write_text(yaml_text(params))
     stages.run(name, args, root)
 
 

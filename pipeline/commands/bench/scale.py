@@ -15,11 +15,10 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
-import yaml
 
 from pipeline.commands.bench.common import BENCH, ROOT, machine
 from pipeline.lib.project.columns import JOINTS_DEG
-from pipeline.lib.project.config import load_params, logger, read_json, write_json
+from pipeline.lib.project.config import load_params, logger, read_json, write_json, yaml_text
 from pipeline.lib.robot.kinematics import fk_numpy
 from pipeline.lib.robot.robots import load_robot
 
@@ -98,7 +97,7 @@ def bench_ingest(n: int, params: dict, tmp: Path) -> dict:
     p = {**params, "ingest": {**params["ingest"], "joints": joints, "tracker": tracker,   # positions only
                               "columns": {**params["ingest"]["columns"], "orientation": None}},
          "campaigns": {**params["campaigns"], "more": {}}}
-    (folder / "params.yaml").write_text(yaml.safe_dump(p, sort_keys=False))
+    (folder / "params.yaml").write_text(yaml_text(p))
     run = measured([sys.executable, "-m", "pipeline.stages.ingest"], folder, folder / "log.txt")
     report = folder / "reports" / "ingest.json"
     if report.exists():

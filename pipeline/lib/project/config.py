@@ -4,6 +4,7 @@
 an unknown or misspelt key, or a missing one, stops the stage with a message
 that lists the valid keys. The code never falls back to a default of its own.
 """
+import io
 import json
 import logging
 import math
@@ -475,11 +476,25 @@ def yaml_values(text: str, where: str):
     try:
         return YAML(typ="safe").load(text)
     except DuplicateKeyError as e:
-        raise ParamsError(f"{where} line {e.problem_mark.line + 1}: the key {e.problem.split(chr(34))[1]!r} is "
+        key = re.match(r'found duplicate key "(.*)" with value', e.problem or "")
+        raise ParamsError(f"{where} line {e.problem_mark.line + 1}: the key {key[1] if key else '?'!r} is "
                           "given twice in one section (one would silently win)") from None
     except YAMLError as e:
         line = f" line {e.problem_mark.line + 1}" if isinstance(e, MarkedYAMLError) and e.problem_mark else ""
         raise ParamsError(f"{where}{line}: not YAML: {getattr(e, 'problem', None) or e}") from None
+
+
+def yaml_text(obj) -> str:
+    """obj as YAML that `yaml_values` (and DVC) read back as the same values: ruamel.yaml's safe dumper (a string
+    PyYAML leaves bare, as '1e3' or '0o17', which YAML 1.2 reads as a number, is quoted), block style, keys in
+    their order."""
+    from ruamel.yaml import YAML
+    y = YAML(typ="safe", pure=True)
+    y.default_flow_style = False
+    y.representer.sort_base_mapping_type_on_output = False
+    buf = io.StringIO()
+    y.dump(obj, buf)
+    return buf.getvalue()
 
 
 def load_params(path: Path | str = PARAMS_FILE) -> dict:

@@ -15,8 +15,7 @@ import copy
 import io
 from pathlib import Path
 
-import yaml
-
+from pipeline.lib.project.config import yaml_text, yaml_values
 from pipeline.lib.project.writing import write_file
 
 PRESETS = Path(__file__).resolve().parents[3] / "data" / "presets"
@@ -36,8 +35,8 @@ def preset_path(name_or_path) -> Path:
 
 def load_preset(name_or_path) -> dict:
     """The preset's settings; `extends: OTHER` merges them over preset OTHER's."""
-    with open(preset_path(name_or_path)) as f:
-        preset = yaml.safe_load(f) or {}
+    path = preset_path(name_or_path)
+    preset = yaml_values(path.read_text(), str(path)) or {}
     base = preset.pop("extends", None)
     return preset if base is None else deep_merge(load_preset(base), preset)
 
@@ -101,10 +100,12 @@ def _roundtrip_merge(node, over: dict) -> None:
 
 
 def render(text: str, preset: dict) -> str:
-    """params.yaml text with the preset merged in, comments kept when ruamel.yaml is available."""
-    merged = deep_merge(yaml.safe_load(text) or {}, preset)
+    """params.yaml text with the preset merged in, its comments kept (ruamel.yaml's round trip) where that
+    reads back as the merged values (config.yaml_values, as DVC reads them), else plain (config.yaml_text)."""
+    merged = deep_merge(yaml_values(text, "params.yaml") or {}, preset)
     try:
         from ruamel.yaml import YAML
+        from ruamel.yaml.error import YAMLError
         rt = YAML()
         rt.preserve_quotes = True
         rt.width = 4096
@@ -115,11 +116,11 @@ def render(text: str, preset: dict) -> str:
         buf = io.StringIO()
         rt.dump(doc, buf)
         out = buf.getvalue()
-        if yaml.safe_load(out) == merged:
+        if yaml_values(out, "params.yaml") == merged:
             return out
-    except (ImportError, yaml.YAMLError):
-        pass                                            # no ruamel, or it lost the layout: plain YAML
-    return yaml.safe_dump(merged, sort_keys=False)
+    except YAMLError:
+        pass                                            # it lost the layout: plain YAML
+    return yaml_text(merged)
 
 
 def apply_preset(name_or_path, params_path="params.yaml") -> list:
@@ -127,7 +128,7 @@ def apply_preset(name_or_path, params_path="params.yaml") -> list:
     path = Path(params_path)
     text = path.read_text()
     preset = load_preset(name_or_path)
-    diff = changes(yaml.safe_load(text) or {}, deep_merge(yaml.safe_load(text) or {}, preset))
+    diff = changes(yaml_values(text, str(path)) or {}, deep_merge(yaml_values(text, str(path)) or {}, preset))
     if diff:
         write_file(path, render(text, preset))
     return diff

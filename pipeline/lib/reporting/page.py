@@ -405,17 +405,17 @@ def section_validation(v: dict | None, uncertainty: dict | None) -> str:
                 rows.append([label if m == "nominal" else "", m, st["n"], st["mean"], st["p95"], st["max"]])
         out += [table(["points", "method", "n", "mean mm", "p95 mm", "max mm"], rows), ""]
         cov = c["uncertainty_coverage"]
-        cov0 = c["uncertainty_coverage_training"]
+        cov0 = c.get("uncertainty_coverage_training")      # validate's since 2026-12-06
+        alone = ("" if cov0 is None else f"; the training uncertainty alone, without the registration's residual: "
+                 f"{fmt(cov0['all'], 2)}, inside {fmt(cov0['in'], 2)}, outside {fmt(cov0['out'], 2)}")
         out += [f"Model error ≤ its uncertainty_mm on {fmt(cov['all'], 2)} of the judged points "
-                f"(inside {fmt(cov['in'], 2)}, outside {fmt(cov['out'], 2)}; the training uncertainty alone, "
-                f"without the registration's residual: {fmt(cov0['all'], 2)}, inside {fmt(cov0['in'], 2)}, "
-                f"outside {fmt(cov0['out'], 2)}); mean uncertainty "
+                f"(inside {fmt(cov['in'], 2)}, outside {fmt(cov['out'], 2)}{alone}); mean uncertainty "
                 f"{fmt(c['uncertainty_mm_mean'])} mm. Ingest kept {c['ingest']['n_kept']} points, dropped "
                 f"{len(c['ingest']['dropped'])} ({c['ingest']['dropped_counts'] or 'none'}).", ""]
         if c.get("position_accuracy"):
             rows = [[m, a["positions"], a["ap_measured_mm"], a["ap_predicted_mm"], a["bar_error_mm"],
-                     a["rp_iso_measured_mm"], a["rp_iso_predicted_mm"]] for m, a in c["position_accuracy"].items()]
-            registered = any(a["ap_after_registration"] for a in c["position_accuracy"].values())
+                     a.get("rp_iso_measured_mm"), a.get("rp_iso_predicted_mm")] for m, a in c["position_accuracy"].items()]
+            registered = any(a.get("ap_after_registration") for a in c["position_accuracy"].values())
             out += ["ISO 9283 position accuracy (means over the judged commanded positions, mm; RP, ISO 9283's "
                     "(the visits' mean distance from their mean + 3 sample standard deviations), over those "
                     "reached more than once; `|pred − meas| mean`: how far the method's predicted mean "

@@ -32,8 +32,8 @@ from pipeline.lib.robot.kinematics import DTYPE, fk_poses, nominal_geometry
 
 REFIT_ROUNDS = 5             # at most this many refits with the outliers judged again at the fitted tool (frame.
                             # estimate_tool) or probe offset (validate's refit_tool)
-TOOL_RANK_TOL = 0.01        # refine_with_tool: a tool component whose pivot falls below this share of the largest is
-                            # held (validate.tool_rank_tol's rule and value for the registration)
+TOOL_RANK_TOL = 0.01        # refine_with_tool: a tool component whose pivot (determined_beyond: its unit-scaled column,
+                            # what the frames explain removed) falls below this is held (validate.tool_rank_tol's value)
 MIRROR_RATIO = 3.0          # a reflection this many times better than the best rotation: mirrored axes
 MISREAD_PERCENTILE = 90     # orientation columns are judged misread on this percentile of a campaign's scatter: a
                             # wrong Euler sequence can read half of it right (extrinsic zyx on the IPA Series_B and
@@ -155,15 +155,15 @@ def determined_beyond(J: np.ndarray, n_first: int, rank_tol: float) -> np.ndarra
 
 
 def refine_with_tool(Rf, pf, P, frames, tools0, station=None, loss="soft_l1", f_scale=0.5,
-                     per_station=False, rank_tol=TOOL_RANK_TOL, labels=None):
+                     per_station=False, rank_tol=TOOL_RANK_TOL, labels=None, held_at=None):
     """Jointly fit one base frame per station (rotation vector, t) and the tool offset (shared, or
     with per_station one per station) by robust least squares.
 
     Model: P_i = R_s (Rf_i tool_s + pf_i) + t_s, s = station[i] (index into frames; None: all 0).
     frames: [(R0, t0)] and tools0 (S, 3) mm starts; labels: the stations' names (for "tool_held"). A tool
     component the poses' flange orientations do not determine (determined_beyond at rank_tol: along an axis
-    the flange never turns away from, it is a translation of the frame) is held at its start, not left to
-    drift with the frame. Returns [(R, t)], tools (S, 3), diagnostics (with "tool_held": {component: why})."""
+    the flange never turns away from, it is a translation of the frame) is held at held_at (3,) mm (None: its
+    start), not left to drift with the frame. Returns [(R, t)], tools (S, 3), diagnostics (with "tool_held": {component: why})."""
     S = len(frames)
     station = np.zeros(len(P), int) if station is None else np.asarray(station)
     n_tools = S if per_station else 1
@@ -187,6 +187,8 @@ def refine_with_tool(Rf, pf, P, frames, tools0, station=None, loss="soft_l1", f_
     J = np.stack([(residuals(x0 + h * e) - r0) / h for e, h in zip(np.eye(len(x0)), ([1e-6] * 3 + [1e-3] * 3) * S
                                                                          + [1e-3] * 3 * n_tools)], 1)
     keep = determined_beyond(J, 6 * S, rank_tol)         # the frames are always fitted
+    if held_at is not None:                               # not the last round's fit of it
+        x0[6 * S:] = np.where(keep[6 * S:], x0[6 * S:], np.tile(held_at, n_tools))
     held = {n: f"not determined by the poses' flange orientations (pivot below {rank_tol:g}: along an axis the "
                "flange never turns away from, the tool is a translation of the frame): held at robot.tool_mm"
             for n, k in zip(names, keep) if not k}
@@ -241,7 +243,7 @@ def fit_frames(q_deg: np.ndarray, P: np.ndarray, station: np.ndarray, robot, cfg
         for _ in range(REFIT_ROUNDS):                 # the outliers judged again at the fitted tool, until they hold:
             frames, tools, diag = refine_with_tool(Rf[inl], pf[inl], P[inl], frames, tools, idx[inl],   # a tool
                                                    cfg["robust_loss"], cfg["robust_scale_mm"], per_station,  # cm off
-                                                   labels=names)
+                                                   labels=names, held_at=robot.tool)
             Q = tool_points(Rf, pf, tools[idx])                  # hides misreads in the nominal fit's scatter
             Rs, ts = np.stack([R for R, _ in frames]), np.stack([t for _, t in frames])
             r = np.linalg.norm(np.einsum("nij,nj->ni", Rs[idx], Q) + ts[idx] - P, axis=1)
