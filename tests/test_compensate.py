@@ -300,6 +300,27 @@ def test_adam_keeps_every_joint_within_its_limits(model):
     assert s.converged.any()                                           # the other joints still reach some
 
 
+def test_an_answer_at_a_limit_not_exact_in_radians_is_within_it(model):
+    """A review (2026-12-06): limits are degrees, the solvers clamp in radians; a limit such as 1.5° reads back
+    1.5000000000000002°, so an answer clamped exactly at it was "beyond the joint limits" (not converged, and
+    the program command refused the waypoint)."""
+    import dataclasses
+    from pipeline.lib.runtime.compensation import solve
+    q0, tgt = targets(model, n=1, seed=4)
+    lim = np.tile([-360.0, 360.0], (6, 1))
+    up = next(c for c in np.round(q0[0, 0] + 1.5 + 0.1 * np.arange(100), 1) if np.degrees(np.radians(c)) > c)
+    lim[0] = [q0[0, 0] - 5.0, up]                                     # e.g. 1.5: 1.5000000000000002 back
+    robot = dataclasses.replace(ROBOT, limits_deg=lim)
+    q_true = q0.copy()
+    q_true[0, 0] = up                                                  # the target: joint 1 at its limit
+    with torch.no_grad():
+        at = model(torch.as_tensor(np.radians(q_true)))[0].numpy()
+    start = q_true + [0.5, 0, 0, 0, 0, 0]                               # recorded 0.5° past it: clamped there
+    s = solve(model, start, at, CFG, robot, "lm", history=False)
+    assert s.q_deg[0, 0] > lim[0, 1] and s.q_deg[0, 0] - lim[0, 1] < 1e-9           # at the limit, read back above
+    assert not robot.check_joints(s.q_deg).any() and s.converged.all()
+
+
 def test_lm_damping_stays_finite_however_long_no_step_helps(model):
     """λ·10 on each failed step reached inf after ~310 failures (a stalled point near the reach: the program
     command then crashed on NaN joints in the error maps); it stops at LAM_MAX, where the step is still a

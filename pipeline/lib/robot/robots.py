@@ -31,6 +31,9 @@ UR_ALPHA = [PI2, 0.0, 0.0, PI2, -PI2, 0.0]
 UR_LIMITS = [[-360.0, 360.0]] * 6   # UR3, UR3e: wrist 3 turns without limit; ±360° is the range the pipeline plans in
 
 
+LIMIT_SLACK_DEG = 1e-9      # a limit of 1.5° clamped in radians reads 1.5000000000000002° back: within it
+
+
 def rad_s(*deg_s: float) -> list[float]:
     """Joint speed limits, °/s -> rad/s."""
     return np.radians(deg_s).tolist()
@@ -163,8 +166,9 @@ class Robot:
         return float(np.abs(self.a).sum() + np.abs(self.d).sum())
 
     def check_joints(self, q_deg: np.ndarray) -> np.ndarray:
-        """Bool mask (n, 6): True where a joint angle lies outside its limits (or is NaN: not within them)."""
-        lo, hi = self.limits_deg[:, 0], self.limits_deg[:, 1]
+        """Bool mask (n, 6): True where a joint angle lies outside its limits (or is NaN: not within them), by
+        more than LIMIT_SLACK_DEG: a solver's answer clamped at a limit in radians is at it, in degrees too."""
+        lo, hi = self.limits_deg[:, 0] - LIMIT_SLACK_DEG, self.limits_deg[:, 1] + LIMIT_SLACK_DEG
         return ~((q_deg >= lo) & (q_deg <= hi))
 
     def check_joint_speed(self, vel_rad_s: float, key: str) -> None:
