@@ -232,7 +232,8 @@ def run_campaign(params: dict, name: str, root: Path = HERE) -> dict:
                     for m in METHODS}
         commanded = commanded_positions(df, c["commanded"], frame["tool_mm"], name)
         group = df[c["commanded"]["columns"]].to_numpy(float) * TO_MM[c["commanded"]["unit"]]   # the command, mm
-        out["position_accuracy"] = position_accuracy(commanded, group, measured, pred, ~registered, c["frame"] != "same")
+        out["position_accuracy"] = position_accuracy(commanded, group, measured, pred, ~registered,
+                                                     c["frame"] != "same")
     (root / VALIDATION_DIR).mkdir(parents=True, exist_ok=True)
     table.to_parquet(root / VALIDATION_DIR / f"{name}.parquet", index=False)
     write_json(root / VALIDATION_DIR / f"{name}.json", out)

@@ -414,7 +414,8 @@ def section_validation(v: dict | None, uncertainty: dict | None) -> str:
                 f"{len(c['ingest']['dropped'])} ({c['ingest']['dropped_counts'] or 'none'}).", ""]
         if c.get("position_accuracy"):
             rows = [[m, a["positions"], a["ap_measured_mm"], a["ap_predicted_mm"], a["bar_error_mm"],
-                     a.get("rp_iso_measured_mm"), a.get("rp_iso_predicted_mm")] for m, a in c["position_accuracy"].items()]
+                     a.get("rp_iso_measured_mm"), a.get("rp_iso_predicted_mm")]
+                    for m, a in c["position_accuracy"].items()]
             registered = any(a.get("ap_after_registration") for a in c["position_accuracy"].values())
             out += ["ISO 9283 position accuracy (means over the judged commanded positions, mm; RP, ISO 9283's "
                     "(the visits' mean distance from their mean + 3 sample standard deviations), over those "

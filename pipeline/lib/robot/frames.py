@@ -163,7 +163,8 @@ def refine_with_tool(Rf, pf, P, frames, tools0, station=None, loss="soft_l1", f_
     frames: [(R0, t0)] and tools0 (S, 3) mm starts; labels: the stations' names (for "tool_held"). A tool
     component the poses' flange orientations do not determine (determined_beyond at rank_tol: along an axis
     the flange never turns away from, it is a translation of the frame) is held at held_at (3,) mm (None: its
-    start), not left to drift with the frame. Returns [(R, t)], tools (S, 3), diagnostics (with "tool_held": {component: why})."""
+    start), not left to drift with the frame. Returns [(R, t)], tools (S, 3), diagnostics (with "tool_held":
+    {component: why})."""
     S = len(frames)
     station = np.zeros(len(P), int) if station is None else np.asarray(station)
     n_tools = S if per_station else 1
