@@ -23,8 +23,8 @@ from scipy.spatial.transform import Rotation
 
 from pipeline.lib.learning.checkpoint import load_model
 from pipeline.lib.learning.model import predict, served
-from pipeline.lib.learning.validation import (METHODS, judge, judge_poses, orientation_percentiles, position_accuracy,
-                                              summary)
+from pipeline.lib.learning.validation import (METHODS, coverage, judge, judge_poses, orientation_percentiles,
+                                              position_accuracy, summary)
 from pipeline.lib.learning.workspace import Workspace
 from pipeline.lib.project.artifacts import (CALIBRATED_GEOMETRY, FRAME_JSON, HERE, INGEST_JSON,
                                             MODEL_WEIGHTS, PARAMS_FILE, PARTS_JSON, VALIDATION_DIR,
@@ -204,9 +204,7 @@ def run_campaign(params: dict, name: str, root: Path = HERE) -> dict:
                           "uncertainty_mm": u, "in_workspace": inside, "in_range_angle_map": ws.parts(q)["angle_map"]})
     out = summary(table, c["frame"])
     judged = ~registered                             # the training uncertainty alone: no part of it from this campaign
-    out["uncertainty_coverage_training"] = {w: float((errors["model"][k] <= u0[k]).mean()) if k.any() else None
-                                            for w, k in (("all", judged), ("in", judged & inside),
-                                                         ("out", judged & ~inside))}
+    out["uncertainty_coverage_training"] = coverage(errors["model"][judged], u0[judged], inside[judged])
     out["angle_map"]["per_joint"] = per_joint_coverage(ws, q, table)
     out["ingest"] = {k: ingested[k] for k in ("n_read", "n_kept", "dropped", "dropped_counts")}
     out["registration"] = {m: {"tool_offset_mm": f["tool_offset_mm"], "tool_held": f.get("tool_held"),

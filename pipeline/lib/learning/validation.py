@@ -250,6 +250,13 @@ def judge_poses(pred: dict, probe_R: dict, flange_R: dict, frames: dict, P_world
     return out
 
 
+def coverage(error: np.ndarray, u: np.ndarray, inside: np.ndarray) -> dict:
+    """The share of points (n,) whose error is within their uncertainty u, mm: {"all", "in", "out"} of the
+    trained workspace (None where there is no point)."""
+    return {w: float((error[k] <= u[k]).mean()) if k.any() else None
+            for w, k in (("all", np.ones_like(inside)), ("in", inside), ("out", ~inside))}
+
+
 def summary(table: pd.DataFrame, mode: str) -> dict:
     """validation.json's entry for one campaign (docs/data-format.md keys, then the in/out split)."""
     j = table[~table.registered]
@@ -264,8 +271,7 @@ def summary(table: pd.DataFrame, mode: str) -> dict:
         "uncertainty_mm_mean": float(j.uncertainty_mm.mean()) if len(j) else None,
         "by_workspace": {w: {m: stats(j.loc[inside == (w == "in"), f"error_{m}_mm"].to_numpy())
                              for m in METHODS} for w in ("in", "out")},
-        "uncertainty_coverage": {w: (float((k.error_model_mm <= k.uncertainty_mm).mean()) if len(k) else None)
-                                 for w, k in (("all", j), ("in", j[inside]), ("out", j[~inside]))},
+        "uncertainty_coverage": coverage(j.error_model_mm.to_numpy(), j.uncertainty_mm.to_numpy(), inside),
         "angle_map": {"in_range_share": float(j.in_range_angle_map.mean()) if len(j) else None,
                       **{w: {m: stats(j.loc[j.in_range_angle_map == (w == "in"), f"error_{m}_mm"].to_numpy())
                              for m in METHODS} for w in ("in", "out")}},
