@@ -380,5 +380,10 @@ def test_position_accuracy_worked_example():
     # a command read back 0.4 µm off (a controller's export in mm): the same position, as in metres (a review)
     nudged = group + np.array([[0.0004, 0, 0]] + [[0, 0, 0]] * 5)
     assert position_accuracy(c, nudged, {"m": x}, {"m": x}, np.ones(6, bool))["m"]["positions"] == 2
+    # two reads 0.2 nm apart either side of a 1 µm rounding boundary: still one position (they were two)
+    across = group + np.array([[0.00049999, 0, 0], [0.00050001, 0, 0]] + [[0, 0, 0]] * 4)
+    split = position_accuracy(c, across, {"m": x}, {"m": x}, np.ones(6, bool))["m"]
+    assert (split["positions"], split["positions_repeated"]) == (2, 2)
+    assert split["rp_measured_mm"] == pytest.approx(pa["rp_measured_mm"])
     assert pa["bar_error_mm"] == pytest.approx(0.2)
     assert pa["ap_predicted_mm"] == pytest.approx((np.hypot(1, 0.2) + 0.2) / 2)

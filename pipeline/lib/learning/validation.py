@@ -39,6 +39,9 @@ is the accuracy after that registration (a constant offset of the robot absorbed
 import numpy as np
 import pandas as pd
 from scipy.optimize import least_squares
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from pipeline.lib.learning.metrics import stats
@@ -278,6 +281,23 @@ def summary(table: pd.DataFrame, mode: str) -> dict:
     }
 
 
+def same_command(group: np.ndarray, tol: float = 1e-3) -> np.ndarray:
+    """Which commanded position each row (m, k) reached, (m,) ids 0.. in the order of the rows' values
+    (np.unique's): rows within tol (1 µm in mm) on every column are one position, chained (a command read
+    back 0.4 µm off either side of a rounding boundary is not two)."""
+    _, g = np.unique(np.round(group, 3), axis=0, return_inverse=True)          # (m,) by the value to 1 µm
+    g = g.ravel()
+    pairs = cKDTree(group).query_pairs(tol, p=np.inf, output_type="ndarray")      # (p, 2) rows within tol
+    if len(pairs):                                         # the groups they join: one, the first in order
+        n = g.max() + 1
+        joined = coo_matrix((np.ones(len(pairs)), (g[pairs[:, 0]], g[pairs[:, 1]])), shape=(n, n))
+        _, comp = connected_components(joined, directed=False)
+        first = np.full(comp.max() + 1, n)
+        np.minimum.at(first, comp, np.arange(n))
+        g = np.unique(first[comp][g], return_inverse=True)[1].ravel()
+    return g
+
+
 def position_accuracy(commanded: np.ndarray, group: np.ndarray, measured: dict, pred: dict,
                       judged: np.ndarray, registered: bool = False) -> dict:
     """ISO 9283 AP_P and RP per method, measured and predicted, averaged over commanded positions.
@@ -294,8 +314,7 @@ def position_accuracy(commanded: np.ndarray, group: np.ndarray, measured: dict, 
     (`rp_*`) and ISO 9283's RP = mean l_i + 3 S_l, S_l the sample standard deviation (n - 1)
     (`rp_iso_*`).
     """
-    _, g = np.unique(np.round(group[judged], 3), axis=0, return_inverse=True)        # 1 µm, whatever the unit
-    g = g.ravel()
+    g = same_command(group[judged])
     c = commanded[judged]
     out = {}
     for m in pred:
