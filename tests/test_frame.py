@@ -175,6 +175,19 @@ def test_the_twin_campaign_passes_the_fit_checks(tmp_path, monkeypatch, caplog):
     assert "probe rotation in the flange, station main:" in caplog.text
 
 
+def test_a_tcp_in_the_probes_frame_without_measured_orientation_stops_the_frame_stage(tmp_path, monkeypatch):
+    """A review (2026-12-06): robot.tcp given `frame: probe` on a campaign without orientation passed ingest,
+    frame, calibrate, train and evaluate, and stopped only at the export."""
+    monkeypatch.setitem(PARAMS["robot"], "tcp", {"gripper": {"xyz_mm": [0.0, 0.0, 150.0], "frame": "probe"}})
+    with pytest.raises(FrameFitError, match=r"robot.tcp gripper: given in the probe's frame .* measures no "
+                                            r"orientation .* give it in the flange frame"):
+        run_stages(tmp_path, monkeypatch, columns={**PARAMS["ingest"]["columns"], "orientation": None})
+    assert not (tmp_path / "reports" / "frame.json").exists()
+    monkeypatch.setitem(PARAMS["robot"], "tcp", {"gripper": {"xyz_mm": [0.0, 0.0, 150.0]}})   # in the flange: runs
+    run_stages(tmp_path, monkeypatch, columns={**PARAMS["ingest"]["columns"], "orientation": None})
+    assert "tool_rot" not in read_json(tmp_path / "reports" / "frame.json")
+
+
 def test_swapped_tracker_axes_stop_the_frame_stage(tmp_path, monkeypatch):
     """X and Y swapped in the header: ingest accepts it (its distance check cannot see a
     reflection); the best rotation leaves 247.6 mm, a reflection 2.5 mm: the frame stage stops."""

@@ -1164,6 +1164,27 @@ def test_a_target_marker_not_in_the_geometry_stops(tmp_path):
            params(joints=joints, tracker=tracker, columns={"marker": "Marker"}))
 
 
+@pytest.mark.parametrize("wrong, said", [
+    ({k: [x, -y, z] for k, (x, y, z) in TARGET.items()}, "mirror image fits them within 0.0"),   # left-handed
+    ({k: [v / 1000 for v in g] for k, g in TARGET.items()}, "1000 times its own: given in another unit"),
+    ({**TARGET, "D": [10.0, 20.0, 8.0]}, "marker 'D' is the worst in"),                              # 80 typed 8
+])
+def test_a_given_target_geometry_that_fits_no_pose_stops_saying_why(tmp_path, wrong, said):
+    """A review (2026-12-06): with its Y signs flipped (a drawing in a left-handed frame) every pose lost a
+    marker and three always fit: 28 of 30 poses kept, turned 71-155° from the truth, the fit's residuals
+    0.03 mm; in metres every pose was `too_few_markers` "within 0.0455 mm of a line"; one coordinate mistyped,
+    each pose listed alone. A geometry the poses holding every marker do not fit (their median) now stops."""
+    ids, q, m, R, rows = marker_campaign(30, seed=8)
+    joints, _ = write_pair(tmp_path, ids, q, m)
+    tracker = write(tmp_path / "targets.csv", ["Name", "Marker", "X", "Y", "Z", "Time", "Std"], rows)
+    raises(["params.yaml", f"ingest.target.markers do not fit the markers measured in {tracker}", said], ingest,
+           params(joints=joints, tracker=tracker, columns={"marker": "Marker"}, target={"markers": wrong}))
+    rows[6][4] = num(float(rows[6][4]) + 2.0)                              # one misread marker: listed, no stop
+    tracker = write(tmp_path / "targets.csv", ["Name", "Marker", "X", "Y", "Z", "Time", "Std"], rows)
+    df, s = ingest(params(joints=joints, tracker=tracker, columns={"marker": "Marker"}, target={"markers": TARGET}))
+    assert [(d["row"], d["reason"]) for d in s["dropped"]] == [(8, "marker_residual")] and len(df) == 30
+
+
 def test_empty_marker_cells_and_a_pose_left_with_two_markers_are_listed_as_they_are(tmp_path):
     """Review (2026-11-29): P0005's A and B with empty marker cells: the second was listed as a duplicate
     (marker '' already on the row before), and the joints row's partner_dropped named the first empty row

@@ -227,6 +227,25 @@ def test_a_tcp_out_of_bounds_is_named_and_one_within_them_passes():
     assert section(p, "robot")["tcp"] == p["robot"]["tcp"]
 
 
+@pytest.mark.parametrize("tcp, said", [
+    ({"xyz_mm": [0, 0, 0.15]}, r"xyz_mm \[0, 0, 0.15\] is within 1 mm of the flange: metres\?"),
+    ({"xyz_mm": [0, 0, 150], "rxyz_deg": [0, 1.5708, 0]}, r"rxyz_deg \[0, 1.5708, 0\] are right angles in radians\?"),
+    ({"xyz_mm": [0, 0, 150], "rxyz_deg": [-3.1416, 0, 4.7124]}, r"rxyz_deg .* are right angles in radians\?"),
+])
+def test_a_tcp_copied_from_urs_set_tcp_in_metres_and_radians_is_refused(tcp, said):
+    """A review (2026-12-06): `set_tcp(p[0, 0, 0.15, 0, 1.5708, 0])` copied as xyz_mm [0, 0, 0.15] and rxyz_deg
+    [0, 1.5708, 0] was taken: every export, `--tcp` and TCP metric then for a point 0.15 mm off the flange,
+    turned 1.57°. A tool at the flange (all 0) and one turned 90° or 1.5° still pass."""
+    p = copy.deepcopy(PARAMS)
+    p["robot"]["tcp"] = {"gun": tcp}
+    with pytest.raises(ParamsError, match=rf"^params.yaml robot.tcp: point gun: {said}.* give .*, got "):
+        section(p, "robot")
+    for fine in ({"xyz_mm": [0, 0, 0]}, {"xyz_mm": [0, 0, 150], "rxyz_deg": [0, 90, 0]},
+                 {"xyz_mm": [1.0, 0, 150], "rxyz_deg": [0, 1.5, 0]}, {"xyz_mm": [0, 0, 150], "rxyz_deg": [1.5708, 30, 0]}):
+        p["robot"]["tcp"] = {"gun": fine}
+        assert section(p, "robot")["tcp"] == {"gun": fine}
+
+
 def test_a_campaign_too_small_for_every_split_stops_the_split_stage_naming_it(tmp_path, monkeypatch):
     """10 poses pass the ingest (at least 10), one frame outlier leaves 9: 8:1:1 gave train 8, val 1, test 0,
     and evaluate then stopped with a traceback (KeyError: 'test'). Now the split stage says why, in one line."""

@@ -75,6 +75,12 @@ def run(params: dict, root: Path = HERE) -> dict:
     inl, r = fit["inliers"], fit["residual_mm"]
     outliers = df.loc[~inl, "point_id"].tolist()
     R_world = measured_rotations(df)
+    probe_tcps = [n for n, c in (p["robot"]["tcp"] or {}).items() if c.get("frame", "flange") == "probe"]
+    if R_world is None and probe_tcps:                     # the export would stop on it, eight stages on
+        raise FrameFitError(f"robot.tcp {probe_tcps[0]}: given in the probe's frame (frame: probe), but the campaign "
+                            f"measures no orientation ({root / INGEST_TABLE} has no meas_q*), so the probe's rotation "
+                            "in the flange is never fitted: give it in the flange frame, or read the orientation "
+                            "(ingest.columns.orientation or ingest.columns.marker)")
     Rf = None if R_world is None else flange_poses(df[JOINTS_DEG].to_numpy(), nominal_geometry(robot))[0]
     stations = {}
     for s, f in fit["stations"].items():

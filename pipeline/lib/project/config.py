@@ -120,7 +120,8 @@ def _vec3(v, bound=math.inf):
 
 def tcp_problem(v) -> str | None:
     """What is wrong with `robot.tcp` (naming the point and its key), or None: null, or name: {xyz_mm (each
-    within ±OFFSET_MM_MAX), rxyz_deg (optional, each within ±360°), frame (optional, flange or probe)}."""
+    within ±OFFSET_MM_MAX, not all within 1 mm unless all 0: metres), rxyz_deg (optional, each within ±360°,
+    its turns not all right angles in radians), frame (optional, flange or probe)}."""
     if v is None:
         return None
     if not isinstance(v, dict) or not v:
@@ -134,6 +135,13 @@ def tcp_problem(v) -> str | None:
             return f"point {k}: xyz_mm {t.get('xyz_mm')!r} is not 3 finite numbers within ±{OFFSET_MM_MAX:g} mm"
         if not _vec3(t.get("rxyz_deg", [0, 0, 0]), 360.0):
             return f"point {k}: rxyz_deg {t.get('rxyz_deg')!r} is not 3 finite angles within ±360°"
+        if 0 < max(map(abs, t["xyz_mm"])) < 1.0:
+            return (f"point {k}: xyz_mm {t['xyz_mm']!r} is within 1 mm of the flange: metres? (UR's set_tcp is in m "
+                    "and rad): give it in mm")
+        turned = [abs(a) for a in t.get("rxyz_deg", []) if a]
+        if turned and all(min(abs(a - r) for r in RIGHT_ANGLES_RAD) < 0.01 for a in turned):
+            return (f"point {k}: rxyz_deg {t['rxyz_deg']!r} are right angles in radians? (UR's set_tcp is in m and "
+                    "rad): give degrees")
         if t.get("frame", "flange") not in ("flange", "probe"):
             return f"point {k}: frame {t.get('frame')!r} is neither flange nor probe"
     return None
@@ -203,6 +211,7 @@ TOOL_SPEED_MAX = 5.0            # m/s: the highest tool speed limit UR's safety 
 TOOL_ACC_MAX = 15.0             # m/s²
 SETTLE_MAX_S = 3600.0           # plan.settle_s: an hour a pose (URScript's 32-bit float holds it to the ms)
 MAX_DEVIATION_MM = 10.0         # path.max_deviation_mm: a branch flip between two samples is tens of mm
+RIGHT_ANGLES_RAD = (math.pi / 2, math.pi, 3 * math.pi / 2, 2 * math.pi)   # a tool's usual turns, written in radians
 OFFSET_MM_MAX = 2000.0          # robot.tool_mm's and robot.tcp's xyz_mm, each: over 2 m from the flange, a slip of unit
 
 RULES = {

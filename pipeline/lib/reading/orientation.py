@@ -227,6 +227,40 @@ def centred(geometry: dict) -> dict:
     return {n: np.asarray(p, float) - c for n, p in geometry.items()}
 
 
+def geometry_problem(geometry: dict, poses: list, limit: float) -> str | None:
+    """Why a given geometry {name: (3,)} does not fit the measured poses [{name: (3,)}], or None. Judged on
+    the poses holding every marker of it, by their median (a misread marker moves a few poses, a wrong
+    geometry most): their fit's worst residual within `limit`, else whether a reflection fits (a mirrored,
+    left-handed drawing), or the measured distances between markers are a multiple of the geometry's (its
+    unit), or which marker is worst most often (a typo). No pose holding every marker: None (each pose is
+    then fitted, and its markers off the fit listed, as always)."""
+    names = list(geometry)
+    full = [np.array([p[n] for n in names]) for p in poses if all(n in p for n in names)]
+    if not full:
+        return None
+    G = np.array([geometry[n] for n in names])
+    pairs = np.triu_indices(len(G), 1)
+    k = float(np.median([np.linalg.norm(P[pairs[0]] - P[pairs[1]], axis=1)
+                         / np.linalg.norm(G[pairs[0]] - G[pairs[1]], axis=1) for P in full]))   # measured / given
+
+    def fit(G, proper=True):                           # the median over the poses of the fit's worst residual,
+        res = [np.linalg.norm(G @ R.T + t - P, axis=1) for P in full for R, t in [kabsch(G, P, proper)]]
+        return float(np.median([r.max() for r in res])), [names[int(np.argmax(r))] for r in res]   # each's worst
+
+    worst, culprit = fit(G)
+    if worst <= limit:
+        return None
+    said = (f"its fit to the {len(full)} poses holding every marker leaves {worst:.3g} mm (the median of their worst "
+            f"residuals; limit {limit:g} mm, ingest.target_residual_mm)")
+    if (mirrored := fit(G, proper=False)[0]) <= limit:
+        return (f"{said}, while its mirror image fits them within {mirrored:.3g} mm: the geometry is mirrored (drawn "
+                "in a left-handed frame, or one axis' sign flipped)")
+    if fit(G * k)[0] <= limit:
+        return f"{said}; the measured distances between its markers are {k:.4g} times its own: given in another unit?"
+    name = max(dict.fromkeys(culprit), key=culprit.count)
+    return f"{said}; marker {name!r} is the worst in {culprit.count(name)} of them: its coordinates mistyped?"
+
+
 def collinear(geometry: dict) -> bool:
     """True when the geometry's markers cannot fix a rotation (fewer than 3, or on a line)."""
     G = np.array(list(geometry.values()), float)

@@ -558,7 +558,7 @@ def pose_groups(rows: Rows) -> dict:
     return out
 
 
-def target_geometry(target, points: dict, rows: Rows) -> tuple[dict, str]:
+def target_geometry(target, points: dict, rows: Rows, limit: float) -> tuple[dict, str]:
     """The target's geometry {name: (3,) mm}: ingest.target's (every marker of the file in it), else
     estimated from the poses' markers (orientation.estimate_geometry) -> (geometry, "given" | "estimated")."""
     if target is None:
@@ -582,6 +582,10 @@ def target_geometry(target, points: dict, rows: Rows) -> tuple[dict, str]:
         if p is None and name not in geometry:
             raise IngestError(f"marker {name!r} is not in ingest.target.markers ({', '.join(geometry)})",
                               file=rows.path, row=rows.lines[r], column=rows.groups["marker"][0])
+    why = orientation.geometry_problem(geometry, list(points.values()), limit)
+    if why:
+        raise IngestError(f"ingest.target.markers do not fit the markers measured in {rows.path}: {why}",
+                          file="params.yaml")
     return geometry, "given"
 
 
@@ -619,8 +623,8 @@ def target_rows(rows: Rows, cfg: dict) -> tuple[Rows, dict, list]:
     scale = 1000.0 if cfg["length_unit"] == "m" else 1.0
     groups = pose_groups(rows)
     points = {pid: {rows.markers[r]: rows.values[r, :3] * scale for r in idx} for pid, idx in groups.items()}
-    geometry, source = target_geometry(cfg["target"], points, rows)
     limit = float(cfg["target_residual_mm"])
+    geometry, source = target_geometry(cfg["target"], points, rows, limit)
     fitted = [fit_target_pose(rows, idx, points[pid], geometry, limit) for pid, idx in groups.items()]
     fits, off = [(f, lines) for f, lines, _ in fitted], [e for *_, gone in fitted for e in gone]
     ok = [f.R is not None for f, _ in fits]
