@@ -5,6 +5,7 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
+from scipy.spatial.transform import Rotation
 
 from pipeline.lib.project.columns import ERR, JOINTS_DEG, MEAS, THEORY
 from pipeline.lib.project.config import load_params, read_json, write_json
@@ -61,6 +62,52 @@ def test_recovers_positions_and_parameters_from_noiseless_data(poses, g0, truth)
         assert est["delta"] == pytest.approx(true, abs=1e-8 if est["unit"] != "deg/(N·m)" else 1e-11), name
     for k in g:                                                     # geometry itself, too
         np.testing.assert_allclose(g[k].numpy(), g_true[k].numpy(), atol=1e-8)
+
+
+def test_a_parameter_off_by_a_known_amount_is_reported_with_that_sign(poses, g0):
+    """A mutation review: every delta of calibration.json negated (apply_deltas subtracting) passed, the test
+    above making its truth with apply_deltas too. Here the truth is edited by hand: a2 0.5 mm longer, joint
+    3's offset 0.01° more; and the residual sigma is the plain residual over its degrees of freedom."""
+    g = {k: v.clone() for k, v in g0.items()}
+    g["a"][1] += 0.5
+    g["offset"][2] += np.radians(0.01)
+    p = positions(poses, g)
+    fitted, rep = C.identify(poses, p, g0, CFG)
+    assert rep["estimates"]["a2"]["delta"] == pytest.approx(0.5, abs=1e-6)
+    assert rep["estimates"]["offset3"]["delta"] == pytest.approx(0.01, abs=1e-7)
+    noisy = p + np.random.default_rng(5).normal(0, 0.05, p.shape)
+    fitted, rep = C.identify(poses, noisy, g0, CFG)
+    r = positions(poses, fitted) - noisy                              # (n, 3) at the solution
+    dof = r.size - len(rep["identified"])
+    assert rep["residual_sigma_mm"] == pytest.approx(np.sqrt((r ** 2).sum() / dof), rel=1e-9)
+
+
+def test_the_orientation_rows_weigh_a_rotation_by_the_stated_noise(poses, g0):
+    """A mutation review: the weight in arcsec-per-degree units, or left out of the rows, passed. 0.01 mm
+    against 2″: 1031.3 mm/rad; a predicted orientation 10″ from the measured one is a row of 10″ times that."""
+    w = C.orientation_weight({"mm": 0.01, "arcsec": 2.0})
+    assert w == pytest.approx(0.01 / np.radians(2 / 3600)) and 1031 < w < 1032
+    spec = C.parameter_spec(CFG)
+    S, x = C.selectors(spec), torch.zeros(len(spec), dtype=DTYPE)
+    p, R = C.predicted(poses, x, g0, S, None, orientation=True)
+    off = torch.as_tensor(Rotation.from_rotvec([0, 0, np.radians(10 / 3600)]).as_matrix(), dtype=DTYPE)
+    rows = C.residual_rows(poses, x, g0, S, None, None, p, R @ off, w).detach().numpy()
+    assert np.abs(rows[:, :3]).max() == 0
+    np.testing.assert_allclose(np.linalg.norm(rows[:, 3:], axis=1), w * np.radians(10 / 3600), rtol=1e-6)
+
+
+def test_a_second_stations_correction_turns_the_probes_orientation_too(poses, g0):
+    """A mutation review: the station's rotation left off the predicted orientation passed. Station b turned
+    2° about z: its predicted positions and orientations are the first station's turned 2°."""
+    spec = C.parameter_spec(CFG) + C.station_spec(["a", "b"])
+    S, x = C.selectors(spec, 2), torch.zeros(len(spec), dtype=DTYPE)
+    x[[s[0] for s in spec].index("b_rz")] = np.radians(2.0)
+    at_b = torch.ones(len(poses), dtype=torch.long)
+    p, R = C.predicted(poses, x, g0, S, at_b, orientation=True)
+    p0, R0 = C.predicted(poses, torch.zeros_like(x), g0, S, None, orientation=True)
+    Rz = Rotation.from_euler("z", 2.0, degrees=True).as_matrix()
+    np.testing.assert_allclose(p.numpy(), p0.numpy() @ Rz.T, atol=1e-9)
+    np.testing.assert_allclose(R.numpy(), Rz @ R0.numpy(), atol=1e-12)
 
 
 def test_flags_redundant_parameters(poses, g0):

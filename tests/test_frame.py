@@ -71,6 +71,18 @@ def test_robust_kabsch_flags_exactly_the_misreads():
     assert np.degrees(Rotation.from_matrix(R @ R_TRUE.T).magnitude()) < 0.02
 
 
+def test_points_far_closer_than_min_mm_are_never_outliers():
+    """A mutation review: without the min_mm floor the rule passed every test. A tracker of 1 µm noise (a
+    calibrated chain): median + 5 MAD is ~5 µm, and points 0.02 mm off are not misreads below min_mm."""
+    rng = np.random.default_rng(4)
+    Q = rng.uniform(-800, 800, (200, 3))
+    P = world(Q, rng, noise=0.001)
+    P[[3, 77]] += [0.02, 0.0, 0.0]
+    assert robust_kabsch(Q, P, k=5, min_mm=3.0)[2].all()
+    P[9] += [5.0, 0.0, 0.0]                                   # one beyond it is still one
+    assert sorted(np.flatnonzero(~robust_kabsch(Q, P, k=5, min_mm=3.0)[2])) == [9]
+
+
 def test_frame_with_tool_estimation_recovers_tool():
     robot = nominal_robot("ur5")
     rng = np.random.default_rng(3)

@@ -1,6 +1,7 @@
 """Calibrating the tool, not the marker (issue 34): orientation residuals, the probe's rotation in the
 flange, joint 6 seen only through orientation, TCPs judged and solved for, the twin's 6-DoF probe."""
 import numpy as np
+import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
@@ -127,6 +128,12 @@ def test_a_tcp_follows_from_the_probe_pose_and_is_judged_there():
     np.testing.assert_allclose(p + R @ o, flange[0] + flange[1] @ c, atol=1e-9)
     shifted = pose_errors(p + [0.0, 0.0, 0.1], R, p, R, {"torch": o})
     assert abs(shifted["tcp"]["torch"]["mean_mm"] - 0.1) < 1e-9 and shifted["orientation"]["max_arcsec"] < 1e-6
+    # turned 100″ about x at the marker: a TCP 100 mm along z is 100 mm × 100″ = 0.0485 mm off (a mutation review:
+    # the measured TCP built with the predicted orientation passed, the TCP error then the marker's, 0)
+    tilted = R @ Rotation.from_rotvec([100 * ARCSEC, 0, 0]).as_matrix()
+    turned = pose_errors(p, R, p, tilted, {"z100": np.array([0.0, 0.0, 100.0])})
+    assert turned["marker"]["max_mm"] == 0 and turned["orientation"]["mean_arcsec"] == pytest.approx(100)
+    assert turned["tcp"]["z100"]["mean_mm"] == pytest.approx(2 * 100 * np.sin(100 * ARCSEC / 2), rel=1e-9)
 
 
 def test_a_tcp_given_in_the_probes_frame_is_the_same_point_and_frame_in_the_flanges():
