@@ -65,6 +65,21 @@ def test_the_maps_say_nothing_where_a_joint_was_never_measured():
     assert (d[:, 1:] == 0).all()
 
 
+def test_covered_is_a_full_bin_and_a_load_inside_its_trained_range():
+    """A mutation review: a bin half covered (the fade at the map's edge) counted as covered, and a load map's
+    range three steps too wide, passed every test. A ramp 1, 0.5, 0 over joint 1's bins 10-12: 10.5° is
+    covered, 11.5° not; a load map of 4 steps of 2 N·m from -3: -3 .. 5 N·m inside, 5.01 not."""
+    cover = np.zeros((6, 360))
+    cover[0, 10:13] = [1.0, 0.5, 0.0]
+    q = np.zeros((3, 6))
+    q[:, 0] = [10.5, 11.5, 12.5]
+    assert E.angle_covered(cover, q)[:, 0].tolist() == [True, False, False]
+    maps = {"lmap_lo": np.full(6, -3.0), "lmap_step": np.array([0, 2.0, 0, 0, 0, 0]), "lmap_coef": np.zeros((6, 7))}
+    tau = np.zeros((4, 6))
+    tau[:, 1] = [-3.0, 5.0, 5.01, -3.01]
+    assert E.in_range(q[:1].repeat(4, 0), tau, maps)["load_map"].tolist() == [True, True, False, False]
+
+
 def test_a_map_cannot_take_over_a_joint_offset_or_the_compliance():
     """A pure offset on joint 2 and a linear-in-torque error on joint 3 (what the calibration's offset
     and compliance hold), fitted beside those two calibration parameters (as the parts stage re-estimates

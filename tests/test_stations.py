@@ -10,12 +10,12 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from pipeline.lib.learning.splits import split_indices
-from pipeline.lib.project.columns import CAMPAIGN, JOINTS_DEG, MEAS, STATION
+from pipeline.lib.project.columns import CAMPAIGN, ERR, JOINTS_DEG, MEAS, MEAS_Q, STATION, THEORY
 from pipeline.lib.project.config import load_params, read_json
 from pipeline.lib.reading.presets import merged_params
 from pipeline.lib.robot import identify as C
 from pipeline.lib.robot.frames import FrameFitError, fit_frames
-from pipeline.lib.robot.geometry import Calibration, aligned, theory_geometry
+from pipeline.lib.robot.geometry import Calibration, aligned, at_temperature, theory_geometry
 from pipeline.lib.robot.kinematics import DTYPE, fk, nominal_geometry, rigid_xyz
 from pipeline.lib.robot.robots import load_robot
 from pipeline.lib.robot.robots import nominal_robot
@@ -277,3 +277,29 @@ def test_more_campaigns_are_checked_with_the_params_key(tmp_path, monkeypatch):
         ingest.run({**merged_params("twin-2stations", PARAMS), "campaigns": p["campaigns"],
                     "ingest": {**PARAMS["ingest"], "joints": str(ROOT / "data/raw/joints.csv"),
                                "tracker": str(ROOT / "data/raw/tracker.csv")}})
+
+
+def test_a_stations_points_are_turned_into_the_first_ones_frame_orientations_too():
+    """A mutation review: the measured orientations of a further station turned by R, not Rᵀ, passed. Station b
+    turned 30° about z and 10 mm along x: its point and its probe's orientation back in the first's frame."""
+    g = nominal_geometry(T.ur5())
+    R_b = Rotation.from_euler("z", 30, degrees=True)
+    R_meas = Rotation.from_euler("xyz", [10, -20, 40], degrees=True)
+    p = np.array([400.0, -100.0, 300.0])
+    df = pd.DataFrame([{STATION: "b", **dict(zip(JOINTS_DEG, [0.0] * 6)), **dict(zip(MEAS, R_b.apply(p) + [10, 0, 0])),
+                        **dict(zip(THEORY, p)), **dict(zip(ERR, [0.0] * 3)),
+                        **dict(zip(MEAS_Q, R_b.as_quat(scalar_first=True) * 0 + (R_b * R_meas).as_quat(scalar_first=True)))}])
+    out = aligned(df, Calibration(g, {"b": [0, 0, np.radians(30), 10.0, 0, 0]}), g)
+    np.testing.assert_allclose(out[MEAS].to_numpy()[0], p, atol=1e-9)
+    back = Rotation.from_quat(out[MEAS_Q].to_numpy()[0], scalar_first=True)
+    assert (back.inv() * R_meas).magnitude() < 1e-12
+
+
+def test_a_warmer_arm_is_longer_by_its_expansion():
+    """A mutation review: d left unexpanded passed. 10 K warmer at 23e-6/K: every a and d 1.00023 times."""
+    g = nominal_geometry(T.ur5())
+    warm = at_temperature(g, 10.0, 23e-6)
+    for k in ("a", "d"):
+        np.testing.assert_allclose(warm[k].numpy(), g[k].numpy() * 1.00023, rtol=1e-12)
+    assert warm["d"][0].item() == pytest.approx(89.159 * 1.00023)        # UR5's d1, 89.159 mm
+    assert torch.equal(warm["alpha"], g["alpha"])
