@@ -50,3 +50,30 @@ def test_r2_of_a_one_point_split_is_null_not_minus_infinity():
     assert m["3d"]["mae"] == pytest.approx(math.sqrt(0.02))
     assert all(m[ax]["r2"] is None for ax in ("x", "y", "z", "3d"))
     json.loads(json_text(m), parse_constant=lambda c: pytest.fail(f"{c} in the JSON"))
+
+
+def test_stats_by_hand():
+    """A mutation review: p95 read at another percentile passed. 0..100: mean 50, p95 95, max 100; none: None."""
+    from pipeline.lib.learning.metrics import stats
+    assert stats(np.arange(101.0)) == {"n": 101, "mean": 50.0, "p95": 95.0, "max": 100.0}
+    assert stats(np.array([])) == {"n": 0, "mean": None, "p95": None, "max": None}
+
+
+def test_the_split_is_the_seeds_and_the_held_out_region_the_top_quantile():
+    """A mutation review: `split.seed` ignored (every test used 7) and the held-out region at 1 - quantile
+    passed. The split is torch's random_split under the given seed; the region, by hand."""
+    import torch
+    from torch.utils.data import random_split
+
+    from pipeline.lib.learning.splits import region, split_indices
+    for seed in (7, 8):
+        want = random_split(range(724), [0.8, 0.1, 0.1], generator=torch.Generator().manual_seed(seed))
+        got = split_indices(724, [0.8, 0.1, 0.1], seed)
+        assert [got[k] for k in ("train", "val", "test")] == [list(p.indices) for p in want]
+        assert [len(v) for v in got.values()] == [580, 72, 72]
+    assert split_indices(724, [0.8, 0.1, 0.1], 8)["test"] != split_indices(724, [0.8, 0.1, 0.1], 7)["test"]
+    q = np.zeros((100, 6))
+    q[:, 0], q[:, 1] = np.arange(100.0), np.arange(100.0)[::-1]
+    assert np.flatnonzero(region(q, {"joints": [1], "quantile": 0.9})).tolist() == list(range(90, 100))
+    assert not region(q, {"joints": [1, 2], "quantile": 0.9}).any()       # joint 2 high where joint 1 is low
+    assert not region(q, None).any()

@@ -10,8 +10,8 @@ from scipy.spatial.transform import Rotation
 
 from pipeline.lib.learning.checkpoint import make_model, save_model
 from pipeline.lib.learning.model import PhysicsOnly
-from pipeline.lib.learning.validation import (METHODS, judge, position_accuracy, refit_tool, registration_subset,
-                                              summary)
+from pipeline.lib.learning.validation import (METHODS, coverage, judge, position_accuracy, refit_tool,
+                                              registration_subset, standard_errors, summary)
 from pipeline.lib.learning.workspace import Workspace
 from pipeline.lib.project.config import load_params, write_json
 from pipeline.lib.robot.identify import orientation_weight
@@ -387,3 +387,14 @@ def test_position_accuracy_worked_example():
     assert split["rp_measured_mm"] == pytest.approx(pa["rp_measured_mm"])
     assert pa["bar_error_mm"] == pytest.approx(0.2)
     assert pa["ap_predicted_mm"] == pytest.approx((np.hypot(1, 0.2) + 0.2) / 2)
+
+
+def test_coverage_and_standard_errors_by_hand():
+    """A mutation review: the coverage's in and out swapped, or judged against 2u, and the standard errors
+    without N / dof (what decides whether a tool component is refit) passed."""
+    got = coverage(np.array([0.1, 0.3, 0.5, 0.9]), np.array([0.2, 0.2, 0.6, 0.6]), np.array([True, True, True, False]))
+    assert got == {"all": 0.5, "in": pytest.approx(2 / 3), "out": 0.0}
+    assert coverage(np.array([0.1]), np.array([0.2]), np.array([False]))["in"] is None
+    J = np.array([[1.0, 0.0], [1.0, 1.0], [1.0, 2.0], [1.0, 3.0]])          # a line fitted to 4 points
+    se = standard_errors(np.array([1.0, -1.0, -1.0, 1.0]), J, n_position=4, dof=2)
+    np.testing.assert_allclose(se, np.sqrt([1.4, 0.4]), rtol=1e-12)        # s² = 4 / 2, (JᵀJ)⁻¹ = [[.7, -.3], [-.3, .2]]
