@@ -554,3 +554,37 @@ def test_own_targets_never_replace_a_file_of_the_stage(trained_project, tmp_path
     shutil.copy(tmp_path / "t/convergence.csv", tmp_path / "t/mine.csv")
     assert exit_code(cli, ["--targets", str(tmp_path / "t/mine.csv")], capsys)[0] == 0
     assert pd.read_csv(tmp_path / "reports/compensation_mine.csv").point_id.tolist() == targets.point_id.tolist()
+
+
+def test_an_answer_beyond_the_joint_limits_never_becomes_angles_to_command(monkeypatch):
+    """A mutation review: the checks after the solver (solve's joint limits, waypoints.unreached's) were never
+    tested on their own, the solvers clamping first; they are the last guard should a clamp break. Joint 1
+    limited to ±10°, a solver answering 10.2° (0.3° from the waypoint), its prediction on the target: not
+    converged, and in the table a robot cell reads no angles (nor Δθ) but the reason; a target not reached the
+    same; one reached as it was."""
+    from pipeline.lib.project.columns import COMPENSATION, DJ_DEG, JCOMP_DEG, JOINTS_DEG
+    from pipeline.lib.runtime import compensation
+    from pipeline.lib.runtime.waypoints import as_written, unreached
+    robot = load_robot({"model": "ur5", "tool_mm": [0.0, 0.0, 0.0], "dh": None, "tcp": None,
+                        "joint_limits_deg": [[-10.0, 10.0]] + [[-360.0, 360.0]] * 5})
+    q0 = np.array([[9.9, -90.0, 90.0, -90.0, -90.0, 0.0]] * 2)
+    answer = q0 + [[-0.1, 0, 0, 0, 0, 0], [0.3, 0, 0, 0, 0, 0]]
+    target = np.array([[400.0, -100.0, 300.0]] * 2)
+    monkeypatch.setattr(compensation, "compensate", lambda model, q, t, cfg, robot, solver, history:
+                        (answer, t.copy(), np.ones(2), np.ones(2, bool), None, 0.0))
+    s = compensation.solve(None, q0, target, {"tol_mm": 0.001, "solver": "lm"}, robot)
+    assert s.converged.tolist() == [True, False]
+    table = pd.DataFrame({c: [0.0] * 3 for c in COMPENSATION}).assign(point_id=["A", "B", "C"])
+    table[JOINTS_DEG] = np.vstack([q0, q0[:1]])
+    table[JCOMP_DEG] = np.vstack([answer, answer[:1]])                  # B: converged, said the solver, at 10.2°
+    table[DJ_DEG] = table[JCOMP_DEG].to_numpy() - table[JOINTS_DEG].to_numpy()
+    table[["target_x", "target_y", "target_z"]] = target[0]
+    table["converged"] = [True, True, False]
+    table["orientation_residual_arcsec"] = np.nan
+    for offline in (True, False):
+        why = unreached(table, robot, offline=offline)
+        assert set(why) == {"B", "C"} and "beyond the joint limits" in why["B"] and "not converged" in why["C"]
+    written = as_written(table, why)
+    assert written.loc[1:, DJ_DEG + JCOMP_DEG].isna().all().all()
+    assert (written.loc[0, DJ_DEG + JCOMP_DEG] == table.loc[0, DJ_DEG + JCOMP_DEG]).all()
+    assert written.not_reached.tolist() == ["", why["B"], why["C"]]

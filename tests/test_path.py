@@ -876,12 +876,27 @@ def test_a_refusal_at_the_first_or_last_sample_says_so():
     row = lambda arc, ok: [arc, 0.0, 0.0, 0.0, *[10.0] * 6, 0.0 if ok else 0.0001, 1, ok, 648000.0 if not ok else 0.1]
     limits, speeds = np.array([[-360.0, 360.0]] * 6), np.full(6, 180.0)
     first = pd.DataFrame([row(0.0, False)], columns=SOLVED).assign(in_workspace=True)
-    said = refusal(first, 3, limits, 0.001, np.zeros(0), 0.5, np.zeros(1), 2.0, speeds)
+    said = refusal(first, 3, limits, 0.001, np.zeros(0), 0.5, np.zeros(1), speeds)
     assert said.startswith("sample 1 (arc 0.0 mm): not reached") and "solved from the start joints; the 2 samples" \
         in said and "sample 0" not in said, said
     last = pd.DataFrame([row(0.0, True), row(1.0, True), row(2.0, False)], columns=SOLVED).assign(in_workspace=True)
-    said = refusal(last, 3, limits, 0.001, np.zeros(2), 0.5, np.arange(3.0), 2.0, speeds)
+    said = refusal(last, 3, limits, 0.001, np.zeros(2), 0.5, np.arange(3.0), speeds)
     assert said.endswith("solved from sample 2's joints") and "0 samples" not in said, said
+
+
+def test_a_refusal_names_a_joint_below_its_limit_and_a_step_leaving_the_path():
+    """A mutation review: the lower joint limit and the deviation bound of `refusal` were tested only through a
+    trained project. Four samples reached, the second with joint 2 a degree below its -360° limit, the step
+    from the second to the third 0.6 mm off the path (bound 0.5): the first named, then the second."""
+    from pipeline.lib.runtime.pathsolve import SOLVED, refusal
+    q = np.full((4, 6), 10.0)
+    q[1, 1] = -361.0
+    table = pd.DataFrame([[float(k), 0.0, 0.0, 0.0, *q[k], 0.0, 1, True, 0.1] for k in range(4)],
+                         columns=SOLVED).assign(in_workspace=True)
+    said = refusal(table, 4, np.array([[-360.0, 360.0]] * 6), 0.001, np.array([0.2, 0.6, 0.1]), 0.5,
+                   np.zeros(4), np.full(6, 1e9))
+    assert said == ("sample 2 (arc 1.0 mm): joint 2 at -361.0°, beyond its limits [-360, 360]°; then leaving the "
+                    "path at sample 3"), said
 
 
 def test_a_path_from_joints_in_another_configuration_is_refused_at_sample_1(path_server, in_trained_project, tmp_path,

@@ -196,6 +196,33 @@ def test_a_row_with_one_cell_too_many_is_refused_not_shifted(tmp_path):
         read_waypoints(src, load_robot({"model": "ur5", "dh": None, "joint_limits_deg": None, "tcp": None, "tool_mm": [0, 0, 0]}))
 
 
+def test_a_waypoint_beyond_its_limits_or_the_reach_is_refused_before_any_solve(tmp_path, monkeypatch):
+    """A mutation review: read_waypoints' joint-limit check and compensate_program's reach refusal were tested
+    only through a trained project. A j2_deg of 400° names its row and column; a target twice the reach of the
+    chain that would solve it is refused naming its id, before anything is solved."""
+    from types import SimpleNamespace
+
+    from pipeline.lib.robot.kinematics import nominal_geometry
+    from pipeline.lib.runtime.compensation import reach_mm
+    from pipeline.lib.runtime import waypoints
+    from pipeline.lib.runtime.waypoints import Refused, compensate_program
+    robot = load_robot({"model": "ur5", "dh": None, "joint_limits_deg": None, "tcp": None, "tool_mm": [0, 0, 0]})
+    src = tmp_path / "prog.csv"
+    src.write_text("point_id," + ",".join(JOINTS_DEG) + "\nA,0,-90,90,-90,-90,0\nB,0,400,90,-90,-90,0\n")
+    with pytest.raises(ValueError, match=r"prog.csv, row 3, column 'j2_deg': 400.0° beyond the joint limits"):
+        read_waypoints(src, robot)
+    g = nominal_geometry(robot)
+    df = pd.DataFrame({"point_id": ["A", "B"], **{c: [0.0, 0.0] for c in JOINTS_DEG},
+                       "target_x": [400.0, 2 * reach_mm(g)], "target_y": [0.0, 0.0], "target_z": [300.0, 0.0]})
+    solved = []
+    monkeypatch.setattr(waypoints, "solve", lambda *a, **k: solved.append(a))
+    model = SimpleNamespace(physics=SimpleNamespace(geometry=lambda: g))   # only its geometry is asked for
+    with pytest.raises(Refused, match=rf"unreachable: B: target {2 * reach_mm(g):.1f} mm from the base, beyond "
+                                      rf"the arm's reach of {reach_mm(g):.1f} mm$"):
+        compensate_program(df, model, None, robot, g, {"orientation": False})
+    assert not solved
+
+
 def test_a_row_with_one_cell_too_many_is_refused_by_program_and_plan(in_trained_project, tmp_path, capsys):
     src = program_file(tmp_path, n=3)
     src.write_text(src.read_text() + ROW_30.split(",", 1)[1] + "\n")          # no id column: 7 cells for 6
