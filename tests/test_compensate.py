@@ -588,3 +588,23 @@ def test_an_answer_beyond_the_joint_limits_never_becomes_angles_to_command(monke
     assert written.loc[1:, DJ_DEG + JCOMP_DEG].isna().all().all()
     assert (written.loc[0, DJ_DEG + JCOMP_DEG] == table.loc[0, DJ_DEG + JCOMP_DEG]).all()
     assert written.not_reached.tolist() == ["", why["B"], why["C"]]
+
+
+def test_the_delta_table_is_the_compensated_joints_minus_the_waypoints_and_the_reach_by_hand():
+    """A mutation review: Δθ written as θ_initial - θ_final (eq. 19 turned round: every correction driven the
+    wrong way) and the reach bound without the tool passed every test that needs no trained project."""
+    from pipeline.lib.project.columns import DJ_DEG, JCOMP_DEG
+    from pipeline.lib.robot.kinematics import nominal_geometry
+    from pipeline.lib.runtime.compensation import Solved, delta_table, reach_mm
+    q0 = np.array([[0.0, -90.0, 90.0, -90.0, -90.0, 0.0], [10.0, -80.0, 80.0, -70.0, -60.0, 5.0]])
+    dq = np.array([[0.5, -0.25, 0.0, 0.1, 0.0, -0.05], [-0.01, 0.0, 0.02, 0.0, 0.0, 0.0]])
+    target = np.array([[400.0, -100.0, 300.0], [380.0, -90.0, 310.0]])
+    solved = Solved(q0 + dq, target + 0.0004, np.array([3, 4]), np.array([True, True]), None, 0.0)
+    table = delta_table(["A", "B"], q0, target, solved, lambda q: (np.zeros(len(q)), np.ones(len(q), bool)))
+    np.testing.assert_allclose(table[DJ_DEG].to_numpy(), dq, atol=1e-12)             # θ_final - θ_initial
+    np.testing.assert_allclose(table[JCOMP_DEG].to_numpy(), q0 + dq, atol=1e-12)
+    np.testing.assert_allclose(table.residual_mm, np.sqrt(3) * 0.0004, rtol=1e-9)
+    g = nominal_geometry(load_robot({"model": "ur5", "tool_mm": [0.0, 0.0, 100.0], "dh": None, "tcp": None,
+                                     "joint_limits_deg": None}))
+    ur5 = 425.0 + 392.25 + 89.159 + 109.15 + 94.65 + 82.3                 # |a| and |d| of the UR5's table, mm
+    assert reach_mm(g) == pytest.approx(ur5 + 100.0)
