@@ -1179,6 +1179,10 @@ def test_a_given_target_geometry_that_fits_no_pose_stops_saying_why(tmp_path, wr
     tracker = write(tmp_path / "targets.csv", ["Name", "Marker", "X", "Y", "Z", "Time", "Std"], rows)
     raises(["params.yaml", f"ingest.target.markers do not fit the markers measured in {tracker}", said], ingest,
            params(joints=joints, tracker=tracker, columns={"marker": "Marker"}, target={"markers": wrong}))
+    noisy = marker_campaign(30, noise=0.5, seed=8)[4]                      # the right geometry, a noisy tracker
+    loud = write(tmp_path / "noisy.csv", ["Name", "Marker", "X", "Y", "Z", "Time", "Std"], noisy)
+    raises(["no marker the worst in most", "noisier than ingest.target_residual_mm"], ingest,
+           params(joints=joints, tracker=loud, columns={"marker": "Marker"}, target={"markers": TARGET}))
     rows[6][4] = num(float(rows[6][4]) + 2.0)                              # one misread marker: listed, no stop
     tracker = write(tmp_path / "targets.csv", ["Name", "Marker", "X", "Y", "Z", "Time", "Std"], rows)
     df, s = ingest(params(joints=joints, tracker=tracker, columns={"marker": "Marker"}, target={"markers": TARGET}))

@@ -232,7 +232,7 @@ def geometry_problem(geometry: dict, poses: list, limit: float) -> str | None:
     the poses holding every marker of it, by their median (a misread marker moves a few poses, a wrong
     geometry most): their fit's worst residual within `limit`, else whether a reflection fits (a mirrored,
     left-handed drawing), or the measured distances between markers are a multiple of the geometry's (its
-    unit), or which marker is worst most often (a typo). No pose holding every marker: None (each pose is
+    unit), or which marker is the worst in most of them (a typo), or none is (noise beyond the limit). No pose holding every marker: None (each pose is
     then fitted, and its markers off the fit listed, as always)."""
     names = list(geometry)
     full = [np.array([p[n] for n in names]) for p in poses if all(n in p for n in names)]
@@ -258,7 +258,10 @@ def geometry_problem(geometry: dict, poses: list, limit: float) -> str | None:
     if fit(G * k)[0] <= limit:
         return f"{said}; the measured distances between its markers are {k:.4g} times its own: given in another unit?"
     name = max(dict.fromkeys(culprit), key=culprit.count)
-    return f"{said}; marker {name!r} is the worst in {culprit.count(name)} of them: its coordinates mistyped?"
+    if 2 * culprit.count(name) > len(culprit):
+        return f"{said}; marker {name!r} is the worst in {culprit.count(name)} of them: its coordinates mistyped?"
+    return (f"{said}, no marker the worst in most: the markers scatter about it more than the limit (a tracker "
+            "noisier than ingest.target_residual_mm allows?) or the geometry is another target's")
 
 
 def collinear(geometry: dict) -> bool:
