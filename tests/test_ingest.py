@@ -1165,28 +1165,48 @@ def test_a_target_marker_not_in_the_geometry_stops(tmp_path):
 
 
 @pytest.mark.parametrize("wrong, said", [
-    ({k: [x, -y, z] for k, (x, y, z) in TARGET.items()}, "mirror image fits them within 0.0"),   # left-handed
-    ({k: [v / 1000 for v in g] for k, g in TARGET.items()}, "1000 times its own: given in another unit"),
-    ({**TARGET, "D": [10.0, 20.0, 8.0]}, "marker 'D' is the worst in"),                              # 80 typed 8
+    ({k: [x, -y, z] for k, (x, y, z) in TARGET.items()}, "its mirror image fits 30 of the 30 poses"),  # left-handed
+    ({k: [v / 1000 for v in g] for k, g in TARGET.items()}, "6 of its 6 marker pairs"),               # in metres
+    ({**TARGET, "D": [10.0, 20.0, 8.0]}, "each of them holds marker 'D': its coordinates mistyped?"),  # 80 typed 8
+    ({**TARGET, "A": [60.0, 0.0, 1.0]}, "each of them holds marker 'A': its coordinates mistyped?"),   # 10 typed 1
 ])
 def test_a_given_target_geometry_that_fits_no_pose_stops_saying_why(tmp_path, wrong, said):
     """A review (2026-12-06): with its Y signs flipped (a drawing in a left-handed frame) every pose lost a
     marker and three always fit: 28 of 30 poses kept, turned 71-155° from the truth, the fit's residuals
     0.03 mm; in metres every pose was `too_few_markers` "within 0.0455 mm of a line"; one coordinate mistyped,
-    each pose listed alone. A geometry the poses holding every marker do not fit (their median) now stops."""
+    each pose listed alone. A geometry whose marker distances the poses do not have, or whose mirror image
+    fits most poses, now stops. (A review of that: the marker blamed was the fit's worst, often another.)"""
     ids, q, m, R, rows = marker_campaign(30, seed=8)
     joints, _ = write_pair(tmp_path, ids, q, m)
     tracker = write(tmp_path / "targets.csv", ["Name", "Marker", "X", "Y", "Z", "Time", "Std"], rows)
-    raises(["params.yaml", f"ingest.target.markers do not fit the markers measured in {tracker}", said], ingest,
-           params(joints=joints, tracker=tracker, columns={"marker": "Marker"}, target={"markers": wrong}))
-    noisy = marker_campaign(30, noise=0.5, seed=8)[4]                      # the right geometry, a noisy tracker
-    loud = write(tmp_path / "noisy.csv", ["Name", "Marker", "X", "Y", "Z", "Time", "Std"], noisy)
-    raises(["no marker the worst in most", "noisier than ingest.target_residual_mm"], ingest,
-           params(joints=joints, tracker=loud, columns={"marker": "Marker"}, target={"markers": TARGET}))
-    rows[6][4] = num(float(rows[6][4]) + 2.0)                              # one misread marker: listed, no stop
+    e = raises(["params.yaml", f"ingest.target.markers do not fit the markers measured in {tracker}", said], ingest,
+               params(joints=joints, tracker=tracker, columns={"marker": "Marker"}, target={"markers": wrong}))
+    assert ("times its own: given in another unit?" in str(e)) == (wrong["B"][1] == 0.07)
+
+
+def test_a_right_target_geometry_passes_beside_misreads_occlusion_and_noise(tmp_path):
+    """A review of the check above (2026-12-06): judged on the median fit of the poses holding every marker, it
+    stopped a campaign whose poses each lost a marker to a misread in half the poses, or where two poses held
+    every marker and one had a misread. Judged on each pair's median distance, those pass, each misread marker
+    listed; so does a tracker noisier than the fits' limit allows (its poses then lose markers, each listed)."""
+    ids, q, m, R, rows = marker_campaign(30, seed=8)
+    joints, _ = write_pair(tmp_path, ids, q, m)
+    for k in range(16):                                    # 16 of 30 poses, one marker each 2 mm off
+        rows[4 * k + k % 4][3] = num(float(rows[4 * k + k % 4][3]) + 2.0)
     tracker = write(tmp_path / "targets.csv", ["Name", "Marker", "X", "Y", "Z", "Time", "Std"], rows)
     df, s = ingest(params(joints=joints, tracker=tracker, columns={"marker": "Marker"}, target={"markers": TARGET}))
-    assert [(d["row"], d["reason"]) for d in s["dropped"]] == [(8, "marker_residual")] and len(df) == 30
+    assert len(df) == 30 and sorted(d["row"] for d in s["dropped"]) == [4 * k + k % 4 + 2 for k in range(16)]
+    assert {d["reason"] for d in s["dropped"]} == {"marker_residual"}
+    ids, q, m, R, rows = marker_campaign(30, seed=8)
+    rows = [r for i, r in enumerate(rows) if i < 8 or i % 4 != (i // 4) % 4]   # poses 3-30 each lose one marker
+    rows[1][2] = num(float(rows[1][2]) + 3.0)              # and of the two holding all four, one has a misread
+    tracker = write(tmp_path / "targets.csv", ["Name", "Marker", "X", "Y", "Z", "Time", "Std"], rows)
+    df, s = ingest(params(joints=joints, tracker=tracker, columns={"marker": "Marker"}, target={"markers": TARGET}))
+    assert len(df) == 30 and [(d["row"], d["reason"]) for d in s["dropped"]] == [(3, "marker_residual")]
+    noisy = marker_campaign(30, noise=0.3, seed=8)[4]
+    tracker = write(tmp_path / "targets.csv", ["Name", "Marker", "X", "Y", "Z", "Time", "Std"], noisy)
+    df, s = ingest(params(joints=joints, tracker=tracker, columns={"marker": "Marker"}, target={"markers": TARGET}))
+    assert len(df) == 30 and s["dropped"] and {d["reason"] for d in s["dropped"]} == {"marker_residual"}
 
 
 def test_empty_marker_cells_and_a_pose_left_with_two_markers_are_listed_as_they_are(tmp_path):

@@ -288,7 +288,7 @@ def test_a_stations_points_are_turned_into_the_first_ones_frame_orientations_too
     p = np.array([400.0, -100.0, 300.0])
     df = pd.DataFrame([{STATION: "b", **dict(zip(JOINTS_DEG, [0.0] * 6)), **dict(zip(MEAS, R_b.apply(p) + [10, 0, 0])),
                         **dict(zip(THEORY, p)), **dict(zip(ERR, [0.0] * 3)),
-                        **dict(zip(MEAS_Q, R_b.as_quat(scalar_first=True) * 0 + (R_b * R_meas).as_quat(scalar_first=True)))}])
+                        **dict(zip(MEAS_Q, (R_b * R_meas).as_quat(scalar_first=True)))}])
     out = aligned(df, Calibration(g, {"b": [0, 0, np.radians(30), 10.0, 0, 0]}), g)
     np.testing.assert_allclose(out[MEAS].to_numpy()[0], p, atol=1e-9)
     back = Rotation.from_quat(out[MEAS_Q].to_numpy()[0], scalar_first=True)

@@ -385,6 +385,15 @@ def test_position_accuracy_worked_example():
     split = position_accuracy(c, across, {"m": x}, {"m": x}, np.ones(6, bool))["m"]
     assert (split["positions"], split["positions_repeated"]) == (2, 2)
     assert split["rp_measured_mm"] == pytest.approx(pa["rp_measured_mm"])
+    # an empty command cell (NaN): that visit left out and counted (a review: a traceback naming no column)
+    blank = group.copy()
+    blank[4, 0] = np.nan
+    gap = position_accuracy(c, blank, {"m": x}, {"m": x}, np.ones(6, bool))["m"]
+    assert (gap["positions"], gap["positions_repeated"], gap["points_without_command"]) == (2, 2, 1)
+    assert gap["rp_measured_mm"] == pytest.approx(pa["rp_measured_mm"]) and "points_without_command" not in pa
+    # a thousand visits of two positions: two positions, grouped by their distinct commands
+    many = np.repeat(np.array([[0.0, 0, 0], [100.0, 0, 0]]), 1000, axis=0)
+    assert position_accuracy(many, many, {"m": many}, {"m": many}, np.ones(2000, bool))["m"]["positions"] == 2
     assert pa["bar_error_mm"] == pytest.approx(0.2)
     assert pa["ap_predicted_mm"] == pytest.approx((np.hypot(1, 0.2) + 0.2) / 2)
 

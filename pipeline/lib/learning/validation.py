@@ -283,14 +283,18 @@ def summary(table: pd.DataFrame, mode: str) -> dict:
 
 def same_command(group: np.ndarray, tol: float = 1e-3) -> np.ndarray:
     """Which commanded position each row (m, k) reached, (m,) ids 0.. in the order of the rows' values
-    (np.unique's): rows within tol (1 µm in mm) on every column are one position, chained (a command read
-    back 0.4 µm off either side of a rounding boundary is not two)."""
+    (np.unique's): rows within tol (1 µm in mm; 1 pm of slack for the float) on every column are one
+    position, chained (a command read back 0.4 µm off either side of a rounding boundary is not two). The
+    distinct commands are grouped, not the rows: a thousand visits of one position cost one."""
     _, g = np.unique(np.round(group, 3), axis=0, return_inverse=True)          # (m,) by the value to 1 µm
     g = g.ravel()
-    pairs = cKDTree(group).query_pairs(tol, p=np.inf, output_type="ndarray")      # (p, 2) rows within tol
+    distinct, row = np.unique(group, axis=0, return_inverse=True)               # (u, k), (m,)
+    pairs = cKDTree(distinct).query_pairs(tol + 1e-9, p=np.inf, output_type="ndarray")   # (p, 2) within tol
     if len(pairs):                                         # the groups they join: one, the first in order
+        at = np.zeros(len(distinct), int)
+        at[row.ravel()] = g                                # each distinct command's group
         n = g.max() + 1
-        joined = coo_matrix((np.ones(len(pairs)), (g[pairs[:, 0]], g[pairs[:, 1]])), shape=(n, n))
+        joined = coo_matrix((np.ones(len(pairs)), (at[pairs[:, 0]], at[pairs[:, 1]])), shape=(n, n))
         _, comp = connected_components(joined, directed=False)
         first = np.full(comp.max() + 1, n)
         np.minimum.at(first, comp, np.arange(n))
@@ -307,13 +311,16 @@ def position_accuracy(commanded: np.ndarray, group: np.ndarray, measured: dict, 
     joint configuration and orientation); measured {method: (m, 3) in that method's base frame};
     pred {method: (m, 3)}; registered: that base frame was fitted to the method's own predictions
     (refit, refit_tool), so a constant offset of the robot is absorbed in it: AP_P measured is then
-    the accuracy after that registration, not the standard's. Per position, with deviations
+    the accuracy after that registration, not the standard's. A point whose command has an empty cell is
+    not judged here; `points_without_command` counts them (absent where there are none). Per position, with deviations
     d_i = x_i - c_i and l_i = |d_i - mean d|: AP_P = |mean d_i|, bar_error = |mean(pred) - mean(measured)|
     over every judged position; over the positions reached at least twice (a campaign that visits
     each position once, as Series_D's cubes, has an AP per position and no RP) the spread mean l_i
     (`rp_*`) and ISO 9283's RP = mean l_i + 3 S_l, S_l the sample standard deviation (n - 1)
     (`rp_iso_*`).
     """
+    given = np.isfinite(group).all(1) & np.isfinite(commanded).all(1)     # (m,) an empty command cell: not judged
+    commandless, judged = int((judged & ~given).sum()), judged & given
     g = same_command(group[judged])
     c = commanded[judged]
     out = {}
@@ -336,5 +343,6 @@ def position_accuracy(commanded: np.ndarray, group: np.ndarray, measured: dict, 
                   **{f"{k}_mm": (float(np.mean(v)) if v else None) for k, v in rows.items()},   # means over positions
                   "ap_measured_max_mm": float(np.max(rows["ap_measured"])) if rows["ap_measured"] else None,
                   "rp_iso_measured_max_mm": float(np.max(rows["rp_iso_measured"])) if rows["rp_iso_measured"] else None,
-                  "ap_after_registration": registered}
+                  "ap_after_registration": registered,
+                  **({"points_without_command": commandless} if commandless else {})}
     return out

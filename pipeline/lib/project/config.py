@@ -139,9 +139,9 @@ def tcp_problem(v) -> str | None:
             return (f"point {k}: xyz_mm {t['xyz_mm']!r} is within 1 mm of the flange: metres? (UR's set_tcp is in m "
                     "and rad): give it in mm")
         turned = [abs(a) for a in t.get("rxyz_deg", []) if a]
-        if turned and all(min(abs(a - r) for r in RIGHT_ANGLES_RAD) < 0.01 for a in turned):
+        if turned and all(min(abs(a - r) for r in RIGHT_ANGLES_RAD) < 1e-3 for a in turned):
             return (f"point {k}: rxyz_deg {t['rxyz_deg']!r} are right angles in radians? (UR's set_tcp is in m and "
-                    "rad): give degrees")
+                    "rad, its turn a rotation vector): give the xyz Euler angles in degrees")
         if t.get("frame", "flange") not in ("flange", "probe"):
             return f"point {k}: frame {t.get('frame')!r} is neither flange nor probe"
     return None

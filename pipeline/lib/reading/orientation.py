@@ -228,40 +228,47 @@ def centred(geometry: dict) -> dict:
 
 
 def geometry_problem(geometry: dict, poses: list, limit: float) -> str | None:
-    """Why a given geometry {name: (3,)} does not fit the measured poses [{name: (3,)}], or None. Judged on
-    the poses holding every marker of it, by their median (a misread marker moves a few poses, a wrong
-    geometry most): their fit's worst residual within `limit`, else whether a reflection fits (a mirrored,
-    left-handed drawing), or the measured distances between markers are a multiple of the geometry's (its
-    unit), or which marker is the worst in most of them (a typo), or none is (noise beyond the limit). No pose holding every marker: None (each pose is
-    then fitted, and its markers off the fit listed, as always)."""
+    """Why a given geometry {name: (3,)} does not fit the measured poses [{name: (3,)}], or None. Each pair of
+    its markers: the median over the poses holding both of their measured distance (a misread marker moves a
+    few poses, a wrong geometry every one) against the geometry's, off by more than `limit`: its unit (every
+    pair off by one factor), a mistyped marker (in every pair that is off), or another target. Distances
+    cannot see a mirror image: where they fit, most poses holding every marker fitted better by a reflection
+    than within `limit` by a rotation (a geometry drawn in a left-handed frame; a planar target's mirror image
+    is a turn of it, never seen). Pairs no pose holds are not judged."""
     names = list(geometry)
+    G = {n: np.asarray(geometry[n], float) for n in names}
+    pairs = []                                             # (a, b, given distance, measured median)
+    for i, a in enumerate(names):
+        for b in names[i + 1:]:
+            d = [np.linalg.norm(p[a] - p[b]) for p in poses if a in p and b in p]
+            if d:
+                pairs.append((a, b, float(np.linalg.norm(G[a] - G[b])), float(np.median(d))))
+    off = [(a, b, g, m) for a, b, g, m in pairs if abs(m - g) > limit]
+    if off:
+        k = float(np.median([m / g for *_, g, m in pairs]))
+        worst = max(off, key=lambda x: abs(x[3] - x[2]))
+        said = (f"{len(off)} of its {len(pairs)} marker pairs are farther apart or closer in the poses than in it "
+                f"(the median over the poses holding both; {worst[0]}-{worst[1]} {worst[3]:.3f} mm measured, "
+                f"{worst[2]:.3f} mm given; limit {limit:g} mm, ingest.target_residual_mm)")
+        if abs(k - 1) > 0.01 and all(abs(m - k * g) <= limit for *_, g, m in pairs):
+            return f"{said}: every one {k:.4g} times its own: given in another unit?"
+        common = set(names).intersection(*({a, b} for a, b, *_ in off))
+        if len(common) == 1 and len(off) > 1:
+            return f"{said}: each of them holds marker {common.pop()!r}: its coordinates mistyped?"
+        return f"{said}: the geometry of another target?"
     full = [np.array([p[n] for n in names]) for p in poses if all(n in p for n in names)]
-    if not full:
-        return None
-    G = np.array([geometry[n] for n in names])
-    pairs = np.triu_indices(len(G), 1)
-    k = float(np.median([np.linalg.norm(P[pairs[0]] - P[pairs[1]], axis=1)
-                         / np.linalg.norm(G[pairs[0]] - G[pairs[1]], axis=1) for P in full]))   # measured / given
+    Gm = np.array([G[n] for n in names])
 
-    def fit(G, proper=True):                           # the median over the poses of the fit's worst residual,
-        res = [np.linalg.norm(G @ R.T + t - P, axis=1) for P in full for R, t in [kabsch(G, P, proper)]]
-        return float(np.median([r.max() for r in res])), [names[int(np.argmax(r))] for r in res]   # each's worst
+    def fit(P, proper):                                    # the fit's worst residual, mm
+        R, t = kabsch(Gm, P, proper)
+        return np.linalg.norm(Gm @ R.T + t - P, axis=1).max()
 
-    worst, culprit = fit(G)
-    if worst <= limit:
-        return None
-    said = (f"its fit to the {len(full)} poses holding every marker leaves {worst:.3g} mm (the median of their worst "
-            f"residuals; limit {limit:g} mm, ingest.target_residual_mm)")
-    if (mirrored := fit(G, proper=False)[0]) <= limit:
-        return (f"{said}, while its mirror image fits them within {mirrored:.3g} mm: the geometry is mirrored (drawn "
-                "in a left-handed frame, or one axis' sign flipped)")
-    if fit(G * k)[0] <= limit:
-        return f"{said}; the measured distances between its markers are {k:.4g} times its own: given in another unit?"
-    name = max(dict.fromkeys(culprit), key=culprit.count)
-    if 2 * culprit.count(name) > len(culprit):
-        return f"{said}; marker {name!r} is the worst in {culprit.count(name)} of them: its coordinates mistyped?"
-    return (f"{said}, no marker the worst in most: the markers scatter about it more than the limit (a tracker "
-            "noisier than ingest.target_residual_mm allows?) or the geometry is another target's")
+    mirrored = [fit(P, False) <= limit < fit(P, True) for P in full]
+    if full and 2 * sum(mirrored) > len(full):
+        return (f"its mirror image fits {sum(mirrored)} of the {len(full)} poses holding every marker within {limit:g} "
+                "mm (ingest.target_residual_mm), a turn of it none: the geometry is mirrored (drawn in a "
+                "left-handed frame, or one axis' sign flipped)")
+    return None
 
 
 def collinear(geometry: dict) -> bool:
