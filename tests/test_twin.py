@@ -192,3 +192,14 @@ def test_the_drive_check_measures_through_the_noise_and_a_tcp_turns_with_the_pro
     summary, err = tcp_drive_check(twin, frame, np.random.default_rng(1), np.random.default_rng(2), q, q,
                                    p + R @ o, o)
     assert twin.noise_floor_mm < summary["after"]["3d"]["mean"] < 2 * twin.noise_floor_mm
+
+
+def test_each_committed_twin_campaign_is_recognised_by_its_files_and_a_changed_one_is_not(recorded, tmp_path):
+    """A mutation review: the validation campaign left out of the twin's record of what it made passed (the drive
+    check and twin-side judgement then skipped as for a real robot's campaign)."""
+    from pipeline.lib.reading.campaigns import made_by_twin, pair_sha256
+    for name, folder in (("main", RAW), ("validation", RAW / "validation"), ("station_b", RAW / "station_b")):
+        assert made_by_twin(recorded, pair_sha256(folder / "joints.csv", folder / "tracker.csv")) == name
+    edited = tmp_path / "tracker.csv"
+    edited.write_bytes((RAW / "validation/tracker.csv").read_bytes().replace(b"\n", b"\n ", 1))
+    assert made_by_twin(recorded, pair_sha256(RAW / "validation/joints.csv", edited)) is None
