@@ -190,6 +190,22 @@ def test_point_cloud_paired_by_order(tmp_path, suffix):
         assert "point 5 has a non-finite coordinate" in s["dropped"][1]["detail"]
 
 
+def test_a_bad_joint_row_lists_its_cloud_point_as_partner_dropped(tmp_path):
+    """A mutation review: a cloud point whose joint row was dropped could go unlisted (nothing tested it): every
+    line of both files is kept or listed."""
+    ids, q, m = campaign(20, seed=6)
+    joints, _ = write_pair(tmp_path, ids, q, m)
+    lines = Path(joints).read_text().splitlines()
+    lines[5] = lines[5].replace(",", ",abc,", 1).rsplit(",", 1)[0]          # P0005: a word in its first joint
+    Path(joints).write_text("\n".join(lines) + "\n")
+    cloud = tmp_path / "points.xyz"
+    cloud.write_text("\n".join(" ".join(repr(float(v)) for v in p) for p in m) + "\n")
+    df, s = ingest(params(joints=joints, tracker=str(cloud)))
+    assert sorted((d["file"], d["row"], d["reason"]) for d in s["dropped"]) == sorted(
+        [(joints, 6, "non_numeric"), (str(cloud), 5, "partner_dropped")])
+    assert len(df) == 19 and s["n_read"] == {"joints": 20, "tracker": 20}
+
+
 def test_point_cloud_count_must_match(tmp_path):
     ids, q, m = campaign(20, seed=6)
     joints, _ = write_pair(tmp_path, ids, q, m)
@@ -268,6 +284,17 @@ def twin_params(**ingest_cfg):
     p = params(**ingest_cfg)
     p["robot"]["tool_mm"] = [0.0, 0.0, 0.0]
     return p
+
+
+def test_a_decimal_point_moved_one_place_is_a_position_outlier(tmp_path):
+    """A mutation review: the outlier bound ten times looser passed (the test below moves a point 16 km). One
+    place (-1659.1260 -> -16591.260: 15 m off, 5 x the UR5's reach about 5 m) is a position_outlier too."""
+    paths, cells = twin_copy(tmp_path, [("tracker", 2, "X", "-16591.260")])
+    df, s = ingest(twin_params(**paths))
+    listed = by_file(s, paths["tracker"])
+    assert [(d["row"], d["reason"]) for d in listed] == [(2, "position_outlier")]
+    assert "lost decimal point" in listed[0]["detail"]
+    assert s["n_kept"] == len(df) == 723
 
 
 def test_typo_cells_in_positions_drop_their_rows_not_the_campaign(tmp_path):
