@@ -496,6 +496,20 @@ def test_a_learning_curve_is_extended_only_with_the_settings_it_was_run_with(tmp
         bench.extended_curve("learning_curve", {**rec, "seeds": [139]}, [700])
 
 
+def test_a_matrix_whose_columns_repeat_identifies_nothing():
+    """A mutation review: the rank check dropped (every column non-zero taken as identified) passed; the test
+    below has a zero column. The twin's a2, a3, d4 and offset5 on 50 poses are identified; with offset5's column
+    made d4's (two equal, non-zero columns): not identified, no condition number, no errors."""
+    params = load_params()
+    ident = design.Identification(true_geometry(Twin().errors), params["calibrate"], ["a2", "a3", "d4", "offset5"], 0.05)
+    A = ident.rows(sample_poses(50, np.random.default_rng(3)), new=True).reshape(-1, 4)   # (150, 4) mm per unit
+    assert design.prediction(A.T @ A, ident)["identified"]
+    A[:, 3] = A[:, 2]
+    got = design.prediction(A.T @ A, ident)
+    assert not got["identified"] and got["condition_number"] is None
+    assert all(v["se"] is None for v in got["se"].values())
+
+
 def test_orientation_rows_identify_joint_6_which_positions_cannot():
     """A marker on joint 6's axis (the twin's, at the flange): positions alone leave offset6 (and the
     probe's rotation) unidentified, so the plan's prediction is None; the calibration fitted with orientation
