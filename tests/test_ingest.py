@@ -1196,6 +1196,7 @@ def test_a_target_marker_not_in_the_geometry_stops(tmp_path):
     ({k: [v / 1000 for v in g] for k, g in TARGET.items()}, "6 of its 6 marker pairs"),               # in metres
     ({**TARGET, "D": [10.0, 20.0, 8.0]}, "each of them holds marker 'D': its coordinates mistyped?"),  # 80 typed 8
     ({**TARGET, "A": [60.0, 0.0, 1.0]}, "each of them holds marker 'A': its coordinates mistyped?"),   # 10 typed 1
+    ({**TARGET, "D": TARGET["C"]}, "marker pairs are farther apart"),       # D typed as C (was a ZeroDivisionError)
 ])
 def test_a_given_target_geometry_that_fits_no_pose_stops_saying_why(tmp_path, wrong, said):
     """A review (2026-12-06): with its Y signs flipped (a drawing in a left-handed frame) every pose lost a

@@ -245,7 +245,7 @@ def geometry_problem(geometry: dict, poses: list, limit: float) -> str | None:
                 pairs.append((a, b, float(np.linalg.norm(G[a] - G[b])), float(np.median(d))))
     off = [(a, b, g, m) for a, b, g, m in pairs if abs(m - g) > limit]
     if off:
-        k = float(np.median([m / g for *_, g, m in pairs]))
+        k = float(np.median([m / g for *_, g, m in pairs if g > 0] or [np.nan]))   # two markers typed alike: g 0
         worst = max(off, key=lambda x: abs(x[3] - x[2]))
         said = (f"{len(off)} of its {len(pairs)} marker pairs are farther apart or closer in the poses than in it "
                 f"(the median over the poses holding both; {worst[0]}-{worst[1]} {worst[3]:.3f} mm measured, "
