@@ -30,17 +30,27 @@ SAME_POSE_DEG = 0.05   # IPA Series_B's repeated joint configurations lie within
                        # 0.002-2.3 mm apart, median 0.022), its next distinct poses 5.4° away; random poses degrees
 
 
-def repeats(q_deg: np.ndarray) -> np.ndarray:
-    """A group number per row (n,): rows whose joints lie within SAME_POSE_DEG of each other on every joint
-    (chained) share one; groups numbered by their first row, so without repeats row k is group k."""
-    q = np.asarray(q_deg, float)
-    pairs = cKDTree(q).query_pairs(SAME_POSE_DEG, p=np.inf, output_type="ndarray") if len(q) else np.empty((0, 2), int)
-    link = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(q), len(q)))
-    labels = connected_components(link, directed=False)[1]
+def chained(x: np.ndarray, tol: float) -> np.ndarray:
+    """A group number per row of x (n, k): rows within tol of each other on every column (chained) share one;
+    groups numbered by their first row, so without such rows row k is group k. The distinct rows are linked,
+    not the rows: a thousand copies of one row cost one."""
+    x = np.asarray(x, float)
+    if not len(x):
+        return np.zeros(0, int)
+    distinct, row = np.unique(x, axis=0, return_inverse=True)                   # (u, k), (n,)
+    pairs = cKDTree(distinct).query_pairs(tol, p=np.inf, output_type="ndarray")  # (p, 2) within tol
+    link = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(distinct),) * 2)
+    labels = connected_components(link, directed=False)[1][row.ravel()]          # (n,)
     first = np.unique(labels, return_index=True)[1]                 # each label's first row
     rank = np.empty(len(first), int)
     rank[np.argsort(first)] = np.arange(len(first))
     return rank[labels]
+
+
+def repeats(q_deg: np.ndarray) -> np.ndarray:
+    """A group number per row (n,): rows whose joints lie within SAME_POSE_DEG of each other on every joint
+    (chained) share one; groups numbered by their first row, so without repeats row k is group k."""
+    return chained(q_deg, SAME_POSE_DEG)
 
 
 def split_groups(groups: np.ndarray, fractions, seed: int) -> dict[str, list[int]]:

@@ -39,12 +39,10 @@ is the accuracy after that registration (a constant offset of the robot absorbed
 import numpy as np
 import pandas as pd
 from scipy.optimize import least_squares
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
-from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from pipeline.lib.learning.metrics import stats
+from pipeline.lib.learning.splits import chained
 from pipeline.lib.robot.frames import (FRAME_TOOL, MISREAD_PERCENTILE, REFIT_ROUNDS, FrameFitError, check_fit,
                                        determined_beyond, kabsch, kept, robust_kabsch, to_base)
 from pipeline.lib.robot.identify import orientation_angles
@@ -283,23 +281,14 @@ def summary(table: pd.DataFrame, mode: str) -> dict:
 
 def same_command(group: np.ndarray, tol: float = 1e-3) -> np.ndarray:
     """Which commanded position each row (m, k) reached, (m,) ids 0.. in the order of the rows' values
-    (np.unique's): rows within tol (1 µm in mm; 1 pm of slack for the float) on every column are one
-    position, chained (a command read back 0.4 µm off either side of a rounding boundary is not two). The
-    distinct commands are grouped, not the rows: a thousand visits of one position cost one."""
+    (np.unique's, of each position's first value to 1 µm): rows within tol (1 µm in mm; 1 pm of slack for the
+    float) on every column are one position, chained (`splits.chained`: a command read back 0.4 µm off either
+    side of a rounding boundary is not two)."""
     _, g = np.unique(np.round(group, 3), axis=0, return_inverse=True)          # (m,) by the value to 1 µm
-    g = g.ravel()
-    distinct, row = np.unique(group, axis=0, return_inverse=True)               # (u, k), (m,)
-    pairs = cKDTree(distinct).query_pairs(tol + 1e-9, p=np.inf, output_type="ndarray")   # (p, 2) within tol
-    if len(pairs):                                         # the groups they join: one, the first in order
-        at = np.zeros(len(distinct), int)
-        at[row.ravel()] = g                                # each distinct command's group
-        n = g.max() + 1
-        joined = coo_matrix((np.ones(len(pairs)), (at[pairs[:, 0]], at[pairs[:, 1]])), shape=(n, n))
-        _, comp = connected_components(joined, directed=False)
-        first = np.full(comp.max() + 1, n)
-        np.minimum.at(first, comp, np.arange(n))
-        g = np.unique(first[comp][g], return_inverse=True)[1].ravel()
-    return g
+    comp = chained(group, tol + 1e-9)                                          # (m,) rows within tol
+    first = np.full(comp.max() + 1 if len(comp) else 0, len(comp))
+    np.minimum.at(first, comp, g.ravel())                                      # each position's first value
+    return np.unique(first[comp], return_inverse=True)[1].ravel()
 
 
 def position_accuracy(commanded: np.ndarray, group: np.ndarray, measured: dict, pred: dict,
